@@ -1,0 +1,87 @@
+"""The ``cacc-bench`` command line.
+
+Subcommands with their own option parsers live in their own modules and are imported only when
+called, so ``cacc-bench --help`` and ``cacc-bench list`` start fast. Every user-fixable error
+(:class:`envs.errors.CaccBenchError`) becomes a one-paragraph message and exit status 2.
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+from collections.abc import Callable, Sequence
+
+from envs.errors import CaccBenchError
+
+#: subcommand -> (module with ``main(argv) -> int``, one-line help)
+SUBCOMMANDS: dict[str, tuple[str, str]] = {
+    "list": ("benchmark.list_cmd", "list scenarios and controllers"),
+    "run": ("benchmark.run_cmd", "run a sweep of controllers x scenarios x sizes x seeds"),
+    "leaderboard": ("benchmark.leaderboard_cmd", "rebuild runs.csv and leaderboard.csv"),
+    "plot": ("benchmark.plot_cmd", "figures from a results folder"),
+    "stability": ("benchmark.stability_cmd", "string stability, analytic and measured"),
+    "train": ("benchmark.train_cmd", "train a MARL algorithm"),
+    "fit-power": ("benchmark.fit_power", "re-fit the energy polynomial and print its quality"),
+    "perf": ("benchmark.perf", "environment, controller and training throughput"),
+}
+
+USAGE = """usage: cacc-bench <command> [options]
+
+cacc-bench: learned and optimisation-based platoon controllers on one simulated platoon.
+
+commands:
+{commands}
+
+Run `cacc-bench <command> --help` for the options of a command.
+Main job: `cacc-bench run --controllers ovm,cacc` (writes results/run/leaderboard.csv).
+"""
+
+
+def _usage() -> str:
+    width = max(len(k) for k in SUBCOMMANDS)
+    lines = [f"  {k.ljust(width)}  {h}" for k, (_, h) in SUBCOMMANDS.items()]
+    return USAGE.format(commands="\n".join(lines))
+
+
+def fail(message: str) -> int:
+    """Print a user error and return exit status 2."""
+    print(f"cacc-bench: error: {message}", file=sys.stderr)
+    return 2
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``cacc-bench`` console script."""
+    args = list(sys.argv[1:] if argv is None else argv)
+    if not args or args[0] in ("-h", "--help", "help"):
+        print(_usage())
+        return 0
+    if args[0] == "--version":
+        from benchmark.provenance import version
+
+        print(f"cacc-bench {version()}")
+        return 0
+    cmd, rest = args[0], args[1:]
+    if cmd not in SUBCOMMANDS:
+        return fail(
+            f"unknown command {cmd!r}; valid commands are: {', '.join(SUBCOMMANDS)}. "
+            "Run `cacc-bench --help`."
+        )
+    module_name = SUBCOMMANDS[cmd][0]
+    try:
+        module = importlib.import_module(module_name)
+    except ModuleNotFoundError as exc:
+        if exc.name == module_name:
+            return fail(f"command {cmd!r} is not available in this version")
+        raise
+    entry: Callable[[list[str]], int] = module.main
+    try:
+        return int(entry(rest) or 0)
+    except CaccBenchError as exc:
+        return fail(str(exc))
+    except KeyboardInterrupt:
+        print("cacc-bench: interrupted; finished runs are stored (use --resume)", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

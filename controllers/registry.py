@@ -1,0 +1,222 @@
+"""Registry of named controller presets, with lazy imports so ``cacc-bench list`` stays fast.
+
+A controller is named on the command line as ``name`` or ``name:key=value,key=value`` (options of
+its config dataclass); in a comma list, a ``key=value`` item belongs to the controller before it:
+``--controllers mpc:solver=ipopt,horizon=30,cacc``. The options become part of the controller's
+label (``mpc[horizon=30,solver=ipopt]``), so two settings never share a leaderboard row.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import importlib.util
+import math
+import typing
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+from envs.errors import ConfigError, UnknownNameError
+
+
+@dataclass(frozen=True)
+class ControllerSpec:
+    """A registered controller preset.
+
+    Attributes
+    ----------
+    name : str
+        Registered name (what ``--controllers`` takes).
+    family : str
+        ``human``, ``linear``, ``mpc`` or ``marl``.
+    v2v : str
+        What it receives over V2V, in words.
+    description : str
+        One line for ``cacc-bench list``.
+    target : str
+        ``module:callable`` building the controller from keyword options.
+    fixed : dict
+        Keyword arguments always passed to the target (e.g. the MARL algorithm).
+    """
+
+    name: str
+    family: str
+    v2v: str
+    description: str
+    target: str
+    fixed: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def available(self) -> bool:
+        """Whether the implementing module is present (checked without importing it)."""
+        module = self.target.split(":", 1)[0]
+        try:
+            return importlib.util.find_spec(module) is not None
+        except ModuleNotFoundError:
+            return False
+
+
+CONTROLLERS: dict[str, ControllerSpec] = {}
+
+MARL_ALGORITHMS: tuple[str, ...] = ("ia2c", "fprint", "dial", "commnet", "wac", "dcea", "bdc")
+
+
+def register_controller(spec: ControllerSpec) -> None:
+    """Add a controller preset (registering one adds it to the parametrised tests)."""
+    CONTROLLERS[spec.name] = spec
+
+
+for _spec in (
+    ControllerSpec(
+        "ovm", "human", "none",
+        "optimal velocity model, (alpha, beta) = (0.5, 0.5): the human driver (MARL action 3)",
+        "controllers.ovm:OVMController",
+    ),
+    ControllerSpec(
+        "acc", "linear", "none",
+        "constant time-gap ACC, u = kp e + kd de/dt (Ploeg's law without feedforward)",
+        "controllers.linear:ACCController",
+    ),
+    ControllerSpec(
+        "cacc", "linear", "predecessor's commanded acceleration (1 float)",
+        "Ploeg's CACC: constant time gap with the predecessor's command as feedforward",
+        "controllers.linear:CACCController",
+    ),
+    ControllerSpec(
+        "mpc", "mpc", "predecessor's assumed trajectory (H+1 floats)",
+        "energy-aware distributed MPC with the fitted power model (CasADi)",
+        "controllers.mpc:DMPCController",
+    ),
+    ControllerSpec(
+        "mpc-qp", "mpc", "predecessor's assumed trajectory (H+1 floats)",
+        "quadratic distributed MPC without energy term (OSQP)",
+        "controllers.mpc_qp:QPDMPCController",
+    ),
+    ControllerSpec(
+        "cmpc", "mpc", "full state of the platoon (centralised)",
+        "centralised MPC of the whole platoon with full information (cvxpy)",
+        "controllers.cmpc:CentralisedMPCController",
+    ),
+):
+    register_controller(_spec)
+
+for _algo in MARL_ALGORITHMS:
+    register_controller(
+        ControllerSpec(
+            _algo, "marl", "see marl.md (neighbour blocks, messages)",
+            f"trained {_algo} policy (shipped checkpoint, greedy actions)",
+            "controllers.policy:PolicyController",
+            fixed={"algo": _algo},
+        )
+    )
+
+#: Controllers of ``cacc-bench run`` when none are named.
+DEFAULT_CONTROLLERS: tuple[str, ...] = ("ovm",)
+
+
+def available_controllers() -> list[ControllerSpec]:
+    """Registered controllers whose implementation is present, in registration order."""
+    return [s for s in CONTROLLERS.values() if s.available]
+
+
+def parse_controller_list(text: str) -> list[tuple[str, dict[str, str]]]:
+    """Parse ``"mpc:solver=ipopt,horizon=30,cacc"`` into ``[("mpc", {...}), ("cacc", {})]``."""
+    out: list[tuple[str, dict[str, str]]] = []
+    for raw in text.split(","):
+        item = raw.strip()
+        if not item:
+            continue
+        if ":" in item:
+            name, opt = item.split(":", 1)
+            out.append((name.strip(), {}))
+            item = opt
+            if not item:
+                continue
+        elif "=" not in item:
+            out.append((item, {}))
+            continue
+        if "=" not in item:
+            raise ConfigError(f"controller option {item!r} must be written key=value")
+        if not out:
+            raise ConfigError(f"option {item!r} comes before any controller name")
+        key, value = item.split("=", 1)
+        out[-1][1][key.strip()] = value.strip()
+    if not out:
+        raise ConfigError("no controller named")
+    return out
+
+
+def controller_label(name: str, options: dict[str, Any]) -> str:
+    """Leaderboard label: the name, plus its non-default options in brackets, sorted."""
+    if not options:
+        return name
+    return name + "[" + ",".join(f"{k}={options[k]}" for k in sorted(options)) + "]"
+
+
+def resolve(name: str) -> ControllerSpec:
+    """The spec of a registered and available controller, or a clear error."""
+    spec = CONTROLLERS.get(name)
+    if spec is None or not spec.available:
+        raise UnknownNameError("controller", name, [s.name for s in available_controllers()])
+    return spec
+
+
+def make_controller(name: str, **options: Any) -> Any:
+    """Build a controller by registered name with keyword options (strings are coerced)."""
+    spec = resolve(name)
+    module_name, attr = spec.target.split(":", 1)
+    factory: Callable[..., Any] = getattr(importlib.import_module(module_name), attr)
+    return factory(**spec.fixed, **options)
+
+
+def _coerce(value: Any, annotation: Any, key: str, owner: str) -> Any:
+    if not isinstance(value, str):
+        return value
+    origin = typing.get_origin(annotation)
+    args = typing.get_args(annotation)
+    if origin is not None and type(None) in args:
+        if value.lower() in ("none", ""):
+            return None
+        annotation = next(a for a in args if a is not type(None))
+    try:
+        if annotation in (bool, "bool"):
+            if value.lower() in ("1", "true", "yes", "on"):
+                return True
+            if value.lower() in ("0", "false", "no", "off"):
+                return False
+            raise ValueError
+        if annotation in (int, "int"):
+            return int(value)
+        if annotation in (float, "float"):
+            out = float(value)
+            if not math.isfinite(out):
+                raise ValueError
+            return out
+    except ValueError:
+        raise ConfigError(
+            f"option {key} of {owner} must be of type {getattr(annotation, '__name__', annotation)}, "
+            f"got {value!r}"
+        ) from None
+    return value
+
+
+def build_config(config_cls: type, options: dict[str, Any], owner: str) -> Any:
+    """Instantiate a frozen config dataclass from keyword options, coercing strings by type.
+
+    Unknown options give a :class:`ConfigError` listing the valid ones; the dataclass's own
+    ``__post_init__`` checks values.
+    """
+    fields = {f.name: f for f in dataclasses.fields(config_cls) if f.init}
+    hints = typing.get_type_hints(config_cls)
+    kwargs = {}
+    for key, value in options.items():
+        if key not in fields:
+            raise ConfigError(
+                f"{owner} has no option {key!r}; its options are: {', '.join(sorted(fields))}"
+            )
+        kwargs[key] = _coerce(value, hints.get(key, str), key, owner)
+    try:
+        return config_cls(**kwargs)
+    except TypeError as exc:
+        raise ConfigError(f"bad options for {owner}: {exc}") from None

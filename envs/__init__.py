@@ -1,0 +1,1 @@
+"""cacc-bench: envs."""

@@ -1,0 +1,192 @@
+"""The V2V channel: whole-step delay, per-message packet loss with hold-last, bit counting.
+
+Every controller that communicates sends through a :class:`V2VChannel`, so delay and loss act on
+every family alike and every bit is counted. Losses are drawn from the episode's own random
+stream: a counter-based hash of (episode seed, channel name, step, link), so a batch of episodes
+gives exactly the numbers of the same episodes run one by one, on every executor.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from envs.errors import ConfigError
+
+_MASK64 = np.uint64(0xFFFFFFFFFFFFFFFF)
+
+
+def _splitmix64(x: np.ndarray) -> np.ndarray:
+    """SplitMix64 finaliser on uint64 arrays (wrapping arithmetic)."""
+    with np.errstate(over="ignore"):
+        z = x + np.uint64(0x9E3779B97F4A7C15)
+        z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+        z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+        return z ^ (z >> np.uint64(31))
+
+
+def _name_key(name: str) -> int:
+    h = 1469598103934665603
+    for ch in name.encode():
+        h = ((h ^ ch) * 1099511628211) & 0xFFFFFFFFFFFFFFFF
+    return h
+
+
+def episode_uniforms(seeds: np.ndarray, name: str, step: int, n: int) -> np.ndarray:
+    """Uniform numbers in [0, 1) of shape ``(B, n)`` for one step of one named stream.
+
+    A pure function of (seed, name, step, index): the same episode gets the same numbers whether
+    it runs alone or in a batch.
+    """
+    seeds = np.asarray(seeds, dtype=np.int64).astype(np.uint64)
+    base = _splitmix64(seeds ^ np.uint64(_name_key(name)))
+    with np.errstate(over="ignore"):
+        key = base[:, None] + np.uint64(step) * np.uint64(1_000_003)
+        key = key + np.arange(n, dtype=np.uint64)[None, :] * np.uint64(0x632BE59BD9B4E019)
+    bits = _splitmix64(_splitmix64(key)) >> np.uint64(11)
+    return bits.astype(np.float64) * (1.0 / 9007199254740992.0)
+
+
+@dataclass(frozen=True)
+class ChannelConfig:
+    """V2V settings of a run.
+
+    Attributes
+    ----------
+    delay_s : float
+        Transport delay, rounded to whole steps (0 = instant, as published).
+    packet_loss : float
+        Probability that one message is lost, in [0, 1]; a receiver keeps its last message.
+    dt_s : float
+        Step length used to turn the delay into steps.
+    """
+
+    delay_s: float = 0.0
+    packet_loss: float = 0.0
+    dt_s: float = 0.1
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.delay_s) and self.delay_s >= 0):
+            raise ConfigError(f"the V2V delay must be >= 0 s, got {self.delay_s}")
+        if not (math.isfinite(self.packet_loss) and 0 <= self.packet_loss <= 1):
+            raise ConfigError(f"the packet loss must lie in [0, 1], got {self.packet_loss}")
+
+    @property
+    def delay_steps(self) -> int:
+        """Delay in whole steps (``round(delay_s / dt_s)``)."""
+        return int(round(self.delay_s / self.dt_s + 1e-9))
+
+
+class V2VChannel:
+    """Messages along fixed directed links between vehicles (0 = leader, 1..N followers).
+
+    Each step every sender broadcasts one message (a vector of ``width`` numbers) and every link
+    delivers it to its receiver after ``delay_steps`` steps unless it is lost; a receiver that got
+    nothing new keeps the last message it received (or ``initial`` before the first one).
+
+    Parameters
+    ----------
+    links : sequence of (src, dst)
+        Directed links by vehicle index.
+    width : int
+        Numbers per message.
+    seeds : (B,) ints
+        Episode seeds (losses come from each episode's own stream).
+    config : ChannelConfig
+        Delay and loss.
+    bits_per_value : int
+        Bits per transmitted number (32 for float32); counted once per sender and step
+        (broadcast: one transmission reaches all of the sender's receivers).
+    name : str
+        Stream name; two channels of one controller need distinct names.
+    initial : float or (B, L, width) array
+        What a receiver holds before its first message.
+    """
+
+    def __init__(
+        self,
+        links: Sequence[tuple[int, int]],
+        width: int,
+        seeds: Sequence[int] | np.ndarray,
+        config: ChannelConfig = ChannelConfig(),
+        bits_per_value: int = 32,
+        name: str = "v2v",
+        initial: float | np.ndarray = 0.0,
+    ) -> None:
+        if width < 1:
+            raise ConfigError("a message carries at least one number")
+        self.links = np.asarray(links, dtype=np.int64).reshape(-1, 2)
+        self.src = self.links[:, 0]
+        self.senders = np.unique(self.src)
+        self.width = int(width)
+        self.seeds = np.asarray(seeds, dtype=np.int64).reshape(-1)
+        self.config = config
+        self.bits_per_value = int(bits_per_value)
+        self.name = name
+        b, n_links = len(self.seeds), len(self.links)
+        self.delay = config.delay_steps
+        self._held = np.broadcast_to(
+            np.asarray(initial, dtype=np.float64), (b, n_links, self.width)
+        ).copy()
+        # ring of the last `delay` transmissions, per link (None until sent)
+        self._queue: list[np.ndarray | None] = [None] * self.delay
+        self._step = 0
+        self.bits_sent = 0  # over all episodes of the batch
+        self.messages_sent = 0
+
+    @classmethod
+    def predecessor(
+        cls, n_vehicles: int, width: int, seeds: Sequence[int] | np.ndarray, **kwargs: object
+    ) -> V2VChannel:
+        """Links ``i-1 -> i`` for followers ``i = 1..N`` (the leader sends to follower 1)."""
+        links = [(i - 1, i) for i in range(1, n_vehicles + 1)]
+        return cls(links, width, seeds, **kwargs)  # type: ignore[arg-type]
+
+    def transmit(self, payload: np.ndarray) -> np.ndarray:
+        """Send this step's messages and return what the receivers hold now.
+
+        Parameters
+        ----------
+        payload : (B, V, width) or (B, V)
+            Message of every vehicle index ``0..V-1`` (rows of non-senders are ignored).
+
+        Returns
+        -------
+        (B, L, width)
+            Message held by the receiver of each link, in link order.
+        """
+        payload = np.asarray(payload, dtype=np.float64)
+        if payload.ndim == 2:
+            payload = payload[:, :, None]
+        b = len(self.seeds)
+        if payload.shape[0] != b or payload.shape[2] != self.width:
+            raise ValueError(
+                f"payload shape {payload.shape} does not fit (B={b}, V, width={self.width})"
+            )
+        sent = payload[:, self.src, :]
+        self.bits_sent += b * len(self.senders) * self.width * self.bits_per_value
+        self.messages_sent += b * len(self.senders)
+        if self.delay:
+            self._queue.append(sent)
+            arriving = self._queue.pop(0)
+        else:
+            arriving = sent
+        if arriving is not None:
+            if self.config.packet_loss > 0:
+                u = episode_uniforms(self.seeds, self.name, self._step, len(self.links))
+                ok = u >= self.config.packet_loss
+                self._held = np.where(ok[:, :, None], arriving, self._held)
+            else:
+                self._held = arriving.copy()
+        self._step += 1
+        return self._held
+
+    def bits_per_vehicle_per_s(self, n_vehicles: int, n_steps: int, dt_s: float) -> float:
+        """Mean V2V load: bits sent per vehicle (followers) per second, per episode."""
+        if n_steps == 0:
+            return 0.0
+        b = len(self.seeds)
+        return self.bits_sent / (b * n_vehicles * n_steps * dt_s)

@@ -1,0 +1,290 @@
+"""The thin stateful platoon environment over the pure step functions, batched over episodes."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from envs.dynamics import (
+    action_to_command_mps2,
+    agent_observations,
+    combine_reward,
+    physics_step,
+    predecessor_speed_mps,
+    reward_terms,
+    vehicle_blocks,
+)
+from envs.errors import ConfigError
+from envs.params import PlatoonParams, RewardWeights
+from envs.scenarios import Scenario, check_vehicles, make_scenario
+
+COLLISION_MODES = ("terminate", "published")
+
+
+@dataclass
+class PlatoonState:
+    """Mutable state of ``B`` episodes (arrays are owned by the env; copy to keep them).
+
+    Attributes
+    ----------
+    step : int
+        Steps taken since reset (all episodes of a batch step together).
+    gap_m, speed_mps : (B, N)
+        Gaps to the predecessor and speeds of the followers.
+    realised_accel_mps2 : (B, N)
+        Lag state: the realised acceleration (equal to the clipped command without lag).
+    applied_accel_mps2 : (B, N)
+        Applied acceleration of the last step ``(v_t - v_{t-1})/dt``, 0 at reset (``u_last``).
+    leader_speed_mps : (B, T+1)
+        Leader profile of each episode.
+    collided : (B,) bool
+        Whether a collision happened (latched).
+    done : (B,) bool
+        Whether the episode has ended (frozen from then on).
+    collision_step : (B,) int
+        Step of the collision, -1 if none.
+    """
+
+    step: int
+    gap_m: np.ndarray
+    speed_mps: np.ndarray
+    realised_accel_mps2: np.ndarray
+    applied_accel_mps2: np.ndarray
+    leader_speed_mps: np.ndarray
+    collided: np.ndarray
+    done: np.ndarray
+    collision_step: np.ndarray
+    dt_s: float = 0.1
+
+    @property
+    def leader_speed_now_mps(self) -> np.ndarray:
+        """Leader speed at the current step, ``(B,)``."""
+        return self.leader_speed_mps[:, min(self.step, self.leader_speed_mps.shape[1] - 1)]
+
+    @property
+    def leader_accel_now_mps2(self) -> np.ndarray:
+        """Leader acceleration over the coming step ``(v0[t+1] - v0[t]) / dt``, ``(B,)``."""
+        t = min(self.step, self.leader_speed_mps.shape[1] - 2)
+        return (self.leader_speed_mps[:, t + 1] - self.leader_speed_mps[:, t]) / self.dt_s
+
+    @property
+    def pred_speed_mps(self) -> np.ndarray:
+        """Speed of each follower's predecessor, ``(B, N)``."""
+        return predecessor_speed_mps(self.leader_speed_now_mps, self.speed_mps)
+
+
+@dataclass
+class StepResult:
+    """What :meth:`PlatoonEnv.step` returns.
+
+    Attributes
+    ----------
+    reward : (B, N)
+        Reward of every agent (training or evaluation form, see the env's ``training`` flag).
+    done : (B,) bool
+        Episodes that have ended (at the last step, or by collision).
+    collided : (B,) bool
+        Episodes with a collision so far.
+    power_kw : (B, N)
+        Battery power of every follower over the step (fitted polynomial).
+    applied_accel_mps2 : (B, N)
+        Applied accelerations of the step.
+    observation : (B, N, 15) or None
+        Agent observations after the step (if the env observes).
+    """
+
+    reward: np.ndarray
+    done: np.ndarray
+    collided: np.ndarray
+    power_kw: np.ndarray
+    applied_accel_mps2: np.ndarray
+    observation: np.ndarray | None
+
+
+class PlatoonEnv:
+    """Batched platoon environment: ``B`` episodes of one scenario and size, stepped together.
+
+    Parameters
+    ----------
+    scenario : Scenario or str
+        Scenario object or registered id.
+    n_vehicles : int
+        Followers N (2..64).
+    params : PlatoonParams
+        Physics (``lag_s`` for the actuator lag).
+    training : bool
+        Include the safety term in the reward (published: training only).
+    include_power : bool
+        Include the power term ``-10 P`` in the reward (the paper's reward; True by default).
+    collision_mode : {"terminate", "published"}
+        ``terminate``: a collision ends the episode (benchmark rule). ``published``: the state
+        freezes, every agent gets -1000 at that and every later step, and the episode ends at the
+        next multiple of 60 steps (published training rule).
+    observe : bool
+        Compute agent observations every step (MARL); controllers that read the state directly
+        may turn this off.
+    dtype : numpy dtype
+        Float type of the observations (physics is always float64).
+    """
+
+    def __init__(
+        self,
+        scenario: Scenario | str,
+        n_vehicles: int = 8,
+        params: PlatoonParams = PlatoonParams(),
+        *,
+        training: bool = False,
+        include_power: bool = True,
+        collision_mode: str = "terminate",
+        observe: bool = True,
+        weights: RewardWeights = RewardWeights(),
+        dtype: type = np.float32,
+    ) -> None:
+        self.scenario = make_scenario(scenario) if isinstance(scenario, str) else scenario
+        self.n_vehicles = check_vehicles(n_vehicles)
+        if collision_mode not in COLLISION_MODES:
+            raise ConfigError(
+                f"collision_mode must be one of {', '.join(COLLISION_MODES)}, got {collision_mode!r}"
+            )
+        self.params = params
+        self.training = training
+        self.include_power = include_power
+        self.collision_mode = collision_mode
+        self.observe = observe
+        self.weights = weights
+        self.dtype = dtype
+        self.n_steps = self.scenario.n_steps
+        self.target_gap_m = self.scenario.target_gap_m
+        self.target_speed_mps = self.scenario.target_speed_mps
+        from envs.energy import load_power_polynomial
+
+        self.power = load_power_polynomial()
+        self.state: PlatoonState | None = None
+        self.seeds: np.ndarray = np.zeros(0, dtype=np.int64)
+        self._obs: np.ndarray | None = None
+        self._blocks: np.ndarray | None = None
+
+    # ------------------------------------------------------------------ API
+    def reset(
+        self,
+        seeds: Sequence[int] | np.ndarray | int,
+        perturbation: float | Sequence[float] | np.ndarray | None = None,
+    ) -> np.ndarray | None:
+        """Start one episode per seed; returns the observations ``(B, N, 15)`` (or None).
+
+        Parameters
+        ----------
+        seeds : int or sequence of int
+            Episode seeds (published seeding of ``U``).
+        perturbation : float or (B,) floats, optional
+            Explicit ``U`` overriding the seeded draw.
+        """
+        seeds_arr = np.atleast_1d(np.asarray(seeds, dtype=np.int64))
+        ep = self.scenario.episodes(seeds_arr, self.n_vehicles, perturbation)
+        b, n = len(seeds_arr), self.n_vehicles
+        self.seeds = seeds_arr
+        self.perturbation = ep.perturbation
+        self.state = PlatoonState(
+            step=0,
+            gap_m=ep.gap_m.astype(np.float64).copy(),
+            speed_mps=ep.speed_mps.astype(np.float64).copy(),
+            realised_accel_mps2=np.zeros((b, n)),
+            applied_accel_mps2=np.zeros((b, n)),
+            leader_speed_mps=ep.leader_speed_mps.astype(np.float64),
+            collided=np.zeros(b, dtype=bool),
+            done=np.zeros(b, dtype=bool),
+            collision_step=np.full(b, -1, dtype=np.int64),
+            dt_s=self.params.dt_s,
+        )
+        self._obs = np.zeros((b, n, 15), dtype=self.dtype)
+        self._blocks = np.zeros((b, n, 5), dtype=self.dtype)
+        return self.observation() if self.observe else None
+
+    @property
+    def batch_size(self) -> int:
+        """Number of parallel episodes B."""
+        return len(self.seeds)
+
+    def observation(self) -> np.ndarray:
+        """Agent observations ``(B, N, 15)`` of the current state (own, front, rear blocks)."""
+        s = self._require_state()
+        assert self._obs is not None and self._blocks is not None
+        vehicle_blocks(
+            s.gap_m,
+            s.speed_mps,
+            s.pred_speed_mps,
+            s.applied_accel_mps2,
+            self.target_gap_m,
+            self.target_speed_mps,
+            self.params,
+            out=self._blocks,
+        )
+        return agent_observations(self._blocks, out=self._obs)
+
+    def step_actions(self, actions: np.ndarray) -> StepResult:
+        """Step with discrete MARL actions ``(B, N)`` (OVM gains, published mapping)."""
+        s = self._require_state()
+        u = action_to_command_mps2(actions, s.gap_m, s.speed_mps, s.pred_speed_mps, self.params)
+        return self.step(u)
+
+    def step(self, command_mps2: np.ndarray) -> StepResult:
+        """Apply acceleration commands ``(B, N)`` (clipped to the bounds) for one step."""
+        s = self._require_state()
+        if s.step >= self.n_steps:
+            raise RuntimeError("episode over: call reset()")
+        t = s.step
+        lead_now = s.leader_speed_mps[:, t]
+        lead_next = s.leader_speed_mps[:, t + 1]
+        gap, v, a, applied = physics_step(
+            s.gap_m,
+            s.speed_mps,
+            s.realised_accel_mps2,
+            np.asarray(command_mps2, dtype=np.float64),
+            lead_now,
+            lead_next,
+            self.params,
+        )
+        power = self.power(v, applied)
+        terms = reward_terms(
+            gap,
+            v,
+            applied,
+            power,
+            self.target_gap_m,
+            self.target_speed_mps,
+            self.params,
+            self.weights,
+        )
+        reward = combine_reward(terms, training=self.training, include_power=self.include_power)
+        new_collision = (gap < self.params.gap_min_m).any(axis=1)
+        frozen = s.done | s.collided
+        if new_collision.any() or frozen.any():
+            new_collision &= ~frozen
+            s.collision_step[new_collision] = t + 1
+            s.collided |= new_collision
+            keep = frozen[:, None]
+            gap = np.where(keep, s.gap_m, gap)
+            v = np.where(keep, s.speed_mps, v)
+            a = np.where(keep, s.realised_accel_mps2, a)
+            applied = np.where(keep, 0.0, applied)
+            power = np.where(keep, 0.0, power)
+            hit = s.collided & ~s.done
+            reward[hit] = self.weights.collision
+            reward[s.done] = 0.0
+            if self.collision_mode == "terminate":
+                s.done |= s.collided
+            else:
+                s.done |= s.collided & ((t + 1) % 60 == 0)
+        s.gap_m, s.speed_mps, s.realised_accel_mps2, s.applied_accel_mps2 = gap, v, a, applied
+        s.step = t + 1
+        if s.step >= self.n_steps:
+            s.done[:] = True
+        obs = self.observation() if self.observe else None
+        return StepResult(reward, s.done.copy(), s.collided.copy(), power, applied, obs)
+
+    def _require_state(self) -> PlatoonState:
+        if self.state is None:
+            raise RuntimeError("call reset() first")
+        return self.state

@@ -1,0 +1,372 @@
+"""Scenarios with versioned ids: initial states, leader speed profiles, targets, seeding.
+
+Published seeding: the perturbation of an episode is the first draw after seeding, ``U =
+numpy.random.RandomState(seed).random_sample()``. Everything random in an episode comes from
+streams derived from its own seed (see :func:`episode_stream`), never from a global RNG, so every
+controller faces identical episodes.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from envs.errors import ConfigError, UnknownNameError
+from envs.params import PlatoonParams
+
+MIN_VEHICLES = 2
+MAX_VEHICLES = 64
+
+
+def published_perturbation(seed: int) -> float:
+    """``U = numpy.random.RandomState(seed).random_sample()``: seed 0 gives 0.5488135039273248."""
+    return float(np.random.RandomState(int(seed)).random_sample())
+
+
+def episode_stream(seed: int, stream: str) -> np.random.Generator:
+    """An independent random stream of one episode, named (e.g. ``"loss"``, ``"noise"``).
+
+    Depends only on the episode seed and the stream's name, never on a global state.
+    """
+    key = [int(b) for b in stream.encode()]
+    return np.random.Generator(np.random.PCG64(np.random.SeedSequence([int(seed), *key])))
+
+
+@dataclass(frozen=True)
+class EpisodeBatch:
+    """Initial conditions of ``B`` episodes of one scenario.
+
+    Attributes
+    ----------
+    seeds : (B,) int
+        Episode seeds.
+    perturbation : (B,) float
+        The uniform draw ``U`` of each episode (published seeding), or the value passed in.
+    gap_m, speed_mps : (B, N)
+        Followers' initial gaps and speeds (speeds may exceed the bound: slowdown-v1 quirk).
+    leader_speed_mps : (B, n_steps + 1)
+        Leader speed at steps 0..n_steps.
+    """
+
+    seeds: np.ndarray
+    perturbation: np.ndarray
+    gap_m: np.ndarray
+    speed_mps: np.ndarray
+    leader_speed_mps: np.ndarray
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """A scenario: targets, length, and a generator of initial conditions and leader profiles.
+
+    Use :func:`make_scenario` to build one from its id and options.
+    """
+
+    id: str
+    description: str
+    target_gap_m: float
+    target_speed_mps: float
+    n_steps: int
+    options: dict[str, Any] = field(default_factory=dict)
+    default_vehicles: int = 8
+    note: str = ""
+    _builder: Callable[[Scenario, np.ndarray, np.ndarray, int], EpisodeBatch] | None = field(
+        default=None, repr=False, compare=False
+    )
+
+    def episodes(
+        self,
+        seeds: Sequence[int] | np.ndarray,
+        n_vehicles: int,
+        perturbation: float | Sequence[float] | np.ndarray | None = None,
+    ) -> EpisodeBatch:
+        """Initial conditions and leader profiles of one episode per seed.
+
+        Parameters
+        ----------
+        seeds : sequence of int, length B
+            Episode seeds.
+        n_vehicles : int
+            Number of followers N.
+        perturbation : float or (B,) floats in [0, 1), optional
+            Overrides the published draw ``U`` of each episode.
+        """
+        check_vehicles(n_vehicles)
+        seeds_arr = np.asarray(seeds, dtype=np.int64).reshape(-1)
+        if perturbation is None:
+            u = np.array([published_perturbation(s) for s in seeds_arr], dtype=np.float64)
+        else:
+            u = np.broadcast_to(np.asarray(perturbation, dtype=np.float64), seeds_arr.shape).copy()
+            if np.any(~np.isfinite(u)) or np.any(u < 0) or np.any(u > 1):
+                raise ConfigError("perturbation must lie in [0, 1]")
+        assert self._builder is not None
+        return self._builder(self, seeds_arr, u, n_vehicles)
+
+
+def check_vehicles(n_vehicles: int) -> int:
+    """Validate the platoon size N (followers), return it."""
+    if not isinstance(n_vehicles, int | np.integer) or not (
+        MIN_VEHICLES <= n_vehicles <= MAX_VEHICLES
+    ):
+        raise ConfigError(
+            f"the number of followers must be an integer from {MIN_VEHICLES} to {MAX_VEHICLES}, "
+            f"got {n_vehicles!r}"
+        )
+    return int(n_vehicles)
+
+
+# --------------------------------------------------------------------------- builders
+
+
+def _equilibrium(
+    sc: Scenario, seeds: np.ndarray, u: np.ndarray, n: int, leader: np.ndarray
+) -> EpisodeBatch:
+    b = len(seeds)
+    return EpisodeBatch(
+        seeds=seeds,
+        perturbation=u,
+        gap_m=np.full((b, n), sc.target_gap_m),
+        speed_mps=np.full((b, n), sc.target_speed_mps),
+        leader_speed_mps=np.broadcast_to(leader, (b, sc.n_steps + 1)).copy(),
+    )
+
+
+def _catchup(sc: Scenario, seeds: np.ndarray, u: np.ndarray, n: int) -> EpisodeBatch:
+    b = len(seeds)
+    gap = np.full((b, n), 20.0)
+    gap[:, 0] = 20.0 * (1.5 + u)
+    return EpisodeBatch(
+        seeds=seeds,
+        perturbation=u,
+        gap_m=gap,
+        speed_mps=np.full((b, n), 15.0),
+        leader_speed_mps=np.full((b, sc.n_steps + 1), 15.0),
+    )
+
+
+def _slowdown(sc: Scenario, seeds: np.ndarray, u: np.ndarray, n: int) -> EpisodeBatch:
+    b = len(seeds)
+    v0 = 15.0 * (1.5 + u)
+    if sc.options.get("cap_initial_speed", False):
+        v0 = np.minimum(v0, 30.0)
+    leader = np.full((b, sc.n_steps + 1), 15.0)
+    ramp = min(300, sc.n_steps + 1)
+    for k in range(b):
+        leader[k, :ramp] = np.linspace(v0[k], 15.0, 300)[:ramp]
+    return EpisodeBatch(
+        seeds=seeds,
+        perturbation=u,
+        gap_m=np.full((b, n), 20.0),
+        speed_mps=np.repeat(v0[:, None], n, axis=1),
+        leader_speed_mps=leader,
+    )
+
+
+def _sine(sc: Scenario, seeds: np.ndarray, u: np.ndarray, n: int) -> EpisodeBatch:
+    amp = float(sc.options["amplitude_mps"])
+    freq = float(sc.options["frequency_hz"])
+    t = np.arange(sc.n_steps + 1) * PlatoonParams().dt_s
+    leader = sc.target_speed_mps + amp * np.sin(2 * np.pi * freq * t)
+    return _equilibrium(sc, seeds, u, n, leader)
+
+
+def brake_profile_mps(n_steps: int, dt_s: float = 0.1) -> np.ndarray:
+    """Leader of ``brake-v1``: 15 m/s; from 10 s brakes at 2.5 m/s^2 to 5 m/s, holds 10 s,
+    returns to 15 m/s at 1.5 m/s^2. Speeds at steps 0..n_steps (exact piecewise-linear)."""
+    t = np.arange(n_steps + 1) * dt_s
+    t1 = 10.0
+    t2 = t1 + (15.0 - 5.0) / 2.5
+    t3 = t2 + 10.0
+    t4 = t3 + (15.0 - 5.0) / 1.5
+    v = np.full_like(t, 15.0)
+    v = np.where((t >= t1) & (t < t2), 15.0 - 2.5 * (t - t1), v)
+    v = np.where((t >= t2) & (t < t3), 5.0, v)
+    v = np.where((t >= t3) & (t < t4), 5.0 + 1.5 * (t - t3), v)
+    return v
+
+
+def _brake(sc: Scenario, seeds: np.ndarray, u: np.ndarray, n: int) -> EpisodeBatch:
+    return _equilibrium(sc, seeds, u, n, brake_profile_mps(sc.n_steps))
+
+
+def _openacc(sc: Scenario, seeds: np.ndarray, u: np.ndarray, n: int) -> EpisodeBatch:
+    from envs.openacc import load_window
+
+    window = load_window(sc.options["window"])
+    lead = np.asarray(window.leader_speed_mps, dtype=np.float64)
+    if len(lead) < sc.n_steps + 1:
+        raise ConfigError(f"OpenACC window {window.name} has only {len(lead)} samples")
+    k = window.follower_speed_mps.shape[1]
+    speed0 = np.empty(n)
+    gap0 = np.empty(n)
+    m = min(n, k)
+    speed0[:m] = window.follower_speed_mps[0, :m]
+    gap0[:m] = window.follower_gap_m[0, :m]
+    # Followers beyond the real platoon start as the last real follower (speed and gap).
+    speed0[m:] = speed0[m - 1]
+    gap0[m:] = gap0[m - 1]
+    b = len(seeds)
+    return EpisodeBatch(
+        seeds=seeds,
+        perturbation=u,
+        gap_m=np.tile(gap0, (b, 1)),
+        speed_mps=np.tile(speed0, (b, 1)),
+        leader_speed_mps=np.tile(lead[: sc.n_steps + 1], (b, 1)),
+    )
+
+
+# --------------------------------------------------------------------------- registry
+
+
+@dataclass(frozen=True)
+class ScenarioSpec:
+    """A registered scenario id: defaults and allowed options."""
+
+    id: str
+    description: str
+    target_gap_m: float
+    target_speed_mps: float
+    n_steps: int
+    builder: Callable[[Scenario, np.ndarray, np.ndarray, int], EpisodeBatch]
+    defaults: dict[str, Any] = field(default_factory=dict)
+    default_vehicles: int = 8
+    note: str = ""
+    published: bool = False
+
+
+_M_NOTE = (
+    "openacc-m-v1 replays ZalaZONE dynamic_part8 (1250..1310 s) in place of the paper's "
+    "dynamic_part9 (473..533 s), which no public copy holds; its leader runs at about 8 m/s, "
+    "not 11."
+)
+
+SCENARIOS: dict[str, ScenarioSpec] = {}
+
+
+def register_scenario(spec: ScenarioSpec) -> None:
+    """Add a scenario to the registry (ids carry a version: ``name-vN``)."""
+    if not spec.id.rsplit("-", 1)[-1].startswith("v"):
+        raise ValueError(f"scenario ids carry a version suffix -vN, got {spec.id!r}")
+    SCENARIOS[spec.id] = spec
+
+
+for _spec in (
+    ScenarioSpec(
+        "catchup-v1",
+        "published: leader at 15 m/s, follower 1 starts 20(1.5+U) m behind",
+        20.0, 15.0, 600, _catchup, published=True,
+    ),
+    ScenarioSpec(
+        "slowdown-v1",
+        "published: leader slows linearly from 15(1.5+U) m/s to 15 m/s over 30 s "
+        "(initial speeds above 30 m/s are clipped at step 1, a published quirk)",
+        20.0, 15.0, 600, _slowdown, published=True,
+    ),
+    ScenarioSpec(
+        "slowdown-v2",
+        "as slowdown-v1 with the initial speed capped at 30 m/s",
+        20.0, 15.0, 600, _slowdown, defaults={"cap_initial_speed": True},
+    ),
+    ScenarioSpec(
+        "sine-v1",
+        "leader speed 15 + A sin(2 pi f t) from equilibrium (options amplitude_mps, frequency_hz)",
+        20.0, 15.0, 600, _sine, defaults={"amplitude_mps": 1.0, "frequency_hz": 0.2},
+    ),
+    ScenarioSpec(
+        "brake-v1",
+        "leader brakes at 2.5 m/s^2 from 15 to 5 m/s at t = 10 s, holds 10 s, back at 1.5 m/s^2",
+        20.0, 15.0, 600, _brake,
+    ),
+    ScenarioSpec(
+        "openacc-s-v1",
+        "real OpenACC leader (ZalaZONE dynamic_part1, 316..376 s, short ACC setting)",
+        12.0, 11.0, 600, _openacc, defaults={"window": "S"}, default_vehicles=4,
+    ),
+    ScenarioSpec(
+        "openacc-m-v1",
+        "real OpenACC leader (ZalaZONE dynamic_part8, 1250..1310 s, medium setting; "
+        "stands in for the paper's dynamic_part9)",
+        16.0, 11.0, 600, _openacc, defaults={"window": "M"}, default_vehicles=4, note=_M_NOTE,
+    ),
+    ScenarioSpec(
+        "openacc-l-v1",
+        "real OpenACC leader (ZalaZONE dynamic_part2, 450..510 s, long ACC setting)",
+        20.0, 11.0, 600, _openacc, defaults={"window": "L"}, default_vehicles=4,
+    ),
+):
+    register_scenario(_spec)
+
+#: Scenarios that `cacc-bench run` uses by default.
+DEFAULT_SCENARIOS: tuple[str, ...] = ("catchup-v1", "slowdown-v1")
+
+
+def _coerce(value: Any, like: Any, key: str, scenario_id: str) -> Any:
+    if isinstance(like, bool):
+        if isinstance(value, str):
+            if value.lower() in ("1", "true", "yes"):
+                return True
+            if value.lower() in ("0", "false", "no"):
+                return False
+            raise ConfigError(f"option {key} of {scenario_id} must be true or false, got {value!r}")
+        return bool(value)
+    if isinstance(like, float):
+        try:
+            out = float(value)
+        except (TypeError, ValueError):
+            raise ConfigError(
+                f"option {key} of {scenario_id} must be a number, got {value!r}"
+            ) from None
+        if not math.isfinite(out):
+            raise ConfigError(f"option {key} of {scenario_id} must be finite")
+        return out
+    return value
+
+
+def make_scenario(scenario_id: str, **options: Any) -> Scenario:
+    """Build a registered scenario by id, with options (e.g. ``frequency_hz`` of ``sine-v1``).
+
+    Raises
+    ------
+    UnknownNameError
+        If the id is not registered (the message lists the valid ids).
+    ConfigError
+        For an unknown option or an impossible value.
+    """
+    try:
+        spec = SCENARIOS[scenario_id]
+    except KeyError:
+        raise UnknownNameError("scenario", scenario_id, SCENARIOS) from None
+    opts = dict(spec.defaults)
+    for key, value in options.items():
+        if key not in spec.defaults or key in ("window", "cap_initial_speed"):
+            allowed = [k for k in spec.defaults if k not in ("window", "cap_initial_speed")]
+            raise ConfigError(
+                f"scenario {scenario_id} has no option {key!r}; "
+                f"its options are: {', '.join(allowed) or 'none'}"
+            )
+        opts[key] = _coerce(value, spec.defaults[key], key, scenario_id)
+    if scenario_id == "sine-v1":
+        if opts["amplitude_mps"] < 0 or opts["amplitude_mps"] > 10:
+            raise ConfigError("sine-v1 amplitude_mps must lie in [0, 10] m/s")
+        if opts["frequency_hz"] <= 0 or opts["frequency_hz"] >= 5:
+            raise ConfigError("sine-v1 frequency_hz must lie in (0, 5) Hz (Nyquist at dt = 0.1 s)")
+    return Scenario(
+        id=scenario_id,
+        description=spec.description,
+        target_gap_m=spec.target_gap_m,
+        target_speed_mps=spec.target_speed_mps,
+        n_steps=spec.n_steps,
+        options=opts,
+        default_vehicles=spec.default_vehicles,
+        note=spec.note,
+        _builder=spec.builder,
+    )
+
+
+def list_scenarios() -> list[ScenarioSpec]:
+    """All registered scenarios, in registration order."""
+    return list(SCENARIOS.values())
