@@ -22,7 +22,9 @@ def ovm_speed_mps(gap_m: FloatArray, params: PlatoonParams = PlatoonParams()) ->
     """
     span = params.gap_go_m - params.gap_stop_m
     g = np.clip(gap_m, params.gap_stop_m, params.gap_go_m)
-    g = g - params.gap_stop_m
+    if np.ndim(g) == 0:
+        return params.ovm_speed_max_mps / 2 * (1 - np.cos(np.pi * (g - params.gap_stop_m) / span))
+    g -= params.gap_stop_m
     g *= np.pi / span
     np.cos(g, out=g)
     # v_max/2 * (1 - cos)
@@ -143,7 +145,8 @@ def vehicle_blocks(
     dv = pred_speed_mps - speed_mps
     out[..., 0] = (speed_mps - target_speed_mps) / target_speed_mps
     out[..., 1] = np.clip(dv / 5.0, -2.0, 2.0)
-    vg = ovm_speed_mps(gap_m, params)
+    # V(gap) in the observation's precision (float32 cos is several times faster)
+    vg = ovm_speed_mps(gap_m.astype(out.dtype), params)
     vg -= speed_mps
     vg /= 5.0
     out[..., 2] = np.clip(vg, -2.0, 2.0, out=vg)
@@ -165,7 +168,8 @@ def agent_observations(blocks: FloatArray, out: FloatArray | None = None) -> Flo
     b, n, k = blocks.shape
     if out is None:
         out = np.zeros((b, n, 3 * k), dtype=blocks.dtype)
-    out[:, :, :k] = blocks
+    if not np.shares_memory(out[:, :, :k], blocks):
+        out[:, :, :k] = blocks
     out[:, 1:, k : 2 * k] = blocks[:, :-1]
     out[:, :-1, 2 * k :] = blocks[:, 1:]
     return out

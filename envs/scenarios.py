@@ -98,7 +98,7 @@ class Scenario:
         check_vehicles(n_vehicles)
         seeds_arr = np.asarray(seeds, dtype=np.int64).reshape(-1)
         if perturbation is None:
-            u = np.array([published_perturbation(s) for s in seeds_arr], dtype=np.float64)
+            u = np.array([published_perturbation(int(s)) for s in seeds_arr], dtype=np.float64)
         else:
             u = np.broadcast_to(np.asarray(perturbation, dtype=np.float64), seeds_arr.shape).copy()
             if np.any(~np.isfinite(u)) or np.any(u < 0) or np.any(u > 1):

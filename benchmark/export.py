@@ -1,0 +1,163 @@
+"""CSV files of a results folder, rebuilt from the store: runs.csv, leaderboard.csv, trajectories."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from analysis.statistics import bootstrap_ci
+from benchmark.rollout import Trajectory
+from benchmark.suite import KEY_COLUMNS
+
+RUN_COLUMNS: tuple[str, ...] = (
+    "controller", "family", "scenario", "n_vehicles", "seed", "status", "error", "steps",
+    "collision", "min_gap_m", "gap_mean_m", "gap_std_m", "gap_rmse_m", "speed_mean_mps",
+    "speed_std_mps", "speed_rmse_mps", "accel_mean_mps2", "accel_std_mps2", "accel_rms_mps2",
+    "jerk_rms_mps3", "energy_kwh", "power_mean_kw", "energy_kwh_per_100km", "reward",
+    "tracking_reward", "string_gain", "string_stable", "compute_ms_p50", "compute_ms_p95",
+    "compute_ms_p99", "compute_ms_first", "solver_failures", "comm_bits_per_s", "comm_delay_s",
+    "packet_loss", "lag_s", "wall_s", "version", "git_sha",
+    # additions
+    "controller_name", "options", "deterministic",
+)
+
+LEADERBOARD_METRICS: tuple[str, ...] = (
+    "reward", "tracking_reward", "energy_kwh", "power_mean_kw", "gap_mean_m", "gap_std_m",
+    "gap_rmse_m", "speed_mean_mps", "speed_std_mps", "accel_std_mps2", "jerk_rms_mps3",
+    "string_gain", "compute_ms_p50", "comm_bits_per_s", "energy_kwh_per_100km", "min_gap_m",
+)
+
+GROUP_COLUMNS: tuple[str, ...] = (
+    "controller", "scenario", "n_vehicles", "comm_delay_s", "packet_loss", "lag_s",
+)
+
+BOOTSTRAP_SEED = 20240601
+
+
+def runs_frame(records: list[dict[str, Any]]) -> Any:
+    """runs.csv as a DataFrame, one row per run, sorted by the run key."""
+    import pandas as pd
+
+    rows = []
+    for rec in records:
+        row = {c: rec.get(c) for c in RUN_COLUMNS}
+        row["controller_name"] = rec.get("name", rec.get("controller"))
+        row["options"] = rec.get("options", "{}")
+        rows.append(row)
+    df = pd.DataFrame(rows, columns=list(RUN_COLUMNS))
+    if len(df):
+        df = df.sort_values(list(KEY_COLUMNS), kind="mergesort").reset_index(drop=True)
+    return df
+
+
+def leaderboard_frame(runs: Any) -> Any:
+    """leaderboard.csv: one row per controller x scenario x vehicles (x V2V and lag settings).
+
+    Means with 95 % seeded bootstrap intervals over the episodes that finished (status ok);
+    ``rank`` within each scenario x vehicles x settings: controllers with no collision and no
+    failure first, then by mean reward (higher is better).
+    """
+    import pandas as pd
+
+    out = []
+    if len(runs) == 0:
+        return pd.DataFrame(columns=["rank", *GROUP_COLUMNS])
+    for key, grp in runs.groupby(list(GROUP_COLUMNS), sort=True, dropna=False):
+        ok = grp[grp["status"] == "ok"]
+        row: dict[str, Any] = dict(zip(GROUP_COLUMNS, key, strict=True))
+        row["family"] = grp["family"].iloc[0]
+        det = ok["deterministic"].dropna()
+        row["deterministic"] = bool(det.all()) if len(det) else None
+        row["n_episodes"] = int(len(grp))
+        row["collisions"] = int(ok["collision"].astype(bool).sum())
+        row["failed"] = int((grp["status"] != "ok").sum())
+        row["solver_failures"] = int(ok["solver_failures"].fillna(0).sum())
+        row["string_stable_frac"] = float(ok["string_stable"].astype(float).mean()) if len(ok) else math.nan
+        for metric in LEADERBOARD_METRICS:
+            vals = pd.to_numeric(ok[metric], errors="coerce").to_numpy(dtype=float)
+            mean, lo, hi = bootstrap_ci(vals, seed=BOOTSTRAP_SEED)
+            row[f"{metric}_mean"] = mean
+            row[f"{metric}_ci_low"] = lo
+            row[f"{metric}_ci_high"] = hi
+        out.append(row)
+    lb = pd.DataFrame(out)
+    clean = (lb["collisions"] == 0) & (lb["failed"] == 0)
+    lb["_clean"] = (~clean).astype(int)
+    lb["_reward"] = -lb["reward_mean"].fillna(-np.inf)
+    setting = ["scenario", "n_vehicles", "comm_delay_s", "packet_loss", "lag_s"]
+    lb = lb.sort_values([*setting, "_clean", "_reward", "controller"], kind="mergesort")
+    lb["rank"] = lb.groupby(setting, dropna=False).cumcount() + 1
+    lb = lb.drop(columns=["_clean", "_reward"])
+    first = ["rank", "controller", "family", "scenario", "n_vehicles", "n_episodes", "collisions",
+             "failed"]
+    return lb[first + [c for c in lb.columns if c not in first]].reset_index(drop=True)
+
+
+def write_csvs(folder: Path, records: list[dict[str, Any]]) -> tuple[Path, Path, Any]:
+    """Write runs.csv and leaderboard.csv into ``folder``; returns the paths and the leaderboard."""
+    runs = runs_frame(records)
+    lb = leaderboard_frame(runs)
+    runs_path = folder / "runs.csv"
+    lb_path = folder / "leaderboard.csv"
+    _atomic_csv(runs, runs_path)
+    _atomic_csv(lb, lb_path)
+    return runs_path, lb_path, lb
+
+
+def _atomic_csv(df: Any, path: Path) -> None:
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    df.to_csv(tmp, index=False, float_format="%.10g")
+    tmp.replace(path)
+
+
+def trajectory_arrays(traj: Trajectory) -> dict[str, np.ndarray]:
+    """The arrays of a trajectory that the store keeps for figures and CSVs."""
+    return {
+        "gap_m": traj.gap_m,
+        "speed_mps": traj.speed_mps,
+        "accel_mps2": traj.accel_mps2,
+        "power_kw": traj.power_kw,
+        "leader_speed_mps": traj.leader_speed_mps,
+        "leader_accel_mps2": traj.leader_accel_mps2,
+        "dt_s": np.array(traj.dt_s),
+    }
+
+
+def write_trajectory_csv(path: Path, arrays: dict[str, np.ndarray]) -> None:
+    """Long-format trajectory CSV: ``step, time_s, vehicle, gap_m, speed_mps, accel_mps2, power_kw``.
+
+    Vehicle 0 is the leader (gap empty; its power from the same polynomial); ``accel_mps2`` is the
+    applied acceleration of the step that led to the row (0 at step 0).
+    """
+    import pandas as pd
+
+    from envs.energy import battery_power_kw
+
+    gap = arrays["gap_m"]
+    t1, n = gap.shape
+    dt = float(arrays["dt_s"])
+    lead_v = arrays["leader_speed_mps"][:t1]
+    lead_a = arrays["leader_accel_mps2"][:t1]
+    lead_p = np.asarray(battery_power_kw(lead_v, lead_a))
+    lead_p = np.where(np.arange(t1) == 0, 0.0, lead_p)
+    steps = np.arange(t1)
+    frames = [
+        pd.DataFrame({
+            "step": steps, "time_s": steps * dt, "vehicle": 0, "gap_m": np.nan,
+            "speed_mps": lead_v, "accel_mps2": lead_a, "power_kw": lead_p,
+        })
+    ]
+    for i in range(n):
+        frames.append(pd.DataFrame({
+            "step": steps, "time_s": steps * dt, "vehicle": i + 1, "gap_m": gap[:, i],
+            "speed_mps": arrays["speed_mps"][:, i], "accel_mps2": arrays["accel_mps2"][:, i],
+            "power_kw": arrays["power_kw"][:, i],
+        }))
+    df = pd.concat(frames).sort_values(["step", "vehicle"], kind="mergesort")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".csv.tmp")
+    df.to_csv(tmp, index=False, float_format="%.6f")
+    tmp.replace(path)

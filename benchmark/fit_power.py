@@ -1,0 +1,123 @@
+"""``cacc-bench fit-power``: refit the energy polynomial from the shipped BMW i3 map data.
+
+Prints the fit quality (R^2, RMSE, max error over the full grid and over v in [0.5, 20] m/s),
+compares the refit with the shipped coefficients (``envs/data/energy/power_poly.json``),
+optionally overwrites them (``--write``) and draws the figure (``--figure DIR``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from envs import energy
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="cacc-bench fit-power",
+        description=(
+            "Refit the 5x5 battery-power polynomial P(v, u) (kW) to the BMW i3 efficiency-map "
+            "model, print its quality and compare it with the shipped coefficients."
+        ),
+    )
+    parser.add_argument(
+        "--write",
+        action="store_true",
+        help=f"overwrite the shipped coefficients ({energy.DEFAULT_POLYNOMIAL_FILE.name}) with the refit",
+    )
+    parser.add_argument(
+        "--figure",
+        metavar="DIR",
+        type=Path,
+        help="write the map / polynomial / error figure (PNG and PDF) into DIR",
+    )
+    return parser
+
+
+def _quality_lines(fit: energy.PowerFit) -> list[str]:
+    g = fit.grid
+    v0, v1 = g["speed_range_mps"]
+    u0, u1 = g["accel_range_mps2"]
+    lv0, lv1 = g["low_speed_range_mps"]
+    return [
+        "Battery-power polynomial P(v, u) = sum_k sum_j p[k, j] v^k u^j  (kW; BMW i3 map model)",
+        f"grid: v in [{v0:g}, {v1:g}] m/s step {g['speed_step_mps']:g}, u in [{u0:g}, {u1:g}] m/s^2 "
+        f"step {g['accel_step_mps2']:g}; {fit.n_points} of {g['n_grid']} points reachable",
+        f"  v in [{v0:g}, {v1:g}] m/s: R^2 = {fit.r2:.5f}  RMSE = {fit.rmse_kw:.3f} kW  "
+        f"max |error| = {fit.max_abs_error_kw:.3f} kW  ({fit.n_points} points)",
+        f"  v in [{lv0:g}, {lv1:g}] m/s: R^2 = {fit.r2_low_speed:.5f}  RMSE = {fit.rmse_kw_low_speed:.3f} kW  "
+        f"max |error| = {fit.max_abs_error_kw_low_speed:.3f} kW  ({fit.n_points_low_speed} points)",
+    ]
+
+
+def _compare(fit: energy.PowerFit, path: Path) -> tuple[bool, list[str]]:
+    """Compare the refit with a stored polynomial file: (readable, report lines)."""
+    try:
+        shipped = energy.load_power_polynomial(path)
+    except ValueError as exc:
+        return False, [f"shipped coefficients: {exc}"]
+    ref = fit.coefficients_kw
+    if shipped.coefficients_kw.shape != ref.shape:
+        return True, [
+            f"shipped coefficients ({path}): shape {shipped.coefficients_kw.shape} differs from the "
+            f"refit's {ref.shape}"
+        ]
+    coef_diff = float(np.max(np.abs(shipped.coefficients_kw - ref)))
+    v0, v1 = fit.grid["speed_range_mps"]
+    u0, u1 = fit.grid["accel_range_mps2"]
+    nv = int(round((v1 - v0) / fit.grid["speed_step_mps"])) + 1
+    nu = int(round((u1 - u0) / fit.grid["accel_step_mps2"])) + 1
+    vg, ug = np.meshgrid(np.linspace(v0, v1, nv), np.linspace(u0, u1, nu), indexing="ij")
+    pred_diff = float(np.max(np.abs(shipped(vg, ug) - fit.polynomial()(vg, ug))))
+    fitted_on = shipped.metadata.get("provenance", {}).get("fitted_on", "?")
+    verdict = (
+        "identical"
+        if coef_diff == 0.0
+        else ("equal to rounding" if pred_diff < 1e-6 else "DIFFERENT")
+    )
+    return True, [
+        f"shipped coefficients ({path}, fitted on {fitted_on}): {verdict}",
+        f"  max |coefficient difference| = {coef_diff:.3e}",
+        f"  max |prediction difference| over the grid = {pred_diff:.3e} kW",
+    ]
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run ``cacc-bench fit-power``; returns the exit status (2 for bad arguments, via argparse).
+
+    Returns 1 when the shipped coefficient file is missing or unreadable and ``--write`` is not
+    given, else 0.
+    """
+    args = _parser().parse_args(argv)
+    fit = energy.fit_power_polynomial()
+    for line in _quality_lines(fit):
+        print(line)
+    path = energy.DEFAULT_POLYNOMIAL_FILE
+    readable, lines = _compare(fit, path)
+    for line in lines:
+        print(line)
+    status = 0
+    if args.write:
+        data = fit.to_json_dict()
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
+        energy._default_polynomial.cache_clear()
+        print(f"wrote {path}")
+    elif not readable:
+        print("run `cacc-bench fit-power --write` to (re)create it", file=sys.stderr)
+        status = 1
+    if args.figure is not None:
+        from analysis.energy_plots import plot_energy_map
+
+        for out in plot_energy_map(args.figure):
+            print(f"wrote {out}")
+    return status
+
+
+if __name__ == "__main__":  # pragma: no cover
+    raise SystemExit(main())

@@ -1,0 +1,27 @@
+"""``cacc-bench leaderboard DIR``: rebuild runs.csv and leaderboard.csv from the store."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from benchmark.store import ResultStore
+
+
+def main(argv: list[str]) -> int:
+    """Rebuild the CSV files of one or more results folders from their stores."""
+    from benchmark.export import write_csvs
+    from benchmark.run_cmd import format_leaderboard
+
+    p = argparse.ArgumentParser(prog="cacc-bench leaderboard", description=__doc__)
+    p.add_argument("results_dir", nargs="+", help="results folder(s) written by `cacc-bench run`")
+    p.add_argument("--quiet", action="store_true", help="do not print the table")
+    args = p.parse_args(argv)
+    for folder in args.results_dir:
+        with ResultStore(Path(folder), create=False) as store:
+            records = store.records()
+        runs_path, lb_path, lb = write_csvs(Path(folder), records)
+        if not args.quiet:
+            print(format_leaderboard(lb))
+        print(f"wrote {runs_path} ({len(records)} runs) and {lb_path}")
+    return 0

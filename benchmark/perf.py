@@ -1,0 +1,186 @@
+"""``cacc-bench perf``: throughput of the environment, the harness, controllers and training.
+
+Every figure is measured in this one run, side by side, so ratios are meaningful on a busy
+machine; the published figures it compares with are constants from ``spec/marl.md`` (measured on
+this project's 2-core machine kind): the published environment runs about 4,000 steps/s with 8
+followers (32,000 vehicle-steps/s); the published trainer about 307 (IA2C) and 195 (consensus)
+environment steps/s.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import time
+from typing import Any
+
+import numpy as np
+
+PUBLISHED_ENV_VEHICLE_STEPS_PER_S = 32_000.0
+PUBLISHED_TRAIN_STEPS_PER_S = {"ia2c": 307.0, "bdc": 195.0}
+TARGET_ENV_VEHICLE_STEPS_PER_S = 10_000_000.0
+
+
+def env_throughput(batch: int = 1024, n_vehicles: int = 8, seconds: float = 2.0) -> dict[str, float]:
+    """Batched env steps (physics, observations, reward with the power polynomial) per second.
+
+    Commands come from the OVM law computed outside the timed region's env (they are part of
+    the loop but not of the env); the env observes and computes the full reward.
+    """
+    from envs.dynamics import ovm_command_mps2
+    from envs.platoon import PlatoonEnv
+
+    env = PlatoonEnv("catchup-v1", n_vehicles, observe=True)
+    seeds = np.arange(batch)
+    env.reset(seeds)
+    s = env.state
+    assert s is not None
+    u = ovm_command_mps2(s.gap_m, s.speed_mps, s.pred_speed_mps, 0.5, 0.5)
+    for _ in range(20):
+        env.step(u)
+    steps = 0
+    env.reset(seeds)
+    t0 = time.perf_counter()
+    elapsed = 0.0
+    while elapsed < seconds:
+        for _ in range(50):
+            if env.state is not None and env.state.step >= env.n_steps:
+                env.reset(seeds)
+            env.step(u)
+        steps += 50
+        elapsed = time.perf_counter() - t0
+    rate = steps / elapsed
+    return {
+        "env_batch_steps_per_s": rate,
+        "env_vehicle_steps_per_s": rate * batch * n_vehicles,
+        "batch": float(batch),
+        "n_vehicles": float(n_vehicles),
+    }
+
+
+def harness_throughput(episodes: int = 10) -> dict[str, float]:
+    """Steps per second of the harness with ``ovm`` on the default sweep (no store, no files)."""
+    from benchmark.suite import build_sweep, execute_run, seeds_from_episodes
+
+    keys = build_sweep([("ovm", {})], ["catchup-v1", "slowdown-v1"], [8], seeds_from_episodes(episodes))
+    execute_run(keys[0])  # warm caches (power polynomial, imports)
+    t0 = time.perf_counter()
+    steps = sum(int(execute_run(k)["steps"]) for k in keys)
+    wall = time.perf_counter() - t0
+    return {"harness_steps_per_s": steps / wall, "harness_default_sweep_s": wall,
+            "harness_runs": float(len(keys))}
+
+
+def controller_timing(name: str, n_steps: int = 150, n_vehicles: int = 8,
+                      scenario_id: str = "catchup-v1") -> dict[str, float]:
+    """Wall time per vehicle per step of one controller (first call, the build, apart)."""
+    from benchmark.rollout import rollout
+    from controllers.registry import make_controller
+    from envs.scenarios import make_scenario
+
+    sc = make_scenario(scenario_id)
+    sc = dataclasses.replace(sc, n_steps=min(n_steps, sc.n_steps))
+    ctrl = make_controller(name)
+    traj = rollout(ctrl, sc, n_vehicles, 2000)
+    ms = traj.compute_s * 1000.0 / n_vehicles
+    rest = ms[1:]
+    return {
+        "median_ms": float(np.median(rest)),
+        "p95_ms": float(np.percentile(rest, 95)),
+        "p99_ms": float(np.percentile(rest, 99)),
+        "first_ms": float(ms[0]),
+        "steps": float(traj.steps),
+    }
+
+
+def main(argv: list[str]) -> int:
+    """Measure and print a table (``--json`` for a JSON object)."""
+    from controllers.registry import MARL_ALGORITHMS, available_controllers
+
+    p = argparse.ArgumentParser(prog="cacc-bench perf", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
+    p.add_argument("--quick", action="store_true", help="shorter measurements (for tests)")
+    p.add_argument("--only", default="env,harness,controllers,train",
+                   help="comma list of parts: env, harness, controllers, train (default: all)")
+    p.add_argument("--controllers", default=None,
+                   help="comma list of controllers to time (default: every available non-MARL "
+                        "controller and every MARL policy with a shipped checkpoint)")
+    p.add_argument("--algos", default=None, help="comma list of MARL algorithms to time")
+    args = p.parse_args(argv)
+    parts = {x.strip() for x in args.only.split(",") if x.strip()}
+    unknown = parts - {"env", "harness", "controllers", "train"}
+    if unknown:
+        from envs.errors import ConfigError
+
+        raise ConfigError(f"--only: unknown part(s) {sorted(unknown)}; valid: env, harness, controllers, train")
+    out: dict[str, Any] = {}
+    if "env" in parts:
+        out.update(env_throughput(seconds=0.5 if args.quick else 2.0))
+        out["env_speedup_vs_published"] = out["env_vehicle_steps_per_s"] / PUBLISHED_ENV_VEHICLE_STEPS_PER_S
+    if "harness" in parts:
+        out.update(harness_throughput(episodes=2 if args.quick else 10))
+    if "controllers" in parts:
+        names = (
+            [c.strip() for c in args.controllers.split(",") if c.strip()]
+            if args.controllers else [c.name for c in available_controllers()]
+        )
+        timing: dict[str, dict[str, float] | str] = {}
+        for name in names:
+            try:
+                timing[name] = controller_timing(name, n_steps=40 if args.quick else 150)
+            except Exception as exc:  # a missing checkpoint, say: report it, keep measuring
+                if args.controllers:
+                    raise
+                timing[name] = f"not measured: {exc}"
+        out["controller_ms_per_vehicle_step"] = {
+            k: v["median_ms"] for k, v in timing.items() if isinstance(v, dict)
+        }
+        out["controller_timing"] = timing
+    if "train" in parts:
+        try:
+            from marl.perf import train_throughput
+        except ImportError:
+            train_throughput = None  # type: ignore[assignment]
+        algos = (
+            [a.strip() for a in args.algos.split(",") if a.strip()]
+            if args.algos else list(MARL_ALGORITHMS)
+        )
+        rates: dict[str, float] = {}
+        if train_throughput is not None:
+            for algo in algos:
+                rates[algo] = float(train_throughput(algo, steps=4_000 if args.quick else 30_000))
+        out["train_env_steps_per_s"] = rates
+    if args.json:
+        print(json.dumps(out, indent=2, sort_keys=True))
+    else:
+        _print_table(out)
+    return 0
+
+
+def _print_table(out: dict[str, Any]) -> None:
+    if "env_vehicle_steps_per_s" in out:
+        print("environment (B = 1024, N = 8, observations + reward with power polynomial):")
+        print(f"  {out['env_vehicle_steps_per_s'] / 1e6:10.2f} M vehicle-steps/s  "
+              f"({out['env_speedup_vs_published']:.0f}x the published env's 32,000; "
+              f"target >= {TARGET_ENV_VEHICLE_STEPS_PER_S / 1e6:.0f} M)")
+    if "harness_steps_per_s" in out:
+        print(f"harness (ovm, default sweep of {int(out['harness_runs'])} runs): "
+              f"{out['harness_steps_per_s']:,.0f} steps/s, {out['harness_default_sweep_s']:.2f} s")
+    if "controller_timing" in out:
+        print("controllers (ms per vehicle per step; first call apart):")
+        print(f"  {'name':<10} {'median':>9} {'p95':>9} {'p99':>9} {'first':>9}")
+        for name, t in out["controller_timing"].items():
+            if isinstance(t, dict):
+                print(f"  {name:<10} {t['median_ms']:9.4f} {t['p95_ms']:9.4f} {t['p99_ms']:9.4f} "
+                      f"{t['first_ms']:9.2f}")
+            else:
+                print(f"  {name:<10} {t}")
+    if "train_env_steps_per_s" in out:
+        print("training (environment steps/s, one process, one torch thread):")
+        if not out["train_env_steps_per_s"]:
+            print("  (no MARL trainer available)")
+        for algo, rate in out["train_env_steps_per_s"].items():
+            ref = PUBLISHED_TRAIN_STEPS_PER_S.get(algo, PUBLISHED_TRAIN_STEPS_PER_S["ia2c"])
+            print(f"  {algo:<10} {rate:10,.0f}  ({rate / ref:.1f}x the published {ref:.0f})")

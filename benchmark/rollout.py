@@ -1,0 +1,121 @@
+"""The closed loop: the only place where a controller's ``act`` and the env's ``step`` alternate."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from controllers.base import Controller, EpisodeContext
+from envs.channel import ChannelConfig
+from envs.params import PlatoonParams
+from envs.platoon import PlatoonEnv
+from envs.scenarios import Scenario
+
+
+@dataclass
+class Trajectory:
+    """Everything a run produced, for one episode (``T`` steps taken, ``N`` followers).
+
+    Row 0 of the state arrays is the initial state; row ``t`` the state after step ``t``.
+
+    Attributes
+    ----------
+    gap_m, speed_mps : (T+1, N)
+    accel_mps2 : (T+1, N)
+        Applied acceleration of the step that led to the row (0 at row 0).
+    power_kw : (T+1, N)
+        Battery power over that step (0 at row 0).
+    leader_speed_mps, leader_accel_mps2 : (T+1,)
+    reward, tracking_reward : (T,)
+        Sum over agents of the evaluation reward with and without the power term.
+    compute_s : (T,)
+        Wall time of each ``act`` call (the whole platoon).
+    collided : bool
+    steps : int
+    bits_sent : int
+    solver_failures : int
+    """
+
+    gap_m: np.ndarray
+    speed_mps: np.ndarray
+    accel_mps2: np.ndarray
+    power_kw: np.ndarray
+    leader_speed_mps: np.ndarray
+    leader_accel_mps2: np.ndarray
+    reward: np.ndarray
+    tracking_reward: np.ndarray
+    compute_s: np.ndarray
+    collided: bool
+    steps: int
+    bits_sent: int
+    solver_failures: int
+    dt_s: float
+
+
+def rollout(
+    controller: Controller,
+    scenario: Scenario,
+    n_vehicles: int,
+    seed: int,
+    params: PlatoonParams = PlatoonParams(),
+    channel: ChannelConfig = ChannelConfig(),
+) -> Trajectory:
+    """Run one episode of ``scenario`` with ``controller`` until its end or a collision.
+
+    The reward of each step is the environment's own (evaluation form: no safety term; the
+    tracking reward is the same without the power term), so metrics never recompute it.
+    """
+    env = PlatoonEnv(scenario, n_vehicles, params, observe=controller.needs_observation)
+    ctx = EpisodeContext(scenario, n_vehicles, np.array([seed]), params, channel)
+    controller.reset(ctx)
+    obs = env.reset([seed])
+    s = env.state
+    assert s is not None
+    t_max = env.n_steps
+    gap = np.zeros((t_max + 1, n_vehicles))
+    speed = np.zeros_like(gap)
+    accel = np.zeros_like(gap)
+    power = np.zeros_like(gap)
+    reward = np.zeros(t_max)
+    tracking = np.zeros(t_max)
+    compute = np.zeros(t_max)
+    gap[0], speed[0] = s.gap_m[0], s.speed_mps[0]
+    weight_power = env.weights.power
+    t = 0
+    clock = time.perf_counter
+    while t < t_max:
+        t0 = clock()
+        command = controller.act(s, obs)
+        compute[t] = clock() - t0
+        res = env.step(command)
+        t += 1
+        gap[t], speed[t] = s.gap_m[0], s.speed_mps[0]
+        accel[t], power[t] = res.applied_accel_mps2[0], res.power_kw[0]
+        reward[t - 1] = res.reward[0].sum()
+        tracking[t - 1] = reward[t - 1] - weight_power * res.power_kw[0].sum()
+        if res.collided[0]:
+            tracking[t - 1] = reward[t - 1]  # -1000 per agent, no power term
+        obs = res.observation
+        if res.done[0]:
+            break
+    lead = s.leader_speed_mps[0, : t + 1]
+    lead_accel = np.zeros(t + 1)
+    lead_accel[1:] = np.diff(lead) / params.dt_s
+    return Trajectory(
+        gap_m=gap[: t + 1],
+        speed_mps=speed[: t + 1],
+        accel_mps2=accel[: t + 1],
+        power_kw=power[: t + 1],
+        leader_speed_mps=lead,
+        leader_accel_mps2=lead_accel,
+        reward=reward[:t],
+        tracking_reward=tracking[:t],
+        compute_s=compute[:t],
+        collided=bool(s.collided[0]),
+        steps=t,
+        bits_sent=ctx.bits_sent,
+        solver_failures=int(getattr(controller, "solver_failures", 0)),
+        dt_s=params.dt_s,
+    )

@@ -1,0 +1,235 @@
+"""``cacc-bench run``: the main job (sweep, store, CSV files, printed leaderboard)."""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from pathlib import Path
+from typing import Any
+
+from benchmark.executors import EXECUTORS, run_keys
+from benchmark.progress import Progress
+from benchmark.suite import RunKey, build_sweep, seeds_from_episodes, unique
+from controllers.registry import DEFAULT_CONTROLLERS, parse_controller_list
+from envs.errors import ConfigError
+from envs.scenarios import DEFAULT_SCENARIOS, MAX_VEHICLES, MIN_VEHICLES, make_scenario
+
+
+def _csv(kind: str, cast: type) -> Any:
+    def parse(text: str) -> list:
+        out = []
+        for item in text.split(","):
+            item = item.strip()
+            if not item:
+                continue
+            try:
+                value = cast(item)
+            except ValueError:
+                raise argparse.ArgumentTypeError(f"{kind} must be a comma list of numbers, got {item!r}") from None
+            if isinstance(value, float) and not math.isfinite(value):
+                raise argparse.ArgumentTypeError(f"{kind} must be finite, got {item!r}")
+            out.append(value)
+        if not out:
+            raise argparse.ArgumentTypeError(f"{kind}: empty list")
+        return out
+
+    return parse
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The options of ``cacc-bench run``."""
+    p = argparse.ArgumentParser(
+        prog="cacc-bench run",
+        description=(
+            "Run every controller on the same episodes (controllers x scenarios x sizes x seeds), "
+            "store each finished run, and write runs.csv and leaderboard.csv."
+        ),
+    )
+    p.add_argument("--controllers", default=",".join(DEFAULT_CONTROLLERS),
+                   help="comma list; options as name:key=value,key=value (default: %(default)s)")
+    p.add_argument("--scenarios", default=",".join(DEFAULT_SCENARIOS),
+                   help="comma list of scenario ids (default: %(default)s)")
+    p.add_argument("--vehicles", type=_csv("--vehicles", int), default=[8],
+                   help="comma list of platoon sizes N, followers (default: 8)")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--episodes", type=int, default=None,
+                   help="first K published evaluation seeds 2000, 2010, ... (default: 10)")
+    g.add_argument("--seeds", type=_csv("--seeds", int), default=None, help="explicit seeds")
+    p.add_argument("--comm-delay", type=_csv("--comm-delay", float), default=[0.0],
+                   help="V2V delay in s, whole steps (comma list; default 0)")
+    p.add_argument("--packet-loss", type=_csv("--packet-loss", float), default=[0.0],
+                   help="probability of losing a V2V message, in [0, 1] (comma list; default 0)")
+    p.add_argument("--lag", type=_csv("--lag", float), default=[0.0],
+                   help="actuator lag time constant in s (comma list; default 0)")
+    p.add_argument("--out", default="results/run", help="results folder (default: %(default)s)")
+    p.add_argument("--resume", action="store_true",
+                   help="complete the sweep in --out: skip stored runs, retry failed ones")
+    p.add_argument("--trajectories", action="store_true",
+                   help="also write one trajectory CSV per run into OUT/trajectories/")
+    p.add_argument("--executor", choices=EXECUTORS, default="serial")
+    p.add_argument("--workers", type=int, default=2, help="processes or Ray CPUs (default 2)")
+    p.add_argument("--ray-address", default=None,
+                   help="attach to this Ray cluster (default: RAY_ADDRESS, else a local instance)")
+    p.add_argument("--quiet", action="store_true", help="do not print the leaderboard")
+    return p
+
+
+def _validate(args: argparse.Namespace) -> tuple[list[tuple[str, dict[str, str]]], list[str], list[int]]:
+    controllers = parse_controller_list(args.controllers)
+    scenarios = unique(s.strip() for s in args.scenarios.split(",") if s.strip())
+    if not scenarios:
+        raise ConfigError("--scenarios: no scenario named")
+    for sc in scenarios:
+        make_scenario(sc)
+    for n in args.vehicles:
+        if not MIN_VEHICLES <= n <= MAX_VEHICLES:
+            raise ConfigError(
+                f"--vehicles: a platoon needs {MIN_VEHICLES} to {MAX_VEHICLES} followers, got {n}"
+            )
+    for d in args.comm_delay:
+        if d < 0:
+            raise ConfigError(f"--comm-delay must be >= 0 s, got {d}")
+    for loss in args.packet_loss:
+        if not 0 <= loss <= 1:
+            raise ConfigError(f"--packet-loss must lie in [0, 1], got {loss}")
+    for lag in args.lag:
+        if lag < 0:
+            raise ConfigError(f"--lag must be >= 0 s, got {lag}")
+    if args.workers < 1:
+        raise ConfigError(f"--workers must be >= 1, got {args.workers}")
+    if args.seeds is not None:
+        seeds = unique(str(s) for s in args.seeds)
+        seed_list = [int(s) for s in seeds]
+        if any(s < 0 for s in seed_list):
+            raise ConfigError("--seeds must be >= 0")
+    else:
+        episodes = 10 if args.episodes is None else args.episodes
+        if episodes < 1:
+            raise ConfigError(f"--episodes must be >= 1, got {episodes}")
+        seed_list = seeds_from_episodes(episodes)
+    return controllers, scenarios, seed_list
+
+
+def _preflight(controllers: list[tuple[str, dict[str, str]]], scenarios: list[str], vehicles: list[int]) -> None:
+    """Build each controller once so bad options or missing checkpoints fail before any run."""
+    from controllers.registry import make_controller
+
+    for name, opts in controllers:
+        ctrl = make_controller(name, **opts)
+        check = getattr(ctrl, "preflight", None)
+        if check is not None:
+            for sc in scenarios:
+                for n in vehicles:
+                    check(make_scenario(sc), n)
+
+
+def main(argv: list[str]) -> int:
+    """Entry point of ``cacc-bench run``."""
+    args = build_parser().parse_args(argv)
+    controllers, scenarios, seeds = _validate(args)
+    keys = build_sweep(controllers, scenarios, args.vehicles, seeds, args.comm_delay,
+                       args.packet_loss, args.lag)
+    _preflight(controllers, scenarios, args.vehicles)
+    return execute_sweep(keys, Path(args.out), resume=args.resume, trajectories=args.trajectories,
+                         executor=args.executor, workers=args.workers,
+                         ray_address=args.ray_address, quiet=args.quiet, first_seed=seeds[0])
+
+
+def execute_sweep(
+    keys: list[RunKey],
+    out: Path,
+    *,
+    resume: bool = False,
+    trajectories: bool = False,
+    executor: str = "serial",
+    workers: int = 1,
+    ray_address: str | None = None,
+    quiet: bool = False,
+    first_seed: int | None = None,
+) -> int:
+    """Run the keys not yet stored in ``out``, store each as it finishes, write the CSVs."""
+    from benchmark.export import trajectory_arrays, write_csvs, write_trajectory_csv
+    from benchmark.store import ResultStore
+
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"--out {out} exists and is not a folder")
+    store = ResultStore(out)
+    try:
+        done_ok = store.ids("ok")
+        stored = store.ids()
+        if stored and not resume:
+            raise ConfigError(
+                f"{out} already holds {len(stored)} stored runs; add --resume to complete that "
+                "sweep (stored runs are kept), or choose another --out"
+            )
+        pending = [k for k in keys if k.id not in done_ok]
+        if first_seed is None:
+            first_seed = min(k.seed for k in keys) if keys else 0
+        todo = [(k, True) for k in pending]
+        skipped = len(keys) - len(pending)
+        if skipped:
+            print(f"resuming: {skipped} of {len(keys)} runs already stored, {len(pending)} to run",
+                  file=sys.stderr)
+        store.set_meta("last_sweep", {"n_runs": len(keys), "executor": executor})
+        progress = Progress(len(todo))
+        for rec in run_keys(todo, executor, workers, ray_address):
+            traj = rec.pop("_trajectory", None)
+            arrays = trajectory_arrays(traj) if traj is not None else None
+            if arrays is not None and trajectories:
+                stem = RunKey(**{f: rec[f] for f in RunKey.__dataclass_fields__}).file_stem
+                write_trajectory_csv(out / "trajectories" / f"{stem}.csv", arrays)
+            keep = arrays if (arrays is not None and rec["seed"] == first_seed) else None
+            store.add(rec, keep)
+            progress.advance(note=f"{rec['controller']} {rec['scenario']} s{rec['seed']}")
+        progress.close()
+        records = store.records()
+    finally:
+        store.close()
+    runs_path, lb_path, lb = write_csvs(out, records)
+    if not quiet:
+        print(format_leaderboard(lb))
+    print(f"wrote {runs_path} ({len(records)} runs) and {lb_path}")
+    failed = [r for r in records if r["status"] != "ok"]
+    if failed:
+        print(f"{len(failed)} run(s) failed:", file=sys.stderr)
+        for r in failed[:20]:
+            print(f"  {r['id']}: {r['error']}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def format_leaderboard(lb: Any) -> str:
+    """The leaderboard as a plain-text table with a note on what the intervals mean."""
+    if len(lb) == 0:
+        return "(no runs)"
+    lines = []
+    head = (f"{'rank':>4}  {'controller':<22} {'scenario':<14} {'N':>2} {'eps':>3} {'coll':>4} "
+            f"{'fail':>4}  {'reward [95% CI]':<26} {'tracking':>9} {'kWh':>7} {'gap rmse':>8} "
+            f"{'str.gain':>8} {'ms/veh':>7} {'bit/s':>7}")
+    setting_cols = ["comm_delay_s", "packet_loss", "lag_s"]
+    for setting, grp in lb.groupby(setting_cols, sort=True):
+        d, loss, lag = setting
+        lines.append(f"\nV2V delay {d:g} s, packet loss {loss:g}, actuator lag {lag:g} s")
+        lines.append(head)
+        for _, r in grp.iterrows():
+            ci = f"{r['reward_mean']:.2f} [{r['reward_ci_low']:.2f}, {r['reward_ci_high']:.2f}]"
+            det = "" if r.get("deterministic") in (True, None) else "*"
+            lines.append(
+                f"{int(r['rank']):>4}  {(str(r['controller']) + det)[:22]:<22} {r['scenario']:<14} "
+                f"{int(r['n_vehicles']):>2} {int(r['n_episodes']):>3} {int(r['collisions']):>4} "
+                f"{int(r['failed']):>4}  {ci:<26} {r['tracking_reward_mean']:>9.2f} "
+                f"{r['energy_kwh_mean']:>7.3f} {r['gap_rmse_m_mean']:>8.2f} "
+                f"{r['string_gain_mean']:>8.3f} {r['compute_ms_p50_mean']:>7.3f} "
+                f"{r['comm_bits_per_s_mean']:>7.0f}"
+            )
+    lines.append(
+        "\nreward = mean over steps of the sum over agents (higher is better); rank: runs without"
+        " collision or failure first, then by reward. Deterministic controllers vary only through"
+        " the scenario's perturbation, so their intervals are episode variation, not training"
+        " variance; stochastic ones are marked *."
+    )
+    scen = set(lb["scenario"])
+    if "openacc-m-v1" in scen:
+        lines.append(make_scenario("openacc-m-v1").note)
+    return "\n".join(lines)

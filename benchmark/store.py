@@ -1,0 +1,138 @@
+"""The results store: an embedded SQLite file, one committed transaction per finished run.
+
+It is the source of truth of a results folder: the CSV files are rebuilt from it, a killed sweep
+loses only the runs in flight, and ``--resume`` skips what is stored.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+import sqlite3
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from envs.errors import ConfigError
+
+STORE_NAME = "store.sqlite"
+SCHEMA_VERSION = 1
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS runs (
+    id TEXT PRIMARY KEY,
+    status TEXT NOT NULL,
+    record TEXT NOT NULL,
+    finished_at REAL NOT NULL
+);
+CREATE TABLE IF NOT EXISTS trajectories (id TEXT PRIMARY KEY, data BLOB NOT NULL);
+"""
+
+
+def _clean(value: Any) -> Any:
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, np.generic):
+        return _clean(value.item())
+    return value
+
+
+class ResultStore:
+    """SQLite store of finished runs in ``folder/store.sqlite``."""
+
+    def __init__(self, folder: Path | str, create: bool = True) -> None:
+        self.folder = Path(folder)
+        self.path = self.folder / STORE_NAME
+        if not create and not self.path.exists():
+            raise ConfigError(
+                f"no results store in {self.folder} (expected {self.path}); "
+                "run `cacc-bench run --out DIR` first"
+            )
+        self.folder.mkdir(parents=True, exist_ok=True)
+        try:
+            self.conn = sqlite3.connect(self.path, timeout=30)
+            self.conn.executescript(_SCHEMA)
+            version = self.get_meta("schema_version")
+        except sqlite3.DatabaseError as exc:
+            raise ConfigError(f"{self.path} is not a readable results store: {exc}") from None
+        if version is None:
+            self.set_meta("schema_version", SCHEMA_VERSION)
+        elif int(version) != SCHEMA_VERSION:
+            raise ConfigError(
+                f"{self.path} has store schema {version}, this cacc-bench reads {SCHEMA_VERSION}"
+            )
+
+    def close(self) -> None:
+        """Close the connection."""
+        self.conn.close()
+
+    def __enter__(self) -> ResultStore:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------ meta
+    def get_meta(self, key: str) -> Any:
+        """A JSON value stored under ``key`` (None if absent)."""
+        row = self.conn.execute("SELECT value FROM meta WHERE key = ?", (key,)).fetchone()
+        return None if row is None else json.loads(row[0])
+
+    def set_meta(self, key: str, value: Any) -> None:
+        """Store a JSON value under ``key`` (committed)."""
+        with self.conn:
+            self.conn.execute(
+                "INSERT OR REPLACE INTO meta (key, value) VALUES (?, ?)", (key, json.dumps(value))
+            )
+
+    # ------------------------------------------------------------------ runs
+    def add(self, record: dict[str, Any], trajectory: dict[str, np.ndarray] | None = None) -> None:
+        """Store one finished run (and optionally its trajectory) in one committed transaction.
+
+        A run stored again (a failed run retried by ``--resume``) replaces the old row.
+        """
+        rec = {k: _clean(v) for k, v in record.items() if not k.startswith("_")}
+        blob = None
+        if trajectory is not None:
+            buf = io.BytesIO()
+            np.savez_compressed(buf, **trajectory)  # type: ignore[arg-type]
+            blob = buf.getvalue()
+        with self.conn:
+            self.conn.execute(
+                "INSERT OR REPLACE INTO runs (id, status, record, finished_at) VALUES (?, ?, ?, ?)",
+                (rec["id"], rec["status"], json.dumps(rec, sort_keys=True), time.time()),
+            )
+            if blob is not None:
+                self.conn.execute(
+                    "INSERT OR REPLACE INTO trajectories (id, data) VALUES (?, ?)", (rec["id"], blob)
+                )
+
+    def ids(self, status: str | None = None) -> set[str]:
+        """Ids of stored runs (optionally only those with ``status``)."""
+        if status is None:
+            rows = self.conn.execute("SELECT id FROM runs").fetchall()
+        else:
+            rows = self.conn.execute("SELECT id FROM runs WHERE status = ?", (status,)).fetchall()
+        return {r[0] for r in rows}
+
+    def records(self) -> list[dict[str, Any]]:
+        """All stored run records."""
+        return [json.loads(r[0]) for r in self.conn.execute("SELECT record FROM runs")]
+
+    def trajectory(self, run_id: str) -> dict[str, np.ndarray] | None:
+        """The stored trajectory arrays of a run, if any."""
+        row = self.conn.execute(
+            "SELECT data FROM trajectories WHERE id = ?", (run_id,)
+        ).fetchone()
+        if row is None:
+            return None
+        with np.load(io.BytesIO(row[0])) as data:
+            return {k: data[k] for k in data.files}
+
+    def trajectory_ids(self) -> set[str]:
+        """Ids of runs with a stored trajectory."""
+        return {r[0] for r in self.conn.execute("SELECT id FROM trajectories")}

@@ -1,0 +1,176 @@
+"""Thin adapters for outside libraries: a PettingZoo ``ParallelEnv`` and a Gymnasium view.
+
+Both wrap one episode (B = 1) of :class:`envs.platoon.PlatoonEnv` with the MARL interface of the
+published benchmark: 4 discrete actions per follower (OVM gains), 15-number observations (own,
+front and rear vehicle blocks, zero-padded), the paper's reward. Training inside cacc-bench uses
+the batched arrays directly; these are for outside MARL libraries.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium
+import numpy as np
+from gymnasium import spaces
+from pettingzoo import ParallelEnv
+
+from envs.params import OVM_ACTIONS, PlatoonParams
+from envs.platoon import PlatoonEnv
+
+OBS_DIM = 15
+#: Observation bound: no 60 s episode gets near it (a normalised gap of 1e4 is 200 km).
+OBS_BOUND = 1e4
+_SEED_LIMIT = 2**31 - 1
+
+
+def _draw_seed(rng: np.random.Generator) -> int:
+    return int(rng.integers(0, _SEED_LIMIT))
+
+
+class PlatoonParallelEnv(ParallelEnv):
+    """PettingZoo parallel env: agents ``follower_1 .. follower_N``.
+
+    Parameters
+    ----------
+    scenario : str
+        Scenario id (default ``catchup-v1``).
+    n_vehicles : int
+        Followers N.
+    params : PlatoonParams
+        Physics (``lag_s``).
+    training : bool
+        Reward in training form (with the safety term).
+    collision_mode : str
+        ``terminate`` (default) or ``published``.
+
+    Notes
+    -----
+    ``reset(seed=s)`` uses ``s`` as the episode seed (published seeding of the perturbation);
+    without a seed, an episode seed is drawn from the adapter's own generator. ``options`` may
+    hold ``perturbation`` (explicit U in [0, 1]). The episode's time limit is a truncation, a
+    collision a termination.
+    """
+
+    metadata = {"name": "cacc_platoon_v1", "render_modes": [], "is_parallelizable": True}
+
+    def __init__(
+        self,
+        scenario: str = "catchup-v1",
+        n_vehicles: int = 8,
+        params: PlatoonParams = PlatoonParams(),
+        training: bool = False,
+        collision_mode: str = "terminate",
+    ) -> None:
+        self.env = PlatoonEnv(
+            scenario, n_vehicles, params, training=training, collision_mode=collision_mode,
+            observe=True,
+        )
+        self.possible_agents = [f"follower_{i}" for i in range(1, n_vehicles + 1)]
+        self.agents: list[str] = []
+        self.render_mode = None
+        self._obs_space = spaces.Box(-OBS_BOUND, OBS_BOUND, (OBS_DIM,), np.float32)
+        self._act_space = spaces.Discrete(len(OVM_ACTIONS))
+        self._rng = np.random.Generator(np.random.PCG64())
+        self.episode_seed: int | None = None
+
+    def observation_space(self, agent: str) -> spaces.Space:
+        """Box of 15 floats (own, front, rear blocks; missing neighbours are zeros)."""
+        return self._obs_space
+
+    def action_space(self, agent: str) -> spaces.Space:
+        """Discrete(4): index -> (alpha, beta) of the OVM law."""
+        return self._act_space
+
+    def _obs_dict(self, obs: np.ndarray) -> dict[str, np.ndarray]:
+        return {a: obs[0, i].copy() for i, a in enumerate(self.agents)}
+
+    def reset(
+        self, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[dict[str, np.ndarray], dict[str, dict]]:
+        if seed is not None:
+            self._rng = np.random.Generator(np.random.PCG64(seed))
+            self.episode_seed = int(seed)
+        else:
+            self.episode_seed = _draw_seed(self._rng)
+        pert = (options or {}).get("perturbation")
+        obs = self.env.reset([self.episode_seed], perturbation=pert)
+        assert obs is not None
+        self.agents = list(self.possible_agents)
+        return self._obs_dict(obs), {a: {} for a in self.agents}
+
+    def step(self, actions: dict[str, int]) -> tuple[
+        dict[str, np.ndarray], dict[str, float], dict[str, bool], dict[str, bool], dict[str, dict]
+    ]:
+        if not self.agents:
+            raise RuntimeError("episode over: call reset()")
+        a = np.array([[int(actions[ag]) for ag in self.possible_agents]])
+        res = self.env.step_actions(a)
+        assert res.observation is not None
+        collided = bool(res.collided[0])
+        over = bool(res.done[0])
+        obs = self._obs_dict(res.observation)
+        rewards = {ag: float(res.reward[0, i]) for i, ag in enumerate(self.agents)}
+        terms = {ag: collided and over for ag in self.agents}
+        truncs = {ag: over and not collided for ag in self.agents}
+        infos = {
+            ag: {"power_kw": float(res.power_kw[0, i]), "collision": collided}
+            for i, ag in enumerate(self.agents)
+        }
+        if over:
+            self.agents = []
+        return obs, rewards, terms, truncs, infos
+
+    def render(self) -> None:
+        return None
+
+    def close(self) -> None:
+        return None
+
+
+class PlatoonGymEnv(gymnasium.Env):
+    """Gymnasium single-agent (centralised) view: one agent chooses every follower's action.
+
+    Observation ``(N, 15)`` floats; action ``MultiDiscrete([4] * N)``; reward = sum over agents.
+    """
+
+    metadata = {"render_modes": []}
+
+    def __init__(
+        self,
+        scenario: str = "catchup-v1",
+        n_vehicles: int = 8,
+        params: PlatoonParams = PlatoonParams(),
+        training: bool = False,
+        collision_mode: str = "terminate",
+    ) -> None:
+        self.env = PlatoonEnv(
+            scenario, n_vehicles, params, training=training, collision_mode=collision_mode,
+            observe=True,
+        )
+        self.n_vehicles = n_vehicles
+        self.observation_space = spaces.Box(-OBS_BOUND, OBS_BOUND, (n_vehicles, OBS_DIM), np.float32)
+        self.action_space = spaces.MultiDiscrete([len(OVM_ACTIONS)] * n_vehicles)
+
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[np.ndarray, dict]:
+        super().reset(seed=seed)
+        episode_seed = int(seed) if seed is not None else _draw_seed(self.np_random)
+        obs = self.env.reset([episode_seed], perturbation=(options or {}).get("perturbation"))
+        assert obs is not None
+        return obs[0].copy(), {"episode_seed": episode_seed}
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
+        res = self.env.step_actions(np.asarray(action, dtype=np.int64).reshape(1, -1))
+        assert res.observation is not None
+        collided = bool(res.collided[0])
+        over = bool(res.done[0])
+        info = {"power_kw": res.power_kw[0].copy(), "collision": collided}
+        return (
+            res.observation[0].copy(),
+            float(res.reward[0].sum()),
+            collided and over,
+            over and not collided,
+            info,
+        )
