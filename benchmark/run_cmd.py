@@ -11,7 +11,7 @@ from typing import Any
 from benchmark.executors import EXECUTORS, run_keys
 from benchmark.progress import Progress
 from benchmark.suite import RunKey, build_sweep, seeds_from_episodes, unique
-from controllers.registry import DEFAULT_CONTROLLERS, parse_controller_list
+from controllers.registry import default_controllers, parse_controller_list
 from envs.errors import ConfigError
 from envs.scenarios import DEFAULT_SCENARIOS, MAX_VEHICLES, MIN_VEHICLES, make_scenario
 
@@ -46,7 +46,7 @@ def build_parser() -> argparse.ArgumentParser:
             "store each finished run, and write runs.csv and leaderboard.csv."
         ),
     )
-    p.add_argument("--controllers", default=",".join(DEFAULT_CONTROLLERS),
+    p.add_argument("--controllers", default=",".join(default_controllers()),
                    help="comma list; options as name:key=value,key=value (default: %(default)s)")
     p.add_argument("--scenarios", default=",".join(DEFAULT_SCENARIOS),
                    help="comma list of scenario ids (default: %(default)s)")

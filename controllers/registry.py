@@ -111,8 +111,14 @@ for _algo in MARL_ALGORITHMS:
         )
     )
 
-#: Controllers of ``cacc-bench run`` when none are named.
-DEFAULT_CONTROLLERS: tuple[str, ...] = ("ovm",)
+#: Controllers of ``cacc-bench run`` when none are named (those available in this install):
+#: the human baseline, the linear laws, the quadratic MPC and the paper's method, all quick.
+DEFAULT_CONTROLLERS: tuple[str, ...] = ("ovm", "acc", "cacc", "mpc-qp", "bdc")
+
+
+def default_controllers() -> list[str]:
+    """The default controllers that are available in this install."""
+    return [name for name in DEFAULT_CONTROLLERS if CONTROLLERS[name].available]
 
 
 def available_controllers() -> list[ControllerSpec]:

@@ -1,0 +1,58 @@
+"""``cacc-bench plot DIR``: figures from a results folder (PNG and PDF, headless)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from benchmark.store import ResultStore
+
+
+def main(argv: list[str]) -> int:
+    """Write the figures of a results folder into ``DIR/figures`` (or ``--out``)."""
+    from analysis.energy_plots import plot_energy_map
+    from analysis.plots import plot_leaderboard, plot_radar, plot_time_series
+    from benchmark.export import leaderboard_frame, runs_frame
+    from envs.scenarios import make_scenario
+
+    p = argparse.ArgumentParser(prog="cacc-bench plot", description=__doc__)
+    p.add_argument("results_dir", help="results folder written by `cacc-bench run`")
+    p.add_argument("--out", default=None, help="figure folder (default: RESULTS_DIR/figures)")
+    p.add_argument("--no-energy-map", action="store_true", help="skip the energy-map figure")
+    args = p.parse_args(argv)
+    folder = Path(args.results_dir)
+    out = Path(args.out) if args.out else folder / "figures"
+    with ResultStore(folder, create=False) as store:
+        records = store.records()
+        with_traj = store.trajectory_ids()
+        ok = [r for r in records if r["status"] == "ok"]
+        # one run per controller x scenario x N x setting: the lowest seed with a trajectory
+        chosen: dict[tuple, dict] = {}
+        for r in sorted(ok, key=lambda r: r["seed"]):
+            key = (r["controller"], r["scenario"], r["n_vehicles"], r["comm_delay_s"],
+                   r["packet_loss"], r["lag_s"])
+            if key not in chosen and r["id"] in with_traj:
+                chosen[key] = r
+        written: list[Path] = []
+        for r in chosen.values():
+            arrays = store.trajectory(r["id"])
+            assert arrays is not None
+            sc = make_scenario(r["scenario"])
+            stem = "timeseries__" + r["id"].replace("|", "__").replace("/", "_")
+            title = (f"{r['controller']} on {r['scenario']}, N={r['n_vehicles']}, seed {r['seed']}"
+                     f" (V2V delay {r['comm_delay_s']:g} s, loss {r['packet_loss']:g})")
+            if sc.note:
+                title += "\n" + sc.note
+            written += plot_time_series(arrays, title, out, stem, sc.target_gap_m,
+                                        sc.target_speed_mps)
+    if not records:
+        print(f"{folder}: no runs stored; nothing to plot")
+        return 0
+    lb = leaderboard_frame(runs_frame(records))
+    written += plot_leaderboard(lb, out)
+    for (sc_id, n), _ in lb.groupby(["scenario", "n_vehicles"]):
+        written += plot_radar(lb, sc_id, int(n), out, f"radar__{sc_id}__n{int(n)}")
+    if not args.no_energy_map:
+        written += plot_energy_map(out)
+    print(f"wrote {len(written)} files into {out}")
+    return 0

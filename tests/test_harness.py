@@ -1,0 +1,271 @@
+"""The harness: sweeps, metrics, store, resume after SIGKILL, failures, executors, golden file."""
+
+from __future__ import annotations
+
+import os
+import signal
+import sqlite3
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from benchmark.cli import main
+from benchmark.metrics import TIMING_COLUMNS, string_gain
+from benchmark.rollout import rollout
+from benchmark.suite import build_sweep, execute_run
+from controllers.registry import ControllerSpec, make_controller, parse_controller_list, register_controller
+from envs.errors import ConfigError
+from envs.scenarios import make_scenario
+
+ROOT = Path(__file__).resolve().parent.parent
+GOLDEN = Path(__file__).resolve().parent / "golden" / "smoke_runs.csv"
+REQUIRED_RUN_COLUMNS = (
+    "controller, family, scenario, n_vehicles, seed, status, error, steps, collision, min_gap_m, "
+    "gap_mean_m, gap_std_m, gap_rmse_m, speed_mean_mps, speed_std_mps, speed_rmse_mps, "
+    "accel_mean_mps2, accel_std_mps2, accel_rms_mps2, jerk_rms_mps3, energy_kwh, power_mean_kw, "
+    "energy_kwh_per_100km, reward, tracking_reward, string_gain, string_stable, compute_ms_p50, "
+    "compute_ms_p95, compute_ms_p99, compute_ms_first, solver_failures, comm_bits_per_s, "
+    "comm_delay_s, packet_loss, lag_s, wall_s, version, git_sha"
+).split(", ")
+LEADERBOARD_METRICS = (
+    "reward, tracking_reward, energy_kwh, power_mean_kw, gap_mean_m, gap_std_m, gap_rmse_m, "
+    "speed_mean_mps, speed_std_mps, accel_std_mps2, jerk_rms_mps3, string_gain, compute_ms_p50, "
+    "comm_bits_per_s"
+).split(", ")
+
+
+def _no_timing(path: Path) -> pd.DataFrame:
+    df = pd.read_csv(path)
+    return df.drop(columns=[c for c in df.columns if c in TIMING_COLUMNS or c.startswith("compute_ms")])
+
+
+def _cli(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "benchmark.cli", *args], cwd=ROOT,
+                          capture_output=True, text=True, timeout=600)
+
+
+def test_controller_list_syntax() -> None:
+    assert parse_controller_list("mpc:solver=ipopt,horizon=30,cacc") == [
+        ("mpc", {"solver": "ipopt", "horizon": "30"}), ("cacc", {})]
+    assert parse_controller_list("ovm") == [("ovm", {})]
+    with pytest.raises(ConfigError):
+        parse_controller_list("horizon=3")
+
+
+def test_metrics_by_hand() -> None:
+    """ovm on catchup-v1: energy = sum P dt, distance, reward = the env's reward."""
+    sc = make_scenario("catchup-v1")
+    traj = rollout(make_controller("ovm"), sc, 4, 2000)
+    rec = execute_run(build_sweep([("ovm", {})], ["catchup-v1"], [4], [2000])[0])
+    assert rec["status"] == "ok" and rec["steps"] == 600
+    assert rec["energy_kwh"] == pytest.approx(traj.power_kw[1:].sum() * 0.1 / 3600)
+    dist_km = traj.speed_mps[1:].sum() * 0.1 / 1000 / 4
+    assert rec["energy_kwh_per_100km"] == pytest.approx(rec["energy_kwh"] / 4 / dist_km * 100)
+    assert rec["reward"] == pytest.approx(traj.reward.mean())
+    assert rec["min_gap_m"] == pytest.approx(traj.gap_m.min())
+    assert rec["gap_rmse_m"] == pytest.approx(np.sqrt(np.mean((traj.gap_m[1:] - 20) ** 2)))
+    assert rec["comm_bits_per_s"] == 0
+
+
+def test_string_gain_by_hand() -> None:
+    a = np.zeros((10, 3))
+    a[:, 0] = 1.0
+    a[:, 1] = 2.0
+    a[:, 2] = 1.0
+    assert string_gain(a) == pytest.approx(2.0)
+    a[:, 0] = 0.0  # leader does not move: its pair is skipped
+    assert string_gain(a) == pytest.approx(0.5)
+
+
+def test_run_writes_files_with_contract_columns(tmp_path: Path) -> None:
+    out = tmp_path / "r"
+    code = main(["run", "--controllers", "ovm", "--scenarios", "catchup-v1,slowdown-v1",
+                 "--vehicles", "3", "--episodes", "2", "--out", str(out), "--trajectories"])
+    assert code == 0
+    runs = pd.read_csv(out / "runs.csv")
+    assert set(REQUIRED_RUN_COLUMNS) <= set(runs.columns)
+    assert len(runs) == 4 and (runs["status"] == "ok").all()
+    lb = pd.read_csv(out / "leaderboard.csv")
+    for col in ("controller", "family", "scenario", "n_vehicles", "n_episodes", "collisions",
+                "failed", "rank"):
+        assert col in lb.columns
+    for m in LEADERBOARD_METRICS:
+        for suffix in ("mean", "ci_low", "ci_high"):
+            assert f"{m}_{suffix}" in lb.columns
+    assert (lb["rank"] == 1).all()
+    traj = pd.read_csv(out / "trajectories" / "ovm__catchup-v1__n3__s2000.csv")
+    assert list(traj.columns) == ["step", "time_s", "vehicle", "gap_m", "speed_mps", "accel_mps2",
+                                  "power_kw"]
+    assert len(traj) == 601 * 4
+    assert traj[traj.vehicle == 0]["gap_m"].isna().all()
+    assert (traj[traj.step == 0]["accel_mps2"] == 0).all()
+
+
+def test_rank_puts_collisions_last(tmp_path: Path) -> None:
+    from benchmark.export import leaderboard_frame, runs_frame
+
+    recs = []
+    for ctrl, reward, coll in (("a", -10.0, True), ("b", -50.0, False), ("c", -20.0, False)):
+        recs.append({"controller": ctrl, "name": ctrl, "family": "x", "scenario": "s",
+                     "n_vehicles": 2, "seed": 1, "status": "ok", "collision": coll,
+                     "reward": reward, "comm_delay_s": 0.0, "packet_loss": 0.0, "lag_s": 0.0,
+                     "deterministic": True, "solver_failures": 0, "string_stable": True})
+    lb = leaderboard_frame(runs_frame(recs)).set_index("controller")
+    assert lb.loc["c", "rank"] == 1 and lb.loc["b", "rank"] == 2 and lb.loc["a", "rank"] == 3
+
+
+def test_failed_run_is_stored_and_named(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    register_controller(ControllerSpec("failing", "linear", "none", "test only",
+                                       "failing_controller:FailingController"))
+    out = tmp_path / "f"
+    code = main(["run", "--controllers", "failing,ovm", "--scenarios", "catchup-v1",
+                 "--vehicles", "2", "--episodes", "2", "--out", str(out)])
+    assert code == 1
+    err = capsys.readouterr().err
+    assert "2 run(s) failed" in err and "deliberate failure" in err
+    runs = pd.read_csv(out / "runs.csv")
+    failed = runs[runs.controller == "failing"]
+    assert (failed["status"] == "failed").all()
+    assert failed["error"].str.contains("deliberate failure at step 5").all()
+    assert (runs[runs.controller == "ovm"]["status"] == "ok").all()
+    lb = pd.read_csv(out / "leaderboard.csv").set_index("controller")
+    assert lb.loc["failing", "failed"] == 2 and lb.loc["failing", "rank"] == 2
+
+
+@pytest.mark.parametrize(
+    ("args", "needle"),
+    [
+        (["--controllers", "nope"], "valid controllers are"),
+        (["--scenarios", "nope-v1"], "valid scenarios are"),
+        (["--vehicles", "1"], "followers"),
+        (["--comm-delay", "-0.1"], "--comm-delay"),
+        (["--packet-loss", "1.5"], "--packet-loss"),
+        (["--lag", "-1"], "--lag"),
+        (["--episodes", "0"], "--episodes"),
+        (["--controllers", "ovm:alpha=abc"], "alpha"),
+        (["--controllers", "ovm:gamma=1"], "no option"),
+        (["--vehicles", "x"], "--vehicles"),
+    ],
+)
+def test_bad_input_exit_2(tmp_path: Path, args: list[str], needle: str,
+                          capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exc:
+        sys.exit(main(["run", "--out", str(tmp_path / "x"), "--episodes", "1", *args]))
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert needle in err
+    assert "Traceback" not in err
+    assert not (tmp_path / "x" / "runs.csv").exists()
+
+
+def test_existing_results_need_resume(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    args = ["run", "--controllers", "ovm", "--scenarios", "catchup-v1", "--vehicles", "2",
+            "--episodes", "1", "--out", str(tmp_path)]
+    assert main(args) == 0
+    assert main(args) == 2
+    assert "--resume" in capsys.readouterr().err
+    assert main([*args, "--resume"]) == 0
+    with sqlite3.connect(tmp_path / "store.sqlite") as conn:
+        assert conn.execute("SELECT COUNT(*) FROM runs").fetchone()[0] == 1
+
+
+def test_unknown_command_and_help() -> None:
+    assert main(["frobnicate"]) == 2
+    assert main(["--help"]) == 0
+    assert main(["leaderboard", "/nonexistent/dir"]) == 2
+
+
+def test_cli_starts_without_heavy_imports() -> None:
+    code = ("import sys, benchmark.cli as c, benchmark.list_cmd as l; l.main([]); "
+            "heavy = [m for m in ('torch', 'control', 'cvxpy', 'casadi', 'pandas', 'ray', 'osqp') "
+            "if m in sys.modules]; print(heavy)")
+    res = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
+                         timeout=60)
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.strip().splitlines()[-1] == "[]"
+
+
+SWEEP = ["--controllers", "ovm,ovm:alpha=0.4", "--scenarios", "catchup-v1,slowdown-v1",
+         "--vehicles", "3", "--episodes", "6"]
+
+
+def test_sigkill_then_resume_equals_uninterrupted(tmp_path: Path) -> None:
+    full = tmp_path / "full"
+    assert _cli("run", *SWEEP, "--out", str(full), "--quiet").returncode == 0
+    part = tmp_path / "part"
+    proc = subprocess.Popen([sys.executable, "-m", "benchmark.cli", "run", *SWEEP, "--out",
+                             str(part), "--quiet"], cwd=ROOT, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    store = part / "store.sqlite"
+    deadline = time.monotonic() + 120
+    n = 0
+    while time.monotonic() < deadline:
+        if store.exists():
+            try:
+                with sqlite3.connect(store, timeout=1) as conn:
+                    n = conn.execute("SELECT COUNT(*) FROM runs").fetchone()[0]
+            except sqlite3.OperationalError:
+                n = 0
+            if n >= 3:
+                break
+        time.sleep(0.02)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    with sqlite3.connect(store) as conn:
+        stored = conn.execute("SELECT COUNT(*) FROM runs").fetchone()[0]
+    assert 3 <= stored < 24, "the kill should land mid-sweep"
+    res = _cli("run", *SWEEP, "--out", str(part), "--resume", "--quiet")
+    assert res.returncode == 0, res.stderr
+    assert f"{stored} of 24 runs already stored" in res.stderr
+    with sqlite3.connect(store) as conn:
+        ids = [r[0] for r in conn.execute("SELECT id FROM runs")]
+    assert len(ids) == len(set(ids)) == 24
+    for name in ("runs.csv", "leaderboard.csv"):
+        pd.testing.assert_frame_equal(_no_timing(part / name), _no_timing(full / name))
+
+
+def test_process_executor_equals_serial(tmp_path: Path) -> None:
+    small = ["--controllers", "ovm", "--scenarios", "catchup-v1,brake-v1", "--vehicles", "3",
+             "--episodes", "2", "--quiet", "--comm-delay", "0.1", "--packet-loss", "0.2"]
+    assert main(["run", *small, "--out", str(tmp_path / "s")]) == 0
+    assert main(["run", *small, "--out", str(tmp_path / "p"), "--executor", "process",
+                 "--workers", "2"]) == 0
+    assert main(["run", *small, "--out", str(tmp_path / "s2")]) == 0
+    for name in ("runs.csv", "leaderboard.csv"):
+        ref = _no_timing(tmp_path / "s" / name)
+        pd.testing.assert_frame_equal(_no_timing(tmp_path / "p" / name), ref)
+        pd.testing.assert_frame_equal(_no_timing(tmp_path / "s2" / name), ref)
+
+
+@pytest.mark.ray
+def test_ray_executor_equals_serial(tmp_path: Path) -> None:
+    pytest.importorskip("ray")
+    small = ["--controllers", "ovm", "--scenarios", "catchup-v1", "--vehicles", "3",
+             "--episodes", "3", "--quiet"]
+    assert main(["run", *small, "--out", str(tmp_path / "s")]) == 0
+    assert main(["run", *small, "--out", str(tmp_path / "r"), "--executor", "ray",
+                 "--workers", "2"]) == 0
+    for name in ("runs.csv", "leaderboard.csv"):
+        pd.testing.assert_frame_equal(_no_timing(tmp_path / "r" / name),
+                                      _no_timing(tmp_path / "s" / name))
+
+
+GOLDEN_ARGS = ["--controllers", "ovm", "--scenarios", "catchup-v1,slowdown-v1,brake-v1,openacc-s-v1",
+               "--vehicles", "4", "--seeds", "2000,2010", "--quiet"]
+
+
+def test_golden_smoke(tmp_path: Path) -> None:
+    """A tiny fixed sweep must reproduce tests/golden/smoke_runs.csv (regenerate deliberately with
+    CACC_BENCH_REGEN_GOLDEN=1)."""
+    assert main(["run", *GOLDEN_ARGS, "--out", str(tmp_path)]) == 0
+    got = _no_timing(tmp_path / "runs.csv").drop(columns=["version", "git_sha"])
+    if os.environ.get("CACC_BENCH_REGEN_GOLDEN") == "1":
+        GOLDEN.parent.mkdir(exist_ok=True)
+        got.to_csv(GOLDEN, index=False, float_format="%.10g")
+    want = pd.read_csv(GOLDEN)
+    pd.testing.assert_frame_equal(got, want, check_exact=False, rtol=1e-8, atol=1e-10)

@@ -1,0 +1,60 @@
+"""The README never lies: its set-up and test commands are the ones CI runs, and its main
+command works (in small form)."""
+
+from __future__ import annotations
+
+import re
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+
+import pandas as pd
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _blocks(section: str) -> list[str]:
+    text = (ROOT / "README.md").read_text()
+    m = re.search(rf"^## {re.escape(section)}\n(.*?)(?=^## )", text, re.S | re.M)
+    assert m, f"README has no section {section!r}"
+    return [ln.strip() for b in re.findall(r"```bash\n(.*?)```", m.group(1), re.S)
+            for ln in b.strip().splitlines() if ln.strip() and not ln.startswith("#")]
+
+
+def test_setup_has_exactly_two_commands_and_ci_uses_them() -> None:
+    install, main_cmd = _blocks("Set up")
+    ci = (ROOT / ".ci" / "run").read_text()
+    assert install in ci
+    (test_cmd,) = _blocks("Test")
+    assert test_cmd in ci
+    assert main_cmd.startswith(".venv/bin/cacc-bench run")
+
+
+def test_main_command_in_small_form(tmp_path: Path) -> None:
+    _, main_cmd = _blocks("Set up")
+    args = shlex.split(main_cmd)[2:]  # after ".venv/bin/cacc-bench run"
+    exe = Path(sys.executable).parent / "cacc-bench"
+    small = ["--episodes", "1", "--out", str(tmp_path / "run")]
+    res = subprocess.run([str(exe), "run", *args, *small], cwd=tmp_path, capture_output=True,
+                         text=True, timeout=900)
+    assert res.returncode == 0, res.stderr
+    lb = pd.read_csv(tmp_path / "run" / "leaderboard.csv")
+    assert len(lb) >= 2
+    assert "leaderboard.csv" in res.stdout
+
+
+def test_tour_commands_in_small_form(tmp_path: Path) -> None:
+    exe = str(Path(sys.executable).parent / "cacc-bench")
+    out = tmp_path / "r"
+    for cmd in (
+        [exe, "list"],
+        [exe, "run", "--controllers", "ovm", "--scenarios", "catchup-v1", "--vehicles", "2",
+         "--episodes", "1", "--out", str(out)],
+        [exe, "leaderboard", str(out)],
+        [exe, "plot", str(out), "--no-energy-map"],
+        [exe, "fit-power"],
+    ):
+        res = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=600)
+        assert res.returncode == 0, (cmd, res.stderr)
+    assert any((out / "figures").glob("leaderboard.png"))
