@@ -96,7 +96,9 @@ class PloegLoop:
         return dataclasses.replace(self, **changes)
 
     @classmethod
-    def from_controller(cls, controller: Any, delay_s: float = 0.0, lag_s: float = 0.0) -> PloegLoop:
+    def from_controller(
+        cls, controller: Any, delay_s: float = 0.0, lag_s: float = 0.0
+    ) -> PloegLoop:
         """The loop of a ``controllers.linear`` controller (``acc``/``cacc``) in a run's settings."""
         cfg = getattr(controller, "config", None)
         needed = ("kp", "kd", "time_gap_s", "feedforward")
@@ -143,7 +145,9 @@ def gamma_tf(loop: PloegLoop, pade_order: int = 5) -> control.TransferFunction:
     if pade_order < 1:
         raise ConfigError(f"the Pade order must be >= 1, got {pade_order}")
     if loop.feedforward and loop.delay_s > 0:
-        d_num, d_den = (np.asarray(p, dtype=np.float64) for p in control.pade(loop.delay_s, pade_order))
+        d_num, d_den = (
+            np.asarray(p, dtype=np.float64) for p in control.pade(loop.delay_s, pade_order)
+        )
     else:
         d_num = d_den = np.array([1.0])
     k = np.array([loop.kd, loop.kp])
@@ -342,9 +346,7 @@ def discrete_gamma_tf(loop: PloegLoop, dt_s: float = 0.1) -> control.TransferFun
 
 def discrete_hinf_norm(loop: PloegLoop, dt_s: float = 0.1, n_grid: int = 3000) -> NormResult:
     """``sup_w |Gamma(e^{j w dt})|`` over (0, pi/dt] for the follower pair of the discrete loop."""
-    return _peak(
-        lambda w: discrete_gamma_response(w, loop, dt_s), 1e-3, math.pi / dt_s, n_grid
-    )
+    return _peak(lambda w: discrete_gamma_response(w, loop, dt_s), 1e-3, math.pi / dt_s, n_grid)
 
 
 def discrete_internally_stable(loop: PloegLoop, dt_s: float = 0.1) -> bool:
@@ -504,7 +506,9 @@ def empirical_gain(
     if omegas.size == 0 or np.any(~np.isfinite(omegas)) or np.any(omegas <= 0):
         raise ConfigError("frequencies must be finite and > 0 rad/s")
     if np.any(omegas >= math.pi / dt):
-        raise ConfigError(f"frequencies must lie below the Nyquist frequency {math.pi / dt:.3g} rad/s")
+        raise ConfigError(
+            f"frequencies must lie below the Nyquist frequency {math.pi / dt:.3g} rad/s"
+        )
     _check_value(amplitude_mps, "amplitude_mps", positive=True)
     _check_value(transient_s, "transient_s")
     _check_value(periods, "periods", positive=True)

@@ -21,7 +21,7 @@ RUN_COLUMNS: tuple[str, ...] = (
     "compute_ms_p99", "compute_ms_first", "solver_failures", "comm_bits_per_s", "comm_delay_s",
     "packet_loss", "lag_s", "wall_s", "version", "git_sha",
     # additions
-    "controller_name", "options", "deterministic",
+    "controller_name", "options", "deterministic", "spacing_string_gain",
 )
 
 LEADERBOARD_METRICS: tuple[str, ...] = (

@@ -11,6 +11,7 @@ import math
 
 import numpy as np
 
+from analysis.stability import STRING_GAIN_TOL, spacing_string_gain, time_domain_string_gain
 from benchmark.rollout import Trajectory
 
 #: Columns of runs.csv that hold measured times (they differ between identical reruns).
@@ -22,32 +23,10 @@ TIMING_COLUMNS: tuple[str, ...] = (
     "wall_s",
 )
 
-#: Relative tolerance on the time-domain string gain before a run counts as string-unstable.
-STRING_GAIN_TOL = 1e-3
-#: Pairs whose predecessor moved less than this (L2 norm of acceleration, m/s^2 * sqrt(steps))
-#: are skipped: the ratio is undefined when the predecessor does not move.
-STRING_GAIN_MIN_NORM = 1e-6
-
-
-def string_gain(accel_mps2: np.ndarray) -> float:
-    """Time-domain string gain ``max_i ||a_i||_2 / ||a_{i-1}||_2``.
-
-    Parameters
-    ----------
-    accel_mps2 : (T, N+1)
-        Accelerations of the leader (column 0) and the followers.
-
-    Returns
-    -------
-    float
-        The largest ratio over follower pairs whose predecessor moved (NaN if none did).
-    """
-    norms = np.sqrt(np.sum(np.square(accel_mps2), axis=0))
-    pred, succ = norms[:-1], norms[1:]
-    ok = pred > STRING_GAIN_MIN_NORM
-    if not ok.any():
-        return math.nan
-    return float(np.max(succ[ok] / pred[ok]))
+#: The first step is left out of the string gains: it carries the initial-condition transient
+#: (slowdown-v1's published speed clip "decelerates" every follower at tens of m/s^2 at step 1),
+#: which says nothing about how the controller propagates disturbances.
+STRING_GAIN_SKIP_STEPS = 1
 
 
 def _q(x: np.ndarray, q: float) -> float:
@@ -72,8 +51,10 @@ def run_metrics(
     distance_km = float(traj.speed_mps[1:].sum() * dt / 1000.0) / n if steps else 0.0
     per_step_ms = traj.compute_s * 1000.0 / n
     rest = per_step_ms[1:]
+    skip = 1 + STRING_GAIN_SKIP_STEPS
     all_accel = np.concatenate([traj.leader_accel_mps2[:, None], traj.accel_mps2], axis=1)
-    gain = string_gain(all_accel[1:])
+    gain = float(time_domain_string_gain(all_accel[skip:]))
+    spacing_gain = float(spacing_string_gain(traj.gap_m[skip:] - target_gap_m))
     return {
         "steps": steps,
         "collision": bool(traj.collided),
@@ -95,6 +76,7 @@ def run_metrics(
         "tracking_reward": float(traj.tracking_reward.mean()) if steps else math.nan,
         "string_gain": gain,
         "string_stable": bool(gain <= 1.0 + STRING_GAIN_TOL) if math.isfinite(gain) else False,
+        "spacing_string_gain": spacing_gain,
         "compute_ms_p50": _q(rest, 50),
         "compute_ms_p95": _q(rest, 95),
         "compute_ms_p99": _q(rest, 99),

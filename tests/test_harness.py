@@ -14,11 +14,17 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from analysis.stability import time_domain_string_gain as string_gain
 from benchmark.cli import main
-from benchmark.metrics import TIMING_COLUMNS, string_gain
+from benchmark.metrics import TIMING_COLUMNS
 from benchmark.rollout import rollout
 from benchmark.suite import build_sweep, execute_run
-from controllers.registry import ControllerSpec, make_controller, parse_controller_list, register_controller
+from controllers.registry import (
+    ControllerSpec,
+    make_controller,
+    parse_controller_list,
+    register_controller,
+)
 from envs.errors import ConfigError
 from envs.scenarios import make_scenario
 
@@ -255,7 +261,7 @@ def test_ray_executor_equals_serial(tmp_path: Path) -> None:
                                       _no_timing(tmp_path / "s" / name))
 
 
-GOLDEN_ARGS = ["--controllers", "ovm", "--scenarios", "catchup-v1,slowdown-v1,brake-v1,openacc-s-v1",
+GOLDEN_ARGS = ["--controllers", "ovm,acc,cacc", "--scenarios", "catchup-v1,slowdown-v1,brake-v1,openacc-s-v1",
                "--vehicles", "4", "--seeds", "2000,2010", "--quiet"]
 
 

@@ -1,0 +1,43 @@
+"""``cacc-bench perf`` reports its keys; progress shows on a terminal and stays quiet otherwise."""
+
+from __future__ import annotations
+
+import io
+import json
+
+import pytest
+
+from benchmark.cli import main
+from benchmark.progress import Progress
+
+
+def test_perf_json_keys(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["perf", "--quick", "--json", "--only", "env,harness,controllers",
+                 "--controllers", "ovm"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["env_vehicle_steps_per_s"] > 0
+    assert out["harness_steps_per_s"] > 0
+    assert out["controller_ms_per_vehicle_step"]["ovm"] > 0
+
+
+def test_perf_bad_part() -> None:
+    assert main(["perf", "--only", "nothing"]) == 2
+
+
+class _Tty(io.StringIO):
+    def isatty(self) -> bool:
+        return True
+
+
+def test_progress_on_terminal_only() -> None:
+    tty = _Tty()
+    p = Progress(4, stream=tty)
+    for _ in range(4):
+        p.advance()
+    p.close()
+    assert "4/4 runs (100%)" in tty.getvalue() and "left" in tty.getvalue()
+    log = io.StringIO()
+    q = Progress(4, stream=log)
+    q.advance()
+    q.close()
+    assert log.getvalue() == ""
