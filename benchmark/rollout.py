@@ -68,6 +68,9 @@ def rollout(
     tracking reward is the same without the power term), so metrics never recompute it.
     """
     env = PlatoonEnv(scenario, n_vehicles, params, observe=controller.needs_observation)
+    recorded = getattr(controller, "recorded", None)
+    if recorded is not None:  # a recorded platoon (real data), scored by the same rules
+        return _score_recorded(env, recorded(scenario, n_vehicles), params)
     ctx = EpisodeContext(scenario, n_vehicles, np.array([seed]), params, channel)
     controller.reset(ctx)
     obs = env.reset([seed])
@@ -118,4 +121,23 @@ def rollout(
         bits_sent=ctx.bits_sent,
         solver_failures=int(getattr(controller, "solver_failures", 0)),
         dt_s=params.dt_s,
+    )
+
+
+def _score_recorded(env: PlatoonEnv, rec: dict[str, np.ndarray], params: PlatoonParams) -> Trajectory:
+    """A :class:`Trajectory` of a recorded platoon, with the env's power and reward."""
+    gap, speed, accel = rec["gap_m"], rec["speed_mps"], rec["accel_mps2"]
+    power_after, reward, tracking, collided = env.score_recorded(gap[1:], speed[1:], accel[1:])
+    hit = np.flatnonzero(collided)
+    steps = int(hit[0]) + 1 if hit.size else len(reward)
+    power = np.zeros_like(gap)
+    power[1:] = power_after
+    lead = rec["leader_speed_mps"][: steps + 1]
+    lead_accel = np.zeros(steps + 1)
+    lead_accel[1:] = np.diff(lead) / params.dt_s
+    return Trajectory(
+        gap_m=gap[: steps + 1], speed_mps=speed[: steps + 1], accel_mps2=accel[: steps + 1],
+        power_kw=power[: steps + 1], leader_speed_mps=lead, leader_accel_mps2=lead_accel,
+        reward=reward[:steps], tracking_reward=tracking[:steps], compute_s=np.zeros(steps),
+        collided=bool(hit.size), steps=steps, bits_sent=0, solver_failures=0, dt_s=params.dt_s,
     )

@@ -19,7 +19,7 @@ from envs.params import PlatoonParams
 from envs.platoon import PlatoonState
 from envs.scenarios import Scenario
 
-FAMILIES = ("human", "linear", "mpc", "marl")
+FAMILIES = ("human", "linear", "mpc", "marl", "data")
 
 
 @dataclass

@@ -98,6 +98,11 @@ for _spec in (
         "centralised MPC of the whole platoon with full information (cvxpy)",
         "controllers.cmpc:CentralisedMPCController",
     ),
+    ControllerSpec(
+        "openacc-real", "data", "none (real ACC cars)",
+        "the recorded ACC followers of an OpenACC window (openacc-* scenarios only; paper Table III)",
+        "controllers.replay:RealACCRecord",
+    ),
 ):
     register_controller(_spec)
 

@@ -257,11 +257,7 @@ class PlatoonEnv:
             lead_next,
             self.params,
         )
-        lo, hi = self.power_accel_range_mps2
-        if applied.min() < lo or applied.max() > hi:
-            power = self.power(v, np.clip(applied, lo, hi))
-        else:
-            power = self.power(v, applied)
+        power = self.battery_power_kw(v, applied)
         terms = reward_terms(
             gap,
             v,
@@ -298,6 +294,42 @@ class PlatoonEnv:
             s.done[:] = True
         obs = self.observation() if self.observe else None
         return StepResult(reward, s.done.copy(), s.collided.copy(), power, applied, obs)
+
+    def battery_power_kw(self, speed_mps: np.ndarray, accel_mps2: np.ndarray) -> np.ndarray:
+        """Battery power (kW) by the fitted polynomial, evaluated inside its fit domain."""
+        lo, hi = self.power_accel_range_mps2
+        if accel_mps2.min() < lo or accel_mps2.max() > hi:
+            return self.power(speed_mps, np.clip(accel_mps2, lo, hi))
+        return self.power(speed_mps, accel_mps2)
+
+    def score_recorded(
+        self, gap_m: np.ndarray, speed_mps: np.ndarray, accel_mps2: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Power and rewards of a recorded (not simulated) platoon, by this env's own rules.
+
+        Parameters
+        ----------
+        gap_m, speed_mps, accel_mps2 : (T, N)
+            States after each step and the accelerations that led to them.
+
+        Returns
+        -------
+        power_kw : (T, N)
+        reward, tracking_reward : (T,)
+            Sum over agents of the evaluation reward with and without the power term
+            (-1000 per agent at a step with a gap below ``gap_min``).
+        collided : (T,) bool
+        """
+        power = self.battery_power_kw(speed_mps, accel_mps2)
+        terms = reward_terms(gap_m, speed_mps, accel_mps2, power, self.target_gap_m,
+                             self.target_speed_mps, self.params, self.weights)
+        reward = combine_reward(terms, training=False, include_power=True)
+        tracking = combine_reward(terms, training=False, include_power=False)
+        collided = (gap_m < self.params.gap_min_m).any(axis=1)
+        n = gap_m.shape[1]
+        reward_sum = np.where(collided, self.weights.collision * n, reward.sum(axis=1))
+        tracking_sum = np.where(collided, self.weights.collision * n, tracking.sum(axis=1))
+        return power, reward_sum, tracking_sum, collided
 
     def _require_state(self) -> PlatoonState:
         if self.state is None:

@@ -275,3 +275,28 @@ def test_golden_smoke(tmp_path: Path) -> None:
         got.to_csv(GOLDEN, index=False, float_format="%.10g")
     want = pd.read_csv(GOLDEN)
     pd.testing.assert_frame_equal(got, want, check_exact=False, rtol=1e-8, atol=1e-10)
+
+
+def test_openacc_real_row_scores_the_recorded_followers(tmp_path: Path) -> None:
+    from envs.openacc import load_window
+
+    rec = execute_run(build_sweep([("openacc-real", {})], ["openacc-s-v1"], [4], [0])[0])
+    assert rec["status"] == "ok", rec["error"]
+    w = load_window("S")
+    gaps = w.follower_gap_m[:601, :4]
+    assert rec["min_gap_m"] == pytest.approx(gaps.min())
+    assert rec["gap_mean_m"] == pytest.approx(gaps[1:].mean())
+    v = w.follower_speed_mps[:601, :4]
+    a = np.diff(v, axis=0) / 0.1
+    from envs.energy import load_power_polynomial
+
+    p = load_power_polynomial()(v[1:], np.clip(a, -3.0, 2.5))
+    assert rec["energy_kwh"] == pytest.approx(p.sum() * 0.1 / 3600)
+
+
+def test_openacc_real_needs_an_openacc_scenario(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["run", "--controllers", "openacc-real", "--scenarios", "catchup-v1",
+                 "--episodes", "1", "--out", "/tmp/never-written"]) == 2
+    assert "openacc-s-v1" in capsys.readouterr().err
+    assert main(["run", "--controllers", "openacc-real", "--scenarios", "openacc-m-v1",
+                 "--vehicles", "5", "--episodes", "1", "--out", "/tmp/never-written"]) == 2

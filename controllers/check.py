@@ -1,0 +1,67 @@
+"""``check_controller``: the contract every registered controller must meet.
+
+Contributors run it on their additions; the test suite runs it on every available registered
+controller (registering one adds it to the parametrised tests).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from controllers.base import FAMILIES, Controller, EpisodeContext
+from controllers.registry import make_controller, resolve
+from envs.channel import ChannelConfig
+from envs.platoon import PlatoonEnv
+from envs.scenarios import make_scenario
+
+
+def _episode(ctrl: Controller, scenario_id: str, n: int, seed: int, steps: int,
+             channel: ChannelConfig) -> tuple[np.ndarray, int]:
+    env = PlatoonEnv(scenario_id, n, observe=ctrl.needs_observation)
+    ctx = EpisodeContext(env.scenario, n, np.array([seed]), env.params, channel)
+    ctrl.reset(ctx)
+    obs = env.reset([seed])
+    out = []
+    for _ in range(steps):
+        assert env.state is not None
+        u = ctrl.act(env.state, obs)
+        u = np.asarray(u)
+        if u.shape != (1, n):
+            raise AssertionError(f"{ctrl.name}: act returned shape {u.shape}, expected (1, {n})")
+        if not np.all(np.isfinite(u)):
+            raise AssertionError(f"{ctrl.name}: act returned a non-finite command")
+        out.append(u.copy())
+        res = env.step(u)
+        obs = res.observation
+        if res.done[0]:
+            break
+    return np.concatenate(out), ctx.bits_sent
+
+
+def check_controller(name: str, scenario_id: str = "catchup-v1", n_vehicles: int = 8,
+                     steps: int = 40, **options: object) -> None:
+    """Raise ``AssertionError`` if a registered controller breaks the harness's contract.
+
+    Checks: class attributes (family, flags); ``reset``/``act`` give ``(B, N)`` finite commands;
+    a deterministic controller gives identical commands on a rerun of the same episode, and
+    different episodes are allowed to differ; the V2V bits it reports come from its channels
+    and are zero when it declares no V2V; ``solver_failures`` is a non-negative integer.
+    """
+    spec = resolve(name)
+    ctrl = make_controller(name, **options)
+    if spec.family not in FAMILIES or ctrl.family != spec.family:
+        raise AssertionError(f"{name}: family {ctrl.family!r} does not match the registry")
+    make_scenario(scenario_id)
+    channel = ChannelConfig(0.1, 0.1)
+    u1, bits1 = _episode(ctrl, scenario_id, n_vehicles, 2000, steps, channel)
+    u2, bits2 = _episode(make_controller(name, **options), scenario_id, n_vehicles, 2000, steps,
+                         channel)
+    if ctrl.deterministic and not np.array_equal(u1, u2):
+        raise AssertionError(f"{name}: declared deterministic but a rerun gave other commands")
+    if bits1 != bits2:
+        raise AssertionError(f"{name}: V2V bits differ between identical episodes")
+    if spec.v2v.startswith("none") and bits1 != 0:
+        raise AssertionError(f"{name}: declares no V2V but sent {bits1} bits")
+    failures = getattr(ctrl, "solver_failures", 0)
+    if not isinstance(failures, int) or failures < 0:
+        raise AssertionError(f"{name}: solver_failures must be a non-negative int")
