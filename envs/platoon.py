@@ -325,7 +325,7 @@ class PlatoonEnv:
                              self.target_speed_mps, self.params, self.weights)
         reward = combine_reward(terms, training=False, include_power=True)
         tracking = combine_reward(terms, training=False, include_power=False)
-        collided = (gap_m < self.params.gap_min_m).any(axis=1)
+        collided: np.ndarray = np.asarray((gap_m < self.params.gap_min_m).any(axis=1))
         n = gap_m.shape[1]
         reward_sum = np.where(collided, self.weights.collision * n, reward.sum(axis=1))
         tracking_sum = np.where(collided, self.weights.collision * n, tracking.sum(axis=1))
