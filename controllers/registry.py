@@ -84,12 +84,12 @@ for _spec in (
         "controllers.linear:CACCController",
     ),
     ControllerSpec(
-        "mpc", "mpc", "predecessor's assumed trajectory (H+1 floats)",
+        "mpc", "mpc", "predecessor's assumed speed plan with its time stamp (H+2 floats)",
         "energy-aware distributed MPC with the fitted power model (CasADi)",
         "controllers.mpc:DMPCController",
     ),
     ControllerSpec(
-        "mpc-qp", "mpc", "predecessor's assumed trajectory (H+1 floats)",
+        "mpc-qp", "mpc", "predecessor's assumed speed plan with its time stamp (H+2 floats)",
         "quadratic distributed MPC without energy term (OSQP)",
         "controllers.mpc_qp:QPDMPCController",
     ),
