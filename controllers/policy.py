@@ -1,0 +1,182 @@
+"""Trained MARL policies as controllers (greedy actions from a shipped checkpoint).
+
+``PolicyController(algo)`` loads ``controllers/checkpoints/<algo>__<scenario>__n<N>__s0.pt`` for
+the run's scenario and N at :meth:`reset`, keeps every agent's recurrent state, and picks the
+greedy action of each follower every step; the action becomes the OVM command of the published
+action table. Every message goes through channels of the episode context, so delay and loss act
+on it and its bits are counted: each follower's 5-float vehicle block to its front and rear
+neighbours (the observation's neighbour blocks are rebuilt from what arrived), and, for FPrint,
+DIAL and CommNet, the algorithm's message (4 or 64 floats) likewise.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from controllers.base import Controller, EpisodeContext
+from envs.dynamics import action_to_command_mps2
+from envs.errors import ConfigError
+from envs.platoon import PlatoonState
+
+CHECKPOINT_DIR = Path(__file__).resolve().parent / "checkpoints"
+
+
+def checkpoint_path(algo: str, scenario: str, n_vehicles: int, seed: int = 0) -> Path:
+    """Where the shipped checkpoint of a run lives."""
+    return CHECKPOINT_DIR / f"{algo}__{scenario}__n{n_vehicles}__s{seed}.pt"
+
+
+class PolicyController(Controller):
+    """Greedy policy of a trained MARL algorithm.
+
+    Parameters
+    ----------
+    algo : str
+        Algorithm name (``ia2c``, ``fprint``, ``dial``, ``commnet``, ``wac``, ``dcea``, ``bdc``).
+    scenario : str, optional
+        Load the checkpoint trained on this scenario instead of the run's one.
+    checkpoint : str, optional
+        Explicit checkpoint file (overrides ``scenario``).
+    seed : int
+        Training seed of the shipped checkpoint (0).
+    untrained : bool
+        Act with freshly initialised weights (the "untrained policy" reference; no file read).
+    """
+
+    family = "marl"
+    deterministic = True
+    v2v = "neighbours' vehicle blocks (5 floats), plus learned messages for fprint/dial/commnet"
+    needs_observation = True
+
+    def __init__(
+        self,
+        algo: str,
+        scenario: str | None = None,
+        checkpoint: str | None = None,
+        seed: int | str = 0,
+        untrained: bool | str = False,
+        **options: Any,
+    ) -> None:
+        super().__init__()
+        from marl.common import ALGORITHM_NAMES
+
+        if options:
+            raise ConfigError(
+                f"{algo} has no option(s) {sorted(options)}; its options are: checkpoint, "
+                "scenario, seed, untrained"
+            )
+        if algo not in ALGORITHM_NAMES:
+            raise ConfigError(
+                f"unknown MARL algorithm {algo!r}; valid: {', '.join(ALGORITHM_NAMES)}"
+            )
+        self.algo = algo
+        self.name = algo
+        self.scenario = scenario
+        self.checkpoint = checkpoint
+        self.seed = int(seed)
+        self.untrained = str(untrained).lower() in ("1", "true", "yes", "on")
+        self.options = {
+            k: v
+            for k, v in {
+                "scenario": scenario,
+                "checkpoint": checkpoint,
+                "seed": int(seed) if int(seed) else None,
+                "untrained": True if self.untrained else None,
+            }.items()
+            if v is not None
+        }
+        self.net: Any = None
+        self.loaded: dict[str, Any] = {}
+
+    # ---------------------------------------------------------------- loading
+    def _load(self, scenario_id: str, n_vehicles: int) -> Any:
+        import torch
+
+        from marl.checkpoint import load_checkpoint, train_command
+        from marl.common import algorithm, config_from_dict
+
+        torch.set_num_threads(1)
+        algo = algorithm(self.algo)
+        if self.untrained:
+            config = algo.config_cls()
+            gen = torch.Generator().manual_seed(self.seed)
+            self.loaded = {"steps": 0, "scenario": scenario_id}
+            return algo.build_net(config, n_vehicles, with_critic=False, generator=gen)
+        source = self.scenario or scenario_id
+        path = (
+            Path(self.checkpoint)
+            if self.checkpoint
+            else checkpoint_path(self.algo, source, n_vehicles, self.seed)
+        )
+        if not path.exists():
+            raise ConfigError(
+                f"no trained {self.algo} policy for {source} with N = {n_vehicles}: {path} is "
+                f"missing; make it with `{train_command(self.algo, source, n_vehicles, self.seed)}`"
+                f" (or pick another checkpoint with {self.algo}:scenario=ID or checkpoint=FILE)"
+            )
+        data = load_checkpoint(path, algo=self.algo, n_vehicles=n_vehicles, scenario=source)
+        config = config_from_dict(algo, data["config"])
+        net = algo.build_net(config, n_vehicles, with_critic=False)
+        net.load_state_dict(data["weights"], strict=True)
+        net.eval()
+        self.loaded = data
+        return net
+
+    # ---------------------------------------------------------------- interface
+    def reset(self, ctx: EpisodeContext) -> None:
+        key = (ctx.scenario.id, ctx.n_vehicles)
+        if self.net is None or getattr(self, "_key", None) != key:
+            self.net = self._load(key[0], ctx.n_vehicles)
+            self._key = key
+        self.params = ctx.params
+        n = ctx.n_vehicles
+        self.state = self.net.initial_state(ctx.batch_size)
+        self.block_channel = ctx.make_channel(5, f"{self.algo}-blocks", links="neighbours")
+        self.msg_channel = None
+        if self.net.msg_width:
+            self.msg_channel = ctx.make_channel(
+                self.net.msg_width, f"{self.algo}-messages", links="neighbours"
+            )
+        # link order of "neighbours": (i-1 -> i) for i = 2..N, then (i+1 -> i) for i = 1..N-1
+        self._n_front = n - 1
+
+    def _split(self, held: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """Received per-link messages ``(B, L, W)`` -> front and rear ``(B, N, W)`` (0 if none)."""
+        b, _, w = held.shape
+        front = np.zeros((b, n, w))
+        rear = np.zeros((b, n, w))
+        front[:, 1:] = held[:, : self._n_front]
+        rear[:, :-1] = held[:, self._n_front :]
+        return front, rear
+
+    def act(self, state: PlatoonState, observation: np.ndarray | None) -> np.ndarray:
+        import torch
+
+        from marl.common import greedy_actions
+
+        if observation is None:
+            raise ConfigError(f"{self.algo} needs the agent observations (needs_observation)")
+        b, n, _ = observation.shape
+        own = observation[:, :, :5]
+        payload = np.zeros((b, n + 1, 5))
+        payload[:, 1:] = own
+        front_blk, rear_blk = self._split(self.block_channel.transmit(payload), n)
+        obs = np.concatenate([own, front_blk, rear_blk], axis=-1).astype(np.float32)
+        messages: tuple[torch.Tensor | None, torch.Tensor | None] = (None, None)
+        if self.msg_channel is not None:
+            msg = self.net.message(self.state)  # (N, B, W)
+            out = np.zeros((b, n + 1, self.net.msg_width))
+            out[:, 1:] = msg.detach().numpy().transpose(1, 0, 2)
+            f, r = self._split(self.msg_channel.transmit(out), n)
+
+            def t(x: np.ndarray) -> torch.Tensor:
+                return torch.from_numpy(x.transpose(1, 0, 2).astype(np.float32)).contiguous()
+
+            messages = (t(f), t(r))
+        actions, self.state = greedy_actions(self.net, obs, self.state, messages)
+        return action_to_command_mps2(
+            actions, state.gap_m, state.speed_mps, state.pred_speed_mps, self.params
+        )

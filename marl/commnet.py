@@ -1,0 +1,76 @@
+"""CommNet: agents broadcast their hidden states; each adds the mapped mean of its neighbours'.
+
+Every agent sends its previous LSTM hidden state (64 floats). The receiver averages the hidden
+states of the neighbours it has (front and rear; one at the ends of the chain), maps the mean
+with a linear layer and adds it to its encoded observation before the LSTM. Gradients flow
+through the communicated states (within a segment). Reward scale 1/5000, global reward (alpha 1).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from marl.common import A2CConfig, Algorithm, ProgressFn, SharedTrunkNet, TrainResult, run_training
+from marl.consensus import degree
+from marl.layers import BatchedLinear
+
+
+@dataclass(frozen=True)
+class CommNetConfig(A2CConfig):
+    """CommNet hyper-parameters: reward scale 1/5000, global reward (alpha = 1)."""
+
+    reward_scale: float = 1.0 / 5000.0
+    reward_alpha: float = 1.0
+
+
+class CommNetNet(SharedTrunkNet):
+    """IA2C trunk plus the communication layer ``C mean_j h_j``."""
+
+    differentiable_messages = True
+
+    def __init__(self, n_agents, hidden=64, with_critic=True, generator=None):
+        super().__init__(n_agents, hidden, with_critic, generator=generator)
+        self.msg_width = hidden
+        self.comm = BatchedLinear(n_agents, hidden, hidden, 1.0, generator)
+        deg = degree(n_agents, torch.zeros(n_agents, 1, 1)).clamp(min=1.0)
+        self.register_buffer("inv_degree", 1.0 / deg, persistent=False)
+
+    def message(self, state):
+        return state["h"]
+
+    def message_gates(self, state, front, rear):
+        assert front is not None and rear is not None
+        mean = (front + rear) * self.inv_degree
+        return self.lstm.input_gates(self.comm(mean), bias=False)
+
+
+class CommNet(Algorithm):
+    """Mean-of-neighbours communication; the learner is plain A2C over the joint graph."""
+
+    name = "commnet"
+    config_cls = CommNetConfig
+
+    def build_net(self, config, n_agents, with_critic=True, generator=None):
+        return CommNetNet(n_agents, config.hidden, with_critic, generator)
+
+
+ALGORITHM = CommNet()
+
+
+def train(
+    config: CommNetConfig,
+    scenario_id: str,
+    n_vehicles: int = 8,
+    total_steps: int = 600_000,
+    seed: int = 0,
+    out_dir: str | Path | None = None,
+    progress: ProgressFn | None = None,
+) -> TrainResult:
+    """Train CommNet; see :func:`marl.common.run_training`."""
+    torch.set_num_threads(1)
+    return run_training(
+        ALGORITHM, config, scenario_id, n_vehicles, total_steps, seed, out_dir, progress
+    )

@@ -1,0 +1,806 @@
+"""Shared machinery of the MARL learners: the A2C config, network interface, rollout, update.
+
+Every algorithm file (``ia2c.py``, ``fprint.py``, ``dial.py``, ``commnet.py``, ``wac.py``,
+``dcea.py``, ``bdc.py``) defines its config (a frozen subclass of :class:`A2CConfig`), its
+network (a subclass of :class:`AgentNet`) and its distinctive update hooks (an
+:class:`Algorithm`), and calls :func:`run_training`.
+
+Layout: activations are agent-major ``(N, B, F)``; all N agents' networks run as one batched
+tensor op (:mod:`marl.layers`). B episodes run in parallel in one batched
+:class:`envs.platoon.PlatoonEnv` (``training=True, collision_mode="published"``); one batched
+step of B active episodes counts as B environment steps.
+
+Learner (published A2C, ``spec/marl.md``): n-step segments (60 steps; every episode length and
+every published collision end is a multiple of 60), bootstrap from V of the observation after
+the segment (0 if terminal), truncated backprop through the LSTM within a segment, entropy
+bonus, per-agent global grad-norm clip, RMSprop. The acting LSTM state advances exactly once per
+observation: at a segment boundary the bootstrap forward is computed without gradient from the
+detached state and the next segment recomputes that same transition with gradient, re-using the
+actions sampled for the bootstrap.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import importlib
+import math
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from envs.errors import ConfigError, UnknownNameError
+from envs.platoon import PlatoonEnv
+from envs.scenarios import make_scenario
+from marl.layers import BatchedLinear, BatchedLSTMCell, per_agent_clip_
+from marl.returns import nstep_returns, share_rewards
+
+N_ACTIONS = 4
+OBS_DIM = 15
+BLOCK_FLOATS = 5
+FLOAT_BITS = 32
+#: Held-out seeds of the learning curve's greedy evaluation (never training, never EVAL_SEEDS).
+VALIDATION_SEEDS: tuple[int, ...] = tuple(range(1, 9))
+ALGORITHM_NAMES: tuple[str, ...] = ("ia2c", "fprint", "dial", "commnet", "wac", "dcea", "bdc")
+
+State = dict[str, torch.Tensor]
+ProgressFn = Callable[[int, int, dict[str, float]], None]
+
+
+@dataclass(frozen=True)
+class A2CConfig:
+    """Hyper-parameters shared by every learner (paper values; published code's where silent).
+
+    Attributes
+    ----------
+    n_step : int
+        Steps per update segment (published 60).
+    gamma : float
+        Discount (paper 0.99).
+    hidden : int
+        Width of the FC encoder and the LSTM (paper 64).
+    actor_lr, critic_lr : float
+        RMSprop learning rates of actor and critic parameters (paper 5e-4 and 2.5e-4; a shared
+        trunk learns at the actor rate).
+    rmsprop_alpha, rmsprop_eps : float
+        RMSprop smoothing and epsilon (published 0.99, 1e-5).
+    entropy_coef, value_coef : float
+        Loss weights (published 0.05 and 0.5).
+    grad_clip : float
+        Global grad-norm clip per agent (published 40).
+    reward_scale : float
+        Rewards are multiplied by this for learning (published 1/800 IA2C family, 1/5000
+        DIAL/CommNet).
+    reward_alpha : float
+        Reward sharing: agent i learns from ``sum_j alpha^|i-j| r_j`` (0 local, 1 global).
+    episodes_parallel : int
+        B episodes stepped together (sample budget counts all of them).
+    lr_scale : float
+        Multiplier on both learning rates. One update here averages the gradient of B episodes'
+        segments, so a run makes B times fewer, less noisy updates than the published one-episode
+        learner with the same sample budget; 4.0 (with B = 8) compensates for that. 1.0 gives the
+        paper's per-update rates (measured: with B = 8 its greedy policy is still poor at 6e5).
+    eval_every_steps : int
+        Environment steps between greedy evaluations on the validation seeds (learning curve and
+        checkpoint selection: the shipped checkpoint is the evaluated one with the fewest
+        collisions, then the best reward).
+    min_active_fraction : float
+        At an n-step boundary, when fewer than this fraction of the B episodes are still running
+        (the others ended by the published collision rule), the rest are truncated (bootstrapped)
+        and a new batch starts, so no compute goes to stepping finished episodes. 0 (default)
+        disables it: measured on catchup-v1, truncating at 0.5 slowed IA2C's learning (the
+        agents then rarely see the late, steady part of an episode while collisions are common).
+    """
+
+    n_step: int = 60
+    gamma: float = 0.99
+    hidden: int = 64
+    actor_lr: float = 5e-4
+    critic_lr: float = 2.5e-4
+    rmsprop_alpha: float = 0.99
+    rmsprop_eps: float = 1e-5
+    entropy_coef: float = 0.05
+    value_coef: float = 0.5
+    grad_clip: float = 40.0
+    reward_scale: float = 1.0 / 800.0
+    reward_alpha: float = 0.9
+    episodes_parallel: int = 8
+    lr_scale: float = 4.0
+    eval_every_steps: int = 20_000
+    min_active_fraction: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.n_step < 1 or self.hidden < 1 or self.episodes_parallel < 1:
+            raise ConfigError("n_step, hidden and episodes_parallel must be >= 1")
+        if not 0 < self.gamma <= 1:
+            raise ConfigError(f"gamma must lie in (0, 1], got {self.gamma}")
+        if not 0 <= self.reward_alpha <= 1:
+            raise ConfigError(f"reward_alpha must lie in [0, 1], got {self.reward_alpha}")
+        for name in ("actor_lr", "critic_lr", "reward_scale", "grad_clip", "lr_scale"):
+            if not getattr(self, name) > 0:
+                raise ConfigError(f"{name} must be > 0")
+
+
+# ---------------------------------------------------------------------------- networks
+def shift_front(x: torch.Tensor) -> torch.Tensor:
+    """What each agent gets from its front neighbour: ``out[i] = x[i-1]``, 0 for agent 0."""
+    out = torch.zeros_like(x)
+    out[1:] = x[:-1]
+    return out
+
+
+def shift_rear(x: torch.Tensor) -> torch.Tensor:
+    """What each agent gets from its rear neighbour: ``out[i] = x[i+1]``, 0 for the last."""
+    out = torch.zeros_like(x)
+    out[:-1] = x[1:]
+    return out
+
+
+def neighbour_action_onehot(actions: torch.Tensor) -> torch.Tensor:
+    """``(N, B)`` actions -> ``(N, B, 8)``: front and rear neighbours' one-hot actions."""
+    onehot = nn.functional.one_hot(actions, N_ACTIONS).to(torch.float32)
+    return torch.cat([shift_front(onehot), shift_rear(onehot)], dim=-1)
+
+
+class AgentNet(nn.Module):
+    """N agents' actor-critic networks, batched. Subclasses define the distinctive parts.
+
+    A step is split so that training can batch the non-recurrent layers over a whole segment:
+    :meth:`encode` (per-step inputs, any number of rows), :meth:`recur` (the recurrent part,
+    one step, where received messages enter), then :meth:`logits` and :meth:`value` (heads, any
+    number of rows). ``out`` dicts hold ``h`` (actor features) and ``v`` (critic features).
+
+    Attributes
+    ----------
+    msg_width : int
+        Floats each agent broadcasts per step besides its 5-float vehicle block (0, 4 or 64).
+    differentiable_messages : bool
+        Whether gradients flow through messages (DIAL, CommNet): the training recompute then
+        re-derives messages from the recomputed states instead of re-using the received ones.
+    with_critic : bool
+        Whether the critic is built (not for acting from a checkpoint).
+    """
+
+    msg_width: int = 0
+    differentiable_messages: bool = False
+
+    def __init__(self, n_agents: int, hidden: int, with_critic: bool) -> None:
+        super().__init__()
+        self.n_agents = n_agents
+        self.hidden = hidden
+        self.with_critic = with_critic
+
+    def initial_state(self, batch: int) -> State:
+        """Recurrent state at episode start."""
+        z = torch.zeros(self.n_agents, batch, self.hidden)
+        return {"h": z, "c": z.clone()}
+
+    def message(self, state: State) -> torch.Tensor | None:
+        """What every agent broadcasts this step, ``(N, B, msg_width)`` (None: nothing)."""
+        return None
+
+    def encode(self, obs: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Non-recurrent encoding of observations ``(N, M, 15)``."""
+        raise NotImplementedError
+
+    def recur(
+        self,
+        enc: dict[str, torch.Tensor],
+        state: State,
+        front: torch.Tensor | None,
+        rear: torch.Tensor | None,
+    ) -> tuple[dict[str, torch.Tensor], State]:
+        """One recurrent step from the encoding and the received messages ``(N, B, W)``."""
+        raise NotImplementedError
+
+    def logits(self, out: dict[str, torch.Tensor]) -> torch.Tensor:
+        """Action logits ``(N, M, 4)``."""
+        return self.actor_head(out["h"])  # type: ignore[operator]
+
+    def value(self, out: dict[str, torch.Tensor], nb_actions: torch.Tensor) -> torch.Tensor:
+        """State value ``(N, M)`` from critic features and neighbours' one-hot actions."""
+        head = self.critic_head
+        return head(torch.cat([out["v"], nb_actions], dim=-1)).squeeze(-1)  # type: ignore[operator]
+
+    def after_policy(self, state: State, logits: torch.Tensor) -> State:
+        """Update the state with this step's policy (FPrint keeps it as its fingerprint)."""
+        return state
+
+    def act_step(
+        self,
+        obs: torch.Tensor,
+        state: State,
+        front: torch.Tensor | None,
+        rear: torch.Tensor | None,
+    ) -> tuple[torch.Tensor, dict[str, torch.Tensor], State]:
+        """Acting step: ``obs (N, B, 15)`` -> logits ``(N, B, 4)``, features, new state."""
+        out, new = self.recur(self.encode(obs), state, front, rear)
+        logits = self.logits(out)
+        return logits, out, self.after_policy(new, logits)
+
+    def actor_parameters(self) -> list[nn.Parameter]:
+        """Parameters learning at the actor rate (everything but :meth:`critic_parameters`)."""
+        critic = {id(p) for p in self.critic_parameters()}
+        return [p for p in self.parameters() if id(p) not in critic]
+
+    def critic_parameters(self) -> list[nn.Parameter]:
+        """Parameters learning at the critic rate (names starting with ``critic``)."""
+        return [p for n, p in self.named_parameters() if n.startswith("critic")]
+
+    def acting_state_dict(self) -> dict[str, torch.Tensor]:
+        """The weights needed to act (what a checkpoint stores): all but the critic's."""
+        return {k: v for k, v in self.state_dict().items() if not k.startswith("critic")}
+
+
+class SharedTrunkNet(AgentNet):
+    """FC 64 (ReLU) -> LSTM 64 shared by an actor head and a critic head (published IA2C).
+
+    Subclasses add message inputs in :meth:`lstm_input`.
+    """
+
+    def __init__(
+        self,
+        n_agents: int,
+        hidden: int = 64,
+        with_critic: bool = True,
+        lstm_in: int | None = None,
+        generator: torch.Generator | None = None,
+    ) -> None:
+        super().__init__(n_agents, hidden, with_critic)
+        g = generator
+        self.fc = BatchedLinear(n_agents, OBS_DIM, hidden, math.sqrt(2.0), g)
+        self.lstm = BatchedLSTMCell(n_agents, lstm_in or hidden, hidden, g)
+        self.actor_head = BatchedLinear(n_agents, hidden, N_ACTIONS, 0.01, g)
+        if with_critic:
+            self.critic_head = BatchedLinear(n_agents, hidden + 2 * N_ACTIONS, 1, 1.0, g)
+
+    def encode(self, obs):
+        x = torch.relu(self.fc(obs))
+        return {"gx": self.lstm.input_gates(x, slice(0, self.hidden))}
+
+    def message_gates(
+        self, state: State, front: torch.Tensor | None, rear: torch.Tensor | None
+    ) -> torch.Tensor | None:
+        """Extra LSTM input gates from the received messages (None: no messages)."""
+        return None
+
+    def recur(self, enc, state, front, rear):
+        gates = enc["gx"]
+        extra = self.message_gates(state, front, rear)
+        if extra is not None:
+            gates = gates + extra
+        h, c = self.lstm.step_from_gates(gates, (state["h"], state["c"]))
+        new = dict(state)
+        new["h"], new["c"] = h, c
+        return {"h": h, "v": h}, new
+
+
+class SeparateActorCriticNet(AgentNet):
+    """Separate actor (FC -> LSTM -> logits) and critic (FC -> LSTM -> value) per agent.
+
+    Used by the consensus learners (WAC, DCEA, BDC): the critic's LSTM is what neighbours share.
+    """
+
+    def __init__(
+        self,
+        n_agents: int,
+        hidden: int = 64,
+        with_critic: bool = True,
+        generator: torch.Generator | None = None,
+    ) -> None:
+        super().__init__(n_agents, hidden, with_critic)
+        g = generator
+        self.fc = BatchedLinear(n_agents, OBS_DIM, hidden, math.sqrt(2.0), g)
+        self.lstm = BatchedLSTMCell(n_agents, hidden, hidden, g)
+        self.actor_head = BatchedLinear(n_agents, hidden, N_ACTIONS, 0.01, g)
+        if with_critic:
+            self.critic_fc = BatchedLinear(n_agents, OBS_DIM, hidden, math.sqrt(2.0), g)
+            self.critic_lstm = BatchedLSTMCell(n_agents, hidden, hidden, g)
+            self.critic_head = BatchedLinear(n_agents, hidden + 2 * N_ACTIONS, 1, 1.0, g)
+
+    def initial_state(self, batch: int) -> State:
+        state = super().initial_state(batch)
+        if self.with_critic:
+            state["ch"] = torch.zeros_like(state["h"])
+            state["cc"] = torch.zeros_like(state["h"])
+        return state
+
+    def encode(self, obs):
+        enc = {"gx": self.lstm.input_gates(torch.relu(self.fc(obs)))}
+        if self.with_critic:
+            enc["cgx"] = self.critic_lstm.input_gates(torch.relu(self.critic_fc(obs)))
+        return enc
+
+    def recur(self, enc, state, front, rear):
+        h, c = self.lstm.step_from_gates(enc["gx"], (state["h"], state["c"]))
+        new = {"h": h, "c": c}
+        out = {"h": h}
+        if self.with_critic:
+            ch, cc = self.critic_lstm.step_from_gates(enc["cgx"], (state["ch"], state["cc"]))
+            new["ch"], new["cc"] = ch, cc
+            out["v"] = ch
+        return out, new
+
+    def shared_critic_parameters(self, whole_critic: bool = False) -> list[nn.Parameter]:
+        """What neighbours exchange: the critic LSTM (published) or the whole critic."""
+        if whole_critic:
+            return self.critic_parameters()
+        return list(self.critic_lstm.parameters())
+
+
+# ---------------------------------------------------------------------------- algorithm
+class Algorithm:
+    """An algorithm's distinctive parts: its network and its hooks around the update.
+
+    Subclasses set ``name``, ``config_cls`` and implement :meth:`build_net`; the hooks default
+    to nothing.
+    """
+
+    name: str = "a2c"
+    config_cls: type[A2CConfig] = A2CConfig
+
+    def build_net(
+        self,
+        config: Any,
+        n_agents: int,
+        with_critic: bool = True,
+        generator: torch.Generator | None = None,
+    ) -> AgentNet:
+        """The batched network of N agents."""
+        raise NotImplementedError
+
+    def setup(self, trainer: Trainer) -> None:
+        """Called once after the network and optimiser exist."""
+
+    def before_step(self, trainer: Trainer) -> None:
+        """After backward and per-agent clipping, before the optimiser step (e.g. QSGD)."""
+
+    def after_step(self, trainer: Trainer) -> None:
+        """After the optimiser step (e.g. a consensus round)."""
+
+
+def execution_bits_per_agent_step(net: AgentNet) -> int:
+    """V2V bits one agent sends per step at execution: its vehicle block plus its message."""
+    return (BLOCK_FLOATS + net.msg_width) * FLOAT_BITS
+
+
+def exchange(net: AgentNet, state: State) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+    """Training-time message passing (instant, lossless): front and rear neighbours' messages."""
+    msg = net.message(state)
+    if msg is None:
+        return None, None
+    return shift_front(msg), shift_rear(msg)
+
+
+# ---------------------------------------------------------------------------- trainer
+@dataclass
+class TrainResult:
+    """What :func:`run_training` returns."""
+
+    algo: str
+    scenario: str
+    n_vehicles: int
+    seed: int
+    steps: int
+    episodes: int
+    wall_s: float
+    env_steps_per_s: float
+    bits: dict[str, float]
+    curve: list[dict[str, float]] = field(default_factory=list)
+    checkpoint: Path | None = None
+    curve_csv: Path | None = None
+
+
+class Trainer:
+    """On-policy A2C over a batched env; algorithm hooks add the distinctive parts."""
+
+    def __init__(
+        self,
+        algo: Algorithm,
+        config: A2CConfig,
+        scenario_id: str,
+        n_vehicles: int,
+        seed: int,
+    ) -> None:
+        torch.set_num_threads(1)
+        self.algo = algo
+        self.config = config
+        self.scenario_id = scenario_id
+        self.n_vehicles = n_vehicles
+        self.seed = seed
+        self.generator = torch.Generator().manual_seed(seed)
+        self.env = PlatoonEnv(
+            make_scenario(scenario_id), n_vehicles, training=True, collision_mode="published"
+        )
+        self.net = algo.build_net(config, n_vehicles, True, self.generator)
+        self.optimizer = torch.optim.RMSprop(
+            [
+                {"params": self.net.actor_parameters(), "lr": config.actor_lr * config.lr_scale},
+                {"params": self.net.critic_parameters(), "lr": config.critic_lr * config.lr_scale},
+            ],
+            alpha=config.rmsprop_alpha,
+            eps=config.rmsprop_eps,
+        )
+        self.params = [p for g in self.optimizer.param_groups for p in g["params"]]
+        self.steps = 0
+        self.episodes = 0
+        self.updates = 0
+        #: training bits over the run, per agent: consensus and QSGD payloads
+        self.bits: dict[str, float] = {"consensus": 0.0, "qsgd": 0.0}
+        self._episode_counter = 0
+        algo.setup(self)
+
+    # -- sampling
+    def _sample(self, logits: torch.Tensor) -> torch.Tensor:
+        u = torch.rand(logits.shape, generator=self.generator).clamp_(1e-12, 1.0)
+        return (logits - torch.log(-torch.log(u))).argmax(-1)
+
+    def _training_seeds(self, batch: int) -> np.ndarray:
+        base = 10_000_000 * (self.seed + 1)
+        seeds = base + self._episode_counter + np.arange(batch)
+        self._episode_counter += batch
+        return seeds
+
+    @torch.no_grad()
+    def _act(self, obs_np: np.ndarray, state: State) -> dict[str, Any]:
+        """No-grad acting step: observation, messages received, logits, actions, next state."""
+        obs = torch.from_numpy(obs_np).transpose(0, 1).contiguous()
+        front, rear = exchange(self.net, state)
+        logits, out, new = self.net.act_step(obs, state, front, rear)
+        actions = self._sample(logits)
+        return {
+            "obs": obs,
+            "front": front,
+            "rear": rear,
+            "out": out,
+            "logits": logits,
+            "actions": actions,
+            "state": new,
+        }
+
+    def run_batch(self) -> tuple[int, float]:
+        """Run B episodes to the end with an update every n steps.
+
+        Returns the environment steps taken and the mean training reward (mean over steps of the
+        sum over agents, as the paper reports).
+        """
+        cfg, net, env = self.config, self.net, self.env
+        b = cfg.episodes_parallel
+        obs_np = env.reset(self._training_seeds(b))
+        assert obs_np is not None
+        state = net.initial_state(b)
+        cur = self._act(obs_np, state)
+        active = np.ones(b, dtype=bool)
+        ep_reward = np.zeros(b)
+        ep_len = np.zeros(b)
+        steps = 0
+        finished = False
+        while not finished:
+            seg_state = state
+            record: list[dict[str, Any]] = []
+            rews, masks, terms = [], [], []
+            for _ in range(cfg.n_step):
+                record.append(cur)
+                res = env.step_actions(cur["actions"].T.numpy())
+                state = cur["state"]
+                masks.append(active.copy())
+                terms.append(res.done & active)
+                rews.append(res.reward)
+                steps += int(active.sum())
+                ep_reward += np.where(active, res.reward.sum(1), 0.0)
+                ep_len += active
+                active = ~res.done
+                if res.done.all():
+                    finished = True
+                    break
+                assert res.observation is not None
+                cur = self._act(res.observation, state)
+            if finished:
+                bootstrap = torch.zeros(b, self.n_vehicles)
+            else:
+                with torch.no_grad():
+                    nb = neighbour_action_onehot(cur["actions"])
+                    bootstrap = net.value(cur["out"], nb).T
+            self._update(seg_state, record, rews, masks, terms, bootstrap)
+            if not finished and active.sum() < cfg.min_active_fraction * b:
+                # most episodes ended (published collision rule): truncate the rest (their last
+                # segment was bootstrapped) instead of stepping finished episodes
+                finished = True
+            if not finished:
+                # act on the next observation with the updated weights (same state, no re-advance)
+                cur = self._act(cur["obs"].transpose(0, 1).numpy(), state)
+        self.steps += steps
+        self.episodes += b
+        return steps, float((ep_reward / np.maximum(ep_len, 1)).mean())
+
+    def _recompute(
+        self, seg_state: State, record: list[dict[str, Any]]
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Re-run the segment with gradient: logits ``(T, N, B, 4)``, values ``(T, N, B)``,
+        actions ``(T, N, B)``. Non-recurrent layers run once over the whole segment."""
+        net = self.net
+        t_len = len(record)
+        n, b = self.n_vehicles, self.config.episodes_parallel
+        obs = torch.stack([r["obs"] for r in record], 1).reshape(n, t_len * b, OBS_DIM)
+        enc = {k: v.reshape(n, t_len, b, -1) for k, v in net.encode(obs).items()}
+        state = seg_state
+        outs = []
+        for t in range(t_len):
+            if net.differentiable_messages:
+                front, rear = exchange(net, state)
+            else:
+                front, rear = record[t]["front"], record[t]["rear"]
+            out, state = net.recur({k: v[:, t] for k, v in enc.items()}, state, front, rear)
+            outs.append(out)
+        flat = {k: torch.stack([o[k] for o in outs], 1).reshape(n, t_len * b, -1) for k in outs[0]}
+        actions = torch.stack([r["actions"] for r in record], 1).reshape(n, t_len * b)
+        logits = net.logits(flat).reshape(n, t_len, b, N_ACTIONS)
+        nb = neighbour_action_onehot(actions)
+        values = net.value(flat, nb).reshape(n, t_len, b)
+        return (
+            logits.permute(1, 0, 2, 3),
+            values.permute(1, 0, 2),
+            actions.reshape(n, t_len, b).permute(1, 0, 2),
+        )
+
+    def _update(self, seg_state, record, rews, masks, terms, bootstrap: torch.Tensor) -> None:
+        cfg = self.config
+        logits, values, actions = self._recompute(seg_state, record)
+        logp_all = torch.log_softmax(logits, -1)  # (T, N, B, 4)
+        logp = logp_all.gather(-1, actions.unsqueeze(-1)).squeeze(-1).transpose(1, 2)
+        ent = -(logp_all.exp() * logp_all).sum(-1).transpose(1, 2)  # (T, B, N)
+        values = values.transpose(1, 2)
+        mask = torch.from_numpy(np.stack(masks)).to(torch.float32).unsqueeze(-1)  # (T, B, 1)
+        term = torch.from_numpy(np.stack(terms))
+        reward = torch.from_numpy(np.stack(rews)).to(torch.float32) * cfg.reward_scale
+        reward = share_rewards(reward, cfg.reward_alpha)
+        returns = nstep_returns(reward, bootstrap, term, cfg.gamma)  # (T, B, N)
+        count = mask.sum().clamp(min=1.0)
+        adv = (returns - values).detach()
+        policy_loss = -(logp * adv * mask).sum() / count
+        value_loss = 0.5 * ((returns - values).square() * mask).sum() / count
+        entropy = (ent * mask).sum() / count
+        loss = policy_loss + cfg.value_coef * value_loss - cfg.entropy_coef * entropy
+        self.optimizer.zero_grad(set_to_none=False)
+        loss.backward()
+        per_agent_clip_(self.params, cfg.grad_clip)
+        self.algo.before_step(self)
+        self.optimizer.step()
+        self.algo.after_step(self)
+        self.updates += 1
+
+
+# ---------------------------------------------------------------------------- evaluation
+@torch.no_grad()
+def greedy_actions(
+    net: AgentNet, obs_np: np.ndarray, state: State, messages: tuple | None = None
+) -> tuple[np.ndarray, State]:
+    """Greedy actions ``(B, N)`` for observations ``(B, N, 15)``; messages default to instant."""
+    obs = torch.from_numpy(np.ascontiguousarray(obs_np, dtype=np.float32)).transpose(0, 1)
+    front, rear = exchange(net, state) if messages is None else messages
+    logits, _, state = net.act_step(obs.contiguous(), state, front, rear)
+    return logits.argmax(-1).T.numpy(), state
+
+
+@torch.no_grad()
+def evaluate_greedy(
+    net: AgentNet, scenario_id: str, n_vehicles: int, seeds: Sequence[int]
+) -> dict[str, float]:
+    """Greedy episodes with the evaluation reward (no safety term, collision ends the episode).
+
+    Returns the mean over episodes of ``reward`` (mean over steps of the sum over agents, power
+    included), ``tracking_reward`` (the same without power) and ``collisions`` (count).
+    """
+    env = PlatoonEnv(make_scenario(scenario_id), n_vehicles, training=False)
+    obs = env.reset(np.asarray(seeds))
+    b = len(seeds)
+    state = net.initial_state(b)
+    tot = np.zeros(b)
+    track = np.zeros(b)
+    length = np.zeros(b)
+    active = np.ones(b, dtype=bool)
+    while True:
+        assert obs is not None
+        actions, state = greedy_actions(net, obs, state)
+        res = env.step_actions(actions)
+        obs = res.observation
+        hit = res.collided & active & res.done
+        r = res.reward.sum(1)
+        tr = np.where(hit, r, r - env.weights.power * res.power_kw.sum(1))
+        tot += np.where(active, r, 0.0)
+        track += np.where(active, tr, 0.0)
+        length += active
+        active = ~res.done
+        if res.done.all():
+            break
+    return {
+        "reward": float((tot / length).mean()),
+        "tracking_reward": float((track / length).mean()),
+        "collisions": float(env.state.collided.sum()),  # type: ignore[union-attr]
+    }
+
+
+# ---------------------------------------------------------------------------- driver
+def algorithm(name: str) -> Algorithm:
+    """The :class:`Algorithm` of a registered name (module ``marl.<name>``)."""
+    if name not in ALGORITHM_NAMES:
+        raise UnknownNameError("algorithm", name, ALGORITHM_NAMES)
+    module = importlib.import_module(f"marl.{name}")
+    return module.ALGORITHM
+
+
+def config_from_dict(algo: Algorithm, values: dict[str, Any]) -> A2CConfig:
+    """Rebuild an algorithm's config from a checkpoint's dict (unknown keys are an error)."""
+    names = {f.name for f in dataclasses.fields(algo.config_cls)}
+    extra = set(values) - names
+    if extra:
+        raise ConfigError(f"{algo.name} config has no fields {sorted(extra)}")
+    return algo.config_cls(**values)
+
+
+def checkpoint_stem(algo: str, scenario_id: str, n_vehicles: int, seed: int) -> str:
+    """File stem of a run: ``<algo>__<scenario>__n<N>__s<seed>``."""
+    return f"{algo}__{scenario_id}__n{n_vehicles}__s{seed}"
+
+
+def run_training(
+    algo: Algorithm,
+    config: A2CConfig,
+    scenario_id: str,
+    n_vehicles: int = 8,
+    total_steps: int = 600_000,
+    seed: int = 0,
+    out_dir: str | Path | None = None,
+    progress: ProgressFn | None = None,
+    log: Callable[[str], None] | None = None,
+) -> TrainResult:
+    """Train ``algo`` for ``total_steps`` environment steps; write checkpoint and curve CSV.
+
+    Parameters
+    ----------
+    out_dir : path, optional
+        Where ``<stem>.pt`` and ``<stem>.curve.csv`` go (None: write nothing, no evaluation;
+        used by the throughput measurement).
+    progress : callable(steps, total_steps, info), optional
+        Called after every batch of episodes.
+    log : callable(str), optional
+        Receives one line per evaluation and a summary.
+    """
+    make_scenario(scenario_id)  # fail early on an unknown id
+    trainer = Trainer(algo, config, scenario_id, n_vehicles, seed)
+    curve: list[dict[str, float]] = []
+    next_eval = config.eval_every_steps if out_dir is not None else math.inf
+    t0 = time.perf_counter()
+    train_time = 0.0
+    result = TrainResult(algo.name, scenario_id, n_vehicles, seed, 0, 0, 0.0, 0.0, {}, curve)
+    best: tuple[float, float] = (-math.inf, -math.inf)
+    while trainer.steps < total_steps:
+        tb = time.perf_counter()
+        _, train_reward = trainer.run_batch()
+        train_time += time.perf_counter() - tb
+        row: dict[str, float] = {
+            "episode": trainer.episodes,
+            "steps": trainer.steps,
+            "train_reward": train_reward,
+            "eval_reward": math.nan,
+        }
+        curve.append(row)
+        last = trainer.steps >= total_steps
+        if trainer.steps >= next_eval or (out_dir is not None and last):
+            ev = evaluate_greedy(trainer.net, scenario_id, n_vehicles, VALIDATION_SEEDS)
+            row["eval_reward"] = ev["reward"]
+            next_eval = trainer.steps + config.eval_every_steps
+            # fewest collisions first: a colliding episode ends early, so its mean reward over
+            # the steps it ran can look better than a safe one's
+            score = (-ev["collisions"], ev["reward"])
+            better = score > best
+            best = max(best, score)
+            _finish(result, trainer, time.perf_counter() - t0, train_time, out_dir, better)
+            if log is not None:
+                log(
+                    f"steps {trainer.steps} episodes {trainer.episodes} train {train_reward:.2f} "
+                    f"eval {ev['reward']:.2f} collisions {ev['collisions']:.0f} "
+                    f"bits/agent consensus {trainer.bits['consensus']:.0f} "
+                    f"qsgd {trainer.bits['qsgd']:.0f}"
+                )
+        if progress is not None:
+            progress(trainer.steps, total_steps, row)
+    _finish(result, trainer, time.perf_counter() - t0, train_time, out_dir, False)
+    if log is not None:
+        log(
+            f"done: {trainer.steps} steps in {result.wall_s:.0f} s "
+            f"({result.env_steps_per_s:.0f} env steps/s training), execution "
+            f"{result.bits['execution_bits_per_vehicle_per_s']:.0f} bit/vehicle/s, training bits "
+            f"per agent: consensus {result.bits['training_consensus_bits_per_agent']:.0f}, "
+            f"qsgd {result.bits['training_qsgd_bits_per_agent']:.0f}; checkpoint {result.checkpoint}"
+        )
+    return result
+
+
+def _finish(
+    result: TrainResult,
+    trainer: Trainer,
+    wall_s: float,
+    train_s: float,
+    out_dir: str | Path | None,
+    save_weights: bool,
+) -> None:
+    """Fill the result's numbers and (with an output folder) write the curve, and the checkpoint
+    when ``save_weights`` (a new best greedy evaluation on the validation seeds).
+
+    Called at every evaluation, so an interrupted run leaves its best checkpoint so far.
+    """
+    from marl.checkpoint import save_checkpoint
+
+    exec_bits = execution_bits_per_agent_step(trainer.net)
+    result.steps, result.episodes = trainer.steps, trainer.episodes
+    result.wall_s = wall_s
+    result.env_steps_per_s = trainer.steps / max(train_s, 1e-9)
+    result.bits = {
+        "execution_bits_per_agent_step": float(exec_bits),
+        "execution_bits_per_vehicle_per_s": exec_bits / trainer.env.params.dt_s,
+        "training_consensus_bits_per_agent": trainer.bits["consensus"],
+        "training_qsgd_bits_per_agent": trainer.bits["qsgd"],
+        "updates": float(trainer.updates),
+    }
+    if out_dir is None:
+        return
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    stem = checkpoint_stem(trainer.algo.name, trainer.scenario_id, trainer.n_vehicles, trainer.seed)
+    curve = result.curve
+    result.curve_csv = out / f"{stem}.curve.csv"
+    write_curve(result.curve_csv, curve)
+    evals = [r["eval_reward"] for r in curve if not math.isnan(r["eval_reward"])]
+    summary = {
+        "final_train_reward": curve[-1]["train_reward"] if curve else math.nan,
+        "final_eval_reward": evals[-1] if evals else math.nan,
+        "best_eval_reward": max(evals) if evals else math.nan,
+        "wall_s": wall_s,
+        "env_steps_per_s": result.env_steps_per_s,
+        "selected_at_steps": float(trainer.steps),
+        **result.bits,
+    }
+    result.checkpoint = out / f"{stem}.pt"
+    if not save_weights:
+        if result.checkpoint.exists():  # keep the selected weights, refresh the run's totals
+            data = torch.load(result.checkpoint, weights_only=True)
+            selected = data["curve_summary"].get("selected_at_steps", math.nan)
+            data["curve_summary"].update(summary)
+            data["curve_summary"]["selected_at_steps"] = selected
+            data["curve_summary"]["total_steps"] = float(trainer.steps)
+            torch.save(data, result.checkpoint)
+        return
+    save_checkpoint(
+        out / f"{stem}.pt",
+        algo=trainer.algo.name,
+        config=dataclasses.asdict(trainer.config),
+        scenario=trainer.scenario_id,
+        n_vehicles=trainer.n_vehicles,
+        seed=trainer.seed,
+        steps=trainer.steps,
+        curve_summary=summary,
+        weights=trainer.net.acting_state_dict(),
+    )
+
+
+def write_curve(path: Path, curve: list[dict[str, float]]) -> None:
+    """Learning curve CSV: episode, steps, train_reward, eval_reward (empty if not evaluated)."""
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["episode", "steps", "train_reward", "eval_reward"])
+        for r in curve:
+            ev = "" if math.isnan(r["eval_reward"]) else f"{r['eval_reward']:.4f}"
+            w.writerow([int(r["episode"]), int(r["steps"]), f"{r['train_reward']:.4f}", ev])
+
+
+def stderr_log(line: str) -> None:
+    """Default log sink."""
+    print(line, file=sys.stderr, flush=True)

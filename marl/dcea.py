@@ -1,0 +1,88 @@
+"""DCEA: differential consensus (unquantised) of the critics' LSTM weights.
+
+As WAC (separate actor and critic per agent), but after every update each agent moves its critic
+LSTM weights towards its neighbours': ``w_i <- w_i + eps sum_j (w_j - w_i)``, eps = 0.001, over
+front and rear neighbours, synchronously (:func:`marl.consensus.dcea`). Payload: 32 bits per
+shared weight per round.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from envs.errors import ConfigError
+from marl.common import (
+    FLOAT_BITS,
+    A2CConfig,
+    Algorithm,
+    ProgressFn,
+    SeparateActorCriticNet,
+    Trainer,
+    TrainResult,
+    run_training,
+)
+from marl.consensus import consensus_round, dcea
+
+
+@dataclass(frozen=True)
+class DCEAConfig(A2CConfig):
+    """DCEA hyper-parameters (IA2C family) plus the consensus step.
+
+    Attributes
+    ----------
+    consensus_eps : float
+        Step ``eps`` of the differential update (paper 0.001; at most 0.5 for stability).
+    share_whole_critic : bool
+        Share the whole critic instead of its LSTM only (published: LSTM).
+    """
+
+    reward_scale: float = 1.0 / 800.0
+    reward_alpha: float = 0.9
+    consensus_eps: float = 0.001
+    share_whole_critic: bool = False
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if not 0 < self.consensus_eps <= 0.5:
+            raise ConfigError(f"consensus_eps must lie in (0, 0.5], got {self.consensus_eps}")
+
+
+class DCEA(Algorithm):
+    """Separate actor and critic; a synchronous differential round after every update."""
+
+    name = "dcea"
+    config_cls = DCEAConfig
+
+    def build_net(self, config, n_agents, with_critic=True, generator=None):
+        return SeparateActorCriticNet(n_agents, config.hidden, with_critic, generator)
+
+    def after_step(self, trainer: Trainer) -> None:
+        cfg = trainer.config
+        net = trainer.net
+        assert isinstance(net, SeparateActorCriticNet)
+        shared = net.shared_critic_parameters(cfg.share_whole_critic)  # type: ignore[attr-defined]
+        rule = functools.partial(dcea, eps=cfg.consensus_eps)  # type: ignore[attr-defined]
+        trainer.bits["consensus"] += consensus_round(shared, rule) * FLOAT_BITS
+
+
+ALGORITHM = DCEA()
+
+
+def train(
+    config: DCEAConfig,
+    scenario_id: str,
+    n_vehicles: int = 8,
+    total_steps: int = 600_000,
+    seed: int = 0,
+    out_dir: str | Path | None = None,
+    progress: ProgressFn | None = None,
+) -> TrainResult:
+    """Train DCEA; see :func:`marl.common.run_training`."""
+    torch.set_num_threads(1)
+    return run_training(
+        ALGORITHM, config, scenario_id, n_vehicles, total_steps, seed, out_dir, progress
+    )

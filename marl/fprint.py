@@ -1,0 +1,92 @@
+"""FPrint: IA2C plus the neighbours' previous-step policies ("fingerprints") as extra input.
+
+Every agent broadcasts its policy vector of the previous step (4 floats) next to its vehicle
+block. The receiver encodes the front and rear fingerprints (zeros where there is no neighbour)
+with a separate FC 64 (ReLU) and concatenates that with its encoded observation before the LSTM
+(input 128). Fingerprints are inputs, not a channel for gradients.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from marl.common import (
+    N_ACTIONS,
+    A2CConfig,
+    Algorithm,
+    ProgressFn,
+    SharedTrunkNet,
+    State,
+    TrainResult,
+    run_training,
+)
+from marl.layers import BatchedLinear
+
+
+@dataclass(frozen=True)
+class FPrintConfig(A2CConfig):
+    """FPrint hyper-parameters (IA2C family: reward scale 1/800, reward sharing alpha 0.9)."""
+
+    reward_scale: float = 1.0 / 800.0
+    reward_alpha: float = 0.9
+
+
+class FPrintNet(SharedTrunkNet):
+    """IA2C network with a fingerprint encoder: LSTM input = [FC(obs), FC(fingerprints)]."""
+
+    msg_width = N_ACTIONS
+
+    def __init__(self, n_agents, hidden=64, with_critic=True, generator=None):
+        super().__init__(n_agents, hidden, with_critic, lstm_in=2 * hidden, generator=generator)
+        self.fp_fc = BatchedLinear(n_agents, 2 * N_ACTIONS, hidden, math.sqrt(2.0), generator)
+
+    def initial_state(self, batch: int) -> State:
+        state = super().initial_state(batch)
+        state["pi"] = torch.zeros(self.n_agents, batch, N_ACTIONS)
+        return state
+
+    def message(self, state):
+        return state["pi"]
+
+    def message_gates(self, state, front, rear):
+        assert front is not None and rear is not None
+        fp = torch.relu(self.fp_fc(torch.cat([front, rear], dim=-1)))
+        return self.lstm.input_gates(fp, slice(self.hidden, 2 * self.hidden), bias=False)
+
+    def after_policy(self, state, logits):
+        new = dict(state)
+        new["pi"] = torch.softmax(logits, -1).detach()
+        return new
+
+
+class FPrint(Algorithm):
+    """IA2C with fingerprints: no hooks beyond plain A2C."""
+
+    name = "fprint"
+    config_cls = FPrintConfig
+
+    def build_net(self, config, n_agents, with_critic=True, generator=None):
+        return FPrintNet(n_agents, config.hidden, with_critic, generator)
+
+
+ALGORITHM = FPrint()
+
+
+def train(
+    config: FPrintConfig,
+    scenario_id: str,
+    n_vehicles: int = 8,
+    total_steps: int = 600_000,
+    seed: int = 0,
+    out_dir: str | Path | None = None,
+    progress: ProgressFn | None = None,
+) -> TrainResult:
+    """Train FPrint; see :func:`marl.common.run_training`."""
+    torch.set_num_threads(1)
+    return run_training(
+        ALGORITHM, config, scenario_id, n_vehicles, total_steps, seed, out_dir, progress
+    )

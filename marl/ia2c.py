@@ -1,0 +1,69 @@
+"""IA2C: independent advantage actor-critic, one agent per follower (published baseline).
+
+Each agent sees its own and its neighbours' vehicle blocks (15 numbers), encodes them with an FC
+64 (ReLU) layer and an LSTM 64, and reads 4 action logits and (with the neighbours' current
+actions, one-hot) a state value from the LSTM output. No learned communication: at execution an
+agent only sends its 5-float vehicle block to its neighbours. The learner is
+:class:`marl.common.Trainer` (n-step A2C with reward sharing); this file is the whole algorithm.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from marl.common import (
+    A2CConfig,
+    Algorithm,
+    ProgressFn,
+    SharedTrunkNet,
+    TrainResult,
+    run_training,
+)
+
+
+@dataclass(frozen=True)
+class IA2CConfig(A2CConfig):
+    """IA2C hyper-parameters: those of :class:`marl.common.A2CConfig` (paper values).
+
+    ``reward_scale`` 1/800 (published IA2C family); ``reward_alpha`` 0.9 (spatially discounted
+    neighbour rewards, as the published CACC configs of the IA2C family).
+    """
+
+    reward_scale: float = 1.0 / 800.0
+    reward_alpha: float = 0.9
+
+
+class IA2CNet(SharedTrunkNet):
+    """FC 64 -> LSTM 64 -> actor head and critic head, N agents batched."""
+
+
+class IA2C(Algorithm):
+    """Independent learners: no hooks beyond plain A2C."""
+
+    name = "ia2c"
+    config_cls = IA2CConfig
+
+    def build_net(self, config, n_agents, with_critic=True, generator=None):
+        return IA2CNet(n_agents, config.hidden, with_critic, generator=generator)
+
+
+ALGORITHM = IA2C()
+
+
+def train(
+    config: IA2CConfig,
+    scenario_id: str,
+    n_vehicles: int = 8,
+    total_steps: int = 600_000,
+    seed: int = 0,
+    out_dir: str | Path | None = None,
+    progress: ProgressFn | None = None,
+) -> TrainResult:
+    """Train IA2C; see :func:`marl.common.run_training`."""
+    torch.set_num_threads(1)
+    return run_training(
+        ALGORITHM, config, scenario_id, n_vehicles, total_steps, seed, out_dir, progress
+    )

@@ -1,0 +1,140 @@
+"""Batched per-agent layers: N agents' separate weights stacked, applied as one tensor op.
+
+Layout on the hot path is agent-major: activations ``(N, B, features)``. A
+:class:`BatchedLinear` holds ``weight (N, in, out)`` and ``bias (N, out)`` and computes
+``x @ W + b`` with one ``torch.baddbmm``; :class:`BatchedLSTMCell` does the same for an LSTM
+cell (gate order i, f, g, o as ``torch.nn.LSTMCell``; one combined bias). Both equal a loop over
+separate ``torch.nn.Linear`` / ``torch.nn.LSTMCell`` agents (tested).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from torch import nn
+
+
+def _orthogonal_stack(
+    n: int, rows: int, cols: int, gain: float, generator: torch.Generator | None = None
+) -> torch.Tensor:
+    w = torch.empty(n, rows, cols)
+    for i in range(n):  # initialisation only, not on the hot path
+        nn.init.orthogonal_(w[i], gain=gain, generator=generator)
+    return w
+
+
+class BatchedLinear(nn.Module):
+    """``N`` independent linear layers ``(N, B, in) -> (N, B, out)``.
+
+    Parameters
+    ----------
+    n_agents, in_features, out_features : int
+        Sizes.
+    gain : float
+        Orthogonal initialisation gain (biases start at 0).
+    """
+
+    def __init__(
+        self,
+        n_agents: int,
+        in_features: int,
+        out_features: int,
+        gain: float = 1.0,
+        generator: torch.Generator | None = None,
+    ):
+        super().__init__()
+        w = _orthogonal_stack(n_agents, out_features, in_features, gain, generator)
+        self.weight = nn.Parameter(w.transpose(1, 2).contiguous())
+        self.bias = nn.Parameter(torch.zeros(n_agents, out_features))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """``x (N, B, in) -> (N, B, out)``."""
+        return torch.baddbmm(self.bias.unsqueeze(1), x, self.weight)
+
+    @classmethod
+    def from_linears(cls, layers: Sequence[nn.Linear]) -> BatchedLinear:
+        """Stack separate ``nn.Linear`` layers (for tests and conversions)."""
+        w0 = layers[0].weight
+        out = cls(len(layers), w0.shape[1], w0.shape[0])
+        with torch.no_grad():
+            out.weight.copy_(torch.stack([lin.weight.T for lin in layers]))
+            out.bias.copy_(torch.stack([lin.bias for lin in layers]))
+        return out
+
+
+class BatchedLSTMCell(nn.Module):
+    """``N`` independent LSTM cells on ``(N, B, in)`` with states ``(N, B, H)``."""
+
+    def __init__(
+        self,
+        n_agents: int,
+        input_size: int,
+        hidden_size: int,
+        generator: torch.Generator | None = None,
+    ):
+        super().__init__()
+        self.hidden_size = hidden_size
+        w_ih = _orthogonal_stack(n_agents, 4 * hidden_size, input_size, 1.0, generator)
+        w_hh = _orthogonal_stack(n_agents, 4 * hidden_size, hidden_size, 1.0, generator)
+        self.weight_ih = nn.Parameter(w_ih.transpose(1, 2).contiguous())
+        self.weight_hh = nn.Parameter(w_hh.transpose(1, 2).contiguous())
+        self.bias = nn.Parameter(torch.zeros(n_agents, 4 * hidden_size))
+
+    def forward(
+        self, x: torch.Tensor, state: tuple[torch.Tensor, torch.Tensor]
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """One step: ``x (N, B, in)``, ``(h, c) (N, B, H)`` -> new ``(h, c)``."""
+        return self.step_from_gates(self.input_gates(x), state)
+
+    def input_gates(
+        self, x: torch.Tensor, rows: slice | None = None, bias: bool = True
+    ) -> torch.Tensor:
+        """Input part of the gates ``x W_ih (+ b)``, ``(N, M, 4H)`` for any number of rows M.
+
+        ``rows`` selects a block of input features (when the input is a concatenation whose
+        parts are computed separately); the bias is added once (``bias=True``).
+        """
+        w = self.weight_ih if rows is None else self.weight_ih[:, rows]
+        if bias:
+            return torch.baddbmm(self.bias.unsqueeze(1), x, w)
+        return torch.bmm(x, w)
+
+    def step_from_gates(
+        self, input_gates: torch.Tensor, state: tuple[torch.Tensor, torch.Tensor]
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Recurrent half of a step: add ``h W_hh`` to precomputed input gates, update (h, c)."""
+        h, c = state
+        gates = torch.baddbmm(input_gates, h, self.weight_hh)
+        i, f, g, o = gates.chunk(4, dim=-1)
+        c_new = torch.sigmoid(f) * c + torch.sigmoid(i) * torch.tanh(g)
+        h_new = torch.sigmoid(o) * torch.tanh(c_new)
+        return h_new, c_new
+
+    @classmethod
+    def from_cells(cls, cells: Sequence[nn.LSTMCell]) -> BatchedLSTMCell:
+        """Stack separate ``nn.LSTMCell`` agents (biases ``b_ih + b_hh`` combined)."""
+        c0 = cells[0]
+        out = cls(len(cells), c0.input_size, c0.hidden_size)
+        with torch.no_grad():
+            out.weight_ih.copy_(torch.stack([c.weight_ih.T for c in cells]))
+            out.weight_hh.copy_(torch.stack([c.weight_hh.T for c in cells]))
+            out.bias.copy_(torch.stack([c.bias_ih + c.bias_hh for c in cells]))
+        return out
+
+
+def per_agent_clip_(params: Sequence[torch.Tensor], max_norm: float) -> torch.Tensor:
+    """Clip every agent's gradient to global norm ``max_norm`` (over all its stacked tensors).
+
+    Equal to one ``clip_grad_norm_`` per agent network, as with separate optimisers.
+    Returns the per-agent norms before clipping, ``(N,)``.
+    """
+    grads = [p.grad for p in params if p.grad is not None]
+    if not grads:
+        return torch.zeros(0)
+    sq = torch.stack([g.reshape(g.shape[0], -1).square().sum(1) for g in grads]).sum(0)
+    norm = sq.sqrt()
+    scale = (max_norm / (norm + 1e-6)).clamp(max=1.0)
+    for g in grads:
+        g.mul_(scale.reshape((-1,) + (1,) * (g.dim() - 1)))
+    return norm

@@ -1,0 +1,40 @@
+"""Training throughput of the MARL learners (called by ``cacc-bench perf``)."""
+
+from __future__ import annotations
+
+import time
+
+import torch
+
+
+def train_throughput(
+    algo: str,
+    steps: int = 20_000,
+    n_vehicles: int = 8,
+    scenario_id: str = "catchup-v1",
+    episodes_parallel: int | None = None,
+    cpu_time: bool = False,
+) -> float:
+    """Environment steps per second of training ``algo`` from scratch, one process, one thread.
+
+    Steps are counted across the parallel episodes (an active episode's step is one environment
+    step), as for the training budget. Nothing is written and no evaluation runs.
+
+    Parameters
+    ----------
+    cpu_time : bool
+        Divide by this process's CPU time instead of the wall clock (for busy shared machines).
+    """
+    from marl.common import algorithm, run_training
+
+    torch.set_num_threads(1)
+    a = algorithm(algo)
+    cfg = (
+        a.config_cls()
+        if episodes_parallel is None
+        else a.config_cls(episodes_parallel=episodes_parallel)
+    )
+    clock = time.process_time if cpu_time else time.perf_counter
+    t0 = clock()
+    result = run_training(a, cfg, scenario_id, n_vehicles, steps, 0, None)
+    return result.steps / max(clock() - t0, 1e-9)

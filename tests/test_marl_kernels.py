@@ -1,0 +1,266 @@
+"""Shared MARL kernels against slow reference loops and hand-made numbers."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from envs.errors import ConfigError
+from marl.checkpoint import FORMAT_VERSION, load_checkpoint, save_checkpoint
+from marl.consensus import bdc, consensus_round, dcea, degree, neighbour_sum, wac
+from marl.layers import BatchedLinear, BatchedLSTMCell, per_agent_clip_
+from marl.quantize import ErrorFeedbackQSGD, qsgd, qsgd_bits, ternary, ternary_bits
+from marl.returns import nstep_returns, share_rewards
+
+
+# ----------------------------------------------------------------------------- returns
+def _slow_returns(reward, bootstrap, terminal, gamma):
+    t_len, b, n = reward.shape
+    out = np.zeros((t_len, b, n))
+    for bi in range(b):
+        for i in range(n):
+            r_next = bootstrap[bi, i]
+            for t in reversed(range(t_len)):
+                r_next = reward[t, bi, i] + gamma * (1.0 - terminal[t, bi]) * r_next
+                out[t, bi, i] = r_next
+    return out
+
+
+def test_share_rewards_matches_loop() -> None:
+    rng = np.random.default_rng(0)
+    r = rng.normal(size=(5, 3, 6))
+    for alpha in (0.0, 0.5, 0.9, 1.0):
+        got = share_rewards(torch.tensor(r), alpha).numpy()
+        want = np.zeros_like(r)
+        for i in range(6):
+            for j in range(6):
+                want[..., i] += (alpha ** abs(i - j) if i != j else 1.0) * r[..., j]
+        np.testing.assert_allclose(got, want, rtol=1e-12)
+    # alpha = 0: own reward; alpha = 1: global sum
+    np.testing.assert_allclose(share_rewards(torch.tensor(r), 0.0).numpy(), r)
+    np.testing.assert_allclose(
+        share_rewards(torch.tensor(r), 1.0).numpy(), np.repeat(r.sum(-1, keepdims=True), 6, -1)
+    )
+
+
+def test_nstep_returns_match_slow_loop_with_terminals() -> None:
+    rng = np.random.default_rng(1)
+    t_len, b, n = 7, 4, 3
+    r = rng.normal(size=(t_len, b, n))
+    boot = rng.normal(size=(b, n))
+    term = np.zeros((t_len, b))
+    term[2, 1] = 1  # ends mid-segment: later rewards and bootstrap cut
+    term[6, 2] = 1  # ends at the segment's end: no bootstrap
+    term[0, 3] = term[4, 3] = 1
+    got = nstep_returns(torch.tensor(r), torch.tensor(boot), torch.tensor(term), 0.9).numpy()
+    np.testing.assert_allclose(got, _slow_returns(r, boot, term, 0.9), rtol=1e-10)
+
+
+def test_nstep_returns_by_hand() -> None:
+    r = torch.tensor([1.0, 2.0, 3.0]).reshape(3, 1, 1)
+    boot = torch.tensor([[10.0]])
+    none = torch.zeros(3, 1)
+    got = nstep_returns(r, boot, none, 0.5).flatten().tolist()
+    assert got == pytest.approx([1 + 0.5 * 2 + 0.25 * 3 + 0.125 * 10, 2 + 1.5 + 2.5, 3 + 5])
+    end = torch.tensor([[0.0], [0.0], [1.0]])
+    assert nstep_returns(r, boot, end, 0.5).flatten().tolist() == pytest.approx([2.75, 3.5, 3.0])
+
+
+# ----------------------------------------------------------------------------- quantisers
+def test_ternary_is_sign() -> None:
+    w = torch.tensor([-2.0, -0.1, 0.0, 0.3, 5.0])
+    assert ternary(w).tolist() == [-1.0, -1.0, 0.0, 1.0, 1.0]
+
+
+@pytest.mark.parametrize("s", [1, 2, 4])
+def test_qsgd_unbiased_and_on_grid(s: int) -> None:
+    g = torch.tensor([[0.5, -1.0, 0.25, 0.0, 2.0], [3.0, 0.0, -4.0, 0.0, 0.0]], dtype=torch.float64)
+    gen = torch.Generator().manual_seed(0)
+    k = 20000
+    samples = qsgd(g.repeat(k, 1), s, gen).reshape(k, *g.shape)  # k independent draws
+    norm = torch.linalg.vector_norm(g, dim=1, keepdim=True)
+    levels = samples.abs() / norm * s
+    assert torch.allclose(levels, levels.round(), atol=1e-9)  # values are norm * l/s
+    assert (torch.sign(samples) * torch.sign(g) >= 0).all()  # sign kept, zeros stay zero
+    mean = samples.mean(0)
+    # standard error of the mean is at most norm / sqrt(4 s^2 k) per entry
+    tol = 5 * norm / (2 * s * math.sqrt(k))
+    assert ((mean - g).abs() <= tol).all()
+
+
+def test_qsgd_rounds_up_with_probability_p() -> None:
+    """Round-up frequency is ``p = s|g|/||g|| - l`` (the published code used ``1 - p``)."""
+    g = torch.tensor([[0.6, 0.8]], dtype=torch.float64)  # norm 1: p = 0.6 and 0.8
+    gen = torch.Generator().manual_seed(0)
+    q = qsgd(g.repeat(20000, 1), 1, gen)
+    up = (q.abs() > 0.5).to(torch.float64).mean(0)
+    assert up.tolist() == pytest.approx([0.6, 0.8], abs=0.015)
+
+
+def test_error_feedback_residual_is_exact() -> None:
+    gen = torch.Generator().manual_seed(3)
+    ef = ErrorFeedbackQSGD(1, gen)
+    rng = torch.Generator().manual_seed(4)
+    f64 = torch.float64
+    grads_seen = [torch.zeros(3, 4, 5, dtype=f64), torch.zeros(3, 7, dtype=f64)]
+    sent = [torch.zeros(3, 4, 5, dtype=f64), torch.zeros(3, 7, dtype=f64)]
+    for _ in range(25):
+        gs = [
+            torch.randn(3, 4, 5, generator=rng, dtype=f64),
+            torch.randn(3, 7, generator=rng, dtype=f64),
+        ]
+        qs = ef.compress(gs)
+        for i in range(2):
+            grads_seen[i] += gs[i]
+            sent[i] += qs[i]
+    assert ef.residual is not None
+    for i in range(2):  # sum of true gradients = sum sent + residual
+        torch.testing.assert_close(grads_seen[i], sent[i] + ef.residual[i], atol=1e-12, rtol=0)
+
+
+def test_bit_counts() -> None:
+    assert ternary_bits(100) == pytest.approx(100 * math.log2(3))
+    assert ternary_bits(100, packed=True) == 200
+    assert qsgd_bits(10, 1) == pytest.approx(32 + 10 * math.log2(3))
+
+
+# ----------------------------------------------------------------------------- consensus
+def test_neighbour_sum_and_degree() -> None:
+    w = torch.tensor([[1.0], [2.0], [4.0], [8.0]])
+    assert neighbour_sum(w).flatten().tolist() == [2.0, 5.0, 10.0, 4.0]
+    assert degree(4, w).flatten().tolist() == [1.0, 2.0, 2.0, 1.0]
+
+
+def test_wac_synchronous_mean() -> None:
+    w = torch.tensor([[3.0], [6.0], [0.0], [9.0]])
+    # agent 0: (3+6)/2; agent 1: (3+6+0)/3; agent 2: (6+0+9)/3; agent 3: (0+9)/2 -- all from
+    # the snapshot (in-place agent-by-agent averaging would give agent 1 (4.5+6+0)/3 = 3.5)
+    assert wac(w).flatten().tolist() == [4.5, 3.0, 5.0, 4.5]
+
+
+def test_dcea_by_hand() -> None:
+    w = torch.tensor([[1.0], [2.0], [4.0]])
+    got = dcea(w, 0.1).flatten().tolist()
+    assert got == pytest.approx([1 + 0.1 * (2 - 1), 2 + 0.1 * (1 - 2 + 4 - 2), 4 + 0.1 * (2 - 4)])
+
+
+def test_bdc_by_hand() -> None:
+    w = torch.tensor([[0.5, -0.2], [-0.3, -0.1], [0.0, 0.4]])
+    got = bdc(w, 0.01)
+    # q = [[1,-1],[-1,-1],[0,1]]
+    want = torch.tensor(
+        [
+            [0.5 + 0.01 * (-1 - 1), -0.2 + 0.01 * (-1 + 1)],
+            [-0.3 + 0.01 * ((1 + 1) + (0 + 1)), -0.1 + 0.01 * ((-1 + 1) + (1 + 1))],
+            [0.0 + 0.01 * (-1 - 0), 0.4 + 0.01 * (-1 - 1)],
+        ]
+    )
+    torch.testing.assert_close(got, want)
+
+
+def test_consensus_round_updates_parameters_in_place_from_snapshot() -> None:
+    p = torch.nn.Parameter(torch.tensor([[3.0], [6.0], [0.0], [9.0]]))
+    n = consensus_round([p], wac)
+    assert n == 1
+    assert p.detach().flatten().tolist() == [4.5, 3.0, 5.0, 4.5]
+
+
+# ----------------------------------------------------------------------------- layers
+def test_batched_linear_equals_separate_linears() -> None:
+    torch.manual_seed(0)
+    layers = [torch.nn.Linear(5, 3) for _ in range(4)]
+    bl = BatchedLinear.from_linears(layers)
+    x = torch.randn(4, 6, 5)
+    got = bl(x)
+    want = torch.stack([layers[i](x[i]) for i in range(4)])
+    torch.testing.assert_close(got, want)
+
+
+def test_batched_lstm_equals_separate_cells_and_gradients() -> None:
+    torch.manual_seed(0)
+    cells = [torch.nn.LSTMCell(5, 7) for _ in range(3)]
+    bc = BatchedLSTMCell.from_cells(cells)
+    x = torch.randn(4, 3, 2, 5)  # (T, N, B, in)
+    h = torch.randn(3, 2, 7)
+    c = torch.randn(3, 2, 7)
+    hb, cb = h, c
+    hs = [h[i] for i in range(3)]
+    cs = [c[i] for i in range(3)]
+    for t in range(4):
+        hb, cb = bc(x[t], (hb, cb))
+        for i in range(3):
+            hs[i], cs[i] = cells[i](x[t, i], (hs[i], cs[i]))
+    torch.testing.assert_close(hb, torch.stack(hs), atol=1e-6, rtol=1e-5)
+    torch.testing.assert_close(cb, torch.stack(cs), atol=1e-6, rtol=1e-5)
+    hb.sum().backward()
+    sum(hh.sum() for hh in hs).backward()
+    want = torch.stack([cell.weight_hh.grad.T for cell in cells])
+    torch.testing.assert_close(bc.weight_hh.grad, want, atol=1e-5, rtol=1e-4)
+
+
+def test_input_gates_split_equals_full_cell() -> None:
+    torch.manual_seed(1)
+    bc = BatchedLSTMCell(2, 6, 4)
+    x = torch.randn(2, 3, 6)
+    st = (torch.randn(2, 3, 4), torch.randn(2, 3, 4))
+    g = bc.input_gates(x[..., :4], slice(0, 4)) + bc.input_gates(
+        x[..., 4:], slice(4, 6), bias=False
+    )
+    for a, b in zip(bc(x, st), bc.step_from_gates(g, st)):
+        torch.testing.assert_close(a, b)
+
+
+def test_per_agent_clip_equals_separate_clipping() -> None:
+    w = torch.nn.Parameter(torch.zeros(2, 3))
+    b = torch.nn.Parameter(torch.zeros(2))
+    w.grad = torch.tensor([[3.0, 0.0, 0.0], [0.1, 0.0, 0.0]])
+    b.grad = torch.tensor([4.0, 0.0])
+    norms = per_agent_clip_([w, b], 1.0)
+    assert norms.tolist() == pytest.approx([5.0, 0.1])
+    assert w.grad[0].tolist() == pytest.approx([0.6, 0, 0], abs=1e-6)
+    assert b.grad[0].item() == pytest.approx(0.8, abs=1e-6)
+    assert w.grad[1].tolist() == pytest.approx([0.1, 0, 0])  # below the limit: untouched
+
+
+# ----------------------------------------------------------------------------- checkpoints
+def _save(path, **over):
+    kw = dict(
+        algo="ia2c",
+        config={"n_step": 60},
+        scenario="catchup-v1",
+        n_vehicles=8,
+        seed=0,
+        steps=1000,
+        curve_summary={"final_eval_reward": -80.0},
+        weights={"fc.weight": torch.randn(8, 15, 64)},
+    )
+    kw.update(over)
+    return save_checkpoint(path, **kw)
+
+
+def test_checkpoint_round_trip_float16(tmp_path) -> None:
+    w = torch.randn(8, 15, 64)
+    p = _save(tmp_path / "a.pt", weights={"fc.weight": w})
+    d = load_checkpoint(p, algo="ia2c", n_vehicles=8)
+    assert d["format_version"] == FORMAT_VERSION and d["steps"] == 1000
+    assert d["weights"]["fc.weight"].dtype == torch.float32
+    torch.testing.assert_close(d["weights"]["fc.weight"], w.half().float())
+    assert d["curve_summary"]["final_eval_reward"] == -80.0
+
+
+def test_checkpoint_mismatches_fail_clearly(tmp_path) -> None:
+    p = _save(tmp_path / "a.pt")
+    with pytest.raises(ConfigError, match=r"a\.pt.*'ia2c'.*cacc-bench train --algo bdc"):
+        load_checkpoint(p, algo="bdc", n_vehicles=8)
+    with pytest.raises(ConfigError, match=r"N = 8.*--vehicles 4"):
+        load_checkpoint(p, algo="ia2c", n_vehicles=4)
+    with pytest.raises(ConfigError, match="does not exist.*cacc-bench train"):
+        load_checkpoint(tmp_path / "missing.pt", algo="ia2c", n_vehicles=8)
+    data = torch.load(p, weights_only=True)
+    data["format_version"] = 999
+    torch.save(data, tmp_path / "old.pt")
+    with pytest.raises(ConfigError, match=r"old\.pt has format version 999.*cacc-bench train"):
+        load_checkpoint(tmp_path / "old.pt", algo="ia2c", n_vehicles=8)

@@ -1,0 +1,148 @@
+"""MARL policies as controllers: checkpoint loading, greedy acting, V2V accounting, errors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from controllers.base import EpisodeContext
+from controllers.policy import PolicyController
+from envs.errors import ConfigError, UnknownNameError
+from envs.platoon import PlatoonEnv
+from marl.checkpoint import save_checkpoint
+from marl.common import ALGORITHM_NAMES, algorithm, evaluate_greedy
+
+
+def _ckpt(tmp_path, algo="ia2c", n=4, scenario="catchup-v1"):
+    a = algorithm(algo)
+    cfg = a.config_cls()
+    net = a.build_net(cfg, n, True, torch.Generator().manual_seed(1))
+    import dataclasses
+
+    path = save_checkpoint(
+        tmp_path / f"{algo}.pt",
+        algo=algo,
+        config=dataclasses.asdict(cfg),
+        scenario=scenario,
+        n_vehicles=n,
+        seed=0,
+        steps=0,
+        curve_summary={},
+        weights=net.acting_state_dict(),
+    )
+    return path, net
+
+
+def _rollout(ctrl, n=4, seeds=(2000, 2010), steps=30, scenario="catchup-v1"):
+    env = PlatoonEnv(scenario, n)
+    ctx = EpisodeContext(env.scenario, n, np.asarray(seeds), env.params)
+    ctrl.reset(ctx)
+    obs = env.reset(list(seeds))
+    out = []
+    for _ in range(steps):
+        u = ctrl.act(env.state, obs)
+        out.append(u)
+        res = env.step(u)
+        obs = res.observation
+    return np.array(out), ctx, env
+
+
+@pytest.mark.parametrize("algo", ALGORITHM_NAMES)
+def test_policy_controller_acts_greedily_and_counts_bits(tmp_path, algo) -> None:
+    path, _ = _ckpt(tmp_path, algo)
+    ctrl = PolicyController(algo, checkpoint=str(path))
+    assert ctrl.family == "marl" and ctrl.needs_observation
+    u, ctx, env = _rollout(ctrl)
+    assert u.shape == (30, 2, 4) and np.isfinite(u).all()
+    width = 5 + ctrl.net.msg_width
+    # every follower broadcasts its block (and message) every step, 32 bits per float
+    assert ctx.bits_sent == 30 * 2 * 4 * width * 32
+    assert {"ia2c": 0, "fprint": 4, "dial": 64, "commnet": 64}.get(algo, 0) == ctrl.net.msg_width
+
+
+@pytest.mark.parametrize("algo", ["ia2c", "dial"])
+def test_controller_matches_training_evaluation(tmp_path, algo) -> None:
+    """Through lossless channels the controller takes exactly the actions of the trainer's
+    greedy evaluation (same float16-rounded weights)."""
+    path, _ = _ckpt(tmp_path, algo)
+    ctrl = PolicyController(algo, checkpoint=str(path))
+    env = PlatoonEnv("catchup-v1", 4)
+    ctx = EpisodeContext(env.scenario, 4, np.array([2000, 2010]), env.params)
+    ctrl.reset(ctx)
+    obs = env.reset([2000, 2010])
+    rewards = []
+    while True:
+        res = env.step(ctrl.act(env.state, obs))
+        obs = res.observation
+        rewards.append(res.reward.sum(1))
+        if res.done.all():
+            break
+    got = float((np.sum(rewards, 0) / len(rewards)).mean())
+    want = evaluate_greedy(ctrl.net, "catchup-v1", 4, [2000, 2010])
+    if want["collisions"] == 0:
+        assert got == pytest.approx(want["reward"], rel=1e-6)
+
+
+def test_missing_checkpoint_names_train_command(tmp_path) -> None:
+    ctrl = PolicyController("bdc", checkpoint=str(tmp_path / "nope.pt"))
+    with pytest.raises(ConfigError, match="cacc-bench train --algo bdc --scenario catchup-v1"):
+        _rollout(ctrl)
+    ctrl = PolicyController("bdc", scenario="no-such-scenario-v9")
+    with pytest.raises(ConfigError, match="cacc-bench train --algo bdc --scenario no-such"):
+        _rollout(ctrl)
+
+
+def test_wrong_algorithm_or_size_fails(tmp_path) -> None:
+    path, _ = _ckpt(tmp_path, "ia2c", n=4)
+    with pytest.raises(ConfigError, match="holds algorithm 'ia2c'"):
+        _rollout(PolicyController("wac", checkpoint=str(path)))
+    with pytest.raises(ConfigError, match="N = 4"):
+        _rollout(PolicyController("ia2c", checkpoint=str(path)), n=3)
+
+
+def test_untrained_and_bad_options() -> None:
+    u, _, _ = _rollout(PolicyController("ia2c", untrained=True))
+    assert np.isfinite(u).all()
+    with pytest.raises(ConfigError, match="no option"):
+        PolicyController("ia2c", horizon=3)
+
+
+def test_registry_builds_policy() -> None:
+    from controllers.registry import make_controller
+
+    ctrl = make_controller("bdc", untrained="true")
+    assert isinstance(ctrl, PolicyController) and ctrl.algo == "bdc" and ctrl.untrained
+
+
+def test_train_cmd_errors_and_tiny_run(tmp_path) -> None:
+    from benchmark.train_cmd import main
+
+    with pytest.raises(UnknownNameError):
+        main(["--algo", "nope", "--scenario", "catchup-v1"])
+    with pytest.raises(UnknownNameError):
+        main(["--algo", "ia2c", "--scenario", "nope-v1"])
+    assert (
+        main(
+            [
+                "--algo",
+                "ia2c",
+                "--scenario",
+                "catchup-v1",
+                "--steps",
+                "50",
+                "--vehicles",
+                "3",
+                "--episodes-parallel",
+                "2",
+                "--out",
+                str(tmp_path),
+            ]
+        )
+        == 0
+    )
+    stem = tmp_path / "ia2c__catchup-v1__n3__s0"
+    assert stem.with_suffix(".pt").exists()
+    lines = (tmp_path / "ia2c__catchup-v1__n3__s0.curve.csv").read_text().splitlines()
+    assert lines[0] == "episode,steps,train_reward,eval_reward" and len(lines) >= 2
+    assert "bit/vehicle/s" in (tmp_path / "ia2c__catchup-v1__n3__s0.log").read_text()
