@@ -8,7 +8,8 @@ Each run depends only on its key, so all executors give identical numbers.
 from __future__ import annotations
 
 import os
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from typing import Any
 
 from benchmark.suite import RunKey, execute_run
 from envs.errors import ConfigError
@@ -33,29 +34,41 @@ def run_keys(
     ray_address: str | None = None,
 ) -> Iterator[dict]:
     """Yield the record of every ``(key, keep_trajectory)`` as it finishes (any order)."""
+    yield from map_jobs(_run, keys, executor, workers, ray_address)
+
+
+def map_jobs(
+    fn: Callable[[Any], Any],
+    items: Sequence[Any],
+    executor: str = "serial",
+    workers: int = 1,
+    ray_address: str | None = None,
+) -> Iterator[Any]:
+    """Apply a top-level (picklable) function to every item on an executor; yield the results
+    as they finish (any order). Sweeps and multi-seed training both run through here."""
     if executor not in EXECUTORS:
         raise ConfigError(f"unknown executor {executor!r}; valid executors are: {', '.join(EXECUTORS)}")
     if workers < 1:
         raise ConfigError(f"--workers must be >= 1, got {workers}")
-    if not keys:
+    if not items:
         return
     if executor == "serial":
-        for item in keys:
-            yield execute_run(*item)
+        for item in items:
+            yield fn(item)
     elif executor == "process":
-        yield from _process(keys, workers)
+        yield from _process(fn, items, workers)
     else:
-        yield from _ray(keys, workers, ray_address)
+        yield from _ray(fn, items, workers, ray_address)
 
 
-def _process(keys: Sequence[tuple[RunKey, bool]], workers: int) -> Iterator[dict]:
+def _process(fn: Callable[[Any], Any], items: Sequence[Any], workers: int) -> Iterator[Any]:
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor, as_completed
 
     ctx = mp.get_context("spawn")
     pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init)
     try:
-        futures = [pool.submit(_run, item) for item in keys]
+        futures = [pool.submit(fn, item) for item in items]
         for fut in as_completed(futures):
             yield fut.result()
     finally:
@@ -92,10 +105,11 @@ def ensure_ray(workers: int, address: str | None = None) -> object:
     return ray
 
 
-def _ray(keys: Sequence[tuple[RunKey, bool]], workers: int, address: str | None) -> Iterator[dict]:
+def _ray(fn: Callable[[Any], Any], items: Sequence[Any], workers: int,
+         address: str | None) -> Iterator[Any]:
     ray = ensure_ray(workers, address)
-    remote = ray.remote(num_cpus=1)(_run)  # type: ignore[attr-defined]
-    pending = [remote.remote(item) for item in keys]
+    remote = ray.remote(num_cpus=1)(fn)  # type: ignore[attr-defined]
+    pending = [remote.remote(item) for item in items]
     try:
         while pending:
             done, pending = ray.wait(pending, num_returns=1)  # type: ignore[attr-defined]

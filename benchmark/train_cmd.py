@@ -14,7 +14,9 @@ from pathlib import Path
 
 from envs.errors import ConfigError, UnknownNameError
 
-DEFAULT_OUT = "controllers/checkpoints"
+#: Default output: the folder the ``marl`` controllers load from (``controllers/checkpoints``
+#: of the installed package), so ``cacc-bench run --controllers NAME`` uses what was trained.
+DEFAULT_OUT = str(Path(__file__).resolve().parent.parent / "controllers" / "checkpoints")
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -28,8 +30,17 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--scenario", required=True, help="scenario id, e.g. catchup-v1")
     p.add_argument("--steps", type=int, default=600_000, help="environment steps (default 6e5)")
     p.add_argument("--seed", type=int, default=0, help="training seed (default 0)")
+    p.add_argument("--seeds", default=None,
+                   help="comma list of training seeds, run through the harness executors "
+                        "(overrides --seed)")
+    p.add_argument("--executor", choices=("serial", "process", "ray"), default="serial",
+                   help="how several seeds run (default serial)")
+    p.add_argument("--workers", type=int, default=2, help="processes or Ray CPUs (default 2)")
+    p.add_argument("--ray-address", default=None, help="attach to this Ray cluster")
     p.add_argument("--vehicles", type=int, default=8, help="followers N (default 8)")
-    p.add_argument("--out", default=DEFAULT_OUT, help=f"output folder (default {DEFAULT_OUT})")
+    p.add_argument("--out", default=DEFAULT_OUT,
+                   help="output folder (default: the package's controllers/checkpoints, where "
+                        "the marl controllers load from)")
     p.add_argument(
         "--episodes-parallel", type=int, default=None, help="B episodes stepped together"
     )
@@ -62,26 +73,19 @@ class _Bar:
             sys.stderr.write("\n")
 
 
-def main(argv: list[str]) -> int:
-    """Entry point: ``cacc-bench train --algo NAME --scenario ID [...]``."""
-    from envs.scenarios import make_scenario
-    from marl.common import ALGORITHM_NAMES, algorithm, checkpoint_stem, run_training
+def _train_job(job: dict) -> dict:
+    """Train one seed (top level, so process and Ray executors can run it)."""
+    import torch
 
-    args = _parser().parse_args(argv)
-    if args.algo not in ALGORITHM_NAMES:
-        raise UnknownNameError("algorithm", args.algo, ALGORITHM_NAMES)
-    make_scenario(args.scenario)  # UnknownNameError for an unknown id
-    if args.steps < 1:
-        raise ConfigError(f"--steps must be >= 1, got {args.steps}")
-    algo = algorithm(args.algo)
-    options = {}
-    if args.episodes_parallel is not None:
-        options["episodes_parallel"] = args.episodes_parallel
-    config = algo.config_cls(**options)
-    out = Path(args.out)
+    from marl.common import algorithm, checkpoint_stem, run_training
+
+    torch.set_num_threads(1)
+    algo = algorithm(job["algo"])
+    config = algo.config_cls(**job["options"])
+    out = Path(job["out"])
     out.mkdir(parents=True, exist_ok=True)
-    log_path = out / (checkpoint_stem(args.algo, args.scenario, args.vehicles, args.seed) + ".log")
-    tty = sys.stderr.isatty()
+    stem = checkpoint_stem(job["algo"], job["scenario"], job["vehicles"], job["seed"])
+    log_path = out / (stem + ".log")
     with open(log_path, "w") as log_fh:
 
         def log(line: str) -> None:
@@ -89,24 +93,54 @@ def main(argv: list[str]) -> int:
             log_fh.flush()
 
         log(
-            f"train {args.algo} on {args.scenario}, N = {args.vehicles}, seed {args.seed}, "
-            f"{args.steps} steps, config {config}"
+            f"train {job['algo']} on {job['scenario']}, N = {job['vehicles']}, seed {job['seed']}, "
+            f"{job['steps']} steps, config {config}"
         )
-        result = run_training(
-            algo,
-            config,
-            args.scenario,
-            args.vehicles,
-            args.steps,
-            args.seed,
-            out,
-            progress=_Bar(tty),
-            log=log,
-        )
-    if tty:
-        print(
-            f"checkpoint {result.checkpoint}, curve {result.curve_csv}, log {log_path}; "
-            f"{result.env_steps_per_s:.0f} env steps/s",
-            file=sys.stderr,
-        )
+        result = run_training(algo, config, job["scenario"], job["vehicles"], job["steps"],
+                              job["seed"], out, progress=_Bar(job["progress"]), log=log)
+    return {"seed": job["seed"], "checkpoint": str(result.checkpoint),
+            "curve": str(result.curve_csv), "log": str(log_path),
+            "env_steps_per_s": result.env_steps_per_s}
+
+
+def main(argv: list[str]) -> int:
+    """Entry point: ``cacc-bench train --algo NAME --scenario ID [...]``."""
+    from benchmark.executors import map_jobs
+    from envs.scenarios import check_vehicles, make_scenario
+    from marl.common import ALGORITHM_NAMES, algorithm
+
+    args = _parser().parse_args(argv)
+    if args.algo not in ALGORITHM_NAMES:
+        raise UnknownNameError("algorithm", args.algo, ALGORITHM_NAMES)
+    make_scenario(args.scenario)  # UnknownNameError for an unknown id
+    check_vehicles(args.vehicles)
+    if args.steps < 1:
+        raise ConfigError(f"--steps must be >= 1, got {args.steps}")
+    if args.seeds is not None:
+        try:
+            seeds = list(dict.fromkeys(int(x) for x in args.seeds.split(",") if x.strip()))
+        except ValueError:
+            raise ConfigError(f"--seeds must be a comma list of integers, got {args.seeds!r}") from None
+        if not seeds:
+            raise ConfigError("--seeds: no seed given")
+    else:
+        seeds = [args.seed]
+    if any(s < 0 for s in seeds):
+        raise ConfigError("training seeds must be >= 0")
+    options = {}
+    if args.episodes_parallel is not None:
+        if args.episodes_parallel < 1:
+            raise ConfigError("--episodes-parallel must be >= 1")
+        options["episodes_parallel"] = args.episodes_parallel
+    algorithm(args.algo).config_cls(**options)  # validate before starting anything
+    tty = sys.stderr.isatty()
+    jobs = [
+        {"algo": args.algo, "scenario": args.scenario, "vehicles": args.vehicles,
+         "steps": args.steps, "seed": seed, "out": args.out, "options": options,
+         "progress": tty and len(seeds) == 1 and args.executor == "serial"}
+        for seed in seeds
+    ]
+    for res in map_jobs(_train_job, jobs, args.executor, args.workers, args.ray_address):
+        print(f"seed {res['seed']}: checkpoint {res['checkpoint']}, curve {res['curve']}, "
+              f"log {res['log']}; {res['env_steps_per_s']:.0f} env steps/s")
     return 0
