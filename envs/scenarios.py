@@ -238,11 +238,15 @@ class ScenarioSpec:
     published: bool = False
 
 
-_M_NOTE = (
-    "openacc-m-v1 replays ZalaZONE dynamic_part8 (1250..1310 s) in place of the paper's "
-    "dynamic_part9 (473..533 s), which no public copy holds; its leader runs at about 8 m/s, "
-    "not 11."
-)
+def _openacc_spec(window: str, description: str) -> ScenarioSpec:
+    """An OpenACC replay scenario; targets and notes come from :data:`envs.openacc.WINDOWS`."""
+    from envs.openacc import WINDOWS
+
+    w = WINDOWS[window]
+    return ScenarioSpec(
+        w.scenario_id, description, w.target_gap_m, w.target_speed_mps, 600, _openacc,
+        defaults={"window": window}, default_vehicles=4, note=w.note,
+    )
 
 SCENARIOS: dict[str, ScenarioSpec] = {}
 
@@ -281,22 +285,13 @@ for _spec in (
         "leader brakes at 2.5 m/s^2 from 15 to 5 m/s at t = 10 s, holds 10 s, back at 1.5 m/s^2",
         20.0, 15.0, 600, _brake,
     ),
-    ScenarioSpec(
-        "openacc-s-v1",
-        "real OpenACC leader (ZalaZONE dynamic_part1, 316..376 s, short ACC setting)",
-        12.0, 11.0, 600, _openacc, defaults={"window": "S"}, default_vehicles=4,
-    ),
-    ScenarioSpec(
-        "openacc-m-v1",
+    _openacc_spec("S", "real OpenACC leader (ZalaZONE dynamic_part1, 316..376 s, short ACC setting)"),
+    _openacc_spec(
+        "M",
         "real OpenACC leader (ZalaZONE dynamic_part8, 1250..1310 s, medium setting; "
         "stands in for the paper's dynamic_part9)",
-        16.0, 11.0, 600, _openacc, defaults={"window": "M"}, default_vehicles=4, note=_M_NOTE,
     ),
-    ScenarioSpec(
-        "openacc-l-v1",
-        "real OpenACC leader (ZalaZONE dynamic_part2, 450..510 s, long ACC setting)",
-        20.0, 11.0, 600, _openacc, defaults={"window": "L"}, default_vehicles=4,
-    ),
+    _openacc_spec("L", "real OpenACC leader (ZalaZONE dynamic_part2, 450..510 s, long ACC setting)"),
 ):
     register_scenario(_spec)
 
