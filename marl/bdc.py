@@ -53,7 +53,6 @@ class BDCConfig(A2CConfig):
     """
 
     reward_scale: float = 1.0 / 800.0
-    reward_alpha: float = 0.9
     consensus_eps: float = 0.001
     qsgd_levels: int = 1
     packed_bits: bool = False

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import ClassVar
 
 import torch
 
@@ -20,10 +21,11 @@ from marl.layers import BatchedLinear
 
 @dataclass(frozen=True)
 class CommNetConfig(A2CConfig):
-    """CommNet hyper-parameters: reward scale 1/5000, global reward (alpha = 1)."""
+    """CommNet hyper-parameters: reward scale 1/5000; global reward (alpha = 1) on catchup and
+    slowdown, as its published configs."""
 
     reward_scale: float = 1.0 / 5000.0
-    reward_alpha: float = 1.0
+    PUBLISHED_REWARD_ALPHA: ClassVar[dict[str, float]] = {"catchup": 1.0, "slowdown": 1.0}
 
 
 class CommNetNet(SharedTrunkNet):

@@ -30,7 +30,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
@@ -47,7 +47,8 @@ OBS_DIM = 15
 BLOCK_FLOATS = 5
 FLOAT_BITS = 32
 #: Held-out seeds of the learning curve's greedy evaluation (never training, never EVAL_SEEDS).
-VALIDATION_SEEDS: tuple[int, ...] = tuple(range(1, 9))
+VALIDATION_SEEDS: tuple[int, ...] = tuple(range(1, 33))
+COLLISION_VALUES: tuple[str, ...] = ("absorbing", "published")
 ALGORITHM_NAMES: tuple[str, ...] = ("ia2c", "fprint", "dial", "commnet", "wac", "dcea", "bdc")
 
 State = dict[str, torch.Tensor]
@@ -78,8 +79,35 @@ class A2CConfig:
     reward_scale : float
         Rewards are multiplied by this for learning (published 1/800 IA2C family, 1/5000
         DIAL/CommNet).
-    reward_alpha : float
-        Reward sharing: agent i learns from ``sum_j alpha^|i-j| r_j`` (0 local, 1 global).
+    reward_alpha : float or None
+        Reward sharing: agent i learns from ``sum_j alpha^|i-j| r_j`` (0 local, 1 global). None
+        (default): the published config's value for the scenario family and the algorithm's
+        family (:attr:`PUBLISHED_REWARD_ALPHA`; the IA2C family uses 1 on catchup and 0 on
+        slowdown, DIAL and CommNet 1 everywhere), resolved when training starts and recorded in
+        the checkpoint.
+    entropy_coef_final : float or None
+        Entropy coefficient reached at the end of the run, linearly from ``entropy_coef``
+        (None: constant, as published). Departure, default 0.005: with the paper's reward the
+        scaled per-step rewards (about -0.05 per agent) are as large as the entropy bonus
+        (0.05 ln 4 = 0.07), so a constant 0.05 keeps the policy near uniform, and its greedy
+        action (what the benchmark evaluates) is mostly "hold speed" (measured: seed-0 IA2C on
+        catchup-v1 greedy-evaluated at -843 after 1e5 steps while its sampled policy scored -460).
+    return_norm : bool
+        Divide the (scaled, shared) rewards by the running standard deviation of the discounted
+        return before the update (departure, default on). The published ``reward_scale`` was
+        tuned for the published reward; with the paper's power term and absorbing collisions
+        the returns reach hundreds in those units, which an RMSprop-trained value head (steps of
+        about the learning rate) cannot follow within the paper's budget, so the advantages stay
+        mostly value error.
+    collision_value : {"absorbing", "published"}
+        What an episode ended early by the published collision rule is worth afterwards.
+        ``published``: 0 (terminal). ``absorbing`` (default, departure): the collided state keeps
+        paying the collision penalty (-1000 per agent, shared and scaled like every reward) at
+        every step to the scheduled end of the episode, folded into the last step's return. With
+        the paper's power term every surviving step costs, so under the published value a
+        collision just before a 60-step boundary ends the episode cheaply, and the learners find
+        it (measured: seed-0 IA2C on slowdown-v1 crashed its last vehicle at step 60 in 24 of
+        the 50 evaluation episodes).
     episodes_parallel : int
         B episodes stepped together (sample budget counts all of them).
     lr_scale : float
@@ -110,7 +138,10 @@ class A2CConfig:
     value_coef: float = 0.5
     grad_clip: float = 40.0
     reward_scale: float = 1.0 / 800.0
-    reward_alpha: float = 0.9
+    reward_alpha: float | None = None
+    entropy_coef_final: float | None = 0.005
+    return_norm: bool = True
+    collision_value: str = "absorbing"
     episodes_parallel: int = 8
     lr_scale: float = 4.0
     eval_every_steps: int = 20_000
@@ -121,8 +152,35 @@ class A2CConfig:
             raise ConfigError("n_step, hidden and episodes_parallel must be >= 1")
         if not 0 < self.gamma <= 1:
             raise ConfigError(f"gamma must lie in (0, 1], got {self.gamma}")
-        if not 0 <= self.reward_alpha <= 1:
+        if self.reward_alpha is not None and not 0 <= self.reward_alpha <= 1:
             raise ConfigError(f"reward_alpha must lie in [0, 1], got {self.reward_alpha}")
+        if self.entropy_coef_final is not None and self.entropy_coef_final < 0:
+            raise ConfigError(f"entropy_coef_final must be >= 0, got {self.entropy_coef_final}")
+        if self.collision_value not in COLLISION_VALUES:
+            raise ConfigError(
+                f"collision_value must be one of {', '.join(COLLISION_VALUES)}, "
+                f"got {self.collision_value!r}"
+            )
+
+    #: Published reward sharing (``coop_gamma`` of the published configs) by scenario family
+    #: (the scenario id up to its first ``-``); other scenarios use :attr:`DEFAULT_REWARD_ALPHA`.
+    PUBLISHED_REWARD_ALPHA: ClassVar[dict[str, float]] = {"catchup": 1.0, "slowdown": 0.0}
+    DEFAULT_REWARD_ALPHA: ClassVar[float] = 1.0
+
+    def resolved(self, scenario_id: str) -> A2CConfig:
+        """This config with ``reward_alpha`` filled in for ``scenario_id`` (if it was None)."""
+        if self.reward_alpha is not None:
+            return self
+        family = scenario_id.split("-")[0]
+        alpha = self.PUBLISHED_REWARD_ALPHA.get(family, self.DEFAULT_REWARD_ALPHA)
+        return dataclasses.replace(self, reward_alpha=alpha)
+
+    def entropy_at(self, fraction: float) -> float:
+        """Entropy coefficient after ``fraction`` (0..1) of the run."""
+        if self.entropy_coef_final is None:
+            return self.entropy_coef
+        f = min(max(fraction, 0.0), 1.0)
+        return self.entropy_coef + (self.entropy_coef_final - self.entropy_coef) * f
         for name in ("actor_lr", "critic_lr", "reward_scale", "grad_clip", "lr_scale"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"{name} must be > 0")
@@ -411,7 +469,7 @@ class Trainer:
     ) -> None:
         torch.set_num_threads(1)
         self.algo = algo
-        self.config = config
+        self.config = config = config.resolved(scenario_id)
         self.scenario_id = scenario_id
         self.n_vehicles = n_vehicles
         self.seed = seed
@@ -430,11 +488,16 @@ class Trainer:
         )
         self.params = [p for g in self.optimizer.param_groups for p in g["params"]]
         self.steps = 0
+        #: the run's step budget (entropy schedule); :func:`run_training` sets it
+        self.total_steps = 0
         self.episodes = 0
         self.updates = 0
         #: training bits over the run, per agent: consensus and QSGD payloads
         self.bits: dict[str, float] = {"consensus": 0.0, "qsgd": 0.0}
         self._episode_counter = 0
+        #: running (count, mean, sum of squared deviations) of discounted returns (return_norm)
+        self._return_stats: tuple[float, float, float] = (0.0, 0.0, 0.0)
+        self._return_acc = torch.zeros(0)
         algo.setup(self)
 
     # -- sampling
@@ -474,6 +537,7 @@ class Trainer:
         cfg, net, env = self.config, self.net, self.env
         b = cfg.episodes_parallel
         obs_np = env.reset(self._training_seeds(b))
+        self._return_acc = torch.zeros(b, self.n_vehicles)
         assert obs_np is not None
         state = net.initial_state(b)
         cur = self._act(obs_np, state)
@@ -481,18 +545,24 @@ class Trainer:
         ep_reward = np.zeros(b)
         ep_len = np.zeros(b)
         steps = 0
+        t_episode = 0  # steps since reset (all B episodes start together)
         finished = False
         while not finished:
             seg_state = state
             record: list[dict[str, Any]] = []
-            rews, masks, terms = [], [], []
+            rews, masks, terms, absorbed = [], [], [], []
             for _ in range(cfg.n_step):
                 record.append(cur)
                 res = env.step_actions(cur["actions"].T.numpy())
+                t_episode += 1
                 state = cur["state"]
                 masks.append(active.copy())
                 terms.append(res.done & active)
                 rews.append(res.reward)
+                absorbed.append(
+                    self._absorbing_value(env.n_steps - t_episode)
+                    * (res.done & res.collided & active)
+                )
                 steps += int(active.sum())
                 ep_reward += np.where(active, res.reward.sum(1), 0.0)
                 ep_len += active
@@ -508,7 +578,7 @@ class Trainer:
                 with torch.no_grad():
                     nb = neighbour_action_onehot(cur["actions"])
                     bootstrap = net.value(cur["out"], nb).T
-            self._update(seg_state, record, rews, masks, terms, bootstrap)
+            self._update(seg_state, record, rews, masks, terms, bootstrap, absorbed)
             if not finished and active.sum() < cfg.min_active_fraction * b:
                 # most episodes ended (published collision rule): truncate the rest (their last
                 # segment was bootstrapped) instead of stepping finished episodes
@@ -519,6 +589,49 @@ class Trainer:
         self.steps += steps
         self.episodes += b
         return steps, float((ep_reward / np.maximum(ep_len, 1)).mean())
+
+    @torch.no_grad()
+    def _return_scale(
+        self, reward: torch.Tensor, term: torch.Tensor, mask: torch.Tensor
+    ) -> torch.Tensor:
+        """Running standard deviation of the discounted return (``return_norm``).
+
+        The return of every agent of every running episode is accumulated step by step across
+        segments (``G <- gamma G + r``, reset at episode end) and its mean and variance are
+        merged into running totals (Chan et al.), as Stable-Baselines3's reward normalisation.
+        """
+        cfg = self.config
+        acc = self._return_acc
+        rets = []
+        for t in range(reward.shape[0]):
+            acc = acc * cfg.gamma + reward[t]
+            rets.append(acc)
+            acc = acc * (~term[t]).to(acc.dtype).unsqueeze(-1)
+        self._return_acc = acc
+        x = torch.stack(rets)[mask.expand_as(reward) > 0].to(torch.float64)
+        if x.numel():
+            n_b, mean_b, var_b = float(x.numel()), float(x.mean()), float(x.var(unbiased=False))
+            n_a, mean_a, m2_a = self._return_stats
+            n = n_a + n_b
+            delta = mean_b - mean_a
+            m2 = m2_a + var_b * n_b + delta * delta * n_a * n_b / n
+            self._return_stats = (n, mean_a + delta * n_b / n, m2)
+        n, _, m2 = self._return_stats
+        std = math.sqrt(m2 / n) if n > 0 else 1.0
+        return torch.tensor(max(std, 1e-6), dtype=reward.dtype)
+
+    def _absorbing_value(self, remaining_steps: int) -> float:
+        """Per-agent value (unscaled, unshared) of a collided state with ``remaining_steps``
+        scheduled steps left: the collision penalty at each of them, discounted (0 under
+        ``collision_value="published"``)."""
+        cfg = self.config
+        if cfg.collision_value == "published" or remaining_steps <= 0:
+            return 0.0
+        penalty = self.env.weights.collision
+        g = cfg.gamma
+        if g == 1.0:
+            return penalty * remaining_steps
+        return penalty * (1.0 - g**remaining_steps) / (1.0 - g)
 
     def _recompute(
         self, seg_state: State, record: list[dict[str, Any]]
@@ -550,7 +663,9 @@ class Trainer:
             actions.reshape(n, t_len, b).permute(1, 0, 2),
         )
 
-    def _update(self, seg_state, record, rews, masks, terms, bootstrap: torch.Tensor) -> None:
+    def _update(
+        self, seg_state, record, rews, masks, terms, bootstrap: torch.Tensor, absorbed=None
+    ) -> None:
         cfg = self.config
         logits, values, actions = self._recompute(seg_state, record)
         logp_all = torch.log_softmax(logits, -1)  # (T, N, B, 4)
@@ -559,15 +674,23 @@ class Trainer:
         values = values.transpose(1, 2)
         mask = torch.from_numpy(np.stack(masks)).to(torch.float32).unsqueeze(-1)  # (T, B, 1)
         term = torch.from_numpy(np.stack(terms))
-        reward = torch.from_numpy(np.stack(rews)).to(torch.float32) * cfg.reward_scale
-        reward = share_rewards(reward, cfg.reward_alpha)
+        reward = torch.from_numpy(np.stack(rews)).to(torch.float32)
+        if absorbed is not None:
+            # R_t = r_t + gamma V_absorbing at a step that ended the episode by collision
+            extra = torch.from_numpy(np.stack(absorbed)).to(torch.float32)  # (T, B)
+            reward = reward + cfg.gamma * extra.unsqueeze(-1)
+        assert cfg.reward_alpha is not None  # resolved in __init__
+        reward = share_rewards(reward * cfg.reward_scale, cfg.reward_alpha)
+        if cfg.return_norm:
+            reward = reward / self._return_scale(reward, term, mask)
         returns = nstep_returns(reward, bootstrap, term, cfg.gamma)  # (T, B, N)
         count = mask.sum().clamp(min=1.0)
         adv = (returns - values).detach()
         policy_loss = -(logp * adv * mask).sum() / count
         value_loss = 0.5 * ((returns - values).square() * mask).sum() / count
         entropy = (ent * mask).sum() / count
-        loss = policy_loss + cfg.value_coef * value_loss - cfg.entropy_coef * entropy
+        ent_coef = cfg.entropy_at(self.steps / self.total_steps if self.total_steps else 0.0)
+        loss = policy_loss + cfg.value_coef * value_loss - ent_coef * entropy
         self.optimizer.zero_grad(set_to_none=False)
         loss.backward()
         per_agent_clip_(self.params, cfg.grad_clip)
@@ -675,6 +798,7 @@ def run_training(
     """
     make_scenario(scenario_id)  # fail early on an unknown id
     trainer = Trainer(algo, config, scenario_id, n_vehicles, seed)
+    trainer.total_steps = total_steps
     curve: list[dict[str, float]] = []
     next_eval = config.eval_every_steps if out_dir is not None else math.inf
     t0 = time.perf_counter()

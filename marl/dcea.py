@@ -41,7 +41,6 @@ class DCEAConfig(A2CConfig):
     """
 
     reward_scale: float = 1.0 / 800.0
-    reward_alpha: float = 0.9
     consensus_eps: float = 0.001
     share_whole_critic: bool = False
 

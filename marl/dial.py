@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import ClassVar
 
 import torch
 
@@ -21,10 +22,11 @@ from marl.layers import BatchedLinear
 
 @dataclass(frozen=True)
 class DIALConfig(A2CConfig):
-    """DIAL hyper-parameters: reward scale 1/5000, global reward (alpha = 1), published family."""
+    """DIAL hyper-parameters: reward scale 1/5000; global reward (alpha = 1) on catchup and
+    slowdown, as its published configs."""
 
     reward_scale: float = 1.0 / 5000.0
-    reward_alpha: float = 1.0
+    PUBLISHED_REWARD_ALPHA: ClassVar[dict[str, float]] = {"catchup": 1.0, "slowdown": 1.0}
 
 
 class DIALNet(SharedTrunkNet):

@@ -29,10 +29,9 @@ from marl.layers import BatchedLinear
 
 @dataclass(frozen=True)
 class FPrintConfig(A2CConfig):
-    """FPrint hyper-parameters (IA2C family: reward scale 1/800, reward sharing alpha 0.9)."""
+    """FPrint hyper-parameters (IA2C family: reward scale 1/800, published reward sharing)."""
 
     reward_scale: float = 1.0 / 800.0
-    reward_alpha: float = 0.9
 
 
 class FPrintNet(SharedTrunkNet):

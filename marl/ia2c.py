@@ -28,12 +28,11 @@ from marl.common import (
 class IA2CConfig(A2CConfig):
     """IA2C hyper-parameters: those of :class:`marl.common.A2CConfig` (paper values).
 
-    ``reward_scale`` 1/800 (published IA2C family); ``reward_alpha`` 0.9 (spatially discounted
-    neighbour rewards, as the published CACC configs of the IA2C family).
+    ``reward_scale`` 1/800 (published IA2C family); ``reward_alpha`` None: the published
+    configs' value per scenario (global reward on catchup, own reward on slowdown).
     """
 
     reward_scale: float = 1.0 / 800.0
-    reward_alpha: float = 0.9
 
 
 class IA2CNet(SharedTrunkNet):

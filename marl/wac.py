@@ -38,7 +38,6 @@ class WACConfig(A2CConfig):
     """
 
     reward_scale: float = 1.0 / 800.0
-    reward_alpha: float = 0.9
     share_whole_critic: bool = False
 
 

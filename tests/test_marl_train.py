@@ -101,3 +101,103 @@ def test_ia2c_learns_catchup(tmp_path) -> None:
     untrained = a.build_net(a.config_cls(), 8, False, torch.Generator().manual_seed(0))
     base = evaluate_greedy(untrained, "catchup-v1", 8, VALIDATION_SEEDS)
     assert best > base["reward"] + 200 and best > -600
+
+
+# ---------------------------------------------------------------- learner departures
+def test_published_reward_alpha_per_scenario() -> None:
+    """reward_alpha None resolves to the published configs' coop_gamma: IA2C family 1 on catchup
+    and 0 on slowdown, DIAL/CommNet 1 on both; an explicit value is kept."""
+    for name in ("ia2c", "fprint", "wac", "dcea", "bdc"):
+        cfg = algorithm(name).config_cls()
+        assert cfg.reward_alpha is None
+        assert cfg.resolved("catchup-v1").reward_alpha == 1.0
+        assert cfg.resolved("slowdown-v1").reward_alpha == 0.0
+        assert cfg.resolved("slowdown-v2").reward_alpha == 0.0
+        assert cfg.resolved("sine-v1").reward_alpha == 1.0
+    for name in ("dial", "commnet"):
+        cfg = algorithm(name).config_cls()
+        assert cfg.resolved("slowdown-v1").reward_alpha == 1.0
+    cfg = algorithm("ia2c").config_cls(reward_alpha=0.5)
+    assert cfg.resolved("slowdown-v1").reward_alpha == 0.5
+    tr = Trainer(algorithm("ia2c"), algorithm("ia2c").config_cls(), "slowdown-v1", 3, 0)
+    assert tr.config.reward_alpha == 0.0  # what the checkpoint records
+
+
+def test_entropy_schedule() -> None:
+    cfg = algorithm("ia2c").config_cls(entropy_coef=0.05, entropy_coef_final=0.01)
+    assert cfg.entropy_at(0.0) == pytest.approx(0.05)
+    assert cfg.entropy_at(0.5) == pytest.approx(0.03)
+    assert cfg.entropy_at(2.0) == pytest.approx(0.01)
+    assert algorithm("ia2c").config_cls(entropy_coef_final=None).entropy_at(0.7) == 0.05
+
+
+def test_bad_learner_options() -> None:
+    from envs.errors import ConfigError
+
+    cls = algorithm("ia2c").config_cls
+    for bad in ({"collision_value": "free"}, {"entropy_coef_final": -1.0}, {"reward_alpha": 2.0}):
+        with pytest.raises(ConfigError):
+            cls(**bad)
+
+
+def test_absorbing_collision_value() -> None:
+    """The collided state's value is the penalty at every remaining scheduled step, discounted
+    (checked against a plain sum); 0 under the published rule."""
+    a = algorithm("ia2c")
+    tr = Trainer(a, a.config_cls(), "slowdown-v1", 3, 0)
+    want = sum(-1000.0 * 0.99**k for k in range(540))
+    assert tr._absorbing_value(540) == pytest.approx(want, rel=1e-9)
+    assert tr._absorbing_value(0) == 0.0
+    pub = Trainer(a, a.config_cls(collision_value="published"), "slowdown-v1", 3, 0)
+    assert pub._absorbing_value(540) == 0.0
+
+
+def test_absorbing_value_enters_only_collision_ends(monkeypatch) -> None:
+    """In a real batch (random policy on slowdown-v1 collides), the absorbing value is added at
+    exactly the steps where an episode ended by collision before its scheduled end."""
+    import numpy as np
+
+    a = algorithm("ia2c")
+    tr = Trainer(a, a.config_cls(episodes_parallel=4), "slowdown-v1", 8, 0)
+    seen = []
+    orig = tr._update
+
+    def spy(seg_state, record, rews, masks, terms, bootstrap, absorbed=None):
+        seen.append((np.stack(terms), np.stack(absorbed)))
+        return orig(seg_state, record, rews, masks, terms, bootstrap, absorbed)
+
+    monkeypatch.setattr(tr, "_update", spy)
+    tr.run_batch()
+    terms = np.concatenate([t for t, _ in seen])
+    absorbed = np.concatenate([x for _, x in seen])
+    assert (absorbed != 0).any(), "seed 0's random policy collides on slowdown-v1"
+    assert ((absorbed != 0) <= terms).all()
+    ends = np.argwhere(absorbed != 0)
+    for t_idx, _ in ends:
+        remaining = 600 - (t_idx + 1)
+        assert remaining % 60 == 0  # published rule: a collision ends at a 60-step boundary
+    assert np.allclose(absorbed[absorbed != 0], [tr._absorbing_value(600 - t - 1) for t, _ in ends])
+
+
+def test_return_scale_matches_a_loop() -> None:
+    """The running return std merged over segments equals the std of all returns computed by a
+    plain loop (episodes reset at terminals, masked steps left out)."""
+    import numpy as np
+
+    a = algorithm("ia2c")
+    tr = Trainer(a, a.config_cls(), "catchup-v1", 3, 0)
+    gen = torch.Generator().manual_seed(1)
+    tr._return_acc = torch.zeros(2, 3)
+    all_rets = []
+    acc = np.zeros((2, 3))
+    for _ in range(3):
+        r = torch.randn(5, 2, 3, generator=gen)
+        term = torch.zeros(5, 2, dtype=torch.bool)
+        term[2, 0] = True
+        mask = torch.ones(5, 2, 1)
+        scale = tr._return_scale(r, term, mask)
+        for t in range(5):
+            acc = acc * 0.99 + r[t].numpy()
+            all_rets.append(acc.copy())
+            acc[0] *= 0.0 if t == 2 else 1.0
+    assert float(scale) == pytest.approx(np.std(np.stack(all_rets)), rel=1e-5)
