@@ -94,7 +94,7 @@ def _train_job(job: dict) -> dict:
 
         log(
             f"train {job['algo']} on {job['scenario']}, N = {job['vehicles']}, seed {job['seed']}, "
-            f"{job['steps']} steps, config {config}"
+            f"{job['steps']} steps, config {config.resolved(job['scenario'])}"
         )
         result = run_training(algo, config, job["scenario"], job["vehicles"], job["steps"],
                               job["seed"], out, progress=_Bar(job["progress"]), log=log)

@@ -45,7 +45,15 @@ class BDCConfig(A2CConfig):
         Step ``eps`` of the binary differential update (paper: "a small positive scalar"; we use
         DCEA's 0.001).
     qsgd_levels : int
-        QSGD levels s on the critic gradients (1: ternary entries); 0 turns QSGD off.
+        QSGD levels s on the critic gradients (1: ternary entries, as the paper); 0 turns QSGD
+        off.
+    qsgd_bucket : int or None
+        Entries per QSGD bucket, each sent with its own 32-bit norm (QSGD's bucketing; the paper
+        is silent). Default 128 (0.25 extra bits per entry). None: one norm per agent tensor;
+        measured on slowdown-v1 (seed 0, 6e5 steps), BDC then selected a snapshot with 43/50
+        evaluation collisions while DCEA, the same learner without quantisation, had 0/50: with
+        s = 1 a 32,768-entry critic-LSTM tensor gets a variance bound of sqrt(32768) = 181
+        times its squared norm.
     packed_bits : bool
         Count 2 bits per ternary weight (bit-packed) instead of ``log2 3``.
     share_whole_critic : bool
@@ -55,6 +63,7 @@ class BDCConfig(A2CConfig):
     reward_scale: float = 1.0 / 800.0
     consensus_eps: float = 0.001
     qsgd_levels: int = 1
+    qsgd_bucket: int | None = 128
     packed_bits: bool = False
     share_whole_critic: bool = False
 
@@ -64,6 +73,8 @@ class BDCConfig(A2CConfig):
             raise ConfigError(f"consensus_eps must lie in (0, 0.5], got {self.consensus_eps}")
         if self.qsgd_levels < 0:
             raise ConfigError(f"qsgd_levels must be >= 0, got {self.qsgd_levels}")
+        if self.qsgd_bucket is not None and self.qsgd_bucket < 1:
+            raise ConfigError(f"qsgd_bucket must be >= 1 or None, got {self.qsgd_bucket}")
 
 
 class BDC(Algorithm):
@@ -77,7 +88,7 @@ class BDC(Algorithm):
 
     def setup(self, trainer: Trainer) -> None:
         cfg: BDCConfig = trainer.config  # type: ignore[assignment]
-        self.qsgd = ErrorFeedbackQSGD(max(cfg.qsgd_levels, 1), trainer.generator)
+        self.qsgd = ErrorFeedbackQSGD(max(cfg.qsgd_levels, 1), trainer.generator, cfg.qsgd_bucket)
 
     def before_step(self, trainer: Trainer) -> None:
         cfg: BDCConfig = trainer.config  # type: ignore[assignment]
@@ -87,7 +98,7 @@ class BDC(Algorithm):
         grads = [p.grad for p in params]
         for p, q in zip(params, self.qsgd.compress(grads)):  # type: ignore[arg-type]
             p.grad.copy_(q)  # type: ignore[union-attr]
-            trainer.bits["qsgd"] += qsgd_bits(p[0].numel(), cfg.qsgd_levels)
+            trainer.bits["qsgd"] += qsgd_bits(p[0].numel(), cfg.qsgd_levels, bucket=cfg.qsgd_bucket)
 
     def after_step(self, trainer: Trainer) -> None:
         cfg: BDCConfig = trainer.config  # type: ignore[assignment]

@@ -20,7 +20,12 @@ def ternary(w: torch.Tensor) -> torch.Tensor:
     return torch.sign(w)
 
 
-def qsgd(g: torch.Tensor, s: int = 1, generator: torch.Generator | None = None) -> torch.Tensor:
+def qsgd(
+    g: torch.Tensor,
+    s: int = 1,
+    generator: torch.Generator | None = None,
+    bucket: int | None = None,
+) -> torch.Tensor:
     """QSGD-quantise every agent's tensor (leading axis = agents) with ``s`` levels.
 
     Parameters
@@ -28,20 +33,33 @@ def qsgd(g: torch.Tensor, s: int = 1, generator: torch.Generator | None = None) 
     g : (N, ...)
         Stacked per-agent tensors; each agent's tensor is one vector for the norm.
     s : int
-        Quantisation levels (s = 1: every entry becomes 0 or +-||g||).
+        Quantisation levels (s = 1: every entry becomes 0 or +-norm).
     generator : torch.Generator, optional
         Random stream (training streams only).
+    bucket : int, optional
+        Quantise consecutive buckets of this many entries, each with its own norm (QSGD's
+        bucketing, Alistarh et al. section 3.1: the variance bound falls from
+        ``sqrt(D)/s ||g||^2`` for a whole D-entry tensor to ``sqrt(bucket)/s`` per bucket). None:
+        one norm per agent tensor.
     """
     if s < 1:
         raise ValueError(f"QSGD needs s >= 1 levels, got {s}")
+    if bucket is not None and bucket < 1:
+        raise ValueError(f"QSGD bucket must be >= 1 entries, got {bucket}")
     flat = g.reshape(g.shape[0], -1)
-    norm = torch.linalg.vector_norm(flat, dim=1, keepdim=True)
+    d = flat.shape[1]
+    width = d if bucket is None or bucket >= d else bucket
+    pad = (-d) % width
+    if pad:
+        flat = torch.cat([flat, flat.new_zeros(flat.shape[0], pad)], dim=1)
+    blocks = flat.reshape(flat.shape[0], -1, width)
+    norm = torch.linalg.vector_norm(blocks, dim=2, keepdim=True)
     safe = torch.where(norm > 0, norm, torch.ones_like(norm))
-    level = s * flat.abs() / safe
+    level = s * blocks.abs() / safe
     low = torch.floor(level)
-    u = torch.rand(flat.shape, generator=generator, dtype=flat.dtype)
-    xi = (low + (u < (level - low)).to(flat.dtype)) / s
-    out = norm * torch.sign(flat) * xi
+    u = torch.rand(blocks.shape, generator=generator, dtype=blocks.dtype)
+    xi = (low + (u < (level - low)).to(blocks.dtype)) / s
+    out = (norm * torch.sign(blocks) * xi).reshape(flat.shape[0], -1)[:, :d]
     return out.reshape(g.shape)
 
 
@@ -57,11 +75,16 @@ class ErrorFeedbackQSGD:
         QSGD levels.
     generator : torch.Generator
         Random stream.
+    bucket : int, optional
+        Entries per QSGD bucket (None: one norm per tensor).
     """
 
-    def __init__(self, s: int = 1, generator: torch.Generator | None = None) -> None:
+    def __init__(
+        self, s: int = 1, generator: torch.Generator | None = None, bucket: int | None = None
+    ) -> None:
         self.s = int(s)
         self.generator = generator
+        self.bucket = bucket
         self.residual: list[torch.Tensor] | None = None
 
     def compress(self, grads: list[torch.Tensor]) -> list[torch.Tensor]:
@@ -71,7 +94,7 @@ class ErrorFeedbackQSGD:
         out = []
         for i, g in enumerate(grads):
             corrected = g + self.residual[i]
-            q = qsgd(corrected, self.s, self.generator)
+            q = qsgd(corrected, self.s, self.generator, self.bucket)
             self.residual[i] = corrected - q
             out.append(q)
         return out
@@ -82,6 +105,10 @@ def ternary_bits(n_values: int, packed: bool = False) -> float:
     return n_values * (2.0 if packed else math.log2(3.0))
 
 
-def qsgd_bits(n_values: int, s: int = 1, float_bits: int = 32) -> float:
-    """Bits of one QSGD message: the norm (one float) plus ``log2(2s+1)`` bits per entry."""
-    return float_bits + n_values * math.log2(2 * s + 1)
+def qsgd_bits(
+    n_values: int, s: int = 1, float_bits: int = 32, bucket: int | None = None
+) -> float:
+    """Bits of one QSGD message: one float norm per bucket (one per tensor without buckets)
+    plus ``log2(2s+1)`` bits per entry."""
+    n_norms = 1 if bucket is None or bucket >= n_values else math.ceil(n_values / bucket)
+    return n_norms * float_bits + n_values * math.log2(2 * s + 1)

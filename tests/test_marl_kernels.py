@@ -91,6 +91,25 @@ def test_qsgd_unbiased_and_on_grid(s: int) -> None:
     assert ((mean - g).abs() <= tol).all()
 
 
+def test_qsgd_buckets_unbiased_with_their_own_norms() -> None:
+    """Bucketed QSGD: every bucket of 2 entries (the last one padded) is quantised with its own
+    norm, stays unbiased, and bucket=None equals one norm per tensor."""
+    g = torch.tensor([[3.0, -4.0, 0.6, 0.8, 2.0]], dtype=torch.float64)  # buckets: 5, 1, 2
+    gen = torch.Generator().manual_seed(0)
+    k = 20000
+    q = qsgd(g.repeat(k, 1), 1, gen, bucket=2)
+    norms = torch.tensor([5.0, 5.0, 1.0, 1.0, 2.0], dtype=torch.float64)
+    ok = torch.isclose(q.abs(), norms.expand_as(q)) | (q == 0)
+    assert ok.all()
+    assert q.mean(0).tolist() == pytest.approx(g[0].tolist(), abs=5 * 5.0 / (2 * math.sqrt(k)))
+    a = qsgd(g, 1, torch.Generator().manual_seed(1), bucket=None)
+    b = qsgd(g, 1, torch.Generator().manual_seed(1), bucket=99)
+    assert torch.equal(a, b)
+    assert qsgd_bits(300, 1, bucket=128) == pytest.approx(3 * 32 + 300 * math.log2(3))
+    with pytest.raises(ValueError):
+        qsgd(g, 1, gen, bucket=0)
+
+
 def test_qsgd_rounds_up_with_probability_p() -> None:
     """Round-up frequency is ``p = s|g|/||g|| - l`` (the published code used ``1 - p``)."""
     g = torch.tensor([[0.6, 0.8]], dtype=torch.float64)  # norm 1: p = 0.6 and 0.8

@@ -76,7 +76,8 @@ def test_bdc_counts_bits(monkeypatch) -> None:
     lstm = tr.net.critic_lstm  # type: ignore[union-attr]
     n_shared = sum(p[0].numel() for p in lstm.parameters())
     assert tr.bits["consensus"] == pytest.approx(tr.updates * ternary_bits(n_shared))
-    per_update = sum(qsgd_bits(p[0].numel(), 1) for p in tr.net.critic_parameters())
+    bucket = tr.config.qsgd_bucket  # type: ignore[attr-defined]
+    per_update = sum(qsgd_bits(p[0].numel(), 1, bucket=bucket) for p in tr.net.critic_parameters())
     assert tr.bits["qsgd"] == pytest.approx(tr.updates * per_update)
 
 
