@@ -17,19 +17,13 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
-from pathlib import Path
-
-import torch
 
 from envs.errors import ConfigError
 from marl.common import (
     A2CConfig,
     Algorithm,
-    ProgressFn,
     SeparateActorCriticNet,
     Trainer,
-    TrainResult,
-    run_training,
 )
 from marl.consensus import bdc, consensus_round
 from marl.quantize import ErrorFeedbackQSGD, qsgd_bits, ternary_bits
@@ -110,19 +104,3 @@ class BDC(Algorithm):
 
 
 ALGORITHM = BDC()
-
-
-def train(
-    config: BDCConfig,
-    scenario_id: str,
-    n_vehicles: int = 8,
-    total_steps: int = 600_000,
-    seed: int = 0,
-    out_dir: str | Path | None = None,
-    progress: ProgressFn | None = None,
-) -> TrainResult:
-    """Train BDC-MARL; see :func:`marl.common.run_training`."""
-    torch.set_num_threads(1)
-    return run_training(
-        ALGORITHM, config, scenario_id, n_vehicles, total_steps, seed, out_dir, progress
-    )

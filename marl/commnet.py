@@ -9,12 +9,11 @@ through the communicated states (within a segment). Reward scale 1/5000, global 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 from typing import ClassVar
 
 import torch
 
-from marl.common import A2CConfig, Algorithm, ProgressFn, SharedTrunkNet, TrainResult, run_training
+from marl.common import A2CConfig, Algorithm, SharedTrunkNet
 from marl.consensus import degree
 from marl.layers import BatchedLinear
 
@@ -60,19 +59,3 @@ class CommNet(Algorithm):
 
 
 ALGORITHM = CommNet()
-
-
-def train(
-    config: CommNetConfig,
-    scenario_id: str,
-    n_vehicles: int = 8,
-    total_steps: int = 600_000,
-    seed: int = 0,
-    out_dir: str | Path | None = None,
-    progress: ProgressFn | None = None,
-) -> TrainResult:
-    """Train CommNet; see :func:`marl.common.run_training`."""
-    torch.set_num_threads(1)
-    return run_training(
-        ALGORITHM, config, scenario_id, n_vehicles, total_steps, seed, out_dir, progress
-    )

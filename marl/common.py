@@ -3,7 +3,8 @@
 Every algorithm file (``ia2c.py``, ``fprint.py``, ``dial.py``, ``commnet.py``, ``wac.py``,
 ``dcea.py``, ``bdc.py``) defines its config (a frozen subclass of :class:`A2CConfig`), its
 network (a subclass of :class:`AgentNet`) and its distinctive update hooks (an
-:class:`Algorithm`), and calls :func:`run_training`.
+:class:`Algorithm`) as its ``ALGORITHM``; :func:`run_training` (or ``cacc-bench train``) trains
+any of them: ``run_training(algorithm("bdc"), config, "catchup-v1")``.
 
 Layout: activations are agent-major ``(N, B, F)``; all N agents' networks run as one batched
 tensor op (:mod:`marl.layers`). B episodes run in parallel in one batched
@@ -559,9 +560,10 @@ class Trainer:
                 masks.append(active.copy())
                 terms.append(res.done & active)
                 rews.append(res.reward)
+                crashed = res.done & res.collided & active
                 absorbed.append(
-                    self._absorbing_value(env.n_steps - t_episode)
-                    * (res.done & res.collided & active)
+                    self._absorbing_value(env.n_steps - t_episode) * crashed
+                    if crashed.any() else np.zeros(b)
                 )
                 steps += int(active.sum())
                 ep_reward += np.where(active, res.reward.sum(1), 0.0)
@@ -668,7 +670,7 @@ class Trainer:
         )
 
     def _update(
-        self, seg_state, record, rews, masks, terms, bootstrap: torch.Tensor, absorbed=None
+        self, seg_state, record, rews, masks, terms, bootstrap: torch.Tensor, absorbed
     ) -> None:
         cfg = self.config
         logits, values, actions = self._recompute(seg_state, record)
@@ -679,10 +681,9 @@ class Trainer:
         mask = torch.from_numpy(np.stack(masks)).to(torch.float32).unsqueeze(-1)  # (T, B, 1)
         term = torch.from_numpy(np.stack(terms))
         reward = torch.from_numpy(np.stack(rews)).to(torch.float32)
-        if absorbed is not None:
-            # R_t = r_t + gamma V_absorbing at a step that ended the episode by collision
-            extra = torch.from_numpy(np.stack(absorbed)).to(torch.float32)  # (T, B)
-            reward = reward + cfg.gamma * extra.unsqueeze(-1)
+        # R_t = r_t + gamma V_absorbing at a step that ended the episode by collision
+        extra = torch.from_numpy(np.stack(absorbed)).to(torch.float32)  # (T, B)
+        reward = reward + cfg.gamma * extra.unsqueeze(-1)
         assert cfg.reward_alpha is not None  # resolved in __init__
         reward = share_rewards(reward * cfg.reward_scale, cfg.reward_alpha)
         if cfg.return_norm:

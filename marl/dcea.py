@@ -10,20 +10,14 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
-from pathlib import Path
-
-import torch
 
 from envs.errors import ConfigError
 from marl.common import (
     FLOAT_BITS,
     A2CConfig,
     Algorithm,
-    ProgressFn,
     SeparateActorCriticNet,
     Trainer,
-    TrainResult,
-    run_training,
 )
 from marl.consensus import consensus_round, dcea
 
@@ -69,19 +63,3 @@ class DCEA(Algorithm):
 
 
 ALGORITHM = DCEA()
-
-
-def train(
-    config: DCEAConfig,
-    scenario_id: str,
-    n_vehicles: int = 8,
-    total_steps: int = 600_000,
-    seed: int = 0,
-    out_dir: str | Path | None = None,
-    progress: ProgressFn | None = None,
-) -> TrainResult:
-    """Train DCEA; see :func:`marl.common.run_training`."""
-    torch.set_num_threads(1)
-    return run_training(
-        ALGORITHM, config, scenario_id, n_vehicles, total_steps, seed, out_dir, progress
-    )

@@ -11,12 +11,11 @@ Rewards are scaled by 1/5000 and shared globally (alpha = 1), as the published D
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 from typing import ClassVar
 
 import torch
 
-from marl.common import A2CConfig, Algorithm, ProgressFn, SharedTrunkNet, TrainResult, run_training
+from marl.common import A2CConfig, Algorithm, SharedTrunkNet
 from marl.layers import BatchedLinear
 
 
@@ -60,19 +59,3 @@ class DIAL(Algorithm):
 
 
 ALGORITHM = DIAL()
-
-
-def train(
-    config: DIALConfig,
-    scenario_id: str,
-    n_vehicles: int = 8,
-    total_steps: int = 600_000,
-    seed: int = 0,
-    out_dir: str | Path | None = None,
-    progress: ProgressFn | None = None,
-) -> TrainResult:
-    """Train DIAL; see :func:`marl.common.run_training`."""
-    torch.set_num_threads(1)
-    return run_training(
-        ALGORITHM, config, scenario_id, n_vehicles, total_steps, seed, out_dir, progress
-    )

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from pathlib import Path
 
 import torch
 
@@ -18,11 +17,8 @@ from marl.common import (
     N_ACTIONS,
     A2CConfig,
     Algorithm,
-    ProgressFn,
     SharedTrunkNet,
     State,
-    TrainResult,
-    run_training,
 )
 from marl.layers import BatchedLinear
 
@@ -73,19 +69,3 @@ class FPrint(Algorithm):
 
 
 ALGORITHM = FPrint()
-
-
-def train(
-    config: FPrintConfig,
-    scenario_id: str,
-    n_vehicles: int = 8,
-    total_steps: int = 600_000,
-    seed: int = 0,
-    out_dir: str | Path | None = None,
-    progress: ProgressFn | None = None,
-) -> TrainResult:
-    """Train FPrint; see :func:`marl.common.run_training`."""
-    torch.set_num_threads(1)
-    return run_training(
-        ALGORITHM, config, scenario_id, n_vehicles, total_steps, seed, out_dir, progress
-    )

@@ -10,17 +10,11 @@ agent only sends its 5-float vehicle block to its neighbours. The learner is
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
-
-import torch
 
 from marl.common import (
     A2CConfig,
     Algorithm,
-    ProgressFn,
     SharedTrunkNet,
-    TrainResult,
-    run_training,
 )
 
 
@@ -50,19 +44,3 @@ class IA2C(Algorithm):
 
 
 ALGORITHM = IA2C()
-
-
-def train(
-    config: IA2CConfig,
-    scenario_id: str,
-    n_vehicles: int = 8,
-    total_steps: int = 600_000,
-    seed: int = 0,
-    out_dir: str | Path | None = None,
-    progress: ProgressFn | None = None,
-) -> TrainResult:
-    """Train IA2C; see :func:`marl.common.run_training`."""
-    torch.set_num_threads(1)
-    return run_training(
-        ALGORITHM, config, scenario_id, n_vehicles, total_steps, seed, out_dir, progress
-    )

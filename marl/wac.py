@@ -10,19 +10,13 @@ code which averaged in place agent by agent. Payload: 32 bits per shared weight 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
-
-import torch
 
 from marl.common import (
     FLOAT_BITS,
     A2CConfig,
     Algorithm,
-    ProgressFn,
     SeparateActorCriticNet,
     Trainer,
-    TrainResult,
-    run_training,
 )
 from marl.consensus import consensus_round, wac
 
@@ -59,19 +53,3 @@ class WAC(Algorithm):
 
 
 ALGORITHM = WAC()
-
-
-def train(
-    config: WACConfig,
-    scenario_id: str,
-    n_vehicles: int = 8,
-    total_steps: int = 600_000,
-    seed: int = 0,
-    out_dir: str | Path | None = None,
-    progress: ProgressFn | None = None,
-) -> TrainResult:
-    """Train WAC; see :func:`marl.common.run_training`."""
-    torch.set_num_threads(1)
-    return run_training(
-        ALGORITHM, config, scenario_id, n_vehicles, total_steps, seed, out_dir, progress
-    )

@@ -163,7 +163,7 @@ def test_absorbing_value_enters_only_collision_ends(monkeypatch) -> None:
     seen = []
     orig = tr._update
 
-    def spy(seg_state, record, rews, masks, terms, bootstrap, absorbed=None):
+    def spy(seg_state, record, rews, masks, terms, bootstrap, absorbed):
         seen.append((np.stack(terms), np.stack(absorbed)))
         return orig(seg_state, record, rews, masks, terms, bootstrap, absorbed)
 
