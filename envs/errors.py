@@ -27,3 +27,7 @@ class UnknownNameError(CaccBenchError, KeyError):
 
     def __str__(self) -> str:  # KeyError would quote the message
         return str(self.args[0])
+
+
+class TrainingDivergedError(CaccBenchError, RuntimeError):
+    """A learner's weights became non-finite (NaN or infinite) during training."""

@@ -37,7 +37,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from envs.errors import ConfigError, UnknownNameError
+from envs.errors import ConfigError, TrainingDivergedError, UnknownNameError
 from envs.platoon import PlatoonEnv
 from envs.scenarios import make_scenario
 from marl.layers import BatchedLinear, BatchedLSTMCell, per_agent_clip_
@@ -109,6 +109,9 @@ class A2CConfig:
         collision just before a 60-step boundary ends the episode cheaply, and the learners find
         it (measured: seed-0 IA2C on slowdown-v1 crashed its last vehicle at step 60 in 24 of
         the 50 evaluation episodes).
+    advantage_norm : bool
+        Standardise each agent's advantages over the running entries of every segment before
+        the policy loss (:func:`normalise_advantages`; option, off by default as published).
     episodes_parallel : int
         B episodes stepped together (sample budget counts all of them).
     lr_scale : float
@@ -143,6 +146,7 @@ class A2CConfig:
     entropy_coef_final: float | None = 0.005
     return_norm: bool = False
     collision_value: str = "absorbing"
+    advantage_norm: bool = False
     episodes_parallel: int = 8
     lr_scale: float = 4.0
     eval_every_steps: int = 20_000
@@ -162,6 +166,9 @@ class A2CConfig:
                 f"collision_value must be one of {', '.join(COLLISION_VALUES)}, "
                 f"got {self.collision_value!r}"
             )
+        for name in ("actor_lr", "critic_lr", "reward_scale", "grad_clip", "lr_scale"):
+            if not getattr(self, name) > 0:
+                raise ConfigError(f"{name} must be > 0, got {getattr(self, name)}")
 
     #: Published reward sharing (``coop_gamma`` of the published configs) by scenario family
     #: (the scenario id up to its first ``-``); other scenarios use :attr:`DEFAULT_REWARD_ALPHA`.
@@ -182,9 +189,6 @@ class A2CConfig:
             return self.entropy_coef
         f = min(max(fraction, 0.0), 1.0)
         return self.entropy_coef + (self.entropy_coef_final - self.entropy_coef) * f
-        for name in ("actor_lr", "critic_lr", "reward_scale", "grad_clip", "lr_scale"):
-            if not getattr(self, name) > 0:
-                raise ConfigError(f"{name} must be > 0")
 
 
 # ---------------------------------------------------------------------------- networks
@@ -691,6 +695,8 @@ class Trainer:
         returns = nstep_returns(reward, bootstrap, term, cfg.gamma)  # (T, B, N)
         count = mask.sum().clamp(min=1.0)
         adv = (returns - values).detach()
+        if cfg.advantage_norm:
+            adv = normalise_advantages(adv, mask)
         policy_loss = -(logp * adv * mask).sum() / count
         value_loss = 0.5 * ((returns - values).square() * mask).sum() / count
         entropy = (ent * mask).sum() / count
@@ -703,6 +709,29 @@ class Trainer:
         self.optimizer.step()
         self.algo.after_step(self)
         self.updates += 1
+        self._check_finite()
+
+    def _check_finite(self) -> None:
+        """Stop with a clear error when any weight became NaN or infinite (a NaN policy would
+        otherwise act as "action 0" everywhere: the argmax of NaN logits)."""
+        bad = [n for n, p in self.net.named_parameters() if not bool(torch.isfinite(p).all())]
+        if bad:
+            raise TrainingDivergedError(
+                f"{self.algo.name} on {self.scenario_id}: weights {', '.join(bad)} became "
+                f"non-finite after {self.updates} updates ({self.steps} environment steps "
+                "before this batch); lower the learning rates (actor_lr, critic_lr, lr_scale) "
+                "or check the algorithm's options. The best checkpoint evaluated so far is kept."
+            )
+
+
+def normalise_advantages(adv: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Advantages ``(T, B, N)`` standardised per agent over the running entries of the segment
+    (``mask (T, B, 1)``): zero mean, unit standard deviation (population), each agent alone."""
+    m = mask.expand_as(adv)
+    count = m.sum((0, 1)).clamp(min=1.0)
+    mean = (adv * m).sum((0, 1)) / count
+    var = ((adv - mean).square() * m).sum((0, 1)) / count
+    return (adv - mean) / (var.sqrt() + 1e-8)
 
 
 # ---------------------------------------------------------------------------- evaluation

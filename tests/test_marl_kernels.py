@@ -12,7 +12,14 @@ from envs.errors import ConfigError
 from marl.checkpoint import FORMAT_VERSION, load_checkpoint, save_checkpoint
 from marl.consensus import bdc, consensus_round, dcea, degree, neighbour_sum, wac
 from marl.layers import BatchedLinear, BatchedLSTMCell, per_agent_clip_
-from marl.quantize import ErrorFeedbackQSGD, qsgd, qsgd_bits, ternary, ternary_bits
+from marl.quantize import (
+    ErrorFeedbackQSGD,
+    qsgd,
+    qsgd_bits,
+    qsgd_variance_bound,
+    ternary,
+    ternary_bits,
+)
 from marl.returns import nstep_returns, share_rewards
 
 
@@ -138,6 +145,43 @@ def test_error_feedback_residual_is_exact() -> None:
     assert ef.residual is not None
     for i in range(2):  # sum of true gradients = sum sent + residual
         torch.testing.assert_close(grads_seen[i], sent[i] + ef.residual[i], atol=1e-12, rtol=0)
+
+
+def test_qsgd_variance_bound() -> None:
+    """Alistarh et al.'s bound ``min(d/s^2, sqrt(d)/s)`` holds for the measured error, and is
+    reached within a factor of two by a flat vector (s = 1, one bucket of 64 entries)."""
+    assert qsgd_variance_bound(64, 1) == 8.0
+    assert qsgd_variance_bound(4, 4) == 0.25
+    assert qsgd_variance_bound(10_000, 1, bucket=128) == pytest.approx(math.sqrt(128))
+    gen = torch.Generator().manual_seed(5)
+    k = 20_000
+    for g in (torch.ones(1, 64, dtype=torch.float64), torch.randn(1, 64, generator=gen)):
+        g = g.to(torch.float64)
+        err = (qsgd(g.repeat(k, 1), 1, gen) - g).square().sum(1).mean()
+        ratio = float(err / g.square().sum())
+        assert ratio <= qsgd_variance_bound(64, 1) * 1.02
+    flat = torch.ones(1, 64, dtype=torch.float64)
+    err = (qsgd(flat.repeat(k, 1), 1, gen) - flat).square().sum(1).mean() / 64.0
+    assert float(err) == pytest.approx(7.0, rel=0.03)  # sqrt(64) - 1 for a flat vector
+
+
+def test_error_feedback_residual_stays_bounded() -> None:
+    """Error feedback with the contractive scaling keeps the residual of the size of the
+    gradients over many rounds; plain unbiased QSGD (s = 1) lets it grow geometrically."""
+    rng = torch.Generator().manual_seed(6)
+    grads = [torch.randn(2, 256, generator=rng) for _ in range(200)]
+    g_max = max(float(g.norm()) for g in grads)
+    ef = ErrorFeedbackQSGD(1, torch.Generator().manual_seed(7), bucket=128)
+    for g in grads:
+        ef.compress([g])
+    assert ef.residual is not None
+    assert float(ef.residual[0].norm()) < 10 * g_max
+    plain = ErrorFeedbackQSGD(1, torch.Generator().manual_seed(7), bucket=128, contractive=False)
+    for g in grads[:60]:
+        plain.compress([g])
+    assert plain.residual is not None
+    norm = float(plain.residual[0].norm())
+    assert not math.isfinite(norm) or norm > 1e6 * g_max
 
 
 def test_bit_counts() -> None:

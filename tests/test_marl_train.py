@@ -136,7 +136,13 @@ def test_bad_learner_options() -> None:
     from envs.errors import ConfigError
 
     cls = algorithm("ia2c").config_cls
-    for bad in ({"collision_value": "free"}, {"entropy_coef_final": -1.0}, {"reward_alpha": 2.0}):
+    for bad in (
+        {"collision_value": "free"},
+        {"entropy_coef_final": -1.0},
+        {"reward_alpha": 2.0},
+        {"actor_lr": 0.0},
+        {"lr_scale": -1.0},
+    ):
         with pytest.raises(ConfigError):
             cls(**bad)
 
@@ -202,3 +208,41 @@ def test_return_scale_matches_a_loop() -> None:
             all_rets.append(acc.copy())
             acc[0] *= 0.0 if t == 2 else 1.0
     assert float(scale) == pytest.approx(np.std(np.stack(all_rets)), rel=1e-5)
+
+
+def test_normalise_advantages_per_agent_over_running_entries() -> None:
+    """Each agent's advantages get mean 0 and standard deviation 1 over the masked entries,
+    computed here by a plain loop; masked-out entries do not enter the statistics."""
+    import numpy as np
+
+    from marl.common import normalise_advantages
+
+    gen = torch.Generator().manual_seed(0)
+    adv = torch.randn(5, 3, 4, generator=gen, dtype=torch.float64) * 7 + 2
+    mask = torch.ones(5, 3, 1, dtype=torch.float64)
+    mask[3:, 1] = 0.0  # episode 1 ended after 3 steps
+    out = normalise_advantages(adv, mask)
+    for agent in range(4):
+        vals = np.array([adv[t, b, agent].item() for t in range(5) for b in range(3) if mask[t, b, 0]])
+        got = np.array([out[t, b, agent].item() for t in range(5) for b in range(3) if mask[t, b, 0]])
+        np.testing.assert_allclose(got, (vals - vals.mean()) / (vals.std() + 1e-8), rtol=1e-9)
+
+
+def test_diverged_weights_stop_training_with_a_clear_error(monkeypatch) -> None:
+    """A NaN weight after an update raises TrainingDivergedError (a CLI error with exit 2),
+    naming the tensor, instead of training on with a NaN policy."""
+    from envs.errors import TrainingDivergedError
+
+    a = algorithm("bdc")
+    tr = Trainer(a, a.config_cls(episodes_parallel=2), "catchup-v1", 3, 0)
+    tr.total_steps = 1000
+    orig = a.after_step
+
+    def poison(trainer):
+        orig(trainer)
+        with torch.no_grad():
+            trainer.net.critic_lstm.weight_ih[0, 0, 0] = float("nan")
+
+    monkeypatch.setattr(a, "after_step", poison)
+    with pytest.raises(TrainingDivergedError, match="critic_lstm.weight_ih"):
+        tr.run_batch()
