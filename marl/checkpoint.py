@@ -70,8 +70,8 @@ def load_checkpoint(
     Raises
     ------
     ConfigError
-        Missing or unreadable file, other format version, other algorithm or N (the message
-        names the file and the train command).
+        Missing or unreadable file, other format version, other algorithm or N, or NaN or
+        infinite weights (the message names the file and the train command).
     """
     path = Path(path)
     want_algo = algo or "ALGO"
@@ -105,4 +105,10 @@ def load_checkpoint(
             f"{n_vehicles}; {fix()}"
         )
     data["weights"] = {k: v.to(torch.float32) for k, v in data["weights"].items()}
+    bad = [k for k, v in data["weights"].items() if not bool(torch.isfinite(v).all())]
+    if bad:
+        raise ConfigError(
+            f"checkpoint {path} has non-finite weights ({', '.join(bad)}): its training "
+            f"diverged; {fix()}"
+        )
     return data

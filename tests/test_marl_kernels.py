@@ -327,3 +327,8 @@ def test_checkpoint_mismatches_fail_clearly(tmp_path) -> None:
     torch.save(data, tmp_path / "old.pt")
     with pytest.raises(ConfigError, match=r"old\.pt has format version 999.*cacc-bench train"):
         load_checkpoint(tmp_path / "old.pt", algo="ia2c", n_vehicles=8)
+    w = torch.randn(8, 15, 64)
+    w[3, 0, 0] = float("nan")
+    _save(tmp_path / "nan.pt", weights={"fc.weight": w})
+    with pytest.raises(ConfigError, match=r"non-finite weights \(fc\.weight\).*cacc-bench train"):
+        load_checkpoint(tmp_path / "nan.pt", algo="ia2c", n_vehicles=8)
