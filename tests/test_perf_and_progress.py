@@ -20,6 +20,15 @@ def test_perf_json_keys(capsys: pytest.CaptureFixture[str]) -> None:
     assert out["controller_ms_per_vehicle_step"]["ovm"] > 0
 
 
+def test_perf_train_key(capsys: pytest.CaptureFixture[str]) -> None:
+    """The issue's key: one training rate per requested algorithm, with the runs behind it."""
+    assert main(["perf", "--quick", "--json", "--only", "train", "--algos", "ia2c,bdc"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert set(out["train_env_steps_per_s"]) == {"ia2c", "bdc"}
+    for algo, rate in out["train_env_steps_per_s"].items():
+        assert rate > 0 and out["train_env_steps_per_s_runs"][algo] == [rate]
+
+
 def test_perf_bad_part() -> None:
     assert main(["perf", "--only", "nothing"]) == 2
 
