@@ -44,6 +44,11 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--episodes-parallel", type=int, default=None, help="B episodes stepped together"
     )
+    p.add_argument(
+        "--set", action="append", default=[], metavar="KEY=VALUE", dest="overrides",
+        help="set a config field of the algorithm (repeatable), e.g. --set gamma=0.995 "
+             "--set advantage_norm=true; the checkpoint records the whole config",
+    )
     return p
 
 
@@ -107,7 +112,7 @@ def main(argv: list[str]) -> int:
     """Entry point: ``cacc-bench train --algo NAME --scenario ID [...]``."""
     from benchmark.executors import map_jobs
     from envs.scenarios import check_vehicles, make_scenario
-    from marl.common import ALGORITHM_NAMES, algorithm
+    from marl.common import ALGORITHM_NAMES, algorithm, parse_config_overrides
 
     args = _parser().parse_args(argv)
     if args.algo not in ALGORITHM_NAMES:
@@ -127,7 +132,7 @@ def main(argv: list[str]) -> int:
         seeds = [args.seed]
     if any(s < 0 for s in seeds):
         raise ConfigError("training seeds must be >= 0")
-    options = {}
+    options = parse_config_overrides(algorithm(args.algo), args.overrides)
     if args.episodes_parallel is not None:
         if args.episodes_parallel < 1:
             raise ConfigError("--episodes-parallel must be >= 1")

@@ -153,10 +153,10 @@ def test_shipped_policies_on_the_evaluation_seeds(scenario) -> None:
     """The issue's bar on the 50 published evaluation seeds, greedy: the shipped ``bdc`` has no
     collision, and every shipped policy collides less than its untrained policy, which collides
     in at least 25 episodes (measured: 25 to 50)."""
+    from controllers.policy import checkpoint_path
     from envs.params import EVAL_SEEDS
     from marl.checkpoint import load_checkpoint
     from marl.common import config_from_dict
-    from controllers.policy import checkpoint_path
 
     for name in ALGORITHM_NAMES:
         a = algorithm(name)

@@ -47,3 +47,20 @@ def test_bad_seeds_exit_2(tmp_path: Path) -> None:
                  "--out", str(tmp_path)]) == 2
     assert main(["train", "--algo", "nope", "--scenario", "catchup-v1",
                  "--out", str(tmp_path)]) == 2
+
+
+def test_set_config_fields(tmp_path: Path, capsys) -> None:
+    """``--set KEY=VALUE`` reaches the checkpoint's config, typed; bad pairs exit 2 with a
+    message naming the key, before anything is trained."""
+    assert main(["train", "--algo", "bdc", "--scenario", "catchup-v1", "--vehicles", "3",
+                 "--steps", "700", "--out", str(tmp_path), "--set", "gamma=0.995",
+                 "--set", "advantage_norm=true", "--set", "qsgd_bucket=none"]) == 0
+    cfg = torch.load(tmp_path / "bdc__catchup-v1__n3__s0.pt", weights_only=True)["config"]
+    assert cfg["gamma"] == 0.995 and cfg["advantage_norm"] is True and cfg["qsgd_bucket"] is None
+    capsys.readouterr()
+    for bad in ("nope=1", "gamma", "gamma=high", "advantage_norm=maybe", "gamma=2"):
+        assert main(["train", "--algo", "bdc", "--scenario", "catchup-v1", "--set", bad,
+                     "--out", str(tmp_path / "bad")]) == 2
+        err = capsys.readouterr().err
+        assert bad.split("=")[0] in err and "Traceback" not in err, bad
+    assert not (tmp_path / "bad").exists()
