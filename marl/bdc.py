@@ -7,8 +7,10 @@ Each agent has a separate actor and critic (as WAC/DCEA). After every update:
    {-1, 0, +1} (:func:`marl.consensus.bdc`). **No scale is sent**: a message is the sign pattern
    only, ``log2(3)`` bits per weight (:func:`marl.quantize.ternary_bits`; 2 bits if bit-packed).
 2. **QSGD** (s = 1 by default) on every critic gradient tensor with error feedback, before the
-   optimiser step: each agent's tensor is replaced by ``Q(g + e)`` and keeps ``e <- g + e - Q``.
-   Payload per tensor and update: one 32-bit norm plus ``log2(2s+1)`` bits per entry.
+   optimiser step: each agent's tensor is replaced by ``C = Q(g + e) / (1 + omega)`` and keeps
+   ``e <- g + e - C`` (the scaling makes error feedback contractive; without it the residual
+   diverged and the critic became NaN, see :class:`marl.quantize.ErrorFeedbackQSGD`).
+   Payload per bucket and update: one 32-bit norm plus ``log2(2s+1)`` bits per entry.
 
 Both payloads are counted per agent in ``trainer.bits`` and logged.
 """

@@ -112,6 +112,9 @@ class A2CConfig:
     advantage_norm : bool
         Standardise each agent's advantages over the running entries of every segment before
         the policy loss (:func:`normalise_advantages`; option, off by default as published).
+        Measured on seed 0, it did not help: BDC still held speed greedily on catchup-v1 (3e5
+        steps) and crawled collision-free on slowdown-v1 (validation -3,855 to -12,358); WAC on
+        slowdown-v1 crawled too (-6,659 to -11,483 at 0 collisions, 3.4e5 steps).
     episodes_parallel : int
         B episodes stepped together (sample budget counts all of them).
     lr_scale : float
