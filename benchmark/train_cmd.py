@@ -111,8 +111,9 @@ def _train_job(job: dict) -> dict:
 def main(argv: list[str]) -> int:
     """Entry point: ``cacc-bench train --algo NAME --scenario ID [...]``."""
     from benchmark.executors import map_jobs
+    from controllers.registry import build_config
     from envs.scenarios import check_vehicles, make_scenario
-    from marl.common import ALGORITHM_NAMES, algorithm, parse_config_overrides
+    from marl.common import ALGORITHM_NAMES, algorithm
 
     args = _parser().parse_args(argv)
     if args.algo not in ALGORITHM_NAMES:
@@ -132,12 +133,19 @@ def main(argv: list[str]) -> int:
         seeds = [args.seed]
     if any(s < 0 for s in seeds):
         raise ConfigError("training seeds must be >= 0")
-    options = parse_config_overrides(algorithm(args.algo), args.overrides)
+    options: dict[str, object] = {}
+    for pair in args.overrides:
+        key, sep, value = pair.partition("=")
+        if not sep or not key.strip():
+            raise ConfigError(f"--set {pair!r}: expected KEY=VALUE, e.g. --set gamma=0.995")
+        options[key.strip()] = value.strip()
     if args.episodes_parallel is not None:
         if args.episodes_parallel < 1:
             raise ConfigError("--episodes-parallel must be >= 1")
         options["episodes_parallel"] = args.episodes_parallel
-    algorithm(args.algo).config_cls(**options)  # validate before starting anything
+    # typed from the config's fields and validated before anything starts
+    config = build_config(algorithm(args.algo).config_cls, options, f"{args.algo} (--set)")
+    options = {f: getattr(config, f) for f in options}
     tty = sys.stderr.isatty()
     jobs = [
         {"algo": args.algo, "scenario": args.scenario, "vehicles": args.vehicles,

@@ -805,43 +805,6 @@ def config_from_dict(algo: Algorithm, values: dict[str, Any]) -> A2CConfig:
     return algo.config_cls(**values)
 
 
-def parse_config_overrides(algo: Algorithm, pairs: Sequence[str]) -> dict[str, Any]:
-    """``KEY=VALUE`` strings -> config field values, typed by the algorithm's config fields.
-
-    Values: ``none`` for an optional field, ``true``/``false`` for a flag, otherwise the
-    field's number or string type. Raises :class:`ConfigError` naming the bad pair and the
-    valid keys.
-    """
-    fields = {f.name: str(f.type) for f in dataclasses.fields(algo.config_cls)}
-    out: dict[str, Any] = {}
-    for pair in pairs:
-        key, sep, text = pair.partition("=")
-        key, text = key.strip(), text.strip()
-        if not sep or key not in fields:
-            raise ConfigError(
-                f"--set {pair!r}: expected KEY=VALUE with KEY one of the {algo.name} config "
-                f"fields: {', '.join(sorted(fields))}"
-            )
-        kind = fields[key]
-        try:
-            if text.lower() == "none" and "None" in kind:
-                value: Any = None
-            elif kind.startswith("bool"):
-                if text.lower() not in ("true", "false", "1", "0", "yes", "no"):
-                    raise ValueError(text)
-                value = text.lower() in ("true", "1", "yes")
-            elif kind.startswith("int"):
-                value = int(text)
-            elif kind.startswith("float"):
-                value = float(text)
-            else:
-                value = text
-        except ValueError:
-            raise ConfigError(f"--set {pair!r}: {key} takes a {kind} value") from None
-        out[key] = value
-    return out
-
-
 def checkpoint_stem(algo: str, scenario_id: str, n_vehicles: int, seed: int) -> str:
     """File stem of a run: ``<algo>__<scenario>__n<N>__s<seed>``."""
     return f"{algo}__{scenario_id}__n{n_vehicles}__s{seed}"
