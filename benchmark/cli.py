@@ -21,6 +21,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "plot": ("benchmark.plot_cmd", "figures from a results folder"),
     "stability": ("benchmark.stability_cmd", "string stability, analytic and measured"),
     "train": ("benchmark.train_cmd", "train a MARL algorithm"),
+    "tune": ("benchmark.tune_cmd", "tune every MARL algorithm with the same budget (Optuna)"),
     "fit-power": ("benchmark.fit_power", "re-fit the energy polynomial and print its quality"),
     "perf": ("benchmark.perf", "environment, controller and training throughput"),
 }

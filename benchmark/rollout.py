@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -67,61 +68,100 @@ def rollout(
     The reward of each step is the environment's own (evaluation form: no safety term; the
     tracking reward is the same without the power term), so metrics never recompute it.
     """
+    return rollout_batch(controller, scenario, n_vehicles, [seed], params, channel)[0]
+
+
+def rollout_batch(
+    controller: Controller,
+    scenario: Scenario,
+    n_vehicles: int,
+    seeds: Sequence[int],
+    params: PlatoonParams = PlatoonParams(),
+    channel: ChannelConfig = ChannelConfig(),
+) -> list[Trajectory]:
+    """Run the episodes of ``seeds`` together (one batched env, one controller reset).
+
+    Each episode runs to its end or its collision; an episode that ended is frozen by the env
+    while the others go on, and its trajectory stops at its own last step. With one seed this is
+    :func:`rollout`. Every episode depends only on its own seed (the env, the channels and the
+    sampled policies draw from per-episode streams), so an episode gives the same trajectory
+    alone or in a batch, up to the float rounding of batched matrix products.
+    ``compute_s`` and ``bits_sent`` of each episode are its share (1/B) of the batch's, counted
+    while the episode runs; with one seed they are exact.
+    """
+    seeds_arr = np.asarray(list(seeds), dtype=np.int64)
+    b = len(seeds_arr)
+    if b == 0:
+        return []
     env = PlatoonEnv(scenario, n_vehicles, params, observe=controller.needs_observation)
     recorded = getattr(controller, "recorded", None)
     if recorded is not None:  # a recorded platoon (real data), scored by the same rules
-        return _score_recorded(env, recorded(scenario, n_vehicles), params)
-    ctx = EpisodeContext(scenario, n_vehicles, np.array([seed]), params, channel)
+        return [_score_recorded(env, recorded(scenario, n_vehicles), params) for _ in seeds_arr]
+    ctx = EpisodeContext(scenario, n_vehicles, seeds_arr, params, channel)
     controller.reset(ctx)
-    obs = env.reset([seed])
+    obs = env.reset(seeds_arr)
     s = env.state
     assert s is not None
     t_max = env.n_steps
-    gap = np.zeros((t_max + 1, n_vehicles))
+    gap = np.zeros((t_max + 1, b, n_vehicles))
     speed = np.zeros_like(gap)
     accel = np.zeros_like(gap)
     power = np.zeros_like(gap)
-    reward = np.zeros(t_max)
-    tracking = np.zeros(t_max)
+    reward = np.zeros((t_max, b))
+    tracking = np.zeros((t_max, b))
     compute = np.zeros(t_max)
-    gap[0], speed[0] = s.gap_m[0], s.speed_mps[0]
+    bits = np.zeros(t_max, dtype=np.int64)
+    steps = np.full(b, t_max)
+    gap[0], speed[0] = s.gap_m, s.speed_mps
     weight_power = env.weights.power
     t = 0
     clock = time.perf_counter
     while t < t_max:
+        bits_before = ctx.bits_sent
         t0 = clock()
         command = controller.act(s, obs)
-        compute[t] = clock() - t0
+        compute[t] = (clock() - t0) / b
+        bits[t] = (ctx.bits_sent - bits_before) // b
+        was_done = s.done.copy()
         res = env.step(command)
         t += 1
-        gap[t], speed[t] = s.gap_m[0], s.speed_mps[0]
-        accel[t], power[t] = res.applied_accel_mps2[0], res.power_kw[0]
-        reward[t - 1] = res.reward[0].sum()
-        tracking[t - 1] = reward[t - 1] - weight_power * res.power_kw[0].sum()
-        if res.collided[0]:
-            tracking[t - 1] = reward[t - 1]  # -1000 per agent, no power term
+        gap[t], speed[t] = s.gap_m, s.speed_mps
+        accel[t], power[t] = res.applied_accel_mps2, res.power_kw
+        reward[t - 1] = res.reward.sum(axis=1)
+        tracking[t - 1] = np.where(
+            res.collided & ~was_done,
+            reward[t - 1],  # -1000 per agent, no power term
+            reward[t - 1] - weight_power * res.power_kw.sum(axis=1),
+        )
+        steps[res.done & ~was_done] = t
         obs = res.observation
-        if res.done[0]:
+        if res.done.all():
             break
-    lead = s.leader_speed_mps[0, : t + 1]
-    lead_accel = np.zeros(t + 1)
-    lead_accel[1:] = np.diff(lead) / params.dt_s
-    return Trajectory(
-        gap_m=gap[: t + 1],
-        speed_mps=speed[: t + 1],
-        accel_mps2=accel[: t + 1],
-        power_kw=power[: t + 1],
-        leader_speed_mps=lead,
-        leader_accel_mps2=lead_accel,
-        reward=reward[:t],
-        tracking_reward=tracking[:t],
-        compute_s=compute[:t],
-        collided=bool(s.collided[0]),
-        steps=t,
-        bits_sent=ctx.bits_sent,
-        solver_failures=int(getattr(controller, "solver_failures", 0)),
-        dt_s=params.dt_s,
-    )
+    out = []
+    for k in range(b):
+        n_k = int(steps[k])
+        lead = s.leader_speed_mps[k, : n_k + 1]
+        lead_accel = np.zeros(n_k + 1)
+        lead_accel[1:] = np.diff(lead) / params.dt_s
+        out.append(
+            Trajectory(
+                gap_m=gap[: n_k + 1, k],
+                speed_mps=speed[: n_k + 1, k],
+                accel_mps2=accel[: n_k + 1, k],
+                power_kw=power[: n_k + 1, k],
+                leader_speed_mps=lead,
+                leader_accel_mps2=lead_accel,
+                reward=reward[:n_k, k],
+                tracking_reward=tracking[:n_k, k],
+                compute_s=compute[:n_k],
+                collided=bool(s.collided[k]),
+                steps=n_k,
+                bits_sent=int(bits[:n_k].sum()),
+                solver_failures=int(getattr(controller, "solver_failures", 0)),
+                dt_s=params.dt_s,
+            )
+        )
+    return out
 
 
 def _score_recorded(env: PlatoonEnv, rec: dict[str, np.ndarray], params: PlatoonParams) -> Trajectory:

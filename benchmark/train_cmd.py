@@ -1,7 +1,9 @@
 """``cacc-bench train``: train one MARL algorithm on one scenario and store the policy.
 
-Writes ``<out>/<algo>__<scenario>__n<N>__s<seed>.pt`` (checkpoint), ``.curve.csv`` (episode,
-steps, training reward, evaluation reward) and ``.log`` (evaluations, bits communicated).
+Writes ``<out>/<algo>__<scenario>__n<N>__s<seed>.pt`` (the snapshot selected on the validation
+seeds), ``.final.pt`` (the final weights), ``.curve.csv`` (episode, steps, training reward,
+validation reward and collisions in both evaluation modes) and ``.log`` (evaluations, bits
+communicated).
 Shows a progress bar on a terminal and stays quiet otherwise.
 """
 
@@ -61,8 +63,9 @@ class _Bar:
         self.last_eval = float("nan")
 
     def __call__(self, steps: int, total: int, row: dict[str, float]) -> None:
-        if row.get("eval_reward") == row.get("eval_reward"):  # not NaN
-            self.last_eval = row["eval_reward"]
+        value = row.get("eval_reward_sampled", float("nan"))
+        if value == value:  # not NaN
+            self.last_eval = value
         if not self.enabled:
             return
         frac = min(steps / max(total, 1), 1.0)
@@ -71,7 +74,7 @@ class _Bar:
         bar = "#" * int(30 * frac)
         sys.stderr.write(
             f"\r[{bar:<30}] {100 * frac:5.1f}% {steps}/{total} steps {rate:.0f}/s "
-            f"eta {eta:.0f}s train {row['train_reward']:.1f} eval {self.last_eval:.1f}  "
+            f"eta {eta:.0f}s train {row['train_reward']:.1f} validation {self.last_eval:.1f}  "
         )
         sys.stderr.flush()
         if steps >= total:
@@ -82,6 +85,7 @@ def _train_job(job: dict) -> dict:
     """Train one seed (top level, so process and Ray executors can run it)."""
     import torch
 
+    from benchmark.policy_eval import validation_evaluator
     from marl.common import algorithm, checkpoint_stem, run_training
 
     torch.set_num_threads(1)
@@ -102,7 +106,9 @@ def _train_job(job: dict) -> dict:
             f"{job['steps']} steps, config {config.resolved(job['scenario'])}"
         )
         result = run_training(algo, config, job["scenario"], job["vehicles"], job["steps"],
-                              job["seed"], out, progress=_Bar(job["progress"]), log=log)
+                              job["seed"], out, progress=_Bar(job["progress"]), log=log,
+                              evaluate=validation_evaluator(job["algo"], job["scenario"],
+                                                            job["vehicles"]))
     return {"seed": job["seed"], "checkpoint": str(result.checkpoint),
             "curve": str(result.curve_csv), "log": str(log_path),
             "env_steps_per_s": result.env_steps_per_s}

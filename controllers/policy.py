@@ -1,9 +1,13 @@
-"""Trained MARL policies as controllers (greedy actions from a shipped checkpoint).
+"""Trained MARL policies as controllers (actions of a shipped checkpoint's policy).
 
-``PolicyController(algo)`` loads ``controllers/checkpoints/<algo>__<scenario>__n<N>__s0.pt`` for
-the run's scenario and N at :meth:`reset`, keeps every agent's recurrent state, and picks the
-greedy action of each follower every step; the action becomes the OVM command of the published
-action table. Every message goes through channels of the episode context, so delay and loss act
+``PolicyController(algo)`` loads ``controllers/checkpoints/<algo>__<scenario>__n<N>__s<seed>.pt``
+for the run's scenario and N at :meth:`reset`, keeps every agent's recurrent state, and picks
+each follower's action every step: drawn from the policy (``mode=sampled``, the default: the
+policy as trained) or its argmax (``mode=greedy``). The action becomes the OVM command of the
+published action table. Sampled actions use the uniforms of the stream ``policy-actions`` of
+:func:`envs.channel.episode_uniforms`, a pure function of the episode seed, the agent and the
+step: reruns, batches and every executor give the same actions, and every policy of a run draws
+the same numbers (common random numbers across algorithms). Every message goes through channels of the episode context, so delay and loss act
 on it and its bits are counted: each follower's 5-float vehicle block to its front and rear
 neighbours (the observation's neighbour blocks are rebuilt from what arrived), and, for FPrint,
 DIAL and CommNet, the algorithm's message (4 or 64 floats) likewise.
@@ -17,11 +21,16 @@ from typing import Any
 import numpy as np
 
 from controllers.base import Controller, EpisodeContext
+from envs.channel import episode_uniforms
 from envs.dynamics import action_to_command_mps2
 from envs.errors import ConfigError
 from envs.platoon import PlatoonState
 
 CHECKPOINT_DIR = Path(__file__).resolve().parent / "checkpoints"
+#: Evaluation modes; the first is the default.
+POLICY_MODES: tuple[str, ...] = ("sampled", "greedy")
+#: Name of the per-episode uniform stream sampled actions are drawn from.
+ACTION_STREAM = "policy-actions"
 
 
 def checkpoint_path(algo: str, scenario: str, n_vehicles: int, seed: int = 0) -> Path:
@@ -30,7 +39,7 @@ def checkpoint_path(algo: str, scenario: str, n_vehicles: int, seed: int = 0) ->
 
 
 class PolicyController(Controller):
-    """Greedy policy of a trained MARL algorithm.
+    """The policy of a trained MARL algorithm, sampled (default) or greedy.
 
     Parameters
     ----------
@@ -44,10 +53,13 @@ class PolicyController(Controller):
         Training seed of the shipped checkpoint (0).
     untrained : bool
         Act with freshly initialised weights (the "untrained policy" reference; no file read).
+    mode : {"sampled", "greedy"}
+        ``sampled`` (default): actions drawn from the policy, as trained, from the episode's
+        own stream (reproducible). ``greedy``: the argmax action.
     """
 
     family = "marl"
-    deterministic = True
+    deterministic = False
     v2v = "neighbours' vehicle blocks (5 floats), plus learned messages for fprint/dial/commnet"
     needs_observation = True
 
@@ -58,6 +70,7 @@ class PolicyController(Controller):
         checkpoint: str | None = None,
         seed: int | str = 0,
         untrained: bool | str = False,
+        mode: str = "sampled",
         **options: Any,
     ) -> None:
         super().__init__()
@@ -66,8 +79,16 @@ class PolicyController(Controller):
         if options:
             raise ConfigError(
                 f"{algo} has no option(s) {sorted(options)}; its options are: checkpoint, "
-                "scenario, seed, untrained"
+                "mode, scenario, seed, untrained"
             )
+        if mode not in POLICY_MODES:
+            raise ConfigError(f"{algo}: mode must be one of {', '.join(POLICY_MODES)}, got {mode!r}")
+        try:
+            seed = int(seed)
+        except ValueError:
+            raise ConfigError(f"{algo}: seed must be an integer, got {seed!r}") from None
+        if seed < 0:
+            raise ConfigError(f"{algo}: seed must be >= 0, got {seed}")
         if algo not in ALGORITHM_NAMES:
             raise ConfigError(
                 f"unknown MARL algorithm {algo!r}; valid: {', '.join(ALGORITHM_NAMES)}"
@@ -76,20 +97,35 @@ class PolicyController(Controller):
         self.name = algo
         self.scenario = scenario
         self.checkpoint = checkpoint
-        self.seed = int(seed)
+        self.seed = seed
+        self.mode = mode
+        self.deterministic = mode == "greedy"
         self.untrained = str(untrained).lower() in ("1", "true", "yes", "on")
         self.options = {
             k: v
             for k, v in {
                 "scenario": scenario,
                 "checkpoint": checkpoint,
-                "seed": int(seed) if int(seed) else None,
+                "seed": seed if seed else None,
                 "untrained": True if self.untrained else None,
+                "mode": mode if mode != POLICY_MODES[0] else None,
             }.items()
             if v is not None
         }
         self.net: Any = None
         self.loaded: dict[str, Any] = {}
+
+    @classmethod
+    def from_net(
+        cls, algo: str, net: Any, scenario_id: str, n_vehicles: int, mode: str = "sampled"
+    ) -> PolicyController:
+        """A controller acting with an in-memory network (training's validation: the same
+        closed loop as the benchmark, on the weights being trained)."""
+        ctrl = cls(algo, mode=mode)
+        ctrl.net = net
+        ctrl._key = (scenario_id, n_vehicles)
+        ctrl.loaded = {"scenario": scenario_id}
+        return ctrl
 
     # ---------------------------------------------------------------- loading
     def _load(self, scenario_id: str, n_vehicles: int) -> Any:
@@ -134,6 +170,8 @@ class PolicyController(Controller):
         self.params = ctx.params
         n = ctx.n_vehicles
         self.state = self.net.initial_state(ctx.batch_size)
+        self.seeds = ctx.seeds
+        self.t = 0
         self.block_channel = ctx.make_channel(5, f"{self.algo}-blocks", links="neighbours")
         self.msg_channel = None
         if self.net.msg_width:
@@ -155,7 +193,7 @@ class PolicyController(Controller):
     def act(self, state: PlatoonState, observation: np.ndarray | None) -> np.ndarray:
         import torch
 
-        from marl.common import greedy_actions
+        from marl.common import policy_actions
 
         if observation is None:
             raise ConfigError(f"{self.algo} needs the agent observations (needs_observation)")
@@ -176,7 +214,11 @@ class PolicyController(Controller):
                 return torch.from_numpy(x.transpose(1, 0, 2).astype(np.float32)).contiguous()
 
             messages = (t(f), t(r))
-        actions, self.state = greedy_actions(self.net, obs, self.state, messages)
+        uniforms = None
+        if self.mode == "sampled":
+            uniforms = episode_uniforms(self.seeds, ACTION_STREAM, self.t, n)
+        self.t += 1
+        actions, self.state = policy_actions(self.net, obs, self.state, messages, uniforms)
         return action_to_command_mps2(
             actions, state.gap_m, state.speed_mps, state.pred_speed_mps, self.params
         )

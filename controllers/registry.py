@@ -74,6 +74,12 @@ for _spec in (
         "controllers.ovm:OVMController",
     ),
     ControllerSpec(
+        "duty", "human", "none",
+        "OVM action 3 every k-th step, action 2 otherwise (k=K; default: best k on the "
+        "validation seeds): what a trivial schedule of the MARL actions achieves",
+        "controllers.duty:DutyController",
+    ),
+    ControllerSpec(
         "acc", "linear", "none",
         "constant time-gap ACC, u = kp e + kd de/dt (Ploeg's law without feedforward)",
         "controllers.linear:ACCController",
@@ -110,7 +116,7 @@ for _algo in MARL_ALGORITHMS:
     register_controller(
         ControllerSpec(
             _algo, "marl", "see marl.md (neighbour blocks, messages)",
-            f"trained {_algo} policy (shipped checkpoint, greedy actions)",
+            f"trained {_algo} policy (shipped checkpoint; actions sampled, mode=greedy for argmax)",
             "controllers.policy:PolicyController",
             fixed={"algo": _algo},
         )

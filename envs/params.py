@@ -13,6 +13,10 @@ OVM_ACTIONS: tuple[tuple[float, float], ...] = ((0.0, 0.0), (0.5, 0.0), (0.0, 0.
 #: Published evaluation seeds: 2000, 2010, ..., 2490 (50 episodes).
 EVAL_SEEDS: tuple[int, ...] = tuple(range(2000, 2500, 10))
 
+#: Validation seeds 1..32: checkpoint selection, tuning and any other choice made on data. They
+#: are never evaluation seeds and never training seeds (training episodes use seeds >= 1e7).
+VALIDATION_SEEDS: tuple[int, ...] = tuple(range(1, 33))
+
 
 @dataclass(frozen=True)
 class PlatoonParams:

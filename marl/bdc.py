@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
+from typing import ClassVar
 
 from envs.errors import ConfigError
 from marl.common import (
@@ -57,6 +58,9 @@ class BDCConfig(A2CConfig):
     """
 
     reward_scale: float = 1.0 / 800.0
+    #: the published consensus configs share no reward (``coop_gamma = 0``) on every scenario
+    PUBLISHED_REWARD_ALPHA: ClassVar[dict[str, float]] = {"catchup": 0.0, "slowdown": 0.0}
+    DEFAULT_REWARD_ALPHA: ClassVar[float] = 0.0
     consensus_eps: float = 0.001
     qsgd_levels: int = 1
     qsgd_bucket: int | None = 128
@@ -94,7 +98,7 @@ class BDC(Algorithm):
         grads = [p.grad for p in params]
         for p, q in zip(params, self.qsgd.compress(grads)):  # type: ignore[arg-type]
             p.grad.copy_(q)  # type: ignore[union-attr]
-            trainer.bits["qsgd"] += qsgd_bits(p[0].numel(), cfg.qsgd_levels, bucket=cfg.qsgd_bucket)
+            trainer.bits["qsgd_local"] += qsgd_bits(p[0].numel(), cfg.qsgd_levels, bucket=cfg.qsgd_bucket)
 
     def after_step(self, trainer: Trainer) -> None:
         cfg: BDCConfig = trainer.config  # type: ignore[assignment]

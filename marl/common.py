@@ -28,7 +28,7 @@ import importlib
 import math
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar
@@ -38,6 +38,7 @@ import torch
 from torch import nn
 
 from envs.errors import ConfigError, TrainingDivergedError, UnknownNameError
+from envs.params import RewardWeights
 from envs.platoon import PlatoonEnv
 from envs.scenarios import make_scenario
 from marl.layers import BatchedLinear, BatchedLSTMCell, per_agent_clip_
@@ -47,10 +48,11 @@ N_ACTIONS = 4
 OBS_DIM = 15
 BLOCK_FLOATS = 5
 FLOAT_BITS = 32
-#: Held-out seeds of the learning curve's greedy evaluation (never training, never EVAL_SEEDS).
-VALIDATION_SEEDS: tuple[int, ...] = tuple(range(1, 33))
 COLLISION_VALUES: tuple[str, ...] = ("absorbing", "published")
 ALGORITHM_NAMES: tuple[str, ...] = ("ia2c", "fprint", "dial", "commnet", "wac", "dcea", "bdc")
+#: Evaluation modes of a policy: ``sampled`` (actions drawn from the policy, as trained) and
+#: ``greedy`` (argmax; a different, deterministic policy when the trained one stays stochastic).
+EVAL_MODES: tuple[str, ...] = ("sampled", "greedy")
 
 State = dict[str, torch.Tensor]
 ProgressFn = Callable[[int, int, dict[str, float]], None]
@@ -84,7 +86,8 @@ class A2CConfig:
         Reward sharing: agent i learns from ``sum_j alpha^|i-j| r_j`` (0 local, 1 global). None
         (default): the published config's value for the scenario family and the algorithm's
         family (:attr:`PUBLISHED_REWARD_ALPHA`; the IA2C family uses 1 on catchup and 0 on
-        slowdown, DIAL and CommNet 1 everywhere), resolved when training starts and recorded in
+        slowdown, DIAL and CommNet 1 everywhere, the consensus family WAC, DCEA and BDC 0
+        everywhere), resolved when training starts and recorded in
         the checkpoint.
     entropy_coef_final : float or None
         Entropy coefficient reached at the end of the run, linearly from ``entropy_coef``
@@ -126,6 +129,20 @@ class A2CConfig:
         Environment steps between greedy evaluations on the validation seeds (learning curve and
         checkpoint selection: the shipped checkpoint is the evaluated one with the fewest
         collisions, then the best reward).
+    selection_mode : {"sampled", "greedy"}
+        Evaluation mode in which the kept snapshot is chosen on the validation seeds (the mode
+        the policy controller is evaluated in; default ``sampled``, the policy as trained).
+    reward_w_gap, reward_w_speed, reward_w_accel, reward_w_safety, reward_w_power : float
+        Weights w1..w5 of the **training** reward (paper: -1, -1, -0.1, -5, -10; power in kW).
+        The benchmark always scores with the paper's weights; other values are a documented
+        shaping of the learning signal, recorded in the checkpoint.
+    power_baseline_kw : float or None
+        Constant power subtracted from every running agent's power for learning: the power term
+        becomes ``w5 (P - P0)``. 0 (default): the paper's term. None: the cruise power
+        ``P(v*, 0)`` at the scenario's target speed (4.5 kW at 15 m/s), resolved when training
+        starts and recorded. With the paper's reward the power term is about 88 % of the
+        per-step reward, most of it a constant that no action changes; subtracting it leaves
+        the advantages' signal and removes a large negative drift of the return.
     min_active_fraction : float
         At an n-step boundary, when fewer than this fraction of the B episodes are still running
         (the others ended by the published collision rule), the rest are truncated (bootstrapped)
@@ -153,6 +170,13 @@ class A2CConfig:
     episodes_parallel: int = 8
     lr_scale: float = 4.0
     eval_every_steps: int = 20_000
+    selection_mode: str = "sampled"
+    reward_w_gap: float = -1.0
+    reward_w_speed: float = -1.0
+    reward_w_accel: float = -0.1
+    reward_w_safety: float = -5.0
+    reward_w_power: float = -10.0
+    power_baseline_kw: float | None = 0.0
     min_active_fraction: float = 0.0
 
     def __post_init__(self) -> None:
@@ -169,6 +193,16 @@ class A2CConfig:
                 f"collision_value must be one of {', '.join(COLLISION_VALUES)}, "
                 f"got {self.collision_value!r}"
             )
+        if self.selection_mode not in EVAL_MODES:
+            raise ConfigError(
+                f"selection_mode must be one of {', '.join(EVAL_MODES)}, got {self.selection_mode!r}"
+            )
+        for name in ("reward_w_gap", "reward_w_speed", "reward_w_accel", "reward_w_safety",
+                     "reward_w_power"):
+            if getattr(self, name) > 0:
+                raise ConfigError(f"{name} is a cost weight and must be <= 0, got {getattr(self, name)}")
+        if self.power_baseline_kw is not None and not math.isfinite(self.power_baseline_kw):
+            raise ConfigError(f"power_baseline_kw must be finite, got {self.power_baseline_kw}")
         for name in ("actor_lr", "critic_lr", "reward_scale", "grad_clip", "lr_scale"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"{name} must be > 0, got {getattr(self, name)}")
@@ -179,12 +213,30 @@ class A2CConfig:
     DEFAULT_REWARD_ALPHA: ClassVar[float] = 1.0
 
     def resolved(self, scenario_id: str) -> A2CConfig:
-        """This config with ``reward_alpha`` filled in for ``scenario_id`` (if it was None)."""
-        if self.reward_alpha is not None:
-            return self
-        family = scenario_id.split("-")[0]
-        alpha = self.PUBLISHED_REWARD_ALPHA.get(family, self.DEFAULT_REWARD_ALPHA)
-        return dataclasses.replace(self, reward_alpha=alpha)
+        """This config with ``reward_alpha`` and ``power_baseline_kw`` filled in for
+        ``scenario_id`` (where they were None)."""
+        out: A2CConfig = self
+        if out.reward_alpha is None:
+            family = scenario_id.split("-")[0]
+            alpha = self.PUBLISHED_REWARD_ALPHA.get(family, self.DEFAULT_REWARD_ALPHA)
+            out = dataclasses.replace(out, reward_alpha=alpha)
+        if out.power_baseline_kw is None:
+            from envs.energy import load_power_polynomial
+
+            v_star = make_scenario(scenario_id).target_speed_mps
+            p0 = float(load_power_polynomial()(np.array([v_star]), np.array([0.0]))[0])
+            out = dataclasses.replace(out, power_baseline_kw=round(p0, 6))
+        return out
+
+    def reward_weights(self) -> RewardWeights:
+        """The training reward's weights (the benchmark scores with ``RewardWeights()``)."""
+        return RewardWeights(
+            gap=self.reward_w_gap,
+            speed=self.reward_w_speed,
+            accel=self.reward_w_accel,
+            safety=self.reward_w_safety,
+            power=self.reward_w_power,
+        )
 
     def entropy_at(self, fraction: float) -> float:
         """Entropy coefficient after ``fraction`` (0..1) of the run."""
@@ -461,6 +513,7 @@ class TrainResult:
     bits: dict[str, float]
     curve: list[dict[str, float]] = field(default_factory=list)
     checkpoint: Path | None = None
+    final_checkpoint: Path | None = None
     curve_csv: Path | None = None
 
 
@@ -483,8 +536,12 @@ class Trainer:
         self.seed = seed
         self.generator = torch.Generator().manual_seed(seed)
         self.env = PlatoonEnv(
-            make_scenario(scenario_id), n_vehicles, training=True, collision_mode="published"
+            make_scenario(scenario_id), n_vehicles, training=True, collision_mode="published",
+            weights=config.reward_weights(),
         )
+        assert config.power_baseline_kw is not None  # resolved above
+        #: per running agent and step, added to the env's reward: ``-w5 P0`` (0 as published)
+        self._baseline_reward = -config.reward_w_power * config.power_baseline_kw
         self.net = algo.build_net(config, n_vehicles, True, self.generator)
         self.optimizer = torch.optim.RMSprop(
             [
@@ -500,8 +557,9 @@ class Trainer:
         self.total_steps = 0
         self.episodes = 0
         self.updates = 0
-        #: training bits over the run, per agent: consensus and QSGD payloads
-        self.bits: dict[str, float] = {"consensus": 0.0, "qsgd": 0.0}
+        #: training bits over the run, per agent: consensus messages sent to the neighbours,
+        #: and the payload of QSGD-compressed gradients that are applied locally (sent nowhere)
+        self.bits: dict[str, float] = {"consensus": 0.0, "qsgd_local": 0.0}
         self._episode_counter = 0
         #: running (count, mean, sum of squared deviations) of discounted returns (return_norm)
         self._return_stats: tuple[float, float, float] = (0.0, 0.0, 0.0)
@@ -539,7 +597,8 @@ class Trainer:
     def run_batch(self) -> tuple[int, float]:
         """Run B episodes to the end with an update every n steps.
 
-        Returns the environment steps taken and the mean training reward (mean over steps of the
+        Returns the environment steps taken and the mean training reward (the learner's own,
+        shaped when the config says so; mean over steps of the
         sum over agents, as the paper reports).
         """
         cfg, net, env = self.config, self.net, self.env
@@ -566,14 +625,18 @@ class Trainer:
                 state = cur["state"]
                 masks.append(active.copy())
                 terms.append(res.done & active)
-                rews.append(res.reward)
+                if self._baseline_reward:
+                    running = active & ~res.collided
+                    rews.append(res.reward + self._baseline_reward * running[:, None])
+                else:
+                    rews.append(res.reward)
                 crashed = res.done & res.collided & active
                 absorbed.append(
                     self._absorbing_value(env.n_steps - t_episode) * crashed
                     if crashed.any() else np.zeros(b)
                 )
                 steps += int(active.sum())
-                ep_reward += np.where(active, res.reward.sum(1), 0.0)
+                ep_reward += np.where(active, rews[-1].sum(1), 0.0)
                 ep_len += active
                 active = ~res.done
                 if res.done.all():
@@ -737,54 +800,39 @@ def normalise_advantages(adv: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     return (adv - mean) / (var.sqrt() + 1e-8)
 
 
-# ---------------------------------------------------------------------------- evaluation
+# ---------------------------------------------------------------------------- acting
+def sample_from_logits(logits: torch.Tensor, uniforms: np.ndarray) -> np.ndarray:
+    """Inverse-CDF draws from ``softmax(logits)``: logits ``(N, B, A)``, uniforms ``(B, N)`` in
+    [0, 1) -> actions ``(B, N)`` (the first action whose cumulative probability exceeds u)."""
+    probs = torch.softmax(logits.to(torch.float64), -1).permute(1, 0, 2).numpy()  # (B, N, A)
+    cdf = np.cumsum(probs, axis=-1)
+    actions = (uniforms[..., None] >= cdf[..., :-1]).sum(-1)
+    return actions.astype(np.int64)
+
+
 @torch.no_grad()
-def greedy_actions(
-    net: AgentNet, obs_np: np.ndarray, state: State, messages: tuple | None = None
+def policy_actions(
+    net: AgentNet,
+    obs_np: np.ndarray,
+    state: State,
+    messages: tuple | None = None,
+    uniforms: np.ndarray | None = None,
 ) -> tuple[np.ndarray, State]:
-    """Greedy actions ``(B, N)`` for observations ``(B, N, 15)``; messages default to instant."""
+    """Actions ``(B, N)`` for observations ``(B, N, 15)``: greedy (argmax) when ``uniforms`` is
+    None, else drawn from the policy with one uniform ``(B, N)`` per agent
+    (:func:`sample_from_logits`). Messages default to instant, lossless exchange."""
     obs = torch.from_numpy(np.ascontiguousarray(obs_np, dtype=np.float32)).transpose(0, 1)
     front, rear = exchange(net, state) if messages is None else messages
     logits, _, state = net.act_step(obs.contiguous(), state, front, rear)
-    return logits.argmax(-1).T.numpy(), state
+    if uniforms is None:
+        return logits.argmax(-1).T.numpy(), state
+    return sample_from_logits(logits, uniforms), state
 
 
-@torch.no_grad()
-def evaluate_greedy(
-    net: AgentNet, scenario_id: str, n_vehicles: int, seeds: Sequence[int]
-) -> dict[str, float]:
-    """Greedy episodes with the evaluation reward (no safety term, collision ends the episode).
-
-    Returns the mean over episodes of ``reward`` (mean over steps of the sum over agents, power
-    included), ``tracking_reward`` (the same without power) and ``collisions`` (count).
-    """
-    env = PlatoonEnv(make_scenario(scenario_id), n_vehicles, training=False)
-    obs = env.reset(np.asarray(seeds))
-    b = len(seeds)
-    state = net.initial_state(b)
-    tot = np.zeros(b)
-    track = np.zeros(b)
-    length = np.zeros(b)
-    active = np.ones(b, dtype=bool)
-    while True:
-        assert obs is not None
-        actions, state = greedy_actions(net, obs, state)
-        res = env.step_actions(actions)
-        obs = res.observation
-        hit = res.collided & active & res.done
-        r = res.reward.sum(1)
-        tr = np.where(hit, r, r - env.weights.power * res.power_kw.sum(1))
-        tot += np.where(active, r, 0.0)
-        track += np.where(active, tr, 0.0)
-        length += active
-        active = ~res.done
-        if res.done.all():
-            break
-    return {
-        "reward": float((tot / length).mean()),
-        "tracking_reward": float((track / length).mean()),
-        "collisions": float(env.state.collided.sum()),  # type: ignore[union-attr]
-    }
+#: Signature of the validation evaluator :func:`run_training` takes: ``(net, mode)`` -> mean over
+#: the validation episodes of ``reward`` and ``tracking_reward``, and ``collisions`` (a count).
+#: The benchmark's own closed loop provides it (:func:`benchmark.policy_eval.validation_evaluator`).
+Evaluator = Callable[["AgentNet", str], dict[str, float]]
 
 
 # ---------------------------------------------------------------------------- driver
@@ -821,8 +869,14 @@ def run_training(
     progress: ProgressFn | None = None,
     log: Callable[[str], None] | None = None,
     schedule_steps: int | None = None,
+    evaluate: Evaluator | None = None,
 ) -> TrainResult:
-    """Train ``algo`` for ``total_steps`` environment steps; write checkpoint and curve CSV.
+    """Train ``algo`` for ``total_steps`` environment steps; write checkpoints and curve CSV.
+
+    Every ``config.eval_every_steps`` (and at the end) the policy is evaluated on the validation
+    seeds in both modes by ``evaluate``; the snapshot kept as ``<stem>.pt`` is the best in
+    ``config.selection_mode`` (fewest collisions, then mean reward; a tie goes to the later
+    snapshot). The final weights are saved as ``<stem>.final.pt``.
 
     Parameters
     ----------
@@ -830,14 +884,22 @@ def run_training(
         Run length the entropy schedule assumes (default ``total_steps``); the throughput
         measurement runs the first steps of a 6e5-step run with it.
     out_dir : path, optional
-        Where ``<stem>.pt`` and ``<stem>.curve.csv`` go (None: write nothing, no evaluation;
-        used by the throughput measurement).
+        Where ``<stem>.pt``, ``<stem>.final.pt`` and ``<stem>.curve.csv`` go (None: write
+        nothing, no evaluation; used by the throughput measurement).
     progress : callable(steps, total_steps, info), optional
         Called after every batch of episodes.
     log : callable(str), optional
         Receives one line per evaluation and a summary.
+    evaluate : callable(net, mode) -> dict, optional
+        Validation evaluator (required with ``out_dir``): the benchmark's closed loop on the
+        validation seeds, :func:`benchmark.policy_eval.validation_evaluator`.
     """
     make_scenario(scenario_id)  # fail early on an unknown id
+    if out_dir is not None and evaluate is None:
+        raise ConfigError(
+            "run_training with an output folder needs a validation evaluator: pass "
+            "evaluate=benchmark.policy_eval.validation_evaluator(algo, scenario, N)"
+        )
     trainer = Trainer(algo, config, scenario_id, n_vehicles, seed)
     trainer.total_steps = schedule_steps or total_steps
     curve: list[dict[str, float]] = []
@@ -846,6 +908,7 @@ def run_training(
     train_time = 0.0
     result = TrainResult(algo.name, scenario_id, n_vehicles, seed, 0, 0, 0.0, 0.0, {}, curve)
     best: tuple[float, float] = (-math.inf, -math.inf)
+    select = trainer.config.selection_mode
     while trainer.steps < total_steps:
         tb = time.perf_counter()
         _, train_reward = trainer.run_batch()
@@ -854,39 +917,50 @@ def run_training(
             "episode": trainer.episodes,
             "steps": trainer.steps,
             "train_reward": train_reward,
-            "eval_reward": math.nan,
+            **{f"eval_{k}_{m}": math.nan for m in EVAL_MODES for k in CURVE_EVAL_KEYS},
         }
         curve.append(row)
         last = trainer.steps >= total_steps
         if trainer.steps >= next_eval or (out_dir is not None and last):
-            ev = evaluate_greedy(trainer.net, scenario_id, n_vehicles, VALIDATION_SEEDS)
-            row["eval_reward"] = ev["reward"]
+            assert evaluate is not None
+            for mode in EVAL_MODES:
+                ev = evaluate(trainer.net, mode)
+                for k in CURVE_EVAL_KEYS:
+                    row[f"eval_{k}_{mode}"] = float(ev[k])
             next_eval = trainer.steps + config.eval_every_steps
             # fewest collisions first: a colliding episode ends early, so its mean reward over
-            # the steps it ran can look better than a safe one's
-            score = (-ev["collisions"], ev["reward"])
-            better = score > best
+            # the steps it ran can look better than a safe one's; a tie keeps the later snapshot
+            score = (-row[f"eval_collisions_{select}"], row[f"eval_reward_{select}"])
+            better = score >= best
             best = max(best, score)
             _finish(result, trainer, time.perf_counter() - t0, train_time, out_dir, better)
             if log is not None:
                 log(
                     f"steps {trainer.steps} episodes {trainer.episodes} train {train_reward:.2f} "
-                    f"eval {ev['reward']:.2f} collisions {ev['collisions']:.0f} "
-                    f"bits/agent consensus {trainer.bits['consensus']:.0f} "
-                    f"qsgd {trainer.bits['qsgd']:.0f}"
+                    + " ".join(
+                        f"{m} {row[f'eval_reward_{m}']:.2f} ({row[f'eval_collisions_{m}']:.0f} "
+                        "collisions)" for m in EVAL_MODES
+                    )
+                    + (" [kept]" if better else "")
+                    + f" consensus bits/agent {trainer.bits['consensus']:.0f}"
                 )
         if progress is not None:
             progress(trainer.steps, total_steps, row)
-    _finish(result, trainer, time.perf_counter() - t0, train_time, out_dir, False)
+    _finish(result, trainer, time.perf_counter() - t0, train_time, out_dir, False, final=True)
     if log is not None:
         log(
             f"done: {trainer.steps} steps in {result.wall_s:.0f} s "
             f"({result.env_steps_per_s:.0f} env steps/s training), execution "
             f"{result.bits['execution_bits_per_vehicle_per_s']:.0f} bit/vehicle/s, training bits "
-            f"per agent: consensus {result.bits['training_consensus_bits_per_agent']:.0f}, "
-            f"qsgd {result.bits['training_qsgd_bits_per_agent']:.0f}; checkpoint {result.checkpoint}"
+            f"sent per agent: consensus {result.bits['training_consensus_bits_per_agent']:.0f} "
+            f"(QSGD applied locally: {result.bits['local_qsgd_payload_bits_per_agent']:.0f} "
+            f"bits of payload, not sent); checkpoint {result.checkpoint}"
         )
     return result
+
+
+#: Validation numbers recorded per mode in the curve (``eval_<key>_<mode>``).
+CURVE_EVAL_KEYS: tuple[str, ...] = ("reward", "collisions")
 
 
 def _finish(
@@ -896,9 +970,11 @@ def _finish(
     train_s: float,
     out_dir: str | Path | None,
     save_weights: bool,
+    final: bool = False,
 ) -> None:
-    """Fill the result's numbers and (with an output folder) write the curve, and the checkpoint
-    when ``save_weights`` (a new best greedy evaluation on the validation seeds).
+    """Fill the result's numbers and (with an output folder) write the curve, the selected
+    checkpoint when ``save_weights`` (a new best on the validation seeds) and, when ``final``,
+    the final weights.
 
     Called at every evaluation, so an interrupted run leaves its best checkpoint so far.
     """
@@ -912,7 +988,7 @@ def _finish(
         "execution_bits_per_agent_step": float(exec_bits),
         "execution_bits_per_vehicle_per_s": exec_bits / trainer.env.params.dt_s,
         "training_consensus_bits_per_agent": trainer.bits["consensus"],
-        "training_qsgd_bits_per_agent": trainer.bits["qsgd"],
+        "local_qsgd_payload_bits_per_agent": trainer.bits["qsgd_local"],
         "updates": float(trainer.updates),
     }
     if out_dir is None:
@@ -923,47 +999,59 @@ def _finish(
     curve = result.curve
     result.curve_csv = out / f"{stem}.curve.csv"
     write_curve(result.curve_csv, curve)
-    evals = [r["eval_reward"] for r in curve if not math.isnan(r["eval_reward"])]
+    mode = trainer.config.selection_mode
+    evals = [r for r in curve if not math.isnan(r[f"eval_reward_{mode}"])]
     summary = {
         "final_train_reward": curve[-1]["train_reward"] if curve else math.nan,
-        "final_eval_reward": evals[-1] if evals else math.nan,
-        "best_eval_reward": max(evals) if evals else math.nan,
+        "final_eval_reward": evals[-1][f"eval_reward_{mode}"] if evals else math.nan,
+        "best_eval_reward": max(r[f"eval_reward_{mode}"] for r in evals) if evals else math.nan,
         "wall_s": wall_s,
         "env_steps_per_s": result.env_steps_per_s,
         "selected_at_steps": float(trainer.steps),
+        **{f"selected_eval_{k}_{m}": (evals[-1][f"eval_{k}_{m}"] if evals else math.nan)
+           for m in EVAL_MODES for k in CURVE_EVAL_KEYS},
         **result.bits,
     }
     result.checkpoint = out / f"{stem}.pt"
-    if not save_weights:
-        if result.checkpoint.exists():  # keep the selected weights, refresh the run's totals
-            data = torch.load(result.checkpoint, weights_only=True)
-            selected = data["curve_summary"].get("selected_at_steps", math.nan)
-            data["curve_summary"].update(summary)
-            data["curve_summary"]["selected_at_steps"] = selected
-            data["curve_summary"]["total_steps"] = float(trainer.steps)
-            torch.save(data, result.checkpoint)
-        return
-    save_checkpoint(
-        out / f"{stem}.pt",
-        algo=trainer.algo.name,
-        config=dataclasses.asdict(trainer.config),
-        scenario=trainer.scenario_id,
-        n_vehicles=trainer.n_vehicles,
-        seed=trainer.seed,
-        steps=trainer.steps,
-        curve_summary=summary,
-        weights=trainer.net.acting_state_dict(),
-    )
+
+    def save(path: Path) -> None:
+        save_checkpoint(
+            path,
+            algo=trainer.algo.name,
+            config=dataclasses.asdict(trainer.config),
+            scenario=trainer.scenario_id,
+            n_vehicles=trainer.n_vehicles,
+            seed=trainer.seed,
+            steps=trainer.steps,
+            curve_summary={**summary, "total_steps": float(trainer.steps)},
+            weights=trainer.net.acting_state_dict(),
+        )
+
+    if final:
+        result.final_checkpoint = out / f"{stem}.final.pt"
+        save(result.final_checkpoint)
+    if save_weights:
+        save(result.checkpoint)
+    elif result.checkpoint.exists():  # keep the selected weights, refresh the run's totals
+        data = torch.load(result.checkpoint, weights_only=True)
+        kept = {k: v for k, v in data["curve_summary"].items() if k.startswith("selected_")}
+        data["curve_summary"].update(summary)
+        data["curve_summary"].update(kept)
+        data["curve_summary"]["total_steps"] = float(trainer.steps)
+        torch.save(data, result.checkpoint)
 
 
 def write_curve(path: Path, curve: list[dict[str, float]]) -> None:
-    """Learning curve CSV: episode, steps, train_reward, eval_reward (empty if not evaluated)."""
+    """Learning curve CSV: episode, steps, train_reward (the learner's own, possibly shaped,
+    reward), and per evaluation mode the validation reward and collisions (empty where not
+    evaluated)."""
+    evals = [f"eval_{k}_{m}" for m in EVAL_MODES for k in CURVE_EVAL_KEYS]
     with open(path, "w", newline="") as fh:
         w = csv.writer(fh)
-        w.writerow(["episode", "steps", "train_reward", "eval_reward"])
+        w.writerow(["episode", "steps", "train_reward", *evals])
         for r in curve:
-            ev = "" if math.isnan(r["eval_reward"]) else f"{r['eval_reward']:.4f}"
-            w.writerow([int(r["episode"]), int(r["steps"]), f"{r['train_reward']:.4f}", ev])
+            cells = ["" if math.isnan(r[k]) else f"{r[k]:.4f}" for k in evals]
+            w.writerow([int(r["episode"]), int(r["steps"]), f"{r['train_reward']:.4f}", *cells])
 
 
 def stderr_log(line: str) -> None:

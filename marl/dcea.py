@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
+from typing import ClassVar
 
 from envs.errors import ConfigError
 from marl.common import (
@@ -35,6 +36,9 @@ class DCEAConfig(A2CConfig):
     """
 
     reward_scale: float = 1.0 / 800.0
+    #: the published consensus configs share no reward (``coop_gamma = 0``) on every scenario
+    PUBLISHED_REWARD_ALPHA: ClassVar[dict[str, float]] = {"catchup": 0.0, "slowdown": 0.0}
+    DEFAULT_REWARD_ALPHA: ClassVar[float] = 0.0
     consensus_eps: float = 0.001
     share_whole_critic: bool = False
 

@@ -10,6 +10,7 @@ code which averaged in place agent by agent. Payload: 32 bits per shared weight 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 from marl.common import (
     FLOAT_BITS,
@@ -32,6 +33,9 @@ class WACConfig(A2CConfig):
     """
 
     reward_scale: float = 1.0 / 800.0
+    #: the published consensus configs share no reward (``coop_gamma = 0``) on every scenario
+    PUBLISHED_REWARD_ALPHA: ClassVar[dict[str, float]] = {"catchup": 0.0, "slowdown": 0.0}
+    DEFAULT_REWARD_ALPHA: ClassVar[float] = 0.0
     share_whole_critic: bool = False
 
 

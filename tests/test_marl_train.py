@@ -78,7 +78,7 @@ def test_bdc_counts_bits(monkeypatch) -> None:
     assert tr.bits["consensus"] == pytest.approx(tr.updates * ternary_bits(n_shared))
     bucket = tr.config.qsgd_bucket  # type: ignore[attr-defined]
     per_update = sum(qsgd_bits(p[0].numel(), 1, bucket=bucket) for p in tr.net.critic_parameters())
-    assert tr.bits["qsgd"] == pytest.approx(tr.updates * per_update)
+    assert tr.bits["qsgd_local"] == pytest.approx(tr.updates * per_update)
 
 
 def test_consensus_pulls_critics_together(monkeypatch) -> None:
@@ -96,10 +96,15 @@ def test_ia2c_learns_catchup(tmp_path) -> None:
     (measured: about -1,490 over the first three batches, -680 over the last five), and the
     best greedy validation snapshot has no collision and beats the untrained policy (which
     collides) by more than 100."""
-    from marl.common import VALIDATION_SEEDS, evaluate_greedy
+    from benchmark.policy_eval import evaluate_policy, validation_evaluator
+    from envs.params import VALIDATION_SEEDS
+
+    def evaluate_greedy(net, scenario, n, seeds):
+        return evaluate_policy("ia2c", net, scenario, n, seeds, "greedy")
 
     a = algorithm("ia2c")
-    res = run_training(a, a.config_cls(), "catchup-v1", 8, 70_000, 0, tmp_path)
+    res = run_training(a, a.config_cls(selection_mode="greedy"), "catchup-v1", 8, 70_000, 0,
+                       tmp_path, evaluate=validation_evaluator("ia2c", "catchup-v1", 8))
     train = [r["train_reward"] for r in res.curve]
     assert sum(train[-5:]) / 5 > sum(train[:3]) / 3 + 500
     untrained = a.build_net(a.config_cls(), 8, False, torch.Generator().manual_seed(0))
@@ -117,9 +122,14 @@ def test_ia2c_learns_catchup(tmp_path) -> None:
 
 # ---------------------------------------------------------------- learner departures
 def test_published_reward_alpha_per_scenario() -> None:
-    """reward_alpha None resolves to the published configs' coop_gamma: IA2C family 1 on catchup
-    and 0 on slowdown, DIAL/CommNet 1 on both; an explicit value is kept."""
-    for name in ("ia2c", "fprint", "wac", "dcea", "bdc"):
+    """reward_alpha None resolves to the published configs' coop_gamma: IA2C and FPrint 1 on
+    catchup and 0 on slowdown, DIAL/CommNet 1 on both, the consensus family WAC/DCEA/BDC 0 on
+    both; an explicit value is kept."""
+    for name in ("wac", "dcea", "bdc"):
+        cfg = algorithm(name).config_cls()
+        for sc in ("catchup-v1", "slowdown-v1", "sine-v1"):
+            assert cfg.resolved(sc).reward_alpha == 0.0, (name, sc)
+    for name in ("ia2c", "fprint"):
         cfg = algorithm(name).config_cls()
         assert cfg.reward_alpha is None
         assert cfg.resolved("catchup-v1").reward_alpha == 1.0
@@ -153,6 +163,9 @@ def test_bad_learner_options() -> None:
         {"reward_alpha": 2.0},
         {"actor_lr": 0.0},
         {"lr_scale": -1.0},
+        {"selection_mode": "best"},
+        {"reward_w_power": 10.0},
+        {"power_baseline_kw": float("inf")},
     ):
         with pytest.raises(ConfigError):
             cls(**bad)
@@ -257,3 +270,96 @@ def test_diverged_weights_stop_training_with_a_clear_error(monkeypatch) -> None:
     monkeypatch.setattr(a, "after_step", poison)
     with pytest.raises(TrainingDivergedError, match="critic_lstm.weight_ih"):
         tr.run_batch()
+
+
+# ---------------------------------------------------------------- reward as configuration
+def test_reward_override_changes_training_reward_not_the_score() -> None:
+    """Training-reward weights and the power baseline change what the learner sees, never the
+    benchmark's score of the same weights."""
+    from benchmark.policy_eval import evaluate_policy
+    from envs.params import RewardWeights
+
+    a = algorithm("ia2c")
+    paper = Trainer(a, a.config_cls(), "catchup-v1", 3, 0)
+    shaped = Trainer(a, a.config_cls(reward_w_power=0.0, reward_w_gap=-2.0), "catchup-v1", 3, 0)
+    cruise = Trainer(a, a.config_cls(power_baseline_kw=None), "catchup-v1", 3, 0)
+    assert paper.env.weights == RewardWeights()
+    assert shaped.env.weights.power == 0.0 and shaped.env.weights.gap == -2.0
+    # P(15 m/s, 0) of the fitted polynomial, resolved and recorded in the config
+    assert cruise.config.power_baseline_kw == pytest.approx(4.5, abs=0.05)
+    _, r_paper = paper.run_batch()
+    _, r_shaped = shaped.run_batch()
+    _, r_cruise = cruise.run_batch()
+    # same seed, same weights at the start: the first batches differ only by the reward
+    assert r_shaped != pytest.approx(r_paper, rel=1e-3)
+    assert r_cruise > r_paper + 3 * 4.0  # at least 4 kW x 10 x 3 agents less cost per step
+    net = a.build_net(a.config_cls(), 3, False, torch.Generator().manual_seed(0))
+    seeds = [1, 2]
+    score = evaluate_policy("ia2c", net, "catchup-v1", 3, seeds, "greedy")
+    # the evaluator takes no config: the benchmark scores with the paper's weights whatever
+    # the learner was trained on; the env's default weights are the paper's
+    assert score == evaluate_policy("ia2c", net, "catchup-v1", 3, seeds, "greedy")
+    from envs.platoon import PlatoonEnv
+
+    assert PlatoonEnv("catchup-v1", 3).weights == RewardWeights()
+
+
+def test_selection_prefers_later_snapshot_on_tie_and_saves_final(tmp_path) -> None:
+    """With identical validation scores every evaluation replaces the kept snapshot (a tie goes
+    to the later one); the final weights are saved too, and the curve has both modes."""
+    import pandas as pd
+
+    from marl.checkpoint import load_checkpoint
+
+    a = algorithm("ia2c")
+    calls = []
+
+    def constant(net, mode):
+        calls.append(mode)
+        return {"reward": -500.0, "collisions": 0.0, "tracking_reward": -50.0}
+
+    cfg = a.config_cls(episodes_parallel=2, n_step=20, eval_every_steps=1000)
+    res = run_training(a, cfg, "catchup-v1", 3, 3000, 0, tmp_path, evaluate=constant)
+    kept = load_checkpoint(res.checkpoint)
+    final = load_checkpoint(res.final_checkpoint)
+    assert kept["steps"] == final["steps"] == res.steps
+    assert kept["curve_summary"]["selected_at_steps"] == res.steps
+    assert set(calls) == {"sampled", "greedy"}
+    curve = pd.read_csv(res.curve_csv)
+    assert {"eval_reward_sampled", "eval_reward_greedy", "eval_collisions_sampled",
+            "eval_collisions_greedy"} <= set(curve.columns)
+
+    scores = iter([-400.0, -450.0, -450.0, -450.0, -450.0, -450.0])
+
+    def falling(net, mode):
+        r = next(scores) if mode == "sampled" else -1.0
+        return {"reward": r, "collisions": 0.0, "tracking_reward": 0.0}
+
+    res2 = run_training(a, cfg, "catchup-v1", 3, 3000, 0, tmp_path / "b", evaluate=falling)
+    kept2 = load_checkpoint(res2.checkpoint)
+    first_eval = int(curve["steps"][curve["eval_reward_sampled"].notna()].iloc[0])
+    assert kept2["curve_summary"]["selected_at_steps"] == first_eval < res2.steps
+    assert kept2["curve_summary"]["selected_eval_reward_sampled"] == -400.0
+
+
+def test_run_training_needs_an_evaluator_to_select(tmp_path) -> None:
+    from envs.errors import ConfigError
+
+    a = algorithm("ia2c")
+    with pytest.raises(ConfigError, match="validation evaluator"):
+        run_training(a, a.config_cls(), "catchup-v1", 3, 100, 0, tmp_path)
+
+
+def test_qsgd_is_counted_as_local_not_sent(tmp_path) -> None:
+    """BDC's QSGD-compressed gradients are applied by the agent that computed them: their
+    payload is reported as local, and the bits sent are the consensus messages alone."""
+    a = algorithm("bdc")
+    res = run_training(a, a.config_cls(episodes_parallel=2, n_step=20), "catchup-v1", 3, 200, 0,
+                       None)
+    assert res.bits["local_qsgd_payload_bits_per_agent"] > 0
+    assert "training_qsgd_bits_per_agent" not in res.bits
+    tr = Trainer(a, a.config_cls(episodes_parallel=2, n_step=20), "catchup-v1", 3, 0)
+    tr.run_batch()
+    shared = tr.net.shared_critic_parameters()
+    per_round = ternary_bits(sum(p[0].numel() for p in shared))
+    assert tr.bits["consensus"] == pytest.approx(per_round * tr.updates)

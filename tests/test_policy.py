@@ -1,4 +1,5 @@
-"""MARL policies as controllers: checkpoint loading, greedy acting, V2V accounting, errors."""
+"""MARL policies as controllers: checkpoint loading, sampled and greedy acting, V2V accounting,
+errors."""
 
 from __future__ import annotations
 
@@ -11,7 +12,9 @@ from controllers.policy import PolicyController
 from envs.errors import ConfigError, UnknownNameError
 from envs.platoon import PlatoonEnv
 from marl.checkpoint import save_checkpoint
-from marl.common import ALGORITHM_NAMES, algorithm, evaluate_greedy
+from benchmark.policy_eval import evaluate_policy
+from benchmark.rollout import rollout
+from marl.common import ALGORITHM_NAMES, algorithm, sample_from_logits
 
 
 def _ckpt(tmp_path, algo="ia2c", n=4, scenario="catchup-v1"):
@@ -62,26 +65,52 @@ def test_policy_controller_acts_greedily_and_counts_bits(tmp_path, algo) -> None
 
 
 @pytest.mark.parametrize("algo", ["ia2c", "dial"])
-def test_controller_matches_training_evaluation(tmp_path, algo) -> None:
-    """Through lossless channels the controller takes exactly the actions of the trainer's
-    greedy evaluation (same float16-rounded weights)."""
+@pytest.mark.parametrize("mode", ["sampled", "greedy"])
+def test_training_validation_is_the_benchmark_loop(tmp_path, algo, mode) -> None:
+    """Training's validation (batched episodes) gives what the harness's one-episode rollouts of
+    the same controller give, episode by episode."""
     path, _ = _ckpt(tmp_path, algo)
-    ctrl = PolicyController(algo, checkpoint=str(path))
-    env = PlatoonEnv("catchup-v1", 4)
-    ctx = EpisodeContext(env.scenario, 4, np.array([2000, 2010]), env.params)
-    ctrl.reset(ctx)
-    obs = env.reset([2000, 2010])
-    rewards = []
-    while True:
-        res = env.step(ctrl.act(env.state, obs))
-        obs = res.observation
-        rewards.append(res.reward.sum(1))
-        if res.done.all():
-            break
-    got = float((np.sum(rewards, 0) / len(rewards)).mean())
-    want = evaluate_greedy(ctrl.net, "catchup-v1", 4, [2000, 2010])
-    if want["collisions"] == 0:
-        assert got == pytest.approx(want["reward"], rel=1e-6)
+    ctrl = PolicyController(algo, checkpoint=str(path), mode=mode)
+    from envs.scenarios import make_scenario
+
+    seeds = [2000, 2010, 2020]
+    trajs = [rollout(ctrl, make_scenario("catchup-v1"), 4, s) for s in seeds]
+    want = float(np.mean([t.reward.mean() for t in trajs]))
+    got = evaluate_policy(algo, ctrl.net, "catchup-v1", 4, seeds, mode)
+    assert got["reward"] == pytest.approx(want, rel=1e-9)
+    assert got["collisions"] == sum(t.collided for t in trajs)
+
+
+def test_sampled_mode_is_reproducible_and_differs_from_greedy(tmp_path) -> None:
+    """Sampled actions depend only on the episode seed and agent: a rerun, another batch
+    composition and another controller object give the same commands; greedy differs."""
+    path, _ = _ckpt(tmp_path, "ia2c")
+    u1, _, _ = _rollout(PolicyController("ia2c", checkpoint=str(path)), seeds=(2000, 2010))
+    u2, _, _ = _rollout(PolicyController("ia2c", checkpoint=str(path)), seeds=(2010, 2000, 2020))
+    np.testing.assert_array_equal(u1[:, 0], u2[:, 1])
+    np.testing.assert_array_equal(u1[:, 1], u2[:, 0])
+    ug, _, _ = _rollout(PolicyController("ia2c", checkpoint=str(path), mode="greedy"))
+    assert not np.array_equal(u1, ug)
+    ctrl = PolicyController("ia2c", checkpoint=str(path))
+    assert not ctrl.deterministic and ctrl.options == {"checkpoint": str(path)}
+    greedy = PolicyController("ia2c", mode="greedy")
+    assert greedy.deterministic and greedy.options == {"mode": "greedy"}
+    with pytest.raises(ConfigError, match="mode must be one of"):
+        PolicyController("ia2c", mode="argmax")
+
+
+def test_sample_from_logits_draws_the_policy() -> None:
+    """Inverse-CDF draws follow softmax(logits): 40,000 draws within 1 % of each probability,
+    and u just below / at a cumulative boundary picks the action on each side."""
+    logits = torch.log(torch.tensor([0.1, 0.2, 0.3, 0.4])).reshape(1, 1, 4).expand(1, 40_000, 4)
+    u = (np.arange(40_000) + 0.5).reshape(40_000, 1) / 40_000
+    rng = np.random.default_rng(0)
+    u = rng.permutation(u)
+    a = sample_from_logits(logits, u)
+    freq = np.bincount(a.ravel(), minlength=4) / a.size
+    np.testing.assert_allclose(freq, [0.1, 0.2, 0.3, 0.4], atol=0.01)
+    edge = sample_from_logits(logits[:, :2], np.array([[0.0999999], [0.3000001]]))
+    assert edge.ravel().tolist() == [0, 2]
 
 
 def test_missing_checkpoint_names_train_command(tmp_path) -> None:
@@ -144,7 +173,11 @@ def test_train_cmd_errors_and_tiny_run(tmp_path) -> None:
     stem = tmp_path / "ia2c__catchup-v1__n3__s0"
     assert stem.with_suffix(".pt").exists()
     lines = (tmp_path / "ia2c__catchup-v1__n3__s0.curve.csv").read_text().splitlines()
-    assert lines[0] == "episode,steps,train_reward,eval_reward" and len(lines) >= 2
+    assert lines[0] == (
+        "episode,steps,train_reward,eval_reward_sampled,eval_collisions_sampled,"
+        "eval_reward_greedy,eval_collisions_greedy"
+    ) and len(lines) >= 2
+    assert stem.with_suffix(".final.pt").exists()
     assert "bit/vehicle/s" in (tmp_path / "ia2c__catchup-v1__n3__s0.log").read_text()
 
 
@@ -164,9 +197,9 @@ def test_shipped_policies_on_the_evaluation_seeds(scenario) -> None:
         data = load_checkpoint(checkpoint_path(name, scenario, 8, 0), algo=name, n_vehicles=8)
         net = a.build_net(config_from_dict(a, data["config"]), 8, with_critic=False)
         net.load_state_dict(data["weights"])
-        trained = evaluate_greedy(net, scenario, 8, EVAL_SEEDS)
+        trained = evaluate_policy(name, net, scenario, 8, EVAL_SEEDS, "greedy")
         untrained_net = a.build_net(a.config_cls(), 8, False, torch.Generator().manual_seed(0))
-        untrained = evaluate_greedy(untrained_net, scenario, 8, EVAL_SEEDS)
+        untrained = evaluate_policy(name, untrained_net, scenario, 8, EVAL_SEEDS, "greedy")
         assert untrained["collisions"] >= 25, name
         assert trained["collisions"] < untrained["collisions"], name
         assert trained["reward"] > untrained["reward"] + 150, name

@@ -1,0 +1,58 @@
+"""Validation of MARL policies through the benchmark's own closed loop.
+
+Training selects its snapshots with :func:`validation_evaluator`: the weights being trained act
+through :class:`controllers.policy.PolicyController` in :func:`benchmark.rollout.rollout_batch`,
+so a validation score is exactly what ``cacc-bench run`` would report for those weights on those
+seeds (the episodes run batched; the same code, not a second loop).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import numpy as np
+
+from benchmark.rollout import rollout_batch
+from envs.params import VALIDATION_SEEDS
+from envs.scenarios import make_scenario
+
+
+def evaluate_policy(
+    algo: str,
+    net: Any,
+    scenario_id: str,
+    n_vehicles: int,
+    seeds: Sequence[int],
+    mode: str = "sampled",
+) -> dict[str, float]:
+    """Episodes of an in-memory policy network in the benchmark's closed loop.
+
+    Returns
+    -------
+    dict
+        ``reward`` and ``tracking_reward``: means over episodes of each episode's mean over steps
+        of the sum over agents (the ``runs.csv`` columns); ``collisions``: episodes that collided;
+        ``episodes``.
+    """
+    from controllers.policy import PolicyController
+
+    ctrl = PolicyController.from_net(algo, net, scenario_id, n_vehicles, mode)
+    trajs = rollout_batch(ctrl, make_scenario(scenario_id), n_vehicles, seeds)
+    return {
+        "reward": float(np.mean([t.reward.mean() for t in trajs])),
+        "tracking_reward": float(np.mean([t.tracking_reward.mean() for t in trajs])),
+        "collisions": float(sum(t.collided for t in trajs)),
+        "episodes": float(len(trajs)),
+    }
+
+
+def validation_evaluator(
+    algo: str, scenario_id: str, n_vehicles: int, seeds: Sequence[int] = VALIDATION_SEEDS
+) -> Callable[[Any, str], dict[str, float]]:
+    """The evaluator :func:`marl.common.run_training` takes: ``(net, mode) -> summary``."""
+
+    def evaluate(net: Any, mode: str) -> dict[str, float]:
+        return evaluate_policy(algo, net, scenario_id, n_vehicles, seeds, mode)
+
+    return evaluate

@@ -1,0 +1,255 @@
+"""``cacc-bench tune``: the same hyper-parameter budget for every MARL algorithm, by Optuna.
+
+For every algorithm x scenario one Optuna study (TPE, seeded) runs ``--trials`` trainings of
+``--steps`` environment steps each; a trial's score is that of the snapshot the run keeps (chosen
+on the validation seeds in the sampled mode, the benchmark's default):
+
+    score = validation reward - 10,000 x validation collisions
+
+so any collision-free config beats any colliding one (rewards differ by far less than 10,000),
+then the better mean reward wins. The 50 evaluation seeds are never touched. The first trial of
+every study is the algorithm's default config, so tuning never ends below it.
+
+Search space (the same for all seven; ``consensus_eps`` only where the algorithm has it):
+``lr_scale`` log-uniform in [1, 8]; ``entropy_coef_final`` log-uniform in [5e-4, 5e-2];
+``power_baseline`` in {paper (0 kW), cruise (P(v*, 0))}; ``advantage_norm`` in {off, on};
+``consensus_eps`` log-uniform in [1e-4, 1e-2] (DCEA, BDC).
+
+Trials 1..3 are random draws that every study shares (sampler seed ``seed + k``), then TPE
+proposes from the study's own results.
+
+Resumable: each study is an SQLite file under ``OUT/studies``; a rerun with the same options
+skips complete trials and redoes an interrupted one. Trial k of a study draws with sampler seed
+``seed + k``, so an interrupted and resumed study proposes what an uninterrupted one would.
+Studies run in parallel on the harness executors (``--executor process --workers K``); trials
+within a study run in order. Writes ``OUT/trials.csv`` (every trial) and
+``OUT/tuned_configs.json`` (the best config per algorithm and scenario, with its score, the
+budget and the command; ``marl/tuned_configs.json`` is the shipped copy that ``cacc-bench train
+--tuned`` reads).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import shlex
+import sys
+from pathlib import Path
+from typing import Any
+
+from envs.errors import ConfigError, UnknownNameError
+
+#: Weight of one colliding validation episode in a trial's score.
+COLLISION_PENALTY = 10_000.0
+#: Trials drawn at random (after the default) before TPE models the results; with sampler seed
+#: ``seed + k`` every study draws the same random configs, so the algorithms start equal.
+STARTUP_TRIALS = 4
+#: Algorithms with a consensus step size.
+EPS_ALGOS = ("dcea", "bdc")
+
+
+def search_space(trial: Any, algo: str) -> dict[str, Any]:
+    """Config overrides of one trial (the same ranges for every algorithm)."""
+    opts: dict[str, Any] = {
+        "lr_scale": trial.suggest_float("lr_scale", 1.0, 8.0, log=True),
+        "entropy_coef_final": trial.suggest_float("entropy_coef_final", 5e-4, 5e-2, log=True),
+        "power_baseline_kw": {"paper": 0.0, "cruise": None}[
+            trial.suggest_categorical("power_baseline", ["paper", "cruise"])
+        ],
+        "advantage_norm": trial.suggest_categorical("advantage_norm", [False, True]),
+    }
+    if algo in EPS_ALGOS:
+        opts["consensus_eps"] = trial.suggest_float("consensus_eps", 1e-4, 1e-2, log=True)
+    return opts
+
+
+def default_params(algo: str) -> dict[str, Any]:
+    """The search-space point of the algorithm's default config (every study's first trial)."""
+    from marl.common import algorithm
+
+    cfg = algorithm(algo).config_cls()
+    params: dict[str, Any] = {
+        "lr_scale": cfg.lr_scale,
+        "entropy_coef_final": cfg.entropy_coef_final,
+        "power_baseline": "paper" if cfg.power_baseline_kw == 0.0 else "cruise",
+        "advantage_norm": cfg.advantage_norm,
+    }
+    if algo in EPS_ALGOS:
+        params["consensus_eps"] = cfg.consensus_eps  # type: ignore[attr-defined]
+    return params
+
+
+def trial_score(summary: dict[str, float]) -> float:
+    """Score of a run from its kept snapshot's sampled validation numbers."""
+    return summary["selected_eval_reward_sampled"] - COLLISION_PENALTY * summary[
+        "selected_eval_collisions_sampled"
+    ]
+
+
+def _parser() -> argparse.ArgumentParser:
+    from marl.common import ALGORITHM_NAMES
+
+    p = argparse.ArgumentParser(
+        prog="cacc-bench tune",
+        description="Tune every MARL algorithm with the same budget (Optuna, validation seeds).",
+    )
+    p.add_argument("--algos", default=",".join(ALGORITHM_NAMES),
+                   help="comma list of algorithms (default: all seven)")
+    p.add_argument("--scenarios", default="catchup-v1,slowdown-v1",
+                   help="comma list of scenarios (default catchup-v1,slowdown-v1)")
+    p.add_argument("--vehicles", type=int, default=8, help="followers N (default 8)")
+    p.add_argument("--trials", type=int, default=8, help="trials per study (default 8)")
+    p.add_argument("--steps", type=int, default=200_000,
+                   help="environment steps per trial (default 2e5)")
+    p.add_argument("--seed", type=int, default=0,
+                   help="sampler seed and training seed of the trials (default 0)")
+    p.add_argument("--out", default="results/tune", help="output folder (default results/tune)")
+    p.add_argument("--executor", choices=("serial", "process", "ray"), default="serial",
+                   help="how studies run side by side (default serial)")
+    p.add_argument("--workers", type=int, default=2, help="processes or Ray CPUs (default 2)")
+    p.add_argument("--ray-address", default=None, help="attach to this Ray cluster")
+    return p
+
+
+def _study_job(job: dict) -> list[dict]:
+    """Run a study's missing trials (top level, so process and Ray executors can run it)."""
+    import optuna
+    import torch
+
+    from benchmark.policy_eval import validation_evaluator
+    from controllers.registry import build_config
+    from marl.checkpoint import load_checkpoint
+    from marl.common import algorithm, run_training
+
+    torch.set_num_threads(1)
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    algo_name, scenario, n = job["algo"], job["scenario"], job["vehicles"]
+    name = f"{algo_name}__{scenario}__n{n}"
+    out = Path(job["out"])
+    (out / "studies").mkdir(parents=True, exist_ok=True)
+    storage = f"sqlite:///{(out / 'studies' / name).with_suffix('.sqlite3')}"
+    study = optuna.create_study(study_name=name, storage=storage, direction="maximize",
+                                load_if_exists=True)
+    meta = {"steps": job["steps"], "seed": job["seed"], "vehicles": n}
+    if study.user_attrs.get("budget", meta) != meta:
+        raise ConfigError(
+            f"study {name} in {out} was run with {study.user_attrs['budget']}, not {meta}; "
+            "use another --out or the same options"
+        )
+    study.set_user_attr("budget", meta)
+    for t in study.get_trials(deepcopy=False):
+        if t.state == optuna.trial.TrialState.RUNNING:  # interrupted: discard, redo
+            study._storage.set_trial_state_values(t._trial_id, optuna.trial.TrialState.FAIL)
+    algo = algorithm(algo_name)
+
+    def complete() -> list[Any]:
+        return study.get_trials(states=(optuna.trial.TrialState.COMPLETE,))
+
+    while len(complete()) < job["trials"]:
+        k = len(complete())
+        study.sampler = optuna.samplers.TPESampler(seed=job["seed"] + k, n_startup_trials=STARTUP_TRIALS)
+        if k == 0 and not study.get_trials(states=(optuna.trial.TrialState.WAITING,)):
+            study.enqueue_trial(default_params(algo_name))
+        trial = study.ask()
+        options = search_space(trial, algo_name)
+        config = build_config(algo.config_cls, options, f"{algo_name} (tune)")
+        run_dir = out / "trials" / name / f"t{k:03d}"
+        result = run_training(algo, config, scenario, n, job["steps"], job["seed"], run_dir,
+                              evaluate=validation_evaluator(algo_name, scenario, n))
+        assert result.checkpoint is not None
+        summary = load_checkpoint(result.checkpoint)["curve_summary"]
+        trial.set_user_attr("options", {k2: v for k2, v in options.items()})
+        for key in ("selected_eval_reward_sampled", "selected_eval_collisions_sampled",
+                    "selected_eval_reward_greedy", "selected_eval_collisions_greedy",
+                    "selected_at_steps"):
+            trial.set_user_attr(key, summary[key])
+        study.tell(trial, trial_score(summary))
+    return [
+        {"algo": algo_name, "scenario": scenario, "vehicles": n, "trial": t.number,
+         "score": t.value, **t.params, **{f"config.{k}": v for k, v in t.user_attrs["options"].items()},
+         **{k: v for k, v in t.user_attrs.items() if k != "options"}}
+        for t in complete()[: job["trials"]]
+    ]
+
+
+def main(argv: list[str]) -> int:
+    """Entry point: ``cacc-bench tune [--algos ...] [--trials 8] [--steps 200000]``."""
+    import pandas as pd
+
+    from benchmark.executors import map_jobs
+    from benchmark.progress import Progress
+    from envs.scenarios import check_vehicles, make_scenario
+    from marl.common import ALGORITHM_NAMES
+
+    args = _parser().parse_args(argv)
+    algos = [a.strip() for a in args.algos.split(",") if a.strip()]
+    scenarios = [s.strip() for s in args.scenarios.split(",") if s.strip()]
+    for a in algos:
+        if a not in ALGORITHM_NAMES:
+            raise UnknownNameError("algorithm", a, ALGORITHM_NAMES)
+    for s in scenarios:
+        make_scenario(s)
+    if not algos or not scenarios:
+        raise ConfigError("--algos and --scenarios must name at least one each")
+    check_vehicles(args.vehicles)
+    if args.trials < 1 or args.steps < 1 or args.seed < 0:
+        raise ConfigError("--trials and --steps must be >= 1 and --seed >= 0")
+    try:
+        import optuna  # noqa: F401
+    except ImportError:
+        raise ConfigError("cacc-bench tune needs Optuna (a dependency): reinstall with `pip install -e .`") from None
+    out = Path(args.out)
+    jobs = [
+        {"algo": a, "scenario": s, "vehicles": args.vehicles, "trials": args.trials,
+         "steps": args.steps, "seed": args.seed, "out": str(out)}
+        for a in algos for s in scenarios
+    ]
+    progress = Progress(len(jobs), "studies")
+    rows: list[dict] = []
+    for res in map_jobs(_study_job, jobs, args.executor, args.workers, args.ray_address):
+        rows.extend(res)
+        progress.advance(note=f"{res[0]['algo']} {res[0]['scenario']}" if res else "")
+    progress.close()
+    table = pd.DataFrame(rows).sort_values(["algo", "scenario", "trial"])
+    table.to_csv(out / "trials.csv", index=False)
+    command = "cacc-bench tune " + " ".join(shlex.quote(a) for a in argv)
+    best = tuned_configs(table, args, command)
+    (out / "tuned_configs.json").write_text(json.dumps(best, indent=1, sort_keys=True) + "\n")
+    for key, entry in sorted(best["configs"].items()):
+        print(f"{key}: score {entry['score']:.1f} (trial {entry['trial']}) "
+              f"{json.dumps(entry['config'], sort_keys=True)}")
+    print(f"trials: {out / 'trials.csv'}; best configs: {out / 'tuned_configs.json'}",
+          file=sys.stderr)
+    return 0
+
+
+def tuned_configs(table: Any, args: argparse.Namespace, command: str) -> dict[str, Any]:
+    """The best trial per algorithm and scenario (ties: the earlier trial) as shippable data."""
+    configs: dict[str, Any] = {}
+    for (algo, scenario), grp in table.groupby(["algo", "scenario"], sort=True):
+        best = grp.sort_values(["score", "trial"], ascending=[False, True]).iloc[0]
+        config = {
+            c.split(".", 1)[1]: (None if isinstance(v, float) and math.isnan(v) else v)
+            for c, v in best.items() if c.startswith("config.")
+        }
+        config = {k: v for k, v in config.items() if not (k == "consensus_eps" and v is None)}
+        configs[f"{algo}/{scenario}"] = {
+            "config": {k: _plain(v) for k, v in config.items()},
+            "score": float(best["score"]),
+            "trial": int(best["trial"]),
+            "validation_reward_sampled": float(best["selected_eval_reward_sampled"]),
+            "validation_collisions_sampled": float(best["selected_eval_collisions_sampled"]),
+        }
+    return {
+        "budget": {"trials": args.trials, "steps_per_trial": args.steps, "seed": args.seed,
+                   "vehicles": args.vehicles},
+        "command": command,
+        "configs": configs,
+    }
+
+
+def _plain(value: Any) -> Any:
+    """A numpy scalar as the Python value (JSON), anything else unchanged."""
+    item = getattr(value, "item", None)
+    return item() if callable(item) else value

@@ -1,0 +1,140 @@
+"""``duty``: a fixed schedule of the MARL action set, the reference a learned policy must beat.
+
+Every follower takes OVM action 3 (alpha, beta) = (0.5, 0.5) at every k-th step (steps 0, k,
+2k, ...) and action 2 (0, 0.5) otherwise: the spacing term acts one step in k, the speed
+matching term always. ``k = 1`` is ``ovm``. Without ``k`` the controller uses the best k in
+1..``k_max`` on the validation seeds (fewest collisions, then the best mean reward; a tie goes
+to the smaller k), chosen for the run's scenario, N and physics and recorded in
+:attr:`DutyController.chosen_k`. It shows what a trivial, open-loop-in-time use of the same four
+actions achieves.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from controllers.base import Controller, EpisodeContext
+from controllers.registry import build_config
+from envs.dynamics import action_to_command_mps2
+from envs.errors import ConfigError
+from envs.params import VALIDATION_SEEDS, PlatoonParams
+from envs.platoon import PlatoonEnv, PlatoonState
+from envs.scenarios import Scenario, make_scenario
+
+
+@dataclass(frozen=True)
+class DutyConfig:
+    """Options of ``duty``.
+
+    Attributes
+    ----------
+    k : int or None
+        Period of action 3 in steps (1 = ``ovm``). None (default): the best k on the
+        validation seeds for the run's scenario, N and physics.
+    k_max : int
+        Largest period searched when ``k`` is None.
+    """
+
+    k: int | None = None
+    k_max: int = 20
+
+    def __post_init__(self) -> None:
+        if self.k is not None and self.k < 1:
+            raise ConfigError(f"duty: k must be >= 1, got {self.k}")
+        if self.k_max < 1:
+            raise ConfigError(f"duty: k_max must be >= 1, got {self.k_max}")
+
+
+def duty_actions(step: int, k: int, shape: tuple[int, ...]) -> np.ndarray:
+    """Actions of every follower at ``step``: 3 when ``step % k == 0``, else 2."""
+    return np.full(shape, 3 if step % k == 0 else 2, dtype=np.int64)
+
+
+_SCORES: dict[tuple, tuple[tuple[int, int, float], ...]] = {}
+
+
+def duty_scores(
+    scenario: Scenario | str, n_vehicles: int, k_max: int, params: PlatoonParams = PlatoonParams()
+) -> tuple[tuple[int, int, float], ...]:
+    """``(k, collisions, mean reward)`` of every k in 1..k_max on the validation seeds.
+
+    The reward is the benchmark's: per episode the mean over its steps of the sum over agents
+    (evaluation form, a collision ends the episode), then the mean over the 32 episodes. All
+    k run as one batch of ``k_max x 32`` episodes; results are cached per process.
+    """
+    sc = make_scenario(scenario) if isinstance(scenario, str) else scenario
+    key = (sc.id, repr(sorted(sc.options.items())), n_vehicles, k_max, params)
+    if key not in _SCORES:
+        _SCORES[key] = _duty_scores(sc, n_vehicles, k_max, params)
+    return _SCORES[key]
+
+
+def _duty_scores(
+    scenario: Scenario, n_vehicles: int, k_max: int, params: PlatoonParams
+) -> tuple[tuple[int, int, float], ...]:
+    seeds = np.array(VALIDATION_SEEDS)
+    ks = np.repeat(np.arange(1, k_max + 1), len(seeds))
+    env = PlatoonEnv(scenario, n_vehicles, params, observe=False)
+    env.reset(np.tile(seeds, k_max))
+    total = np.zeros(len(ks))
+    length = np.zeros(len(ks))
+    step = 0
+    while True:
+        s = env.state
+        assert s is not None
+        running = ~s.done
+        actions = np.where((step % ks == 0)[:, None], 3, 2) * np.ones((1, n_vehicles), np.int64)
+        res = env.step_actions(actions)
+        total += np.where(running, res.reward.sum(axis=1), 0.0)
+        length += running
+        step += 1
+        if res.done.all():
+            break
+    collided = env.state.collided  # type: ignore[union-attr]
+    out = []
+    for k in range(1, k_max + 1):
+        sel = ks == k
+        out.append((k, int(collided[sel].sum()), float((total[sel] / length[sel]).mean())))
+    return tuple(out)
+
+
+def best_k(
+    scenario: Scenario | str,
+    n_vehicles: int,
+    k_max: int = 20,
+    params: PlatoonParams = PlatoonParams(),
+) -> int:
+    """The k of :func:`duty_scores` with the fewest collisions, then the best reward."""
+    scores = duty_scores(scenario, n_vehicles, k_max, params)
+    return min(scores, key=lambda r: (r[1], -r[2], r[0]))[0]
+
+
+class DutyController(Controller):
+    """OVM action 3 every k-th step, action 2 otherwise, for every follower."""
+
+    name = "duty"
+    family = "human"
+    deterministic = True
+    v2v = "none"
+
+    def __init__(self, **options: object) -> None:
+        super().__init__()
+        self.config: DutyConfig = build_config(DutyConfig, options, "duty")
+        self.options = dict(options)
+        self.chosen_k: int | None = self.config.k
+
+    def reset(self, ctx: EpisodeContext) -> None:
+        self.params = ctx.params
+        if self.config.k is None:
+            self.chosen_k = best_k(ctx.scenario, ctx.n_vehicles, self.config.k_max, ctx.params)
+        self.t = 0
+
+    def act(self, state: PlatoonState, observation: np.ndarray | None) -> np.ndarray:
+        assert self.chosen_k is not None
+        actions = duty_actions(self.t, self.chosen_k, state.gap_m.shape)
+        self.t += 1
+        return action_to_command_mps2(
+            actions, state.gap_m, state.speed_mps, state.pred_speed_mps, self.params
+        )
