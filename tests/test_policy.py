@@ -7,13 +7,13 @@ import numpy as np
 import pytest
 import torch
 
+from benchmark.policy_eval import evaluate_policy
+from benchmark.rollout import rollout
 from controllers.base import EpisodeContext
 from controllers.policy import PolicyController
 from envs.errors import ConfigError, UnknownNameError
 from envs.platoon import PlatoonEnv
 from marl.checkpoint import save_checkpoint
-from benchmark.policy_eval import evaluate_policy
-from benchmark.rollout import rollout
 from marl.common import ALGORITHM_NAMES, algorithm, sample_from_logits
 
 
