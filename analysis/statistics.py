@@ -44,3 +44,56 @@ def bootstrap_ci(
     alpha = (1.0 - confidence) / 2.0
     lo, hi = np.quantile(means, [alpha, 1.0 - alpha])
     return mean, float(lo), float(hi)
+
+
+def hierarchical_bootstrap_ci(
+    groups: list[np.ndarray] | list[list[float]],
+    confidence: float = 0.95,
+    n_resamples: int = 2000,
+    seed: int = 0,
+) -> tuple[float, float, float]:
+    """Mean and two-stage percentile-bootstrap interval over groups of episodes (training seeds).
+
+    Each resample draws as many groups as there are, with replacement, then within every drawn
+    group as many of its episodes, with replacement, and takes the mean of all drawn episodes.
+    The interval so covers the variation between training seeds as well as between episodes
+    (a plain bootstrap over the pooled episodes treats the seeds as fixed).
+
+    Parameters
+    ----------
+    groups : list of 1-D arrays
+        One array of per-episode values per group; NaNs are dropped, empty groups left out.
+
+    Returns
+    -------
+    mean, low, high : float
+        ``mean`` is the mean over all episodes; NaN if there is none.
+    """
+    arrays = [np.asarray(g, dtype=np.float64) for g in groups]
+    arrays = [a[np.isfinite(a)] for a in arrays]
+    arrays = [a for a in arrays if a.size]
+    if not arrays:
+        return math.nan, math.nan, math.nan
+    allv = np.concatenate(arrays)
+    mean = float(allv.mean())
+    if len(arrays) == 1:
+        return bootstrap_ci(arrays[0], confidence, n_resamples, seed)
+    rng = np.random.Generator(np.random.PCG64(seed))
+    g = len(arrays)
+    sums = np.zeros(n_resamples)
+    counts = np.zeros(n_resamples)
+    picks = rng.integers(0, g, size=(n_resamples, g))
+    for j in range(g):
+        for k in range(g):
+            sel = picks[:, j] == k
+            m = int(sel.sum())
+            if not m:
+                continue
+            a = arrays[k]
+            idx = rng.integers(0, a.size, size=(m, a.size))
+            sums[sel] += a[idx].sum(axis=1)
+            counts[sel] += a.size
+    means = sums / counts
+    alpha = (1.0 - confidence) / 2.0
+    lo, hi = np.quantile(means, [alpha, 1.0 - alpha])
+    return mean, float(lo), float(hi)

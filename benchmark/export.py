@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from analysis.statistics import bootstrap_ci
+from analysis.statistics import bootstrap_ci, hierarchical_bootstrap_ci
 from benchmark.rollout import Trajectory
 from benchmark.suite import KEY_COLUMNS
 
@@ -53,18 +53,60 @@ def runs_frame(records: list[dict[str, Any]]) -> Any:
     return df
 
 
-def leaderboard_frame(runs: Any) -> Any:
+def pool_training_seeds(runs: Any) -> Any:
+    """Runs of one policy trained with several seeds under one label.
+
+    Rows of the ``marl`` family whose options differ only by ``seed`` (the training seed; 0 when
+    absent) get the label ``NAME[...,seeds=0+1+2]`` when more than one seed is present, and the
+    column ``train_seed``; other rows are unchanged (``train_seed`` empty).
+    """
+    import json
+
+    from controllers.registry import controller_label
+
+    runs = runs.copy()
+    runs["train_seed"] = np.nan
+    if len(runs) == 0:
+        return runs
+    base_labels: dict[int, str] = {}
+    seeds_of: dict[str, set[int]] = {}
+    parts: dict[int, tuple[str, dict[str, Any]]] = {}
+    for i, r in runs.iterrows():
+        if r["family"] != "marl":
+            continue
+        opts = json.loads(r["options"] or "{}")
+        seed = int(opts.pop("seed", 0))
+        base = controller_label(r["controller_name"], opts)
+        base_labels[i] = base
+        parts[i] = (r["controller_name"], opts)
+        seeds_of.setdefault(base, set()).add(seed)
+        runs.at[i, "train_seed"] = seed
+    for i, base in base_labels.items():
+        seeds = sorted(seeds_of[base])
+        if len(seeds) > 1:
+            name, opts = parts[i]
+            runs.at[i, "controller"] = controller_label(
+                name, {**opts, "seeds": "+".join(str(s) for s in seeds)}
+            )
+    return runs
+
+
+def leaderboard_frame(runs: Any, pool_seeds: bool = False) -> Any:
     """leaderboard.csv: one row per controller x scenario x vehicles (x V2V and lag settings).
 
     Means with 95 % seeded bootstrap intervals over the episodes that finished (status ok);
     ``rank`` within each scenario x vehicles x settings: controllers with no collision and no
-    failure first, then by mean reward (higher is better).
+    failure first, then by mean reward (higher is better). With ``pool_seeds`` the runs of one
+    MARL policy trained with several seeds form one row (:func:`pool_training_seeds`) whose
+    interval is a two-stage bootstrap over training seeds, then episodes
+    (:func:`analysis.statistics.hierarchical_bootstrap_ci`); ``n_train_seeds`` says how many.
     """
     import pandas as pd
 
     out = []
     if len(runs) == 0:
         return pd.DataFrame(columns=["rank", *GROUP_COLUMNS])
+    runs = pool_training_seeds(runs) if pool_seeds else runs.assign(train_seed=np.nan)
     for key, grp in runs.groupby(list(GROUP_COLUMNS), sort=True, dropna=False):
         ok = grp[grp["status"] == "ok"]
         row: dict[str, Any] = dict(zip(GROUP_COLUMNS, key, strict=True))
@@ -76,9 +118,15 @@ def leaderboard_frame(runs: Any) -> Any:
         row["failed"] = int((grp["status"] != "ok").sum())
         row["solver_failures"] = int(ok["solver_failures"].fillna(0).sum())
         row["string_stable_frac"] = float(ok["string_stable"].astype(float).mean()) if len(ok) else math.nan
+        train_seeds = sorted(set(ok["train_seed"].dropna().astype(int)))
+        row["n_train_seeds"] = len(train_seeds) if train_seeds else None
         for metric in LEADERBOARD_METRICS:
             vals = pd.to_numeric(ok[metric], errors="coerce").to_numpy(dtype=float)
-            mean, lo, hi = bootstrap_ci(vals, seed=BOOTSTRAP_SEED)
+            if len(train_seeds) > 1:
+                groups = [vals[(ok["train_seed"] == s).to_numpy()] for s in train_seeds]
+                mean, lo, hi = hierarchical_bootstrap_ci(groups, seed=BOOTSTRAP_SEED)
+            else:
+                mean, lo, hi = bootstrap_ci(vals, seed=BOOTSTRAP_SEED)
             row[f"{metric}_mean"] = mean
             row[f"{metric}_ci_low"] = lo
             row[f"{metric}_ci_high"] = hi
@@ -96,10 +144,12 @@ def leaderboard_frame(runs: Any) -> Any:
     return lb[first + [c for c in lb.columns if c not in first]].reset_index(drop=True)
 
 
-def write_csvs(folder: Path, records: list[dict[str, Any]]) -> tuple[Path, Path, Any]:
+def write_csvs(
+    folder: Path, records: list[dict[str, Any]], pool_seeds: bool = False
+) -> tuple[Path, Path, Any]:
     """Write runs.csv and leaderboard.csv into ``folder``; returns the paths and the leaderboard."""
     runs = runs_frame(records)
-    lb = leaderboard_frame(runs)
+    lb = leaderboard_frame(runs, pool_seeds)
     runs_path = folder / "runs.csv"
     lb_path = folder / "leaderboard.csv"
     _atomic_csv(runs, runs_path)

@@ -16,11 +16,14 @@ def main(argv: list[str]) -> int:
     p = argparse.ArgumentParser(prog="cacc-bench leaderboard", description=__doc__)
     p.add_argument("results_dir", nargs="+", help="results folder(s) written by `cacc-bench run`")
     p.add_argument("--quiet", action="store_true", help="do not print the table")
+    p.add_argument("--pool-seeds", action="store_true",
+                   help="one row per MARL policy over its training seeds (bdc:seed=0, "
+                        "bdc:seed=1, ...): a two-stage bootstrap over seeds, then episodes")
     args = p.parse_args(argv)
     for folder in args.results_dir:
         with ResultStore(Path(folder), create=False) as store:
             records = store.records()
-        runs_path, lb_path, lb = write_csvs(Path(folder), records)
+        runs_path, lb_path, lb = write_csvs(Path(folder), records, args.pool_seeds)
         if not args.quiet:
             print(format_leaderboard(lb))
         print(f"wrote {runs_path} ({len(records)} runs) and {lb_path}")

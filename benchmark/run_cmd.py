@@ -72,6 +72,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--ray-address", default=None,
                    help="attach to this Ray cluster (default: RAY_ADDRESS, else a local instance)")
     p.add_argument("--quiet", action="store_true", help="do not print the leaderboard")
+    p.add_argument("--pool-seeds", action="store_true",
+                   help="one leaderboard row per MARL policy over its training seeds "
+                        "(--controllers bdc:seed=0,bdc:seed=1,bdc:seed=2): a two-stage bootstrap "
+                        "over training seeds, then episodes")
     return p
 
 
@@ -133,7 +137,8 @@ def main(argv: list[str]) -> int:
     _preflight(controllers, scenarios, args.vehicles)
     return execute_sweep(keys, Path(args.out), resume=args.resume, trajectories=args.trajectories,
                          executor=args.executor, workers=args.workers,
-                         ray_address=args.ray_address, quiet=args.quiet, first_seed=seeds[0])
+                         ray_address=args.ray_address, quiet=args.quiet, first_seed=seeds[0],
+                         pool_seeds=args.pool_seeds)
 
 
 def execute_sweep(
@@ -147,6 +152,7 @@ def execute_sweep(
     ray_address: str | None = None,
     quiet: bool = False,
     first_seed: int | None = None,
+    pool_seeds: bool = False,
 ) -> int:
     """Run the keys not yet stored in ``out``, store each as it finishes, write the CSVs."""
     from benchmark.export import trajectory_arrays, write_csvs, write_trajectory_csv
@@ -186,7 +192,7 @@ def execute_sweep(
         records = store.records()
     finally:
         store.close()
-    runs_path, lb_path, lb = write_csvs(out, records)
+    runs_path, lb_path, lb = write_csvs(out, records, pool_seeds)
     if not quiet:
         print(format_leaderboard(lb))
     print(f"wrote {runs_path} ({len(records)} runs) and {lb_path}")
@@ -227,7 +233,8 @@ def format_leaderboard(lb: Any) -> str:
         "\nreward = mean over steps of the sum over agents (higher is better); rank: runs without"
         " collision or failure first, then by reward. Deterministic controllers vary only through"
         " the scenario's perturbation, so their intervals are episode variation, not training"
-        " variance; stochastic ones are marked *."
+        " variance; stochastic ones (sampled MARL policies) are marked *. A row over several"
+        " training seeds (seeds=0+1+2) has a two-stage bootstrap interval: seeds, then episodes."
     )
     scen = set(lb["scenario"])
     if "openacc-m-v1" in scen:
