@@ -12,7 +12,18 @@ Each agent has a separate actor and critic (as WAC/DCEA). After every update:
    diverged and the critic became NaN, see :class:`marl.quantize.ErrorFeedbackQSGD`).
    Payload per bucket and update: one 32-bit norm plus ``log2(2s+1)`` bits per entry.
 
-Both payloads are counted per agent in ``trainer.bits`` and logged.
+Both payloads are tallied per agent in ``trainer.bits`` and logged; only the first is sent.
+
+Messages (each received by the front and rear neighbours; counted in bits per agent):
+
+- execution, every step: the 5-float vehicle block (160 bits);
+- training, every step: the same plus the action index (2 bits) for the neighbours' critics;
+  after every update: the sign pattern of the critic-LSTM weights (33,024 ternary symbols,
+  log2 3 bits each);
+- **not a message**: the QSGD-compressed critic gradients. In the paper's Algorithm 1 each
+  agent quantises its own gradient and applies it to its own weights; no agent receives it.
+  Their payload is reported as ``local_qsgd_payload_bits_per_agent`` (what a sender would need
+  if a parameter server or the neighbours received them) and counted as no communication.
 """
 
 from __future__ import annotations

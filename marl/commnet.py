@@ -4,6 +4,13 @@ Every agent sends its previous LSTM hidden state (64 floats). The receiver avera
 states of the neighbours it has (front and rear; one at the ends of the chain), maps the mean
 with a linear layer and adds it to its encoded observation before the LSTM. Gradients flow
 through the communicated states (within a segment). Reward scale 1/5000, global reward (alpha 1).
+
+Messages (each received by the front and rear neighbours; counted in bits per agent):
+
+- execution, every step: the 5-float vehicle block and the 64-float hidden state (2,208 bits);
+- training, every step: the same, the action index (2 bits) for the neighbours' critics, and
+  back to each neighbour the gradient of its own loss with respect to that neighbour's state
+  (64 floats each, 4,096 bits).
 """
 
 from __future__ import annotations

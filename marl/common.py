@@ -489,6 +489,23 @@ def execution_bits_per_agent_step(net: AgentNet) -> int:
     return (BLOCK_FLOATS + net.msg_width) * FLOAT_BITS
 
 
+#: Bits of one action index (4 actions) sent to the neighbours for their critics in training.
+ACTION_BITS = 2
+
+
+def training_step_bits_per_agent(net: AgentNet) -> int:
+    """Bits one agent sends per environment step **in training**, beyond the consensus rounds.
+
+    Received by its front and rear neighbours: everything it sends at execution
+    (:func:`execution_bits_per_agent_step`), its action index for their critics (2 bits, one
+    broadcast), and, where gradients flow through messages (DIAL, CommNet), the gradient of its
+    own loss with respect to each neighbour's message (``msg_width`` floats to each of the two,
+    one at the ends of the chain: counted as two).
+    """
+    grad = 2 * net.msg_width * FLOAT_BITS if net.differentiable_messages else 0
+    return execution_bits_per_agent_step(net) + ACTION_BITS + grad
+
+
 def exchange(net: AgentNet, state: State) -> tuple[torch.Tensor | None, torch.Tensor | None]:
     """Training-time message passing (instant, lossless): front and rear neighbours' messages."""
     msg = net.message(state)
@@ -952,7 +969,9 @@ def run_training(
             f"done: {trainer.steps} steps in {result.wall_s:.0f} s "
             f"({result.env_steps_per_s:.0f} env steps/s training), execution "
             f"{result.bits['execution_bits_per_vehicle_per_s']:.0f} bit/vehicle/s, training bits "
-            f"sent per agent: consensus {result.bits['training_consensus_bits_per_agent']:.0f} "
+            f"sent per agent: {result.bits['training_step_bits_per_agent_step']:.0f} per step "
+            f"(blocks, messages, action for the critics, message gradients) and consensus "
+            f"{result.bits['training_consensus_bits_per_agent']:.0f} in all "
             f"(QSGD applied locally: {result.bits['local_qsgd_payload_bits_per_agent']:.0f} "
             f"bits of payload, not sent); checkpoint {result.checkpoint}"
         )
@@ -987,6 +1006,7 @@ def _finish(
     result.bits = {
         "execution_bits_per_agent_step": float(exec_bits),
         "execution_bits_per_vehicle_per_s": exec_bits / trainer.env.params.dt_s,
+        "training_step_bits_per_agent_step": float(training_step_bits_per_agent(trainer.net)),
         "training_consensus_bits_per_agent": trainer.bits["consensus"],
         "local_qsgd_payload_bits_per_agent": trainer.bits["qsgd_local"],
         "updates": float(trainer.updates),

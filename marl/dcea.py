@@ -4,6 +4,12 @@ As WAC (separate actor and critic per agent), but after every update each agent 
 LSTM weights towards its neighbours': ``w_i <- w_i + eps sum_j (w_j - w_i)``, eps = 0.001, over
 front and rear neighbours, synchronously (:func:`marl.consensus.dcea`). Payload: 32 bits per
 shared weight per round.
+
+Messages (each received by the front and rear neighbours; counted in bits per agent):
+
+- execution, every step: the 5-float vehicle block (160 bits);
+- training, every step: the same plus the action index (2 bits) for the neighbours' critics;
+  after every update: the critic-LSTM weights (33,024 floats, 32 bits each).
 """
 
 from __future__ import annotations

@@ -6,6 +6,13 @@ Every agent encodes its previous LSTM hidden state into a message ``m_i = tanh(W
 the LSTM. During training the messages are re-derived from the recomputed hidden states, so the
 gradients of the receiver's loss flow into the sender's network (within an n-step segment).
 Rewards are scaled by 1/5000 and shared globally (alpha = 1), as the published DIAL/CommNet family.
+
+Messages (each received by the front and rear neighbours; counted in bits per agent):
+
+- execution, every step: the 5-float vehicle block and the 64-float message (2,208 bits);
+- training, every step: the same, the action index (2 bits) for the neighbours' critics, and
+  back to each neighbour the gradient of its own loss with respect to that neighbour's message
+  (64 floats each, 4,096 bits).
 """
 
 from __future__ import annotations

@@ -4,6 +4,11 @@ Every agent broadcasts its policy vector of the previous step (4 floats) next to
 block. The receiver encodes the front and rear fingerprints (zeros where there is no neighbour)
 with a separate FC 64 (ReLU) and concatenates that with its encoded observation before the LSTM
 (input 128). Fingerprints are inputs, not a channel for gradients.
+
+Messages (each received by the front and rear neighbours; counted in bits per agent):
+
+- execution, every step: the 5-float vehicle block and the 4-float fingerprint (288 bits);
+- training, every step: the same, plus the action index (2 bits) for the neighbours' critics.
 """
 
 from __future__ import annotations

@@ -5,6 +5,12 @@ Each agent sees its own and its neighbours' vehicle blocks (15 numbers), encodes
 actions, one-hot) a state value from the LSTM output. No learned communication: at execution an
 agent only sends its 5-float vehicle block to its neighbours. The learner is
 :class:`marl.common.Trainer` (n-step A2C with reward sharing); this file is the whole algorithm.
+
+Messages (each received by the front and rear neighbours; counted in bits per agent):
+
+- execution, every step: the 5-float vehicle block (160 bits);
+- training, every step: the same block, plus the action index (2 bits) that the neighbours'
+  critics take as input; no consensus, no gradients.
 """
 
 from __future__ import annotations

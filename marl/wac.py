@@ -5,6 +5,12 @@ value with the neighbours' one-hot actions). After every update, each agent's cr
 become the mean of its own and its front and rear neighbours' weights. The round is synchronous:
 every agent averages the pre-round snapshot (:func:`marl.consensus.wac`), unlike the published
 code which averaged in place agent by agent. Payload: 32 bits per shared weight per round.
+
+Messages (each received by the front and rear neighbours; counted in bits per agent):
+
+- execution, every step: the 5-float vehicle block (160 bits);
+- training, every step: the same plus the action index (2 bits) for the neighbours' critics;
+  after every update: the critic-LSTM weights (33,024 floats, 32 bits each).
 """
 
 from __future__ import annotations

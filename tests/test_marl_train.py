@@ -363,3 +363,16 @@ def test_qsgd_is_counted_as_local_not_sent(tmp_path) -> None:
     shared = tr.net.shared_critic_parameters()
     per_round = ternary_bits(sum(p[0].numel() for p in shared))
     assert tr.bits["consensus"] == pytest.approx(per_round * tr.updates)
+
+
+def test_training_messages_per_algorithm() -> None:
+    """Per agent and step in training: the execution messages, the 2-bit action for the
+    neighbours' critics, and for DIAL/CommNet the message gradients back to both neighbours."""
+    from marl.common import training_step_bits_per_agent
+
+    want = {"ia2c": 160 + 2, "fprint": 288 + 2, "dial": 2208 + 2 + 4096,
+            "commnet": 2208 + 2 + 4096, "wac": 162, "dcea": 162, "bdc": 162}
+    for name, bits in want.items():
+        a = algorithm(name)
+        net = a.build_net(a.config_cls(), 3, True)
+        assert training_step_bits_per_agent(net) == bits, name
