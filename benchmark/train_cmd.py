@@ -47,6 +47,11 @@ def _parser() -> argparse.ArgumentParser:
         "--episodes-parallel", type=int, default=None, help="B episodes stepped together"
     )
     p.add_argument(
+        "--tuned", action="store_true",
+        help="start from the config `cacc-bench tune` chose for this algorithm and scenario "
+             "(the shipped marl/tuned_configs.json); --set applies on top",
+    )
+    p.add_argument(
         "--set", action="append", default=[], metavar="KEY=VALUE", dest="overrides",
         help="set a config field of the algorithm (repeatable), e.g. --set gamma=0.995 "
              "--set advantage_norm=true; the checkpoint records the whole config",
@@ -114,6 +119,30 @@ def _train_job(job: dict) -> dict:
             "env_steps_per_s": result.env_steps_per_s}
 
 
+#: The configs chosen by ``cacc-bench tune`` that ship with the package.
+TUNED_CONFIGS = Path(__file__).resolve().parent.parent / "marl" / "tuned_configs.json"
+
+
+def tuned_options(algo: str, scenario: str, path: Path = TUNED_CONFIGS) -> dict[str, object]:
+    """Config overrides chosen by ``cacc-bench tune`` for ``algo`` on ``scenario``."""
+    import json
+
+    if not path.exists():
+        raise ConfigError(f"--tuned: {path} is missing; make it with `cacc-bench tune` and copy "
+                          "its tuned_configs.json there")
+    try:
+        configs = json.loads(path.read_text())["configs"]
+    except (ValueError, KeyError) as exc:
+        raise ConfigError(f"--tuned: {path} is not a tuned_configs.json ({exc})") from None
+    entry = configs.get(f"{algo}/{scenario}")
+    if entry is None:
+        have = ", ".join(sorted(configs)) or "none"
+        raise ConfigError(f"--tuned: no tuned config for {algo} on {scenario} in {path} "
+                          f"(it has: {have}); run `cacc-bench tune --algos {algo} "
+                          f"--scenarios {scenario}`")
+    return dict(entry["config"])
+
+
 def main(argv: list[str]) -> int:
     """Entry point: ``cacc-bench train --algo NAME --scenario ID [...]``."""
     from benchmark.executors import map_jobs
@@ -139,7 +168,7 @@ def main(argv: list[str]) -> int:
         seeds = [args.seed]
     if any(s < 0 for s in seeds):
         raise ConfigError("training seeds must be >= 0")
-    options: dict[str, object] = {}
+    options: dict[str, object] = tuned_options(args.algo, args.scenario) if args.tuned else {}
     for pair in args.overrides:
         key, sep, value = pair.partition("=")
         if not sep or not key.strip():

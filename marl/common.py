@@ -93,9 +93,8 @@ class A2CConfig:
         Entropy coefficient reached at the end of the run, linearly from ``entropy_coef``
         (None: constant, as published). Departure, default 0.005: with the paper's reward the
         scaled per-step rewards (about -0.05 per agent) are as large as the entropy bonus
-        (0.05 ln 4 = 0.07), so a constant 0.05 keeps the policy near uniform, and its greedy
-        action (what the benchmark evaluates) is mostly "hold speed" (measured: seed-0 IA2C on
-        catchup-v1 greedy-evaluated at -843 after 1e5 steps while its sampled policy scored -460).
+        (0.05 ln 4 = 0.07), so a constant 0.05 keeps the policy near uniform. ``cacc-bench tune``
+        searches it in [5e-4, 5e-2].
     return_norm : bool
         Divide the (scaled, shared) rewards by the running standard deviation of the discounted
         return before the update (option, off by default as published). Motivation: with the
@@ -126,9 +125,9 @@ class A2CConfig:
         learner with the same sample budget; 4.0 (with B = 8) compensates for that. 1.0 gives the
         paper's per-update rates (measured: with B = 8 its greedy policy is still poor at 6e5).
     eval_every_steps : int
-        Environment steps between greedy evaluations on the validation seeds (learning curve and
-        checkpoint selection: the shipped checkpoint is the evaluated one with the fewest
-        collisions, then the best reward).
+        Environment steps between evaluations on the validation seeds, in both modes (learning
+        curve and checkpoint selection: the kept snapshot is the evaluated one with the fewest
+        collisions, then the best reward, in ``selection_mode``; a tie goes to the later one).
     selection_mode : {"sampled", "greedy"}
         Evaluation mode in which the kept snapshot is chosen on the validation seeds (the mode
         the policy controller is evaluated in; default ``sampled``, the policy as trained).
