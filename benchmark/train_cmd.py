@@ -28,8 +28,10 @@ def _parser() -> argparse.ArgumentParser:
         prog="cacc-bench train",
         description="Train a MARL algorithm (one agent per follower) on a scenario.",
     )
-    p.add_argument("--algo", required=True, help=f"one of: {', '.join(ALGORITHM_NAMES)}")
-    p.add_argument("--scenario", required=True, help="scenario id, e.g. catchup-v1")
+    p.add_argument("--algo", required=True,
+                   help=f"one of: {', '.join(ALGORITHM_NAMES)}; a comma list, or all")
+    p.add_argument("--scenario", required=True,
+                   help="scenario id, e.g. catchup-v1, or a comma list")
     p.add_argument("--steps", type=int, default=600_000, help="environment steps (default 6e5)")
     p.add_argument("--seed", type=int, default=0, help="training seed (default 0)")
     p.add_argument("--seeds", default=None,
@@ -45,6 +47,11 @@ def _parser() -> argparse.ArgumentParser:
                         "the marl controllers load from)")
     p.add_argument(
         "--episodes-parallel", type=int, default=None, help="B episodes stepped together"
+    )
+    p.add_argument(
+        "--resume", action="store_true",
+        help="skip runs that finished in --out (their .final.pt exists with the same config); "
+             "an interrupted run starts again",
     )
     p.add_argument(
         "--tuned", action="store_true",
@@ -114,7 +121,8 @@ def _train_job(job: dict) -> dict:
                               job["seed"], out, progress=_Bar(job["progress"]), log=log,
                               evaluate=validation_evaluator(job["algo"], job["scenario"],
                                                             job["vehicles"]))
-    return {"seed": job["seed"], "checkpoint": str(result.checkpoint),
+    return {"algo": job["algo"], "scenario": job["scenario"], "seed": job["seed"],
+            "checkpoint": str(result.checkpoint),
             "curve": str(result.curve_csv), "log": str(log_path),
             "env_steps_per_s": result.env_steps_per_s}
 
@@ -143,6 +151,37 @@ def tuned_options(algo: str, scenario: str, path: Path = TUNED_CONFIGS) -> dict[
     return dict(entry["config"])
 
 
+def _names(text: str, flag: str) -> list[str]:
+    names = list(dict.fromkeys(x.strip() for x in text.split(",") if x.strip()))
+    if not names:
+        raise ConfigError(f"{flag}: nothing named")
+    return names
+
+
+def _finished(job: dict) -> bool:
+    """Whether ``job``'s run finished in its folder with the same config and budget (a
+    different one is an error: a finished run is never overwritten silently)."""
+    import torch
+
+    from marl.common import algorithm, checkpoint_stem
+
+    stem = checkpoint_stem(job["algo"], job["scenario"], job["vehicles"], job["seed"])
+    final = Path(job["out"]) / f"{stem}.final.pt"
+    if not final.exists():
+        return False
+    data = torch.load(final, map_location="cpu", weights_only=True)
+    want = algorithm(job["algo"]).config_cls(**job["options"]).resolved(job["scenario"])
+    import dataclasses
+
+    if data["config"] != dataclasses.asdict(want) or data["steps"] < job["steps"]:
+        raise ConfigError(
+            f"{final} holds a finished run with another config or fewer steps than asked "
+            f"({data['steps']} < {job['steps']} or config differs); use another --out, or "
+            "remove it to train again"
+        )
+    return True
+
+
 def main(argv: list[str]) -> int:
     """Entry point: ``cacc-bench train --algo NAME --scenario ID [...]``."""
     from benchmark.executors import map_jobs
@@ -151,9 +190,15 @@ def main(argv: list[str]) -> int:
     from marl.common import ALGORITHM_NAMES, algorithm
 
     args = _parser().parse_args(argv)
-    if args.algo not in ALGORITHM_NAMES:
-        raise UnknownNameError("algorithm", args.algo, ALGORITHM_NAMES)
-    make_scenario(args.scenario)  # UnknownNameError for an unknown id
+    algos = _names(args.algo, "--algo")
+    if algos == ["all"]:
+        algos = list(ALGORITHM_NAMES)
+    for a in algos:
+        if a not in ALGORITHM_NAMES:
+            raise UnknownNameError("algorithm", a, ALGORITHM_NAMES)
+    scenarios = _names(args.scenario, "--scenario")
+    for sc in scenarios:
+        make_scenario(sc)  # UnknownNameError for an unknown id
     check_vehicles(args.vehicles)
     if args.steps < 1:
         raise ConfigError(f"--steps must be >= 1, got {args.steps}")
@@ -168,27 +213,39 @@ def main(argv: list[str]) -> int:
         seeds = [args.seed]
     if any(s < 0 for s in seeds):
         raise ConfigError("training seeds must be >= 0")
-    options: dict[str, object] = tuned_options(args.algo, args.scenario) if args.tuned else {}
+    overrides: dict[str, object] = {}
     for pair in args.overrides:
         key, sep, value = pair.partition("=")
         if not sep or not key.strip():
             raise ConfigError(f"--set {pair!r}: expected KEY=VALUE, e.g. --set gamma=0.995")
-        options[key.strip()] = value.strip()
+        overrides[key.strip()] = value.strip()
     if args.episodes_parallel is not None:
         if args.episodes_parallel < 1:
             raise ConfigError("--episodes-parallel must be >= 1")
-        options["episodes_parallel"] = args.episodes_parallel
+        overrides["episodes_parallel"] = args.episodes_parallel
     # typed from the config's fields and validated before anything starts
-    config = build_config(algorithm(args.algo).config_cls, options, f"{args.algo} (--set)")
-    options = {f: getattr(config, f) for f in options}
+    configs: dict[tuple[str, str], dict[str, object]] = {}
+    for a in algos:
+        for sc in scenarios:
+            options = {**(tuned_options(a, sc) if args.tuned else {}), **overrides}
+            config = build_config(algorithm(a).config_cls, options, f"{a} (--set)")
+            configs[(a, sc)] = {f: getattr(config, f) for f in options}
     tty = sys.stderr.isatty()
+    single = len(seeds) * len(configs) == 1 and args.executor == "serial"
     jobs = [
-        {"algo": args.algo, "scenario": args.scenario, "vehicles": args.vehicles,
-         "steps": args.steps, "seed": seed, "out": args.out, "options": options,
-         "progress": tty and len(seeds) == 1 and args.executor == "serial"}
-        for seed in seeds
+        {"algo": a, "scenario": sc, "vehicles": args.vehicles, "steps": args.steps,
+         "seed": seed, "out": args.out, "options": configs[(a, sc)],
+         "progress": tty and single}
+        for seed in seeds for sc in scenarios for a in algos
     ]
+    if args.resume:
+        done = [j for j in jobs if _finished(j)]
+        if done:
+            print(f"resuming: {len(done)} of {len(jobs)} runs already finished in {args.out}",
+                  file=sys.stderr)
+        jobs = [j for j in jobs if j not in done]
     for res in map_jobs(_train_job, jobs, args.executor, args.workers, args.ray_address):
-        print(f"seed {res['seed']}: checkpoint {res['checkpoint']}, curve {res['curve']}, "
+        print(f"{res['algo']} {res['scenario']} seed {res['seed']}: checkpoint {res['checkpoint']}, "
+              f"curve {res['curve']}, "
               f"log {res['log']}; {res['env_steps_per_s']:.0f} env steps/s")
     return 0
