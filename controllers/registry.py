@@ -123,8 +123,9 @@ for _algo in MARL_ALGORITHMS:
     )
 
 #: Controllers of ``cacc-bench run`` when none are named (those available in this install):
-#: the human baseline, the linear laws, the quadratic MPC and the paper's method, all quick.
-DEFAULT_CONTROLLERS: tuple[str, ...] = ("ovm", "acc", "cacc", "mpc-qp", "bdc")
+#: the human baseline and its duty schedule, the linear laws, the quadratic MPC and the paper's
+#: method, all quick.
+DEFAULT_CONTROLLERS: tuple[str, ...] = ("ovm", "duty", "acc", "cacc", "mpc-qp", "bdc")
 
 
 def default_controllers() -> list[str]:
