@@ -165,11 +165,14 @@ def _study_job(job: dict) -> list[dict]:
                     "selected_at_steps"):
             trial.set_user_attr(key, summary[key])
         study.tell(trial, trial_score(summary))
+    # "trial" counts complete trials (an interrupted, redone trial keeps its place);
+    # "optuna_trial" is Optuna's number in the study file
     return [
-        {"algo": algo_name, "scenario": scenario, "vehicles": n, "trial": t.number,
-         "score": t.value, **t.params, **{f"config.{k}": v for k, v in t.user_attrs["options"].items()},
-         **{k: v for k, v in t.user_attrs.items() if k != "options"}}
-        for t in complete()[: job["trials"]]
+        {"algo": algo_name, "scenario": scenario, "vehicles": n, "trial": k,
+         "optuna_trial": t.number, "score": t.value, **t.params,
+         **{f"config.{key}": v for key, v in t.user_attrs["options"].items()},
+         **{key: v for key, v in t.user_attrs.items() if key != "options"}}
+        for k, t in enumerate(complete()[: job["trials"]])
     ]
 
 

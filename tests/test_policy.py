@@ -181,27 +181,32 @@ def test_train_cmd_errors_and_tiny_run(tmp_path) -> None:
     assert "bit/vehicle/s" in (tmp_path / "ia2c__catchup-v1__n3__s0.log").read_text()
 
 
-@pytest.mark.parametrize("scenario", ["catchup-v1", "slowdown-v1"])
-def test_shipped_policies_on_the_evaluation_seeds(scenario) -> None:
-    """The issue's bar on the 50 published evaluation seeds, greedy: the shipped ``bdc`` has no
-    collision, and every shipped policy collides less than its untrained policy, which collides
-    in at least 25 episodes (measured: 25 to 50), and scores a reward better by more than 150
-    (measured: 171 to 1,090)."""
+def shipped_seeds(algo: str, scenario: str) -> list[int]:
+    """Training seeds of the shipped checkpoints of ``algo`` on ``scenario`` (N = 8)."""
+    from controllers.policy import CHECKPOINT_DIR
+
+    found = CHECKPOINT_DIR.glob(f"{algo}__{scenario}__n8__s*.pt")
+    return sorted(int(p.stem.rsplit("__s", 1)[1]) for p in found)
+
+
+def pooled_evaluation(algo: str, scenario: str, mode: str = "sampled") -> dict[str, float]:
+    """The shipped seeds of a policy on the 50 evaluation seeds: collisions summed, reward the
+    mean over all episodes (what ``cacc-bench run --pool-seeds`` reports)."""
     from controllers.policy import checkpoint_path
     from envs.params import EVAL_SEEDS
     from marl.checkpoint import load_checkpoint
     from marl.common import config_from_dict
 
-    for name in ALGORITHM_NAMES:
-        a = algorithm(name)
-        data = load_checkpoint(checkpoint_path(name, scenario, 8, 0), algo=name, n_vehicles=8)
+    a = algorithm(algo)
+    out = []
+    for seed in shipped_seeds(algo, scenario):
+        data = load_checkpoint(checkpoint_path(algo, scenario, 8, seed), algo=algo, n_vehicles=8)
         net = a.build_net(config_from_dict(a, data["config"]), 8, with_critic=False)
         net.load_state_dict(data["weights"])
-        trained = evaluate_policy(name, net, scenario, 8, EVAL_SEEDS, "greedy")
-        untrained_net = a.build_net(a.config_cls(), 8, False, torch.Generator().manual_seed(0))
-        untrained = evaluate_policy(name, untrained_net, scenario, 8, EVAL_SEEDS, "greedy")
-        assert untrained["collisions"] >= 25, name
-        assert trained["collisions"] < untrained["collisions"], name
-        assert trained["reward"] > untrained["reward"] + 150, name
-        if name == "bdc":
-            assert trained["collisions"] == 0
+        out.append(evaluate_policy(algo, net, scenario, 8, EVAL_SEEDS, mode))
+    return {
+        "collisions": sum(r["collisions"] for r in out),
+        "episodes": sum(r["episodes"] for r in out),
+        "reward": float(np.mean([r["reward"] for r in out])),
+        "seeds": len(out),
+    }
