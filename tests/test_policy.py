@@ -210,3 +210,53 @@ def pooled_evaluation(algo: str, scenario: str, mode: str = "sampled") -> dict[s
         "reward": float(np.mean([r["reward"] for r in out])),
         "seeds": len(out),
     }
+
+
+def _reference(name: str, scenario: str) -> dict[str, float]:
+    """``ovm`` or ``duty`` on the 50 evaluation seeds through the harness's closed loop."""
+    from benchmark.rollout import rollout_batch
+    from controllers.registry import make_controller
+    from envs.params import EVAL_SEEDS
+    from envs.scenarios import make_scenario
+
+    trajs = rollout_batch(make_controller(name), make_scenario(scenario), 8, EVAL_SEEDS)
+    return {"reward": float(np.mean([t.reward.mean() for t in trajs])),
+            "collisions": float(sum(t.collided for t in trajs))}
+
+
+@pytest.mark.parametrize("scenario", ["catchup-v1", "slowdown-v1"])
+def test_shipped_policies_on_the_evaluation_seeds(scenario) -> None:
+    """What the README says of the shipped policies, on the 50 published evaluation seeds in the
+    default (sampled) mode, pooled over the shipped training seeds:
+
+    - every shipped policy collides in fewer episodes (as a fraction) than its untrained policy
+      (which collides in 45 to 48 of 50) and scores a better reward;
+    - ``bdc`` ships seeds 0, 1 and 2 and has no collision on either scenario; on catchup-v1 it
+      beats ``ovm``, on slowdown-v1 it does not (it crawls, collision-free);
+    - ``duty`` beats ``ovm`` on both; greedy ``bdc`` on catchup-v1 is a worse policy than the
+      sampled one it was trained as.
+    """
+    from envs.params import EVAL_SEEDS
+
+    ovm = _reference("ovm", scenario)
+    duty = _reference("duty", scenario)
+    assert ovm["collisions"] == duty["collisions"] == 0
+    assert duty["reward"] > ovm["reward"] + 50
+    for name in ALGORITHM_NAMES:
+        a = algorithm(name)
+        pooled = pooled_evaluation(name, scenario)
+        assert pooled["seeds"] >= 1, name
+        net = a.build_net(a.config_cls(), 8, False, torch.Generator().manual_seed(0))
+        untrained = evaluate_policy(name, net, scenario, 8, EVAL_SEEDS)
+        assert untrained["collisions"] >= 45, name
+        assert pooled["collisions"] / pooled["episodes"] < untrained["collisions"] / 50, name
+        assert pooled["reward"] > untrained["reward"] + 100, name
+        if name == "bdc":
+            assert shipped_seeds("bdc", scenario) == [0, 1, 2]
+            assert pooled["collisions"] == 0
+            if scenario == "catchup-v1":
+                assert pooled["reward"] > ovm["reward"] + 150
+                greedy = pooled_evaluation("bdc", scenario, "greedy")
+                assert greedy["reward"] < pooled["reward"] - 100
+            else:
+                assert pooled["reward"] < ovm["reward"] - 500

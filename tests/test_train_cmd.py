@@ -102,12 +102,16 @@ def test_tuned_options(tmp_path: Path, capsys) -> None:
         tuned_options("ia2c", "catchup-v1", path)
     with pytest.raises(ConfigError, match="missing"):
         tuned_options("ia2c", "catchup-v1", tmp_path / "none.json")
-    if TUNED_CONFIGS.exists():  # the shipped file covers all seven on both paper scenarios
-        from marl.common import ALGORITHM_NAMES
+    # every shipped entry builds a valid config of its algorithm; BDC is tuned on both
+    from controllers.registry import build_config
+    from marl.common import algorithm
 
-        for a in ALGORITHM_NAMES:
-            for sc in ("catchup-v1", "slowdown-v1"):
-                assert tuned_options(a, sc)
+    shipped = json.loads(TUNED_CONFIGS.read_text())
+    assert shipped["budget"] == {"trials": 8, "steps_per_trial": 200_000, "seed": 0, "vehicles": 8}
+    assert {"bdc/catchup-v1", "bdc/slowdown-v1"} <= set(shipped["configs"])
+    for key in shipped["configs"]:
+        a, sc = key.split("/")
+        build_config(algorithm(a).config_cls, tuned_options(a, sc), key)
 
 
 def test_tune_tiny_study_resumes(tmp_path: Path, capsys) -> None:
