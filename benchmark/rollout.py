@@ -87,7 +87,7 @@ def rollout_batch(
     sampled policies draw from per-episode streams), so an episode gives the same trajectory
     alone or in a batch, up to the float rounding of batched matrix products.
     ``compute_s`` and ``bits_sent`` of each episode are its share (1/B) of the batch's, counted
-    while the episode runs; with one seed they are exact.
+    while the episode runs, and ``solver_failures`` is the batch's; with one seed all are exact.
     """
     seeds_arr = np.asarray(list(seeds), dtype=np.int64)
     b = len(seeds_arr)

@@ -161,6 +161,8 @@ def _names(text: str, flag: str) -> list[str]:
 def _finished(job: dict) -> bool:
     """Whether ``job``'s run finished in its folder with the same config and budget (a
     different one is an error: a finished run is never overwritten silently)."""
+    import dataclasses
+
     import torch
 
     from marl.common import algorithm, checkpoint_stem
@@ -171,8 +173,6 @@ def _finished(job: dict) -> bool:
         return False
     data = torch.load(final, map_location="cpu", weights_only=True)
     want = algorithm(job["algo"]).config_cls(**job["options"]).resolved(job["scenario"])
-    import dataclasses
-
     if data["config"] != dataclasses.asdict(want) or data["steps"] < job["steps"]:
         raise ConfigError(
             f"{final} holds a finished run with another config or fewer steps than asked "

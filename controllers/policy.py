@@ -24,11 +24,10 @@ from controllers.base import Controller, EpisodeContext
 from envs.channel import episode_uniforms
 from envs.dynamics import action_to_command_mps2
 from envs.errors import ConfigError
+from envs.params import EVAL_MODES
 from envs.platoon import PlatoonState
 
 CHECKPOINT_DIR = Path(__file__).resolve().parent / "checkpoints"
-#: Evaluation modes; the first is the default.
-POLICY_MODES: tuple[str, ...] = ("sampled", "greedy")
 #: Name of the per-episode uniform stream sampled actions are drawn from.
 ACTION_STREAM = "policy-actions"
 
@@ -81,8 +80,8 @@ class PolicyController(Controller):
                 f"{algo} has no option(s) {sorted(options)}; its options are: checkpoint, "
                 "mode, scenario, seed, untrained"
             )
-        if mode not in POLICY_MODES:
-            raise ConfigError(f"{algo}: mode must be one of {', '.join(POLICY_MODES)}, got {mode!r}")
+        if mode not in EVAL_MODES:
+            raise ConfigError(f"{algo}: mode must be one of {', '.join(EVAL_MODES)}, got {mode!r}")
         try:
             seed = int(seed)
         except ValueError:
@@ -108,7 +107,7 @@ class PolicyController(Controller):
                 "checkpoint": checkpoint,
                 "seed": seed if seed else None,
                 "untrained": True if self.untrained else None,
-                "mode": mode if mode != POLICY_MODES[0] else None,
+                "mode": mode if mode != EVAL_MODES[0] else None,
             }.items()
             if v is not None
         }

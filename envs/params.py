@@ -17,6 +17,11 @@ EVAL_SEEDS: tuple[int, ...] = tuple(range(2000, 2500, 10))
 #: are never evaluation seeds and never training seeds (training episodes use seeds >= 1e7).
 VALIDATION_SEEDS: tuple[int, ...] = tuple(range(1, 33))
 
+#: Evaluation modes of a learned policy, the default first: ``sampled`` (actions drawn from the
+#: policy, as trained) and ``greedy`` (argmax; a different policy when the trained one stays
+#: stochastic).
+EVAL_MODES: tuple[str, ...] = ("sampled", "greedy")
+
 
 @dataclass(frozen=True)
 class PlatoonParams:

@@ -38,7 +38,7 @@ import torch
 from torch import nn
 
 from envs.errors import ConfigError, TrainingDivergedError, UnknownNameError
-from envs.params import RewardWeights
+from envs.params import EVAL_MODES, RewardWeights
 from envs.platoon import PlatoonEnv
 from envs.scenarios import make_scenario
 from marl.layers import BatchedLinear, BatchedLSTMCell, per_agent_clip_
@@ -50,9 +50,6 @@ BLOCK_FLOATS = 5
 FLOAT_BITS = 32
 COLLISION_VALUES: tuple[str, ...] = ("absorbing", "published")
 ALGORITHM_NAMES: tuple[str, ...] = ("ia2c", "fprint", "dial", "commnet", "wac", "dcea", "bdc")
-#: Evaluation modes of a policy: ``sampled`` (actions drawn from the policy, as trained) and
-#: ``greedy`` (argmax; a different, deterministic policy when the trained one stays stochastic).
-EVAL_MODES: tuple[str, ...] = ("sampled", "greedy")
 
 State = dict[str, torch.Tensor]
 ProgressFn = Callable[[int, int, dict[str, float]], None]

@@ -44,6 +44,8 @@ def test_duty_schedule_and_choice() -> None:
     auto = make_controller("duty")
     rollout(auto, sc, 4, 2000)
     assert auto.chosen_k == best_k("catchup-v1", 4, 20)
+    # what the README states for the paper scenarios with 8 followers
+    assert best_k("catchup-v1", 8) == 4 and best_k("slowdown-v1", 8) == 5
 
 
 def test_duty_bad_options() -> None:
@@ -82,3 +84,30 @@ def test_hold_speed_is_not_the_discounted_optimum() -> None:
     assert hold == pytest.approx(-10_011, abs=1)
     assert duty10 == pytest.approx(-9_343, abs=1)
     assert duty10 > hold + 500
+
+
+def test_greedy_bdc_reads_the_hold_speed_value() -> None:
+    """The README: the shipped seed-0 BDC on catchup-v1 scores -450 sampled on the validation
+    seeds, while its greedy policy scores exactly what holding speed (action 0 for every follower)
+    scores there, -802.81."""
+    from controllers.policy import checkpoint_path
+    from envs.params import VALIDATION_SEEDS
+    from envs.platoon import PlatoonEnv
+    from marl.checkpoint import load_checkpoint
+
+    env = PlatoonEnv("catchup-v1", 8)
+    env.reset(np.array(VALIDATION_SEEDS))
+    total = np.zeros(len(VALIDATION_SEEDS))
+    steps = np.zeros(len(VALIDATION_SEEDS))
+    while True:
+        running = ~env.state.done  # type: ignore[union-attr]
+        res = env.step_actions(np.zeros((len(VALIDATION_SEEDS), 8), dtype=np.int64))
+        total += np.where(running, res.reward.sum(axis=1), 0.0)
+        steps += running
+        if res.done.all():
+            break
+    hold = float((total / steps).mean())
+    assert hold == pytest.approx(-802.81, abs=0.01)
+    summary = load_checkpoint(checkpoint_path("bdc", "catchup-v1", 8, 0))["curve_summary"]
+    assert summary["selected_eval_reward_greedy"] == pytest.approx(hold, abs=1e-3)
+    assert summary["selected_eval_reward_sampled"] == pytest.approx(-449.92, abs=0.01)

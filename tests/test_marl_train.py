@@ -376,3 +376,6 @@ def test_training_messages_per_algorithm() -> None:
         a = algorithm(name)
         net = a.build_net(a.config_cls(), 3, True)
         assert training_step_bits_per_agent(net) == bits, name
+        if name in ("wac", "dcea", "bdc"):  # the README's consensus payloads
+            shared = sum(p[0].numel() for p in net.shared_critic_parameters())
+            assert shared == 33_024
