@@ -236,7 +236,8 @@ def test_sigkill_then_resume_equals_uninterrupted(tmp_path: Path) -> None:
 
 
 def test_process_executor_equals_serial(tmp_path: Path) -> None:
-    small = ["--controllers", "ovm", "--scenarios", "catchup-v1,brake-v1", "--vehicles", "3",
+    # a sampled policy too: its action draws come from the episode seed, not the process
+    small = ["--controllers", "ovm,bdc:untrained=true", "--scenarios", "catchup-v1,brake-v1", "--vehicles", "3",
              "--episodes", "2", "--quiet", "--comm-delay", "0.1", "--packet-loss", "0.2"]
     assert main(["run", *small, "--out", str(tmp_path / "s")]) == 0
     assert main(["run", *small, "--out", str(tmp_path / "p"), "--executor", "process",
