@@ -1,11 +1,12 @@
-"""``cacc-bench plot DIR``: figures from a results folder (PNG and PDF, headless)."""
+"""``cacc-bench plot DIR``: figures from a results folder or a training folder (PNG and PDF,
+headless)."""
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
 
-from benchmark.store import ResultStore
+from benchmark.store import STORE_NAME, ResultStore
 
 
 def main(argv: list[str]) -> int:
@@ -16,12 +17,16 @@ def main(argv: list[str]) -> int:
     from envs.scenarios import make_scenario
 
     p = argparse.ArgumentParser(prog="cacc-bench plot", description=__doc__)
-    p.add_argument("results_dir", help="results folder written by `cacc-bench run`")
+    p.add_argument("results_dir", help="results folder written by `cacc-bench run`, or a training "
+                                       "folder of `cacc-bench train --out` (learning curves)")
     p.add_argument("--out", default=None, help="figure folder (default: RESULTS_DIR/figures)")
     p.add_argument("--no-energy-map", action="store_true", help="skip the energy-map figure")
     args = p.parse_args(argv)
     folder = Path(args.results_dir)
     out = Path(args.out) if args.out else folder / "figures"
+    if folder.is_dir() and not (folder / STORE_NAME).exists() and any(
+            folder.glob("*.curve.csv")):
+        return plot_training_folder(folder, out)
     with ResultStore(folder, create=False) as store:
         records = store.records()
         with_traj = store.trajectory_ids()
@@ -54,5 +59,32 @@ def main(argv: list[str]) -> int:
         written += plot_radar(lb, sc_id, int(n), out, f"radar__{sc_id}__n{int(n)}")
     if not args.no_energy_map:
         written += plot_energy_map(out)
+    print(f"wrote {len(written)} files into {out}")
+    return 0
+
+
+def plot_training_folder(folder: Path, out: Path) -> int:
+    """Learning curves of every ``<algo>__<scenario>__n<N>__s<seed>.curve.csv`` in ``folder``:
+    one figure per scenario and N, one line (mean over seeds, min-max band) per algorithm."""
+    import re
+
+    import pandas as pd
+
+    from analysis.reproduction import learning_curve_figure
+
+    pattern = re.compile(r"^(?P<algo>[^_]+(?:-[^_]+)*)__(?P<scenario>.+)__n(?P<n>\d+)__s(?P<seed>\d+)$")
+    groups: dict[tuple[str, int], dict[tuple[str, str, int], object]] = {}
+    for path in sorted(folder.glob("*.curve.csv")):
+        m = pattern.match(path.name[: -len(".curve.csv")])
+        if m is None:
+            continue
+        curve = pd.read_csv(path)
+        key = (m["algo"], m["scenario"], int(m["seed"]))
+        groups.setdefault((m["scenario"], int(m["n"])), {})[key] = curve
+    written = []
+    for (scenario, n), curves in sorted(groups.items()):
+        algos = sorted({k[0] for k in curves})
+        written += learning_curve_figure(curves, algos, scenario, out, f"curves__{scenario}__n{n}",
+                                         f"learning curves on {scenario}, N = {n} ({folder})")
     print(f"wrote {len(written)} files into {out}")
     return 0

@@ -32,9 +32,12 @@ CHECKPOINT_DIR = Path(__file__).resolve().parent / "checkpoints"
 ACTION_STREAM = "policy-actions"
 
 
-def checkpoint_path(algo: str, scenario: str, n_vehicles: int, seed: int = 0) -> Path:
-    """Where the shipped checkpoint of a run lives."""
-    return CHECKPOINT_DIR / f"{algo}__{scenario}__n{n_vehicles}__s{seed}.pt"
+def checkpoint_path(
+    algo: str, scenario: str, n_vehicles: int, seed: int = 0, folder: str | Path | None = None
+) -> Path:
+    """Where the checkpoint of a run lives: the shipped one, or the one in ``folder``."""
+    base = CHECKPOINT_DIR if folder is None else Path(folder)
+    return base / f"{algo}__{scenario}__n{n_vehicles}__s{seed}.pt"
 
 
 class PolicyController(Controller):
@@ -48,6 +51,10 @@ class PolicyController(Controller):
         Load the checkpoint trained on this scenario instead of the run's one.
     checkpoint : str, optional
         Explicit checkpoint file (overrides ``scenario``).
+    checkpoint_dir : str, optional
+        Folder to load ``<algo>__<scenario>__n<N>__s<seed>.pt`` from instead of the shipped
+        checkpoints (a ``cacc-bench train --out`` or ``cacc-bench reproduce`` folder); unlike
+        ``checkpoint``, the training seeds of one folder pool into one leaderboard row.
     seed : int
         Training seed of the shipped checkpoint (0).
     untrained : bool
@@ -67,6 +74,7 @@ class PolicyController(Controller):
         algo: str,
         scenario: str | None = None,
         checkpoint: str | None = None,
+        checkpoint_dir: str | None = None,
         seed: int | str = 0,
         untrained: bool | str = False,
         mode: str = "sampled",
@@ -78,7 +86,7 @@ class PolicyController(Controller):
         if options:
             raise ConfigError(
                 f"{algo} has no option(s) {sorted(options)}; its options are: checkpoint, "
-                "mode, scenario, seed, untrained"
+                "checkpoint_dir, mode, scenario, seed, untrained"
             )
         if mode not in EVAL_MODES:
             raise ConfigError(f"{algo}: mode must be one of {', '.join(EVAL_MODES)}, got {mode!r}")
@@ -96,6 +104,7 @@ class PolicyController(Controller):
         self.name = algo
         self.scenario = scenario
         self.checkpoint = checkpoint
+        self.checkpoint_dir = checkpoint_dir
         self.seed = seed
         self.mode = mode
         self.deterministic = mode == "greedy"
@@ -105,6 +114,7 @@ class PolicyController(Controller):
             for k, v in {
                 "scenario": scenario,
                 "checkpoint": checkpoint,
+                "checkpoint_dir": checkpoint_dir,
                 "seed": seed if seed else None,
                 "untrained": True if self.untrained else None,
                 "mode": mode if mode != EVAL_MODES[0] else None,
@@ -144,12 +154,13 @@ class PolicyController(Controller):
         path = (
             Path(self.checkpoint)
             if self.checkpoint
-            else checkpoint_path(self.algo, source, n_vehicles, self.seed)
+            else checkpoint_path(self.algo, source, n_vehicles, self.seed, self.checkpoint_dir)
         )
         if not path.exists():
+            cmd = train_command(self.algo, source, n_vehicles, self.seed, self.checkpoint_dir or "")
             raise ConfigError(
                 f"no trained {self.algo} policy for {source} with N = {n_vehicles}: {path} is "
-                f"missing; make it with `{train_command(self.algo, source, n_vehicles, self.seed)}`"
+                f"missing; make it with `{cmd}`"
                 f" (or pick another checkpoint with {self.algo}:scenario=ID or checkpoint=FILE)"
             )
         data = load_checkpoint(path, algo=self.algo, n_vehicles=n_vehicles, scenario=source)
@@ -159,6 +170,14 @@ class PolicyController(Controller):
         net.eval()
         self.loaded = data
         return net
+
+    def preflight(self, scenario: Any, n_vehicles: int) -> None:
+        """Load the policy for ``scenario`` and N now, so a missing or mismatched checkpoint
+        fails before a sweep starts (a clear error, nothing stored)."""
+        key = (scenario.id, n_vehicles)
+        if self.net is None or getattr(self, "_key", None) != key:
+            self.net = self._load(scenario.id, n_vehicles)
+            self._key = key
 
     # ---------------------------------------------------------------- interface
     def reset(self, ctx: EpisodeContext) -> None:

@@ -1,0 +1,167 @@
+"""``cacc-bench reproduce`` and the analysis behind its report."""
+
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from analysis import reproduction as rp
+from analysis.paper import TABLE_I_REWARD, TABLE_II
+from benchmark.cli import main as cli
+
+VERDICTS = {"holds", "does not hold", "inconclusive", "not testable here"}
+
+
+def _curve(steps: list[float], values: list[float], train: list[float] | None = None) -> pd.DataFrame:
+    train = train if train is not None else [0.0] * len(steps)
+    return pd.DataFrame({"episode": range(1, len(steps) + 1), "steps": steps,
+                         "train_reward": train, "eval_reward_sampled": values,
+                         "eval_collisions_sampled": 0.0, "eval_reward_greedy": values,
+                         "eval_collisions_greedy": 0.0})
+
+
+def test_convergence_step_is_first_step_within_tolerance_for_good() -> None:
+    steps = np.array([1.0, 2, 3, 4, 5, 6])
+    # rises from -100 to 0 (last three mean 0); 10 % of the rise: every later point >= -10
+    values = np.array([-100.0, -50, -5, -20, 0, 0])
+    assert rp.convergence_step(steps, values) == 5.0  # -20 at step 4 breaks the run from 3
+    assert rp.convergence_step(steps, np.array([-100.0, -9, -5, 0, 0, 0])) == 2.0
+    assert rp.convergence_step(steps, -np.arange(6.0)) == 1.0  # no rise: converged at once
+    assert math.isnan(rp.convergence_step(np.array([]), np.array([])))
+
+
+def test_table_one_means_and_stds_over_seeds() -> None:
+    curves = {("bdc", "catchup-v1", s): _curve([1, 2], [-10.0 * (s + 1), -5.0 * (s + 1)],
+                                               train=[-100.0, -10.0 * s])
+              for s in range(3)}
+    t1 = rp.table_one(curves, ["bdc"])
+    row = t1.iloc[0]
+    assert row["n_seeds"] == 3
+    # last 10 % of 2 episodes is the last one: 0, -10, -20
+    assert row["train_reward_mean"] == pytest.approx(-10.0)
+    assert row["train_reward_std"] == pytest.approx(10.0)
+    # final validation: -5, -10, -15
+    assert row["validation_reward_mean"] == pytest.approx(-10.0)
+    assert row["paper_reward"] == TABLE_I_REWARD["bdc"]
+
+
+def _runs(power: dict[str, list[float]], scenario: str = "catchup-v1") -> pd.DataFrame:
+    rows = []
+    for name, values in power.items():
+        for k, p in enumerate(values):
+            rows.append({"controller": name, "scenario": scenario, "seed": 2000 + 10 * k,
+                         "power_mean_kw": p, "gap_mean_m": 20.0, "gap_std_m": 1.0,
+                         "speed_mean_mps": 15.0, "speed_std_mps": 0.1, "accel_mean_mps2": 0.0,
+                         "accel_std_mps2": 0.1, "collision": False, "reward": -p})
+    return pd.DataFrame(rows)
+
+
+def test_energy_claim_verdicts_follow_the_paired_intervals() -> None:
+    names = {n: n for n in ("bdc", "ia2c", "commnet")}
+    rng = np.random.default_rng(0)
+    base = 18.0 + rng.normal(0, 0.2, 20)
+    holds = rp.energy_claim(_runs({"bdc": base, "ia2c": base + 1.0, "commnet": base + 0.5}),
+                            names, "catchup-v1")
+    assert holds.verdict == "holds"
+    assert "vs ia2c" in holds.measured and "largest" in holds.measured
+    fails = rp.energy_claim(_runs({"bdc": base + 1.0, "ia2c": base, "commnet": base + 2.0}),
+                            names, "catchup-v1")
+    assert fails.verdict == "does not hold"
+    missing = rp.energy_claim(_runs({"ia2c": base}), names, "catchup-v1")
+    assert missing.verdict == "not testable here"
+
+
+def test_table_two_puts_the_paper_values_beside_ours() -> None:
+    runs = _runs({"lab-bdc-0": [17.0, 19.0], "lab-bdc-1": [18.0, 18.0], "ovm": [30.0, 30.0]})
+    t2 = rp.table_two(runs, {"lab-bdc-0": "bdc", "lab-bdc-1": "bdc", "ovm": "ovm"})
+    bdc = t2.set_index("name").loc["bdc"]
+    assert bdc["n_episodes"] == 4 and bdc["power_kw_avg"] == pytest.approx(18.0)
+    assert bdc["paper_power_kw_avg"] == TABLE_II["bdc"]["power_kw"][0]
+    assert math.isnan(t2.set_index("name").loc["ovm", "paper_ivs_m_avg"])
+
+
+def test_format_table_shows_nan_as_dash() -> None:
+    df = pd.DataFrame({"a": ["x"], "b": [math.nan], "c": [1.234]})
+    text = rp.format_table(df, [("a", "A"), ("b", "B"), ("c", "C")])
+    assert text.splitlines()[2] == "| x | - | 1.23 |"
+
+
+def test_plot_of_a_training_folder_draws_learning_curves(tmp_path: Path) -> None:
+    for seed in (0, 1):
+        _curve([100, 200], [-50.0, -40.0 - seed]).to_csv(
+            tmp_path / f"bdc__catchup-v1__n8__s{seed}.curve.csv", index=False)
+    assert cli(["plot", str(tmp_path)]) == 0
+    assert (tmp_path / "figures" / "curves__catchup-v1__n8.png").stat().st_size > 0
+
+
+def test_policy_checkpoint_dir_names_the_train_command(tmp_path: Path) -> None:
+    from controllers.policy import PolicyController
+    from envs.errors import ConfigError
+    from envs.scenarios import make_scenario
+
+    ctrl = PolicyController("bdc", checkpoint_dir=str(tmp_path), seed=1)
+    with pytest.raises(ConfigError, match=f"--out {tmp_path}"):
+        ctrl.preflight(make_scenario("catchup-v1"), 8)
+
+
+@pytest.fixture(scope="module")
+def tiny_reproduction(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The README's reproduction command in small form: one algorithm, one scenario."""
+    out = tmp_path_factory.mktemp("rep") / "rep"
+    argv = ["reproduce", "--budget", "quick", "--algos", "bdc", "--scenarios", "catchup-v1",
+            "--out", str(out), "--executor", "process", "--workers", "2"]
+    assert cli(argv) == 0
+    return out
+
+
+def test_reproduce_writes_the_report_tables_and_claims(tiny_reproduction: Path) -> None:
+    out = tiny_reproduction
+    report = (out / "report.md").read_text()
+    for section in ("## Table I", "## Table II", "## Learning curves", "## The paper's claims"):
+        assert section in report
+    t1 = pd.read_csv(out / "table1.csv")
+    assert set(t1["algo"]) == {"bdc", "bdc-noqsgd"} and set(t1["n_seeds"]) == {3}
+    t2 = pd.read_csv(out / "table2.csv")
+    assert {"ovm", "duty", "cacc", "mpc", "mpc-qp", "cmpc", "bdc", "bdc-noqsgd"} <= set(t2["name"])
+    bdc = t2.set_index("name").loc["bdc"]
+    assert bdc["n_episodes"] == 6  # 3 training seeds x 2 episodes
+    assert bdc["paper_ivs_m_avg"] == TABLE_II["bdc"]["ivs_m"][0]
+    claims = pd.read_csv(out / "claims.csv")
+    assert set(claims["verdict"]) <= VERDICTS and len(claims) >= 6
+    for fig in ("curves_marl__catchup-v1.png", "radar__catchup-v1.png",
+                "timeseries__bdc__catchup-v1.png"):
+        assert (out / "figures" / fig).stat().st_size > 0
+    assert len(list((out / "checkpoints").glob("*.source.json"))) == 3
+
+
+def test_reproduce_refuses_a_used_folder_and_resumes_without_redoing(
+        tiny_reproduction: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tiny_reproduction
+    argv = ["reproduce", "--budget", "quick", "--algos", "bdc", "--scenarios", "catchup-v1",
+            "--out", str(out)]
+    assert cli(argv) == 2
+    assert "--resume" in capsys.readouterr().err
+    stamps = {p: os.stat(p).st_mtime_ns for p in (out / "checkpoints").rglob("*.pt")}
+    before = pd.read_csv(out / "table2.csv")
+    assert cli([*argv, "--resume"]) == 0
+    assert {p: os.stat(p).st_mtime_ns for p in (out / "checkpoints").rglob("*.pt")} == stamps
+    err = capsys.readouterr().err
+    assert "0 to train" in err and "0 to run" in err
+    pd.testing.assert_frame_equal(pd.read_csv(out / "table2.csv"), before)
+    assert cli(["reproduce", "--budget", "paper", "--algos", "bdc", "--scenarios", "catchup-v1",
+                "--out", str(out), "--resume"]) == 2  # other settings: refused
+
+
+@pytest.mark.slow
+def test_quick_budget_reproduces_everything_in_minutes(tmp_path: Path) -> None:
+    """The whole quick reproduction (seven algorithms, the ablation, two scenarios)."""
+    assert cli(["reproduce", "--budget", "quick", "--out", str(tmp_path / "q"),
+                "--executor", "process", "--workers", "2"]) == 0
+    claims = pd.read_csv(tmp_path / "q" / "claims.csv")
+    assert set(claims["verdict"]) <= VERDICTS
+    assert "not testable here" != claims.set_index("claim").iloc[2]["verdict"]  # convergence ran
