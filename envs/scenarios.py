@@ -219,6 +219,63 @@ def _openacc(sc: Scenario, seeds: np.ndarray, u: np.ndarray, n: int) -> EpisodeB
     )
 
 
+def dynamic_platform_profile_mps(
+    uniforms: np.ndarray, n_steps: int, dt_s: float = 0.1
+) -> np.ndarray:
+    """A leader speed profile shaped like the OpenACC Dynamic Platform's perturbation.
+
+    Cruise at ``v0``, brake at a constant rate down to ``v_min``, hold, accelerate back to
+    ``v0`` and cruise. Six uniforms in [0, 1) set, in order: ``v0`` in [7.5, 12] m/s, the braking
+    start in [3, 15] s, the braking rate in [1.5, 3.5] m/s^2, ``v_min`` in [3, 7] m/s (at most
+    ``v0 - 1``), the hold in [0, 4] s and the recovery rate in [0.8, 2.8] m/s^2. The three real
+    test windows lie inside these ranges (cruise 8.2-11.1 m/s, minimum 4.4-5.8 m/s, braking up to
+    2.7-3.4 m/s^2 and recovery up to 1.2-2.7 m/s^2, about 10-13 s in).
+    """
+    u = np.asarray(uniforms, dtype=np.float64)
+    v0 = 7.5 + 4.5 * u[0]
+    t_brake = 3.0 + 12.0 * u[1]
+    a_brake = 1.5 + 2.0 * u[2]
+    v_min = min(3.0 + 4.0 * u[3], v0 - 1.0)
+    hold = 4.0 * u[4]
+    a_up = 0.8 + 2.0 * u[5]
+    t = np.arange(n_steps + 1) * dt_s
+    t_low = t_brake + (v0 - v_min) / a_brake
+    t_up = t_low + hold
+    v = np.full_like(t, v0)
+    braking = (t > t_brake) & (t <= t_low)
+    v[braking] = v0 - a_brake * (t[braking] - t_brake)
+    v[(t > t_low) & (t <= t_up)] = v_min
+    rising = t > t_up
+    v[rising] = np.minimum(v_min + a_up * (t[rising] - t_up), v0)
+    return v
+
+
+def _openacc_train(sc: Scenario, seeds: np.ndarray, u: np.ndarray, n: int) -> EpisodeBatch:
+    """Randomised training episodes for the OpenACC setting (never the test windows)."""
+    b = len(seeds)
+    leader = np.empty((b, sc.n_steps + 1))
+    gap0 = np.empty((b, n))
+    speed0 = np.empty((b, n))
+    for i, seed in enumerate(seeds):
+        rng = episode_stream(int(seed), "openacc-train")
+        draws = rng.random(6)
+        draws[0] = u[i]  # the episode's perturbation sets the cruise speed
+        leader[i] = dynamic_platform_profile_mps(draws, sc.n_steps)
+        gap0[i] = sc.target_gap_m * (0.8 + 0.6 * rng.random(n))
+        speed0[i] = np.clip(leader[i, 0] + rng.normal(0.0, 0.2, n), 0.0, None)
+    return EpisodeBatch(seeds=seeds, perturbation=u, gap_m=gap0, speed_mps=speed0,
+                        leader_speed_mps=leader)
+
+
+def _openacc_train_spec(size: str, gap_m: float) -> ScenarioSpec:
+    return ScenarioSpec(
+        f"openacc-train-{size}-v1",
+        f"training family for openacc-{size}-v1 (d* = {gap_m:g} m, v* = 11 m/s): randomised "
+        "Dynamic-Platform-like braking and recovery of the leader, followers 0.8-1.4 d* apart",
+        gap_m, 11.0, 600, _openacc_train, default_vehicles=4,
+    )
+
+
 # --------------------------------------------------------------------------- registry
 
 
@@ -292,6 +349,9 @@ for _spec in (
         "stands in for the paper's dynamic_part9)",
     ),
     _openacc_spec("L", "real OpenACC leader (ZalaZONE dynamic_part2, 450..510 s, long ACC setting)"),
+    _openacc_train_spec("s", 12.0),
+    _openacc_train_spec("m", 16.0),
+    _openacc_train_spec("l", 20.0),
 ):
     register_scenario(_spec)
 

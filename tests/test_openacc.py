@@ -258,3 +258,48 @@ def test_bad_metadata(tmp_path: Path) -> None:
 
 def test_error_is_value_error() -> None:
     assert issubclass(OpenACCDataError, ValueError)
+
+
+# --------------------------------------------------------------------------- training family
+def test_dynamic_platform_profile_has_the_drawn_shape() -> None:
+    from envs.scenarios import dynamic_platform_profile_mps
+
+    u = np.array([0.5, 0.25, 0.5, 0.5, 0.5, 0.5])  # v0 9.75, brake at 6 s, 2.5 m/s^2, 5 m/s
+    v = dynamic_platform_profile_mps(u, 600)
+    assert v[0] == pytest.approx(9.75) and v[-1] == pytest.approx(9.75)
+    assert v.min() == pytest.approx(5.0)
+    a = np.diff(v) / 0.1
+    assert a.min() == pytest.approx(-2.5) and a.max() == pytest.approx(1.8)
+    assert np.all(v[:61] == pytest.approx(9.75))  # cruise until 6 s
+    # 5 m/s held for 2 s after reaching it at 6 + 4.75 / 2.5 = 7.9 s
+    assert np.all(v[80:99] == pytest.approx(5.0))
+
+
+def test_real_test_windows_lie_inside_the_training_family() -> None:
+    """The ranges the family draws from cover what the three real windows do."""
+    from envs.scenarios import make_scenario
+
+    for name in ("openacc-s-v1", "openacc-m-v1", "openacc-l-v1"):
+        v = make_scenario(name).episodes([0], 4).leader_speed_mps[0]
+        a = np.diff(v) / 0.1
+        assert 7.5 <= v[0] <= 12.0
+        assert 3.0 <= v.min() <= 7.0
+        assert 1.5 <= -a.min() <= 3.5
+        assert 0.8 <= a.max() <= 2.8
+        assert 3.0 <= np.argmin(v) * 0.1 <= 15.0 + (v[0] - v.min()) / 1.5 + 4.0
+
+
+@pytest.mark.parametrize(("size", "gap"), [("s", 12.0), ("m", 16.0), ("l", 20.0)])
+def test_training_family_is_seeded_randomised_and_not_the_windows(size: str, gap: float) -> None:
+    from envs.scenarios import make_scenario
+
+    sc = make_scenario(f"openacc-train-{size}-v1")
+    assert (sc.target_gap_m, sc.target_speed_mps, sc.default_vehicles) == (gap, 11.0, 4)
+    a, b = sc.episodes([1, 2, 3], 4), sc.episodes([1, 2, 3], 4)
+    np.testing.assert_array_equal(a.leader_speed_mps, b.leader_speed_mps)
+    np.testing.assert_array_equal(a.gap_m, b.gap_m)
+    assert len({tuple(row) for row in a.leader_speed_mps.round(6)}) == 3
+    assert np.all((a.gap_m >= 0.8 * gap) & (a.gap_m <= 1.4 * gap))
+    window = make_scenario(f"openacc-{size}-v1").episodes([0], 4).leader_speed_mps[0]
+    many = sc.episodes(list(range(200)), 4).leader_speed_mps
+    assert np.abs(many - window).max(axis=1).min() > 0.5  # no episode replays the window
