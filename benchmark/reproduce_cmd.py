@@ -39,9 +39,9 @@ class Budget:
 
 
 BUDGETS: dict[str, Budget] = {
-    "quick": Budget("quick", 1_800, (0, 1, 2), 2,
-                    "smoke test of the pipeline: 1,800 training steps per run, 2 evaluation "
-                    "episodes; its numbers say nothing about the algorithms"),
+    "quick": Budget("quick", 1_800, (0, 1), 2,
+                    "smoke test of the pipeline: 2 training seeds x 1,800 steps per run, 2 "
+                    "evaluation episodes; its numbers say nothing about the algorithms"),
     "paper": Budget("paper", 600_000, (0, 1, 2), 50,
                     "the paper's protocol: 3 training seeds x 6e5 steps, the 50 published "
                     "evaluation seeds"),
@@ -55,6 +55,19 @@ ABLATIONS: dict[str, tuple[str, dict[str, Any]]] = {"bdc-noqsgd": ("bdc", {"qsgd
 
 DEFAULT_SCENARIOS = ("catchup-v1", "slowdown-v1")
 N_VEHICLES = 8
+
+#: The platoon-size study (paper Figs. 7, 8): these algorithms at these N (and 8) on catchup-v1.
+SIZE_ALGOS: tuple[str, ...] = ("bdc", "ia2c")
+SIZES: tuple[int, ...] = (2, 4, 6)
+SIZE_SCENARIO = "catchup-v1"
+
+#: The OpenACC study (paper Table III): test window -> the training family BDC learns on.
+OPENACC_GROUPS: dict[str, str] = {"openacc-s-v1": "openacc-train-s-v1",
+                                  "openacc-m-v1": "openacc-train-m-v1",
+                                  "openacc-l-v1": "openacc-train-l-v1"}
+OPENACC_VEHICLES = 4
+OPENACC_BASELINES: tuple[str, ...] = ("openacc-real", "cacc", "mpc")
+STUDIES = ("ablations", "sizes", "openacc")
 MANIFEST = "reproduce.json"
 
 
@@ -68,8 +81,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="comma list of MARL algorithms, or all (default: all seven)")
     p.add_argument("--scenarios", default=",".join(DEFAULT_SCENARIOS),
                    help="comma list of scenario ids (default: %(default)s)")
-    p.add_argument("--no-ablations", action="store_true",
-                   help="skip the ablations (BDC without QSGD)")
+    p.add_argument("--skip", default="",
+                   help="comma list of studies to leave out: " + ", ".join(STUDIES)
+                        + " (BDC without QSGD; BDC and IA2C at N = 2, 4, 6; BDC on OpenACC)")
     p.add_argument("--executor", choices=EXECUTORS, default="serial")
     p.add_argument("--workers", type=int, default=2, help="processes or Ray CPUs (default 2)")
     p.add_argument("--ray-address", default=None, help="attach to this Ray cluster")
@@ -79,27 +93,52 @@ def _parser() -> argparse.ArgumentParser:
 
 
 # ------------------------------------------------------------------------------ training
-def _train_plan(algos: list[str], scenarios: list[str], budget: Budget, out: Path,
-                ablations: bool) -> list[dict[str, Any]]:
-    """One job per (policy name, scenario, seed), with the tuned config and its folder."""
+def _job(name: str, algo: str, scenario: str, vehicles: int, seed: int, folder: Path,
+         options: dict[str, Any], budget: Budget, study: str) -> dict[str, Any]:
+    return {"name": name, "algo": algo, "scenario": scenario, "vehicles": vehicles,
+            "steps": budget.steps, "seed": seed, "out": str(folder), "options": options,
+            "progress": False, "study": study}
+
+
+def _tuned(algo: str, config_scenario: str, extra: dict[str, Any], label: str) -> dict[str, Any]:
     from benchmark.train_cmd import tuned_options
     from controllers.registry import build_config
     from marl.common import algorithm
 
+    options = {**tuned_options(algo, config_scenario), **extra}
+    config = build_config(algorithm(algo).config_cls, options, f"{label} (tuned)")
+    return {f: getattr(config, f) for f in options}
+
+
+def _train_plan(algos: list[str], scenarios: list[str], budget: Budget, out: Path,
+                studies: set[str]) -> list[dict[str, Any]]:
+    """Every training run of the reproduction, with its tuned config and its folder.
+
+    - ``main``: each algorithm (and ablation) on each scenario at N = 8;
+    - ``sizes``: :data:`SIZE_ALGOS` at N in :data:`SIZES` on catchup-v1 (catchup-v1's tuned config);
+    - ``openacc``: BDC on each OpenACC training family at N = 4 (catchup-v1's tuned config).
+    """
+    ckpt = out / "checkpoints"
     variants: list[tuple[str, str, dict[str, Any]]] = [(a, a, {}) for a in algos]
-    if ablations:
+    if "ablations" in studies:
         variants += [(name, a, extra) for name, (a, extra) in ABLATIONS.items() if a in algos]
     jobs = []
     for name, algo, extra in variants:
-        folder = out / "checkpoints" if name == algo else out / "checkpoints" / name
+        folder = ckpt if name == algo else ckpt / name
         for sc in scenarios:
-            options = {**tuned_options(algo, sc), **extra}
-            config = build_config(algorithm(algo).config_cls, options, f"{name} (tuned)")
-            options = {f: getattr(config, f) for f in options}
-            for seed in budget.seeds:
-                jobs.append({"name": name, "algo": algo, "scenario": sc, "vehicles": N_VEHICLES,
-                             "steps": budget.steps, "seed": seed, "out": str(folder),
-                             "options": options, "progress": False})
+            options = _tuned(algo, sc, extra, name)
+            jobs += [_job(name, algo, sc, N_VEHICLES, seed, folder, options, budget, "main")
+                     for seed in budget.seeds]
+    if "sizes" in studies and SIZE_SCENARIO in scenarios:
+        for algo in (a for a in SIZE_ALGOS if a in algos):
+            options = _tuned(algo, SIZE_SCENARIO, {}, algo)
+            jobs += [_job(algo, algo, SIZE_SCENARIO, n, seed, ckpt, options, budget, "sizes")
+                     for n in SIZES for seed in budget.seeds]
+    if "openacc" in studies and "bdc" in algos:
+        options = _tuned("bdc", SIZE_SCENARIO, {}, "bdc")
+        jobs += [_job("bdc", "bdc", train_id, OPENACC_VEHICLES, seed, ckpt, options, budget,
+                      "openacc")
+                 for train_id in OPENACC_GROUPS.values() for seed in budget.seeds]
     return jobs
 
 
@@ -207,48 +246,69 @@ def train_stage(jobs: list[dict[str, Any]], budget: Budget, args: argparse.Names
     print(f"training: {len(jobs) - len(todo)} of {len(jobs)} policies ready, {len(todo)} to train",
           file=sys.stderr)
     progress = Progress(len(todo), "training runs")
-    by_key = {(j["algo"], j["scenario"], j["seed"], j["out"]): j for j in todo}
+    by_key = {str(Path(j["out"]) / f"{_stem(j)}.pt"): j for j in todo}
     for res in map_jobs(_train_job, todo, args.executor, args.workers, args.ray_address):
-        job = by_key[(res["algo"], res["scenario"], res["seed"],
-                      str(Path(res["checkpoint"]).parent))]
+        job = by_key[str(Path(res["checkpoint"]))]
         _record_trained(job)
         progress.advance(note=f"{job['name']} {job['scenario']} s{job['seed']}")
     progress.close()
 
 
 # ------------------------------------------------------------------------------ evaluation
-def _controllers(jobs: list[dict[str, Any]]) -> tuple[list[tuple[str, dict[str, str]]], dict[str, str]]:
-    """The sweep's controllers and the map label -> name shown in the tables."""
+def _policy(job: dict[str, Any]) -> tuple[str, dict[str, str]]:
+    opts = {"checkpoint_dir": job["out"], "seed": str(job["seed"])}
+    if job["study"] == "openacc":
+        opts["scenario"] = job["scenario"]
+    return job["algo"], opts
+
+
+def eval_keys(jobs: list[dict[str, Any]], scenarios: list[str], budget: Budget) -> tuple[list[Any], dict[str, str]]:
+    """The evaluation runs of every study and the map label -> name shown in the tables."""
+    from benchmark.suite import build_sweep, seeds_from_episodes
     from controllers.registry import controller_label
 
-    ctrls: list[tuple[str, dict[str, str]]] = [(b, {}) for b in BASELINES]
-    names = {b: b for b in BASELINES}
-    seen = set()
+    seeds = seeds_from_episodes(budget.episodes)
+    names: dict[str, str] = {}
+    keys: set[Any] = set()
+
+    def add(ctrls: list[tuple[str, dict[str, str]]], scs: list[str], ns: list[int],
+            shown: list[str]) -> None:
+        keys.update(build_sweep(ctrls, scs, ns, seeds))
+        for (algo, opts), name in zip(ctrls, shown, strict=True):
+            names[controller_label(algo, opts)] = name
+
+    seen: dict[str, tuple[str, tuple[str, dict[str, str]]]] = {}
     for j in jobs:
-        key = (j["name"], j["seed"])
-        if key in seen:
-            continue
-        seen.add(key)
-        opts = {"checkpoint_dir": j["out"], "seed": str(j["seed"])}
-        ctrls.append((j["algo"], opts))
-        names[controller_label(j["algo"], opts)] = j["name"]
-    return ctrls, names
+        algo, opts = _policy(j)
+        seen.setdefault(json.dumps([j["study"], algo, opts], sort_keys=True), (j["name"], (algo, opts)))
+    by_study: dict[str, list[tuple[str, tuple[str, dict[str, str]]]]] = {}
+    for key, val in seen.items():
+        by_study.setdefault(json.loads(key)[0], []).append(val)
+    main_pol = by_study.get("main", [])
+    add([(b, {}) for b in BASELINES] + [c for _, c in main_pol], scenarios, [N_VEHICLES],
+        list(BASELINES) + [n for n, _ in main_pol])
+    size_pol = by_study.get("sizes", [])
+    if size_pol:
+        add([("ovm", {})] + [c for _, c in size_pol], [SIZE_SCENARIO], list(SIZES),
+            ["ovm"] + [n for n, _ in size_pol])
+    for test_id, train_id in OPENACC_GROUPS.items():
+        pol = [(n, c) for n, c in by_study.get("openacc", []) if c[1]["scenario"] == train_id]
+        if pol:
+            add([(b, {}) for b in OPENACC_BASELINES] + [c for _, c in pol], [test_id],
+                [OPENACC_VEHICLES], list(OPENACC_BASELINES) + [n for n, _ in pol])
+    return sorted(keys), names
 
 
 def eval_stage(jobs: list[dict[str, Any]], scenarios: list[str], budget: Budget,
                args: argparse.Namespace, out: Path) -> dict[str, str]:
     """Run every policy and baseline on the evaluation seeds (resumable store)."""
     from benchmark.run_cmd import execute_sweep
-    from benchmark.suite import build_sweep, seeds_from_episodes
 
-    ctrls, names = _controllers(jobs)
-    seeds = seeds_from_episodes(budget.episodes)
-    keys = build_sweep(ctrls, scenarios, [N_VEHICLES], seeds)
-    print(f"evaluation: {len(keys)} runs ({len(ctrls)} controllers x {len(scenarios)} scenarios "
-          f"x {len(seeds)} episodes)", file=sys.stderr)
+    keys, names = eval_keys(jobs, scenarios, budget)
+    print(f"evaluation: {len(keys)} runs", file=sys.stderr)
     rc = execute_sweep(keys, out / "runs", resume=True, executor=args.executor,
                        workers=args.workers, ray_address=args.ray_address, quiet=True,
-                       first_seed=seeds[0], pool_seeds=True)
+                       first_seed=min(k.seed for k in keys), pool_seeds=True)
     if rc != 0:
         raise ConfigError(f"some evaluation runs failed (see {out / 'runs' / 'runs.csv'}); fix the "
                           "cause and rerun with --resume")
@@ -256,11 +316,15 @@ def eval_stage(jobs: list[dict[str, Any]], scenarios: list[str], budget: Budget,
 
 
 # ------------------------------------------------------------------------------ report
-def _curves(jobs: list[dict[str, Any]]) -> dict[tuple[str, str, int], Any]:
+def _curves(jobs: list[dict[str, Any]], study: str = "main",
+            by_size: bool = False) -> dict[tuple[str, str, int], Any]:
+    """Training curves of one study, keyed (name, scenario, seed); ``by_size`` names them
+    ``<name> N=<n>``."""
     import pandas as pd
 
-    return {(j["name"], j["scenario"], j["seed"]):
-            pd.read_csv(Path(j["out"]) / f"{_stem(j)}.curve.csv") for j in jobs}
+    return {(f"{j['name']} N={j['vehicles']}" if by_size else j["name"], j["scenario"], j["seed"]):
+            pd.read_csv(Path(j["out"]) / f"{_stem(j)}.curve.csv")
+            for j in jobs if j["study"] == study}
 
 
 def _machine() -> str:
@@ -283,11 +347,14 @@ def write_report(jobs: list[dict[str, Any]], names: dict[str, str], scenarios: l
 
     fig_dir = out / "figures"
     curves = _curves(jobs)
-    policy_names = list(dict.fromkeys(j["name"] for j in jobs))
+    policy_names = list(dict.fromkeys(j["name"] for j in jobs if j["study"] == "main"))
     with ResultStore(out / "runs", create=False) as store:
         records = store.records()
-        runs = runs_frame(records)
-        runs = runs[runs["status"] == "ok"]
+        all_runs = runs_frame(records)
+        all_runs = all_runs[all_runs["status"] == "ok"]
+        runs = all_runs[(all_runs["n_vehicles"] == N_VEHICLES) & all_runs["scenario"].isin(scenarios)]
+        records = [r for r in records
+                   if r["n_vehicles"] == N_VEHICLES and r["scenario"] in scenarios]
         t1 = rp.table_one(curves, policy_names)
         t1.to_csv(out / "table1.csv", index=False)
         t2 = rp.table_two(runs, names)
@@ -398,14 +465,8 @@ def write_report(jobs: list[dict[str, Any]], names: dict[str, str], scenarios: l
     for sc in scenarios:
         verdicts += [rp.energy_claim(runs, names, sc), rp.reward_claim(t2, sc),
                      rp.convergence_claim(curves, sc), rp.qsgd_claim(t2, sc)]
-    verdicts += [
-        rp.not_testable("A platoon of 6 vehicles is the best balance (Figs. 7, 8)",
-                        "this report trains N = 8 only; the platoon-size study is not part of it "
-                        "yet"),
-        rp.not_testable("BDC-MARL's IVS varies less than real ACC on the OpenACC windows "
-                        "(Table III)", "no OpenACC training scenario family yet; BDC is not "
-                        "trained for v* = 11 m/s, N = 4"),
-    ]
+    lines += _size_section(jobs, all_runs, names, fig_dir, out, verdicts)
+    lines += _openacc_section(jobs, all_runs, names, out, verdicts)
     claims = pd.DataFrame([dataclasses.asdict(v) for v in verdicts])
     claims.to_csv(out / "claims.csv", index=False)
     lines += ["## The paper's claims", "",
@@ -443,6 +504,74 @@ def _scenario_reading(t2: Any) -> str:
             "ours is the signed mean (`accel_rms_mps2` is in runs.csv).")
 
 
+def _size_section(jobs: list[dict[str, Any]], runs: Any, names: dict[str, str], fig_dir: Path,
+                  out: Path, verdicts: list[Any]) -> list[str]:
+    """Platoon size (Figs. 7, 8): curves per N, test metrics per N, the "6 is best" claim."""
+    from analysis import reproduction as rp
+
+    claim = "A platoon of 6 vehicles is the best balance (Figs. 7, 8)"
+    size_jobs = [j for j in jobs if j["study"] == "sizes"]
+    if not size_jobs:
+        verdicts.append(rp.not_testable(claim, "the size study was skipped (or catchup-v1 not run)"))
+        return []
+    main8 = [dict(j, study="sizes") for j in jobs if j["study"] == "main"
+             and j["scenario"] == SIZE_SCENARIO and j["algo"] in SIZE_ALGOS and j["name"] == j["algo"]]
+    curves = _curves(size_jobs + main8, "sizes", by_size=True)
+    lines = ["## Platoon size (Figs. 7, 8)", "",
+             f"{', '.join(SIZE_ALGOS)} trained at N = {', '.join(map(str, SIZES))} and "
+             f"{N_VEHICLES} on {SIZE_SCENARIO} (its tuned config at N = 8), each size evaluated on "
+             "the same episodes; power per vehicle is the platoon's over N, its std is across "
+             "episodes; IVS std is the mean within-run std.", ""]
+    for algo in SIZE_ALGOS:
+        group = sorted({k[0] for k in curves if k[0].startswith(algo + " ")},
+                       key=lambda x: int(x.split("=")[1]))
+        if group:
+            stem = f"curves_sizes__{algo}"
+            rp.learning_curve_figure(curves, group, SIZE_SCENARIO, fig_dir, stem,
+                                     f"{algo} at each platoon size on {SIZE_SCENARIO} (Fig. 7)")
+            lines.append(f"![{algo} sizes](figures/{stem}.png)")
+    sizes = rp.size_table(runs, names, SIZE_SCENARIO)
+    sizes = sizes[sizes["n_vehicles"].isin([*SIZES, N_VEHICLES])
+                  & sizes["name"].isin([*SIZE_ALGOS, "ovm"])]
+    sizes.to_csv(out / "sizes.csv", index=False)
+    lines += ["", rp.format_table(sizes, [
+        ("name", "controller"), ("n_vehicles", "N"), ("collisions", "collisions"),
+        ("reward_mean", "reward"), ("power_per_vehicle_kw_avg", "power/veh kW"),
+        ("power_per_vehicle_kw_std", "std"), ("ivs_m_avg", "IVS m"),
+        ("ivs_within_std_m", "IVS std m"), ("speed_mps_avg", "speed m/s"),
+        ("energy_kwh_per_100km", "kWh/100 km")], 3), ""]
+    verdicts.append(rp.size_claim(sizes))
+    return lines
+
+
+def _openacc_section(jobs: list[dict[str, Any]], runs: Any, names: dict[str, str], out: Path,
+                     verdicts: list[Any]) -> list[str]:
+    """Table III: BDC trained on the OpenACC families, tested on the real windows."""
+    from analysis import reproduction as rp
+
+    claim = "BDC-MARL's IVS varies less than real ACC on the OpenACC windows (Table III)"
+    if not any(j["study"] == "openacc" for j in jobs):
+        verdicts.append(rp.not_testable(claim, "the OpenACC study was skipped (or BDC not run)"))
+        return []
+    t3 = rp.table_three(runs, names)
+    t3.to_csv(out / "table3.csv", index=False)
+    cols = [("group", "group"), ("name", "controller"), ("collisions", "collisions")]
+    for key, label in (("speed_mps", "velocity m/s"), ("ivs_m", "IVS m"),
+                       ("accel_mps2", "acceleration m/s^2")):
+        cols += [(f"{key}_avg", f"{label} avg"), (f"paper_{key}_avg", "paper"),
+                 (f"{key}_std", "std"), (f"paper_{key}_std", "paper")]
+    cols += [("energy_kwh", "total energy kWh"), ("paper_energy_kwh", "paper")]
+    verdicts.append(rp.openacc_claim(t3))
+    return ["## OpenACC (Table III)", "",
+            f"BDC trained at N = {OPENACC_VEHICLES} on the randomised families "
+            f"{', '.join(OPENACC_GROUPS.values())} (never on the test windows; catchup-v1's tuned "
+            "config), tested on the real windows beside the recorded ACC followers "
+            "(`openacc-real`), `cacc` and `mpc`. Std here is within the run (vehicles and steps), "
+            "as for one recorded run. Group M uses ZalaZONE dynamic_part8 1250-1310 s in place of "
+            "the paper's unavailable dynamic_part9 (its leader runs at about 8 m/s, not 11).", "",
+            rp.format_table(t3, cols, 3), ""]
+
+
 # ------------------------------------------------------------------------------ main
 def main(argv: list[str]) -> int:
     """Entry point of ``cacc-bench reproduce``."""
@@ -471,8 +600,13 @@ def main(argv: list[str]) -> int:
     if out.exists() and not out.is_dir():
         raise ConfigError(f"--out {out} exists and is not a folder")
     manifest_path = out / MANIFEST
+    skip = [x.strip() for x in args.skip.split(",") if x.strip()]
+    for x in skip:
+        if x not in STUDIES:
+            raise UnknownNameError("study", x, STUDIES)
+    studies = {x for x in STUDIES if x not in skip}
     settings = {"budget": budget.name, "algos": algos, "scenarios": scenarios,
-                "ablations": not args.no_ablations}
+                "studies": sorted(studies)}
     previous = json.loads(manifest_path.read_text()) if manifest_path.exists() else None
     if previous is not None:
         if not args.resume:
@@ -483,7 +617,7 @@ def main(argv: list[str]) -> int:
                               f"({previous.get('settings')}); use another --out")
     elif out.exists() and any(out.iterdir()) and not args.resume:
         raise ConfigError(f"{out} is not empty; choose another --out (or --resume)")
-    jobs = _train_plan(algos, scenarios, budget, out, not args.no_ablations)
+    jobs = _train_plan(algos, scenarios, budget, out, studies)
     out.mkdir(parents=True, exist_ok=True)
     manifest: dict[str, Any] = {"settings": settings,
                                 "command": "cacc-bench reproduce " + " ".join(argv)}

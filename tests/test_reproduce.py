@@ -13,7 +13,7 @@ import pandas as pd
 import pytest
 
 from analysis import reproduction as rp
-from analysis.paper import TABLE_I_REWARD, TABLE_II
+from analysis.paper import TABLE_I_REWARD, TABLE_II, TABLE_III
 from benchmark.cli import main as cli
 
 VERDICTS = {"holds", "does not hold", "inconclusive", "not testable here"}
@@ -144,18 +144,30 @@ def test_reproduce_writes_the_report_tables_and_claims(tiny_reproduction: Path) 
     for section in ("## Table I", "## Table II", "## Learning curves", "## The paper's claims"):
         assert section in report
     t1 = pd.read_csv(out / "table1.csv")
-    assert set(t1["algo"]) == {"bdc", "bdc-noqsgd"} and set(t1["n_seeds"]) == {3}
+    assert set(t1["algo"]) == {"bdc", "bdc-noqsgd"} and set(t1["n_seeds"]) == {2}
     t2 = pd.read_csv(out / "table2.csv")
     assert {"ovm", "duty", "cacc", "mpc", "mpc-qp", "cmpc", "bdc", "bdc-noqsgd"} <= set(t2["name"])
     bdc = t2.set_index("name").loc["bdc"]
-    assert bdc["n_episodes"] == 6  # 3 training seeds x 2 episodes
+    assert bdc["n_episodes"] == 4  # 2 training seeds x 2 episodes
     assert bdc["paper_ivs_m_avg"] == TABLE_II["bdc"]["ivs_m"][0]
     claims = pd.read_csv(out / "claims.csv")
     assert set(claims["verdict"]) <= VERDICTS and len(claims) >= 6
     for fig in ("curves_marl__catchup-v1.png", "radar__catchup-v1.png",
                 "timeseries__bdc__catchup-v1.png"):
         assert (out / "figures" / fig).stat().st_size > 0
-    assert len(list((out / "checkpoints").glob("*.source.json"))) == 3
+    # main 2 + ablation 2 + sizes 3 x 2 + OpenACC 3 x 2
+    assert len(list((out / "checkpoints").rglob("*.source.json"))) == 16
+    sizes = pd.read_csv(out / "sizes.csv")
+    assert set(sizes["n_vehicles"]) == {2, 4, 6, 8} and set(sizes["name"]) == {"bdc", "ovm"}
+    t3 = pd.read_csv(out / "table3.csv")
+    assert set(t3["group"]) == {"S", "M", "L"}
+    assert set(t3["name"]) == {"openacc-real", "cacc", "mpc", "bdc"}
+    real_s = t3[(t3["group"] == "S") & (t3["name"] == "openacc-real")].iloc[0]
+    assert real_s["paper_ivs_m_std"] == TABLE_III["S"]["openacc"]["ivs_m"][1]
+    assert "## Platoon size" in report and "## OpenACC (Table III)" in report
+    assert (out / "figures" / "curves_sizes__bdc.png").stat().st_size > 0
+    # never trained on a test window
+    assert not list((out / "checkpoints").rglob("*__openacc-[sml]-v1__*"))
 
 
 def test_reproduce_refuses_a_used_folder_and_resumes_without_redoing(
@@ -181,6 +193,8 @@ def test_quick_budget_reproduces_everything_in_minutes(tmp_path: Path) -> None:
     """The whole quick reproduction (seven algorithms, the ablation, two scenarios)."""
     assert cli(["reproduce", "--budget", "quick", "--out", str(tmp_path / "q"),
                 "--executor", "process", "--workers", "2"]) == 0
+    assert len(list((tmp_path / "q" / "checkpoints").rglob("*.source.json"))) == 2 * (
+        2 * 8 + 2 * 3 + 3)
     claims = pd.read_csv(tmp_path / "q" / "claims.csv")
     assert set(claims["verdict"]) <= VERDICTS
     assert "not testable here" != claims.set_index("claim").iloc[2]["verdict"]  # convergence ran
