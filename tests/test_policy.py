@@ -270,3 +270,20 @@ def test_shipped_policies_on_the_evaluation_seeds(scenario) -> None:
             else:
                 assert pooled["collisions"] == 2
                 assert pooled["reward"] < ovm["reward"] - 500
+
+
+def test_bdc_slowdown_curves_never_reach_the_bar() -> None:
+    """``docs/bdc-slowdown-study.md``: in the learning curves of the three shipped BDC seeds on
+    slowdown-v1, every evaluated snapshot either collides (sampled validation) or scores -1,701
+    or worse; ``ovm`` scores about -731."""
+    import pandas as pd
+
+    from controllers.policy import CHECKPOINT_DIR
+
+    best = []
+    for seed in (0, 1, 2):
+        curve = pd.read_csv(CHECKPOINT_DIR / f"bdc__slowdown-v1__n8__s{seed}.curve.csv")
+        ev = curve.dropna(subset=["eval_reward_sampled"])
+        assert len(ev) == 27
+        best.append(ev.loc[ev["eval_collisions_sampled"] == 0, "eval_reward_sampled"].max())
+    assert np.round(best, 1).tolist() == [-2052.6, -1701.5, -1854.6]
