@@ -23,6 +23,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "train": ("benchmark.train_cmd", "train a MARL algorithm"),
     "tune": ("benchmark.tune_cmd", "tune every MARL algorithm with the same budget (Optuna)"),
     "reproduce": ("benchmark.reproduce_cmd", "the paper's tables, curves and claims in one report"),
+    "pareto": ("benchmark.pareto_cmd", "energy against spacing error for every controller family"),
     "fit-power": ("benchmark.fit_power", "re-fit the energy polynomial and print its quality"),
     "perf": ("benchmark.perf", "environment, controller and training throughput"),
 }

@@ -1,0 +1,127 @@
+"""Energy against spacing: the trade-off each controller family reaches (``cacc-bench pareto``).
+
+Pure functions of ``runs.csv`` rows: one point per controller setting with bootstrap intervals
+over episodes, the non-dominated set, and the figure.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from analysis.statistics import bootstrap_ci
+
+#: The two objectives, both minimised: energy per vehicle and spacing error.
+OBJECTIVES: tuple[str, str] = ("energy_kwh_per_100km", "gap_rmse_m")
+
+PARETO_COLUMNS: tuple[str, ...] = (
+    "scenario", "family", "controller", "knob", "knob_value",
+    "energy_kwh_per_100km_mean", "energy_kwh_per_100km_ci_low", "energy_kwh_per_100km_ci_high",
+    "gap_rmse_m_mean", "gap_rmse_m_ci_low", "gap_rmse_m_ci_high",
+    "speed_rmse_mps_mean", "string_gain_mean", "collisions", "n_episodes", "non_dominated",
+)
+
+
+def non_dominated(points: np.ndarray, eligible: np.ndarray | None = None) -> np.ndarray:
+    """Which rows of ``points`` (k, 2), both columns minimised, no other eligible row dominates.
+
+    A row dominates another when it is no worse in both columns and better in one. Rows not
+    ``eligible`` (e.g. settings that collided) are never marked and dominate nothing. NaN rows
+    are not marked.
+    """
+    p = np.asarray(points, dtype=np.float64)
+    ok = np.all(np.isfinite(p), axis=1)
+    if eligible is not None:
+        ok &= np.asarray(eligible, dtype=bool)
+    out = np.zeros(len(p), dtype=bool)
+    for i in np.flatnonzero(ok):
+        others = p[ok]
+        dominated = np.any(np.all(others <= p[i], axis=1) & np.any(others < p[i], axis=1))
+        out[i] = not dominated
+    return out
+
+
+def pareto_frame(runs: Any, settings: Sequence[dict[str, Any]]) -> Any:
+    """One row per scenario and setting (see :data:`PARETO_COLUMNS`).
+
+    Parameters
+    ----------
+    runs : DataFrame
+        ``runs.csv`` rows with status ok.
+    settings : sequence of dict
+        ``label`` (the leaderboard label), ``family``, ``controller``, ``knob``, ``knob_value``.
+    """
+    import pandas as pd
+
+    rows = []
+    for scenario in sorted(runs["scenario"].unique()):
+        sub = runs[runs["scenario"] == scenario]
+        for s in settings:
+            g = sub[sub["controller"] == s["label"]]
+            if g.empty:
+                continue
+            row = {"scenario": scenario, "family": s["family"], "controller": s["label"],
+                   "knob": s["knob"], "knob_value": s["knob_value"]}
+            for metric in OBJECTIVES:
+                m, lo, hi = bootstrap_ci(g[metric].to_numpy(dtype=float))
+                row.update({f"{metric}_mean": m, f"{metric}_ci_low": lo, f"{metric}_ci_high": hi})
+            row["speed_rmse_mps_mean"] = float(g["speed_rmse_mps"].mean())
+            row["string_gain_mean"] = float(g["string_gain"].mean())
+            row["collisions"] = int(g["collision"].sum())
+            row["n_episodes"] = len(g)
+            rows.append(row)
+    df = pd.DataFrame(rows, columns=[c for c in PARETO_COLUMNS if c != "non_dominated"])
+    df["non_dominated"] = False
+    for _, idx in df.groupby("scenario").groups.items():
+        part = df.loc[idx]
+        pts = part[[f"{m}_mean" for m in OBJECTIVES]].to_numpy()
+        df.loc[idx, "non_dominated"] = non_dominated(pts, (part["collisions"] == 0).to_numpy())
+    return df[list(PARETO_COLUMNS)]
+
+
+def plot_pareto(df: Any, scenario: str, out_dir: Path, stem: str) -> list[Path]:
+    """Energy per vehicle against gap RMSE, one curve per family (its knob in order), 95 %
+    intervals as error bars, non-dominated points ringed, collided settings hollow."""
+    from analysis.plots import _plt, _save
+
+    plt = _plt()
+    sub = df[df["scenario"] == scenario]
+    fig, ax = plt.subplots(figsize=(8, 5.5))
+    families = list(dict.fromkeys(sub["family"]))
+    cmap = plt.get_cmap("tab20")
+    for j, fam in enumerate(families):
+        g = sub[sub["family"] == fam].sort_values("knob_value", key=_numeric)
+        color = cmap(j % 20)
+        x, y = g["gap_rmse_m_mean"].to_numpy(), g["energy_kwh_per_100km_mean"].to_numpy()
+        xerr = np.abs(np.vstack([x - g["gap_rmse_m_ci_low"], g["gap_rmse_m_ci_high"] - x]))
+        yerr = np.abs(np.vstack([y - g["energy_kwh_per_100km_ci_low"],
+                                 g["energy_kwh_per_100km_ci_high"] - y]))
+        ax.errorbar(x, y, xerr=xerr, yerr=yerr, color=color, marker="o", ms=4, lw=1,
+                    capsize=2, label=fam, linestyle="-" if len(g) > 1 else "none")
+        collided = (g["collisions"] > 0).to_numpy()
+        if collided.any():
+            ax.scatter(x[collided], y[collided], s=60, facecolors="white", edgecolors=color,
+                       zorder=3)
+        if len(g) > 1:
+            for xi, yi, k in zip(x, y, g["knob_value"], strict=True):
+                ax.annotate(f"{k}", (xi, yi), fontsize=6, xytext=(3, 3),
+                            textcoords="offset points", color=color)
+    nd = sub[sub["non_dominated"]]
+    ax.scatter(nd["gap_rmse_m_mean"], nd["energy_kwh_per_100km_mean"], s=140,
+               facecolors="none", edgecolors="black", linewidths=1.2, zorder=4,
+               label="non-dominated (no collision)")
+    ax.set_xlabel("gap RMSE (m)")
+    ax.set_ylabel("energy per vehicle (kWh/100 km)")
+    ax.set_title(f"energy against spacing on {scenario} (hollow: collided)", fontsize=10)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7, ncol=2)
+    return _save(fig, out_dir, stem)
+
+
+def _numeric(values: Any) -> Any:
+    import pandas as pd
+
+    return pd.to_numeric(values, errors="coerce")

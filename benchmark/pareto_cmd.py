@@ -1,0 +1,139 @@
+"""``cacc-bench pareto``: energy against spacing error for every controller family.
+
+Each family is swept along its own energy/tracking knob (``mpc``: the energy weight;
+``mpc-qp`` and ``cmpc``: the input weight against tracking; ``cacc``: time gap and gain);
+``ovm``, ``duty`` and the shipped MARL policies are single points. Runs go through the results
+store and the harness executors (resumable, identical on every executor); ``OUT/pareto.csv``
+and one figure per scenario come out.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any
+
+from benchmark.executors import EXECUTORS
+from envs.errors import ConfigError, UnknownNameError
+
+#: family -> (controller, knob, values). The defaults sit inside each sweep (mpc 0.25, w_accel
+#: 0.1, time gap 0.5 s, kp 0.2).
+SWEEPS: dict[str, tuple[str, str, tuple[float, ...]]] = {
+    "mpc (energy weight)": ("mpc", "energy_weight", (0.0, 0.1, 0.25, 0.5, 1.0, 2.0)),
+    "mpc-qp (input weight)": ("mpc-qp", "w_accel", (0.01, 0.03, 0.1, 0.3, 1.0, 3.0)),
+    "cmpc (input weight)": ("cmpc", "w_accel", (0.01, 0.1, 1.0, 3.0)),
+    "cacc (time gap)": ("cacc", "time_gap_s", (0.3, 0.5, 0.8, 1.2)),
+    "cacc (gain kp)": ("cacc", "kp", (0.1, 0.2, 0.4)),
+}
+
+#: Controllers shown as single points.
+POINTS: tuple[str, ...] = ("ovm", "duty")
+
+#: Families by the name ``--families`` takes.
+FAMILY_GROUPS: dict[str, tuple[str, ...]] = {
+    "mpc": ("mpc (energy weight)",),
+    "mpc-qp": ("mpc-qp (input weight)",),
+    "cmpc": ("cmpc (input weight)",),
+    "cacc": ("cacc (time gap)", "cacc (gain kp)"),
+    "points": (),
+    "marl": (),
+}
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="cacc-bench pareto", description=__doc__.split("\n")[0])
+    p.add_argument("--scenarios", default="catchup-v1",
+                   help="comma list of scenario ids (default: %(default)s)")
+    p.add_argument("--episodes", type=int, default=3,
+                   help="first K published evaluation seeds per setting (default: %(default)s)")
+    p.add_argument("--vehicles", type=int, default=8, help="followers N (default: 8)")
+    p.add_argument("--families", default=",".join(FAMILY_GROUPS),
+                   help="comma list among " + ", ".join(FAMILY_GROUPS) + " (default: all)")
+    p.add_argument("--out", default="results/pareto", help="output folder (default: %(default)s)")
+    p.add_argument("--resume", action="store_true", help="complete a sweep in --out")
+    p.add_argument("--executor", choices=EXECUTORS, default="serial",
+                   help="serial, process or ray (default: %(default)s)")
+    p.add_argument("--workers", type=int, default=2, help="processes or Ray CPUs (default 2)")
+    p.add_argument("--ray-address", default=None, help="attach to this Ray cluster")
+    return p
+
+
+def settings_for(families: list[str], scenarios: list[str], n_vehicles: int
+                 ) -> list[dict[str, Any]]:
+    """The controller settings of the chosen families: label, family, controller, knob, value,
+    options."""
+    from controllers.policy import checkpoint_path
+    from controllers.registry import controller_label
+    from marl.common import ALGORITHM_NAMES
+
+    out: list[dict[str, Any]] = []
+
+    def add(family: str, name: str, opts: dict[str, str], knob: str, value: Any) -> None:
+        out.append({"label": controller_label(name, opts), "family": family, "controller": name,
+                    "knob": knob, "knob_value": value, "options": opts})
+
+    for group in families:
+        for family in FAMILY_GROUPS[group]:
+            name, knob, values = SWEEPS[family]
+            for v in values:
+                add(family, name, {knob: f"{v:g}"}, knob, v)
+        if group == "points":
+            for name in POINTS:
+                add(name, name, {}, "", "")
+        if group == "marl":
+            for algo in ALGORITHM_NAMES:
+                if all(checkpoint_path(algo, sc, n_vehicles).exists() for sc in scenarios):
+                    add(f"marl {algo}", algo, {}, "", "")
+    return out
+
+
+def main(argv: list[str]) -> int:
+    """Entry point of ``cacc-bench pareto``."""
+    import pandas as pd
+
+    from analysis.pareto import pareto_frame, plot_pareto
+    from benchmark.run_cmd import execute_sweep
+    from benchmark.suite import build_sweep, seeds_from_episodes
+    from envs.scenarios import check_vehicles, make_scenario
+
+    args = _parser().parse_args(argv)
+    scenarios = list(dict.fromkeys(s.strip() for s in args.scenarios.split(",") if s.strip()))
+    if not scenarios:
+        raise ConfigError("--scenarios: nothing named")
+    for sc in scenarios:
+        make_scenario(sc)
+    families = list(dict.fromkeys(f.strip() for f in args.families.split(",") if f.strip()))
+    if not families:
+        raise ConfigError("--families: nothing named")
+    for f in families:
+        if f not in FAMILY_GROUPS:
+            raise UnknownNameError("family", f, FAMILY_GROUPS)
+    if args.episodes < 1:
+        raise ConfigError(f"--episodes must be >= 1, got {args.episodes}")
+    check_vehicles(args.vehicles)
+    settings = settings_for(families, scenarios, args.vehicles)
+    if not settings:
+        raise ConfigError("nothing to run: no shipped MARL policy for these scenarios and N")
+    seeds = seeds_from_episodes(args.episodes)
+    keys = build_sweep([(s["controller"], s["options"]) for s in settings], scenarios,
+                       [args.vehicles], seeds)
+    out = Path(args.out)
+    print(f"pareto: {len(settings)} settings x {len(scenarios)} scenarios x {len(seeds)} "
+          f"episodes = {len(keys)} runs", file=sys.stderr)
+    rc = execute_sweep(keys, out / "runs", resume=args.resume, executor=args.executor,
+                       workers=args.workers, ray_address=args.ray_address, quiet=True,
+                       first_seed=seeds[0])
+    runs = pd.read_csv(out / "runs" / "runs.csv")
+    runs = runs[(runs["status"] == "ok") & (runs["n_vehicles"] == args.vehicles)]
+    df = pareto_frame(runs, settings)
+    df.to_csv(out / "pareto.csv", index=False)
+    for sc in scenarios:
+        plot_pareto(df, sc, out / "figures", f"pareto__{sc}__n{args.vehicles}")
+    front = df[df["non_dominated"]]
+    print(f"wrote {out / 'pareto.csv'} ({len(df)} points, {len(front)} non-dominated) and "
+          f"{out / 'figures'}")
+    for _, r in front.iterrows():
+        print(f"  {r['scenario']}: {r['controller']} {r['energy_kwh_per_100km_mean']:.2f} "
+              f"kWh/100 km, gap RMSE {r['gap_rmse_m_mean']:.2f} m")
+    return rc

@@ -1,0 +1,75 @@
+"""``cacc-bench pareto``: the non-dominated set, the knobs' directions, determinism."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from analysis.pareto import PARETO_COLUMNS, non_dominated
+from benchmark.cli import main as cli
+
+
+def test_non_dominated_on_a_hand_made_set() -> None:
+    pts = np.array([
+        [1.0, 5.0],   # front
+        [2.0, 3.0],   # front
+        [3.0, 3.0],   # dominated by [2, 3] (equal in one, worse in the other)
+        [4.0, 1.0],   # front
+        [4.0, 4.0],   # dominated
+        [0.5, 0.5],   # best of all, but not eligible (collided): dominates nothing
+        [np.nan, 0.0],  # NaN: never marked
+        [2.0, 3.0],   # a tie with a front point: neither dominates the other
+    ])
+    eligible = np.array([True, True, True, True, True, False, True, True])
+    assert non_dominated(pts, eligible).tolist() == [True, True, False, True, False, False, False,
+                                                    True]
+    assert non_dominated(pts[:5]).tolist() == [True, True, False, True, False]
+
+
+def _energy_and_gap(tmp_path: Path, controllers: str) -> pd.DataFrame:
+    out = tmp_path / "r"
+    assert cli(["run", "--controllers", controllers, "--scenarios", "catchup-v1", "--vehicles", "2",
+                "--episodes", "1", "--out", str(out), "--quiet"]) == 0
+    return pd.read_csv(out / "runs.csv").set_index("controller")
+
+
+def test_more_energy_weight_spends_less_energy_in_mpc(tmp_path: Path) -> None:
+    runs = _energy_and_gap(tmp_path, "mpc:energy_weight=0,mpc:energy_weight=2")
+    e0 = runs.loc["mpc[energy_weight=0]", "energy_kwh_per_100km"]
+    e2 = runs.loc["mpc[energy_weight=2]", "energy_kwh_per_100km"]
+    assert e2 < e0 - 0.1
+
+
+def test_input_weight_and_time_gap_trade_energy_for_spacing(tmp_path: Path) -> None:
+    runs = _energy_and_gap(tmp_path, "mpc-qp:w_accel=0.01,mpc-qp:w_accel=3,"
+                                     "cacc:time_gap_s=0.3,cacc:time_gap_s=1.2")
+    lo, hi = runs.loc["mpc-qp[w_accel=0.01]"], runs.loc["mpc-qp[w_accel=3]"]
+    assert hi["energy_kwh_per_100km"] < lo["energy_kwh_per_100km"]
+    assert hi["gap_rmse_m"] > lo["gap_rmse_m"]
+    short, long_ = runs.loc["cacc[time_gap_s=0.3]"], runs.loc["cacc[time_gap_s=1.2]"]
+    assert long_["energy_kwh_per_100km"] < short["energy_kwh_per_100km"]
+    assert long_["gap_rmse_m"] > short["gap_rmse_m"]
+
+
+def _pareto(out: Path, executor: str) -> pd.DataFrame:
+    assert cli(["pareto", "--families", "cacc,points", "--episodes", "2", "--vehicles", "2",
+                "--out", str(out), "--executor", executor, "--workers", "2"]) == 0
+    return pd.read_csv(out / "pareto.csv")
+
+
+def test_pareto_csv_is_identical_across_executors_and_reruns(tmp_path: Path) -> None:
+    serial = _pareto(tmp_path / "a", "serial")
+    assert list(serial.columns) == list(PARETO_COLUMNS)
+    assert set(serial["family"]) == {"cacc (time gap)", "cacc (gain kp)", "ovm", "duty"}
+    assert (serial["n_episodes"] == 2).all() and serial["non_dominated"].any()
+    assert (tmp_path / "a" / "figures" / "pareto__catchup-v1__n2.png").stat().st_size > 0
+    pd.testing.assert_frame_equal(_pareto(tmp_path / "b", "process"), serial)
+    pd.testing.assert_frame_equal(_pareto(tmp_path / "c", "serial"), serial)
+
+
+def test_pareto_bad_family_exits_2(capsys: pytest.CaptureFixture[str]) -> None:
+    assert cli(["pareto", "--families", "mpc,nope"]) == 2
+    assert "nope" in capsys.readouterr().err
