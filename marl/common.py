@@ -757,10 +757,6 @@ class Trainer:
     ) -> None:
         cfg = self.config
         logits, values, actions = self._recompute(seg_state, record)
-        logp_all = torch.log_softmax(logits, -1)  # (T, N, B, 4)
-        logp = logp_all.gather(-1, actions.unsqueeze(-1)).squeeze(-1).transpose(1, 2)
-        ent = -(logp_all.exp() * logp_all).sum(-1).transpose(1, 2)  # (T, B, N)
-        values = values.transpose(1, 2)
         mask = torch.from_numpy(np.stack(masks)).to(torch.float32).unsqueeze(-1)  # (T, B, 1)
         term = torch.from_numpy(np.stack(terms))
         reward = torch.from_numpy(np.stack(rews)).to(torch.float32)
@@ -772,15 +768,9 @@ class Trainer:
         if cfg.return_norm:
             reward = reward / self._return_scale(reward, term, mask)
         returns = nstep_returns(reward, bootstrap, term, cfg.gamma)  # (T, B, N)
-        count = mask.sum().clamp(min=1.0)
-        adv = (returns - values).detach()
-        if cfg.advantage_norm:
-            adv = normalise_advantages(adv, mask)
-        policy_loss = -(logp * adv * mask).sum() / count
-        value_loss = 0.5 * ((returns - values).square() * mask).sum() / count
-        entropy = (ent * mask).sum() / count
+        terms_ = a2c_losses(logits, actions, values, returns, mask, cfg.advantage_norm)
         ent_coef = cfg.entropy_at(self.steps / self.total_steps if self.total_steps else 0.0)
-        loss = policy_loss + cfg.value_coef * value_loss - ent_coef * entropy
+        loss = terms_["policy"] + cfg.value_coef * terms_["value"] - ent_coef * terms_["entropy"]
         self.optimizer.zero_grad(set_to_none=False)
         loss.backward()
         per_agent_clip_(self.params, cfg.grad_clip)
@@ -801,6 +791,53 @@ class Trainer:
                 "before this batch); lower the learning rates (actor_lr, critic_lr, lr_scale) "
                 "or check the algorithm's options. The best checkpoint evaluated so far is kept."
             )
+
+
+def a2c_losses(
+    logits: torch.Tensor,
+    actions: torch.Tensor,
+    values: torch.Tensor,
+    returns: torch.Tensor,
+    mask: torch.Tensor,
+    advantage_norm: bool = False,
+) -> dict[str, torch.Tensor]:
+    """The three terms of the A2C loss over one segment.
+
+    Parameters
+    ----------
+    logits : (T, N, B, 4)
+        Action logits of every agent, step and episode, with gradient.
+    actions : (T, N, B) int64
+        Actions taken.
+    values : (T, N, B)
+        Critic values, with gradient.
+    returns : (T, B, N)
+        n-step returns (targets, no gradient).
+    mask : (T, B, 1)
+        1 where the episode was running at that step, else 0.
+    advantage_norm : bool
+        Normalise the advantages over the valid steps (:func:`normalise_advantages`).
+
+    Returns
+    -------
+    dict with ``policy`` = -sum log pi(a) A, ``value`` = sum (R - V)^2 / 2 and ``entropy`` =
+    sum H(pi), each summed over agents and valid steps and divided by the number of valid
+    (step, episode) pairs; ``A = R - V``, detached. The learner minimises
+    ``policy + value_coef * value - entropy_coef * entropy``.
+    """
+    logp_all = torch.log_softmax(logits, -1)  # (T, N, B, 4)
+    logp = logp_all.gather(-1, actions.unsqueeze(-1)).squeeze(-1).transpose(1, 2)
+    ent = -(logp_all.exp() * logp_all).sum(-1).transpose(1, 2)  # (T, B, N)
+    values = values.transpose(1, 2)
+    count = mask.sum().clamp(min=1.0)
+    adv = (returns - values).detach()
+    if advantage_norm:
+        adv = normalise_advantages(adv, mask)
+    return {
+        "policy": -(logp * adv * mask).sum() / count,
+        "value": 0.5 * ((returns - values).square() * mask).sum() / count,
+        "entropy": (ent * mask).sum() / count,
+    }
 
 
 def normalise_advantages(adv: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
