@@ -54,3 +54,66 @@ def test_losses_depend_only_on_the_episode_seed() -> None:
 def test_bad_settings(delay: float, loss: float) -> None:
     with pytest.raises(ConfigError):
         ChannelConfig(delay, loss)
+
+
+def test_the_loss_stream_is_pinned() -> None:
+    """The draws that decide packet loss: a change of stream changes every degraded result, so
+    it must show here (values of this implementation, recorded when it was written)."""
+    got = episode_uniforms(np.array([2000, 7]), "v2v", 0, 3)
+    np.testing.assert_array_equal(got, [[0.22369473213981983, 0.5386997728477074, 0.3376136043193273],
+                                        [0.8322180698026723, 0.5282459126009513, 0.43756019354839015]])
+    np.testing.assert_array_equal(episode_uniforms(np.array([2000]), "v2v", 5, 2),
+                                  [[0.14931142758464422, 0.006595449367496786]])
+
+
+@pytest.mark.parametrize(("delay_s", "steps"), [(0.0, 0), (0.04, 0), (0.06, 1), (0.1, 1),
+                                                (0.149, 1), (0.151, 2), (0.2, 2), (0.3, 3)])
+def test_delay_rounds_to_the_nearest_whole_step(delay_s: float, steps: int) -> None:
+    assert ChannelConfig(delay_s=delay_s).delay_steps == steps
+
+
+def _expected(seed: int, n_steps: int, delay: int, loss: float, n_links: int) -> np.ndarray:
+    """What each receiver holds when every sender sends its step index + 1 at every step.
+
+    Written from the rule, not the code: the message sent at step t arrives at step t + delay;
+    it is lost when the draw of the arrival step and link is below ``loss``; a receiver keeps its
+    last message (0 before the first).
+    """
+    held = np.zeros(n_links)
+    out = []
+    for t in range(n_steps):
+        sent_at = t - delay
+        if sent_at >= 0:
+            u = episode_uniforms(np.array([seed]), "v2v", t, n_links)[0]
+            arrived = u >= loss
+            held = np.where(arrived, float(sent_at + 1), held)
+        out.append(held.copy())
+    return np.array(out)
+
+
+@pytest.mark.parametrize("delay_s", [0.0, 0.1, 0.2])
+@pytest.mark.parametrize("loss", [0.0, 0.3, 0.7, 1.0])
+def test_delay_and_loss_together_follow_the_rule(delay_s: float, loss: float) -> None:
+    seeds = [2000, 2010]
+    cfg = ChannelConfig(delay_s=delay_s, packet_loss=loss)
+    ch = V2VChannel.predecessor(3, 1, seeds, config=cfg)
+    got = np.array([ch.transmit(np.full((2, 4), float(t + 1)))[:, :, 0] for t in range(40)])
+    for b, seed in enumerate(seeds):
+        want = _expected(seed, 40, cfg.delay_steps, loss, 3)
+        np.testing.assert_array_equal(got[:, b, :], want)
+    if loss == 1.0:
+        assert np.all(got == 0.0)  # nothing ever arrives: the initial value is held
+    if loss == 0.0:
+        assert np.all(got[-1] == 40 - cfg.delay_steps)
+
+
+def test_a_broadcast_is_lost_per_link_and_counted_once_per_sender() -> None:
+    """One sender, two receivers (front and rear neighbours): each link draws its own loss, and
+    the transmission is counted once."""
+    links = [(1, 0), (1, 2)]
+    ch = V2VChannel(links, 1, [2000], config=ChannelConfig(packet_loss=0.5), name="v2v")
+    got = np.array([ch.transmit(np.full((1, 3), float(t + 1)))[0, :, 0] for t in range(60)])
+    want = _expected(2000, 60, 0, 0.5, 2)
+    np.testing.assert_array_equal(got, want)
+    assert np.any(got[:, 0] != got[:, 1])  # the two receivers do not share their losses
+    assert ch.bits_sent == 60 * 1 * 32 and ch.messages_sent == 60

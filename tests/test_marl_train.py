@@ -342,6 +342,40 @@ def test_selection_prefers_later_snapshot_on_tie_and_saves_final(tmp_path) -> No
     assert kept2["curve_summary"]["selected_eval_reward_sampled"] == -400.0
 
 
+@pytest.mark.parametrize(("sequence", "kept_index"), [
+    # (reward, collisions) of the selection mode at each evaluation -> which one is kept
+    ([(-400.0, 1.0), (-900.0, 0.0), (-950.0, 0.0)], 1),   # fewer collisions beat a better reward
+    ([(-900.0, 0.0), (-400.0, 1.0), (-800.0, 0.0)], 2),   # then the better reward among them
+    ([(-500.0, 2.0), (-500.0, 2.0), (-600.0, 3.0)], 1),   # a tie goes to the later snapshot
+    ([(-500.0, 0.0), (-499.0, 0.0), (-500.0, 0.0)], 1),   # strictly worse never replaces
+])
+def test_selection_rule_on_stubbed_scores(tmp_path, sequence, kept_index) -> None:
+    """Fewest collisions first, then the best reward, a tie to the later snapshot; the greedy
+    scores (the other mode) never decide."""
+    from marl.checkpoint import load_checkpoint
+
+    a = algorithm("ia2c")
+    scores = iter(sequence)
+
+    def stub(net, mode):
+        if mode == "greedy":  # the other mode, made tempting: it must not matter
+            return {"reward": 0.0, "collisions": 0.0, "tracking_reward": 0.0}
+        r, c = next(scores)
+        return {"reward": r, "collisions": c, "tracking_reward": 0.0}
+
+    cfg = a.config_cls(episodes_parallel=2, n_step=20, eval_every_steps=1000)
+    res = run_training(a, cfg, "catchup-v1", 3, 3600, 0, tmp_path, evaluate=stub)
+    import pandas as pd
+
+    curve = pd.read_csv(res.curve_csv)
+    evals = curve[curve["eval_reward_sampled"].notna()]
+    assert len(evals) == len(sequence)
+    kept = load_checkpoint(res.checkpoint)["curve_summary"]
+    assert kept["selected_at_steps"] == int(evals["steps"].iloc[kept_index])
+    assert (kept["selected_eval_reward_sampled"], kept["selected_eval_collisions_sampled"]) == \
+        sequence[kept_index]
+
+
 def test_run_training_needs_an_evaluator_to_select(tmp_path) -> None:
     from envs.errors import ConfigError
 
