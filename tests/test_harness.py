@@ -236,8 +236,9 @@ def test_sigkill_then_resume_equals_uninterrupted(tmp_path: Path) -> None:
 
 
 def test_process_executor_equals_serial(tmp_path: Path) -> None:
-    # a sampled policy too: its action draws come from the episode seed, not the process
-    small = ["--controllers", "ovm,bdc:untrained=true", "--scenarios", "catchup-v1,brake-v1", "--vehicles", "3",
+    # senders under delay and loss (cacc, a sampled policy whose draws come from the episode
+    # seed, not the process) and a controller that sends nothing (ovm)
+    small = ["--controllers", "ovm,cacc,bdc:untrained=true", "--scenarios", "catchup-v1,brake-v1", "--vehicles", "3",
              "--episodes", "2", "--quiet", "--comm-delay", "0.1", "--packet-loss", "0.2"]
     assert main(["run", *small, "--out", str(tmp_path / "s")]) == 0
     assert main(["run", *small, "--out", str(tmp_path / "p"), "--executor", "process",
@@ -264,17 +265,24 @@ def test_ray_executor_equals_serial(tmp_path: Path) -> None:
 
 GOLDEN_ARGS = ["--controllers", "ovm,acc,cacc", "--scenarios", "catchup-v1,slowdown-v1,brake-v1,openacc-s-v1",
                "--vehicles", "4", "--seeds", "2000,2010", "--quiet"]
+#: Degraded V2V: every communicating family under delay and loss together (a shipped policy, sampled).
+DEGRADED_ARGS = ["--controllers", "cacc,mpc-qp,bdc", "--scenarios", "catchup-v1", "--vehicles", "8",
+                 "--seeds", "2000", "--comm-delay", "0.2", "--packet-loss", "0.1", "--quiet"]
+GOLDEN_FILES = {"smoke_runs.csv": GOLDEN_ARGS, "degraded_runs.csv": DEGRADED_ARGS}
 
 
-def test_golden_smoke(tmp_path: Path) -> None:
-    """A tiny fixed sweep must reproduce tests/golden/smoke_runs.csv (regenerate deliberately with
-    CACC_BENCH_REGEN_GOLDEN=1)."""
-    assert main(["run", *GOLDEN_ARGS, "--out", str(tmp_path)]) == 0
-    got = _no_timing(tmp_path / "runs.csv").drop(columns=["version", "git_sha"])
-    if os.environ.get("CACC_BENCH_REGEN_GOLDEN") == "1":
-        GOLDEN.parent.mkdir(exist_ok=True)
-        got.to_csv(GOLDEN, index=False, float_format="%.10g")
-    want = pd.read_csv(GOLDEN)
+def golden_frame(args: list[str], out: Path) -> pd.DataFrame:
+    """runs.csv of a fixed sweep without timing and provenance (what a golden file holds)."""
+    assert main(["run", *args, "--out", str(out)]) == 0
+    return _no_timing(out / "runs.csv").drop(columns=["version", "git_sha"])
+
+
+@pytest.mark.parametrize("name", sorted(GOLDEN_FILES))
+def test_golden_runs(tmp_path: Path, name: str) -> None:
+    """Fixed sweeps reproduce tests/golden/*.csv. The test only compares; regenerating is a
+    deliberate act (``python tests/golden/regenerate.py``) whose diff a reviewer reads."""
+    got = golden_frame(GOLDEN_FILES[name], tmp_path)
+    want = pd.read_csv(GOLDEN.parent / name)
     pd.testing.assert_frame_equal(got, want, check_exact=False, rtol=1e-8, atol=1e-10)
 
 
