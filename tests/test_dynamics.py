@@ -180,10 +180,20 @@ def test_explicit_perturbation() -> None:
 
 @pytest.mark.parametrize("n", [2, 16])
 def test_platoon_sizes(n: int) -> None:
+    """Any N steps like the published law: under OVM (action 3) the followers at equilibrium
+    (20 m, 15 m/s) stay there, follower 1 (30.98 m back for seed 0, U = 0.5488) speeds up at
+    0.5 (V(30.98) - 15), clipped to 2.5 m/s^2."""
     env = PlatoonEnv("catchup-v1", n)
     obs = env.reset([0])
     assert obs is not None and obs.shape == (1, n, 15)
-    env.step_actions(np.full((1, n), 3))
+    gap0 = 20.0 * (1.5 + 0.5488135039273248)
+    assert env.state.gap_m[0, 0] == pytest.approx(gap0)
+    res = env.step_actions(np.full((1, n), 3))
+    assert res.observation.shape == (1, n, 15) and not res.done[0]
+    v1 = 15.0 + 0.1 * min(0.5 * (15.0 * (1 - np.cos(np.pi * (gap0 - 5.0) / 30.0)) - 15.0), 2.5)
+    assert env.state.speed_mps[0, 0] == pytest.approx(v1, abs=1e-12)
+    np.testing.assert_allclose(env.state.speed_mps[0, 1:], 15.0, atol=1e-12)
+    np.testing.assert_allclose(env.state.gap_m[0, 2:], 20.0, atol=1e-12)
 
 
 def test_bad_configuration() -> None:

@@ -51,8 +51,59 @@ def _rollout(ctrl, n=4, seeds=(2000, 2010), steps=30, scenario="catchup-v1"):
     return np.array(out), ctx, env
 
 
+def _ovm_candidates(gap: np.ndarray, v: np.ndarray, v_pred: np.ndarray) -> np.ndarray:
+    """The four commands of the MARL action set, from the spec's formulas (not the code's):
+    V(gap) = 15 (1 - cos(pi (gap - 5) / 30)) on [5, 35], u = alpha (V - v) + beta (v_pred - v)
+    (the environment bounds the command later); (alpha, beta) = (0, 0), (0.5, 0), (0, 0.5),
+    (0.5, 0.5)."""
+    g = np.clip(gap, 5.0, 35.0)
+    target = 15.0 * (1.0 - np.cos(np.pi * (g - 5.0) / 30.0))
+    pairs = [(0.0, 0.0), (0.5, 0.0), (0.0, 0.5), (0.5, 0.5)]
+    return np.stack([a * (target - v) + b * (v_pred - v) for a, b in pairs])
+
+
+def _rollout_states(ctrl, n=4, seeds=(2000, 2010), steps=30):
+    env = PlatoonEnv("catchup-v1", n)
+    ctx = EpisodeContext(env.scenario, n, np.asarray(seeds), env.params)
+    ctrl.reset(ctx)
+    obs = env.reset(list(seeds))
+    cmds, cands = [], []
+    for _ in range(steps):
+        s = env.state
+        cands.append(_ovm_candidates(s.gap_m, s.speed_mps, s.pred_speed_mps))
+        u = ctrl.act(s, obs)
+        cmds.append(u)
+        obs = env.step(u).observation
+    return np.array(cmds), np.array(cands)
+
+
+@pytest.mark.parametrize("algo", ["ia2c", "dial", "bdc"])
+def test_greedy_takes_the_argmax_and_sampled_draws_all_actions(tmp_path, algo) -> None:
+    """With the actor head's weights zeroed and its bias slightly favouring action 1, greedy
+    acting is action 1's OVM command at every step and vehicle; sampled acting uses all four
+    actions (each with probability about a quarter)."""
+    a = algorithm(algo)
+    cfg = a.config_cls()
+    net = a.build_net(cfg, 4, True, torch.Generator().manual_seed(1))
+    weights = net.acting_state_dict()
+    weights["actor_head.weight"] = torch.zeros_like(weights["actor_head.weight"])
+    weights["actor_head.bias"] = torch.tensor([0.0, 0.05, 0.0, 0.0]).expand(4, 4).clone()
+    import dataclasses
+
+    path = save_checkpoint(tmp_path / f"{algo}.pt", algo=algo, config=dataclasses.asdict(cfg),
+                           scenario="catchup-v1", n_vehicles=4, seed=0, steps=0,
+                           curve_summary={}, weights=weights)
+    u, cands = _rollout_states(PolicyController(algo, checkpoint=str(path), mode="greedy"))
+    np.testing.assert_allclose(u, cands[:, 1], rtol=1e-12, atol=1e-12)
+    u, cands = _rollout_states(PolicyController(algo, checkpoint=str(path)), steps=60)
+    chosen = np.argmin(np.abs(cands - u[:, None]), axis=1)
+    np.testing.assert_allclose(np.take_along_axis(cands, chosen[:, None], 1)[:, 0], u, atol=1e-12)
+    freq = np.bincount(chosen.ravel(), minlength=4) / chosen.size
+    assert np.all(freq > 0.15), freq
+
+
 @pytest.mark.parametrize("algo", ALGORITHM_NAMES)
-def test_policy_controller_acts_greedily_and_counts_bits(tmp_path, algo) -> None:
+def test_policy_controller_sends_its_messages_and_counts_bits(tmp_path, algo) -> None:
     path, _ = _ckpt(tmp_path, algo)
     ctrl = PolicyController(algo, checkpoint=str(path))
     assert ctrl.family == "marl" and ctrl.needs_observation
