@@ -1,0 +1,101 @@
+"""The leaderboard's rank rule, as a table, and a golden leaderboard.csv."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+from benchmark.export import LEADERBOARD_METRICS, leaderboard_frame
+
+GOLDEN = Path(__file__).resolve().parent / "golden"
+
+
+def _run(controller: str, reward: float, *, collision: bool = False, status: str = "ok",
+         scenario: str = "catchup-v1", delay: float = 0.0, seed: int = 2000) -> dict:
+    row = {"controller": controller, "scenario": scenario, "n_vehicles": 4, "comm_delay_s": delay,
+           "packet_loss": 0.0, "lag_s": 0.0, "seed": seed, "status": status, "family": "test",
+           "deterministic": True, "collision": collision, "solver_failures": 0,
+           "string_stable": True}
+    for m in LEADERBOARD_METRICS:
+        row[m] = 1.0
+    row["reward"] = reward if status == "ok" else math.nan
+    return row
+
+
+# controller -> (its runs' rewards, collided?, failed run?) and the rank it must get
+RANK_TABLE = [
+    # clean controllers first, by mean reward (higher is better)
+    ("clean_best", [-100.0, -110.0], False, False, 1),
+    ("clean_mid", [-200.0, -200.0], False, False, 2),
+    # a tie in mean reward: the label's alphabetical order decides, stably
+    ("tie_a", [-300.0, -300.0], False, False, 3),
+    ("tie_b", [-250.0, -350.0], False, False, 4),
+    # one collision puts a controller behind every clean one, whatever its reward
+    ("collided_high", [-10.0, -20.0], True, False, 6),
+    # a failed run too (failed vs collided: both unclean, then by reward)
+    ("failed_one", [-5.0, None], False, True, 5),
+    # no finite reward at all ranks last among the unclean
+    ("all_failed", [None, None], False, True, 7),
+]
+
+
+def _table_runs() -> pd.DataFrame:
+    rows = []
+    for name, rewards, collided, _, _ in RANK_TABLE:
+        for k, r in enumerate(rewards):
+            rows.append(_run(name, r if r is not None else math.nan, collision=collided and k == 0,
+                             status="ok" if r is not None else "failed", seed=2000 + 10 * k))
+    return pd.DataFrame(rows)
+
+
+def test_rank_rule_table() -> None:
+    lb = leaderboard_frame(_table_runs()).set_index("controller")
+    for name, rewards, collided, failed, rank in RANK_TABLE:
+        row = lb.loc[name]
+        assert int(row["rank"]) == rank, name
+        assert int(row["collisions"]) == int(collided)
+        assert int(row["failed"]) == sum(r is None for r in rewards)
+        assert (int(row["failed"]) > 0) == failed
+    assert lb.loc["failed_one", "reward_mean"] == -5.0  # the mean is over finished runs
+    assert math.isnan(lb.loc["all_failed", "reward_mean"])
+
+
+def test_ranks_are_per_setting() -> None:
+    runs = pd.DataFrame([_run("a", -100.0), _run("b", -200.0),
+                         _run("a", -300.0, delay=0.2), _run("b", -50.0, delay=0.2),
+                         _run("a", -1.0, scenario="brake-v1")])
+    lb = leaderboard_frame(runs)
+    got = {(r["controller"], r["scenario"], r["comm_delay_s"]): int(r["rank"])
+           for _, r in lb.iterrows()}
+    assert got == {("a", "catchup-v1", 0.0): 1, ("b", "catchup-v1", 0.0): 2,
+                   ("b", "catchup-v1", 0.2): 1, ("a", "catchup-v1", 0.2): 2,
+                   ("a", "brake-v1", 0.0): 1}
+
+
+def golden_leaderboard(runs: pd.DataFrame) -> pd.DataFrame:
+    """The leaderboard of golden runs (timing zeroed: it is not part of a golden file)."""
+    return leaderboard_frame(runs.assign(compute_ms_p50=0.0))
+
+
+def test_golden_leaderboard(tmp_path: Path) -> None:
+    """The leaderboard of the golden smoke runs (tests/golden/smoke_runs.csv) is
+    tests/golden/smoke_leaderboard.csv: ranks, counts, means and bootstrap intervals."""
+    path = tmp_path / "lb.csv"
+    golden_leaderboard(pd.read_csv(GOLDEN / "smoke_runs.csv")).to_csv(
+        path, index=False, float_format="%.10g")
+    got = pd.read_csv(path)
+    want = pd.read_csv(GOLDEN / "smoke_leaderboard.csv")
+    pd.testing.assert_frame_equal(got, want, check_exact=False, rtol=1e-8, atol=1e-10)
+
+
+@pytest.mark.parametrize("name", ["clean_best", "tie_a"])
+def test_rank_is_stable_under_row_order(name: str) -> None:
+    runs = _table_runs()
+    shuffled = runs.sample(frac=1.0, random_state=3).reset_index(drop=True)
+    a = leaderboard_frame(runs).set_index("controller")["rank"]
+    b = leaderboard_frame(shuffled).set_index("controller")["rank"]
+    assert a[name] == b[name]
+    pd.testing.assert_series_equal(a.sort_index(), b.sort_index())
