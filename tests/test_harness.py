@@ -309,3 +309,48 @@ def test_openacc_real_needs_an_openacc_scenario(capsys: pytest.CaptureFixture[st
     assert "openacc-s-v1" in capsys.readouterr().err
     assert main(["run", "--controllers", "openacc-real", "--scenarios", "openacc-m-v1",
                  "--vehicles", "5", "--episodes", "1", "--out", "/tmp/never-written"]) == 2
+
+
+class _RamController:
+    """Follower 1 accelerates at the bound towards the leader, the others follow by OVM: it
+    hits the leader after a time set by the seed's initial gap (catchup-v1: 30-50 m)."""
+
+    name = "ram"
+    family = "linear"
+    deterministic = True
+    needs_observation = False
+
+    def reset(self, ctx) -> None:
+        self.params = ctx.params
+
+    def act(self, state, observation):
+        from envs.dynamics import action_to_command_mps2
+
+        b, n = state.gap_m.shape
+        u = action_to_command_mps2(np.full((b, n), 3), state.gap_m, state.speed_mps,
+                                   state.pred_speed_mps, self.params)
+        u[:, 0] = 2.5
+        return u
+
+
+def test_batched_rollout_equals_separate_with_collisions_at_different_steps() -> None:
+    """Episodes of one batch that collide at different steps give, each, exactly the trajectory
+    and metrics of the same episode run alone (the ended ones frozen while the others go on)."""
+    from benchmark.metrics import run_metrics
+    from benchmark.rollout import rollout, rollout_batch
+    from envs.scenarios import make_scenario
+
+    sc = make_scenario("catchup-v1")
+    seeds = [2000, 2010, 2020, 2030]
+    batch = rollout_batch(_RamController(), sc, 3, seeds)
+    assert all(t.collided for t in batch)
+    assert len({t.steps for t in batch}) >= 3  # collisions at different steps
+    for seed, tb in zip(seeds, batch, strict=True):
+        alone = rollout(_RamController(), sc, 3, seed)
+        assert alone.steps == tb.steps and alone.collided
+        for field in ("gap_m", "speed_mps", "accel_mps2", "power_kw", "reward", "tracking_reward"):
+            np.testing.assert_array_equal(getattr(tb, field), getattr(alone, field), err_msg=field)
+        ma = run_metrics(alone, 20.0, 15.0)
+        mb = run_metrics(tb, 20.0, 15.0)
+        for key in ("reward", "energy_kwh", "gap_rmse_m", "min_gap_m", "steps", "collision"):
+            assert ma[key] == mb[key], key
