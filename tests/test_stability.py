@@ -123,10 +123,11 @@ def test_cacc_empirical_matches_discrete_model(delay, lag):
     assert not res.collided.any() and not res.saturated.any()
     loop = st.PloegLoop(delay_s=delay, lag_s=lag)
     discrete = np.abs(st.discrete_gamma_response(omegas, loop))
-    np.testing.assert_allclose(res.gain, discrete, rtol=0.03)
-    np.testing.assert_allclose(res.pair_gain[:, 1:], discrete[:, None] * np.ones((1, 3)), rtol=0.03)
+    # the README: "the measured curve equals the discrete-time model to 4e-12" (measured 3.9e-12)
+    np.testing.assert_allclose(res.gain, discrete, rtol=1e-11)
+    np.testing.assert_allclose(res.pair_gain[:, 1:], discrete[:, None] * np.ones((1, 3)), rtol=1e-11)
     leader = np.abs(st.discrete_gamma_response(omegas, loop, pair="leader"))
-    np.testing.assert_allclose(res.pair_gain[:, 0], leader, rtol=0.03)
+    np.testing.assert_allclose(res.pair_gain[:, 0], leader, rtol=1e-11)
     # the continuous curve is close but not equal (dt = 0.1 s): within 7 % over 0.05..3 rad/s
     continuous = np.abs(st.gamma_response(omegas, loop))
     assert np.max(np.abs(res.gain / continuous - 1)) < 0.07
@@ -136,8 +137,9 @@ def test_acc_empirical_matches_discrete_model():
     omegas = np.geomspace(0.1, 2.0, 5)
     res = st.empirical_gain("acc", omegas, delay_s=0.2, lag_s=0.1)
     loop = st.PloegLoop(delay_s=0.2, lag_s=0.1, feedforward=False)
+    # ACC has no feedforward and a slower decaying transient: measured 1.6e-7
     np.testing.assert_allclose(
-        res.gain, np.abs(st.discrete_gamma_response(omegas, loop)), rtol=0.03
+        res.gain, np.abs(st.discrete_gamma_response(omegas, loop)), rtol=1e-6
     )
 
 
