@@ -1,4 +1,4 @@
-"""n-step returns and advantages of the on-policy learners, with reward sharing.
+"""n-step returns of the on-policy learners, with reward sharing.
 
 Shapes: ``T`` steps of a segment, ``B`` parallel episodes, ``N`` agents. Everything here is a
 pure, vectorised function of torch tensors; ``tests/test_marl_kernels.py`` checks it against a
@@ -78,8 +78,3 @@ def nstep_returns(
     weights = disc[:, :, None, None] * same
     values = torch.cat([reward, bootstrap.unsqueeze(0)], 0)  # (T+1, B, N)
     return (weights * values.unsqueeze(0)).sum(1)
-
-
-def advantages(returns: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
-    """Advantages ``R_t - V(s_t)`` (``values`` detached by the caller for the actor loss)."""
-    return returns - values

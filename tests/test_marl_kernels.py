@@ -332,3 +332,25 @@ def test_checkpoint_mismatches_fail_clearly(tmp_path) -> None:
     _save(tmp_path / "nan.pt", weights={"fc.weight": w})
     with pytest.raises(ConfigError, match=r"non-finite weights \(fc\.weight\).*cacc-bench train"):
         load_checkpoint(tmp_path / "nan.pt", algo="ia2c", n_vehicles=8)
+
+
+@pytest.mark.parametrize("alpha", [-0.1, 1.5, 2.0])
+def test_sharing_alpha_outside_the_unit_interval_is_refused(alpha: float) -> None:
+    from marl.returns import sharing_matrix
+
+    with pytest.raises(ValueError, match=r"alpha must lie in \[0, 1\]"):
+        sharing_matrix(3, alpha)
+
+
+def test_returns_and_sharing_keep_float64() -> None:
+    """Double precision in, double precision out (a learner in float64 stays exact)."""
+    from marl.returns import sharing_matrix
+
+    assert sharing_matrix(3, 0.5, torch.float64).dtype == torch.float64
+    np.testing.assert_array_equal(sharing_matrix(3, 0.5, torch.float64).numpy(),
+                                  [[1, 0.5, 0.25], [0.5, 1, 0.5], [0.25, 0.5, 1]])
+    r = torch.full((3, 1, 2), 1.0 / 3.0, dtype=torch.float64)
+    out = nstep_returns(r, torch.zeros(1, 2, dtype=torch.float64),
+                        torch.zeros(3, 1, 2, dtype=torch.bool), 0.9)
+    assert out.dtype == torch.float64
+    assert out[0, 0, 0].item() == (1 + 0.9 + 0.81) / 3.0
