@@ -493,3 +493,24 @@ def test_mpc_degraded_v2v_ten_seeds(scenario: str) -> None:
         f"energy {stats.energy_kwh.mean():.4f} kWh, failures {stats.failures}"
     )
     assert not stats.collided.any()
+
+
+@pytest.mark.parametrize(
+    ("gap", "v", "v_pred", "target", "want"),
+    [
+        (20.0, 15.0, 15.0, 20.0, 0.0),            # at the target: nothing to do
+        (25.0, 15.0, 15.0, 20.0, 1.0),            # 0.2 * 5
+        (15.0, 15.0, 14.0, 20.0, -1.7),           # 0.2 * -5 + 0.7 * -1
+        (100.0, 15.0, 15.0, 20.0, 2.5),           # clipped to accel_max
+        (1.8, 10.0, 9.5, 2.0, -2.5),              # below 2 gap_min and closing: full brake
+        (1.8, 10.0, 10.5, 2.0, 0.2 * -0.2 + 0.7 * 0.5),  # below but opening: the law
+        (2.5, 10.0, 9.5, 2.0, 0.2 * 0.5 + 0.7 * -0.5),   # closing but not below: the law
+    ],
+)
+def test_fallback_law_and_its_emergency_brake(gap, v, v_pred, target, want) -> None:
+    """The fallback ``u = 0.2 (gap - d*) + 0.7 (v_pred - v)`` clipped to [-2.5, 2.5], with a
+    full brake when the gap is below 2 gap_min (2 m) and closing (values by hand)."""
+    from controllers.mpc_common import acc_fallback_mps2
+
+    got = float(acc_fallback_mps2(gap, v, v_pred, target, PlatoonParams()))
+    assert got == pytest.approx(want, abs=1e-12)
