@@ -55,7 +55,12 @@ def fail(message: str) -> int:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``cacc-bench`` console script."""
     args = list(sys.argv[1:] if argv is None else argv)
-    if not args or args[0] in ("-h", "--help", "help"):
+    if not args:  # a command is required: usage on stderr, status 2 (argparse's convention)
+        print(_usage(), file=sys.stderr)
+        return 2
+    if args[0] == "help" and len(args) > 1:  # `cacc-bench help run` is `cacc-bench run --help`
+        args = [args[1], "--help"]
+    if args[0] in ("-h", "--help", "help"):
         print(_usage())
         return 0
     if args[0] == "--version":

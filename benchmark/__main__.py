@@ -1,0 +1,7 @@
+"""``python -m benchmark``: the ``cacc-bench`` command."""
+
+import sys
+
+from benchmark.cli import main
+
+sys.exit(main())

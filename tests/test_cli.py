@@ -1,0 +1,40 @@
+"""Command-line conventions: a command is required, ``help CMD``, ``python -m benchmark``."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+
+from benchmark.cli import SUBCOMMANDS, main
+
+
+def test_bare_command_prints_usage_and_exits_2(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main([]) == 2
+    err = capsys.readouterr().err
+    assert "usage: cacc-bench <command>" in err and "reproduce" in err
+
+
+def test_help_lists_every_command(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["--help"]) == 0
+    out = capsys.readouterr().out
+    for name in SUBCOMMANDS:
+        assert f"  {name} " in out
+
+
+@pytest.mark.parametrize("cmd", ["run", "train", "reproduce", "pareto"])
+def test_help_cmd_is_the_commands_help(cmd: str, capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exc:
+        main(["help", cmd])
+    assert exc.value.code == 0
+    assert f"usage: cacc-bench {cmd}" in capsys.readouterr().out
+
+
+def test_python_dash_m_benchmark() -> None:
+    res = subprocess.run([sys.executable, "-m", "benchmark", "--version"], capture_output=True,
+                         text=True, timeout=120)
+    assert res.returncode == 0 and res.stdout.startswith("cacc-bench ")
+    res = subprocess.run([sys.executable, "-m", "benchmark", "nope"], capture_output=True,
+                         text=True, timeout=120)
+    assert res.returncode == 2 and "unknown command 'nope'" in res.stderr
