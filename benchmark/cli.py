@@ -8,6 +8,7 @@ called, so ``cacc-bench --help`` and ``cacc-bench list`` start fast. Every user-
 from __future__ import annotations
 
 import importlib
+import re
 import sys
 from collections.abc import Callable, Sequence
 
@@ -44,6 +45,12 @@ def _usage() -> str:
     width = max(len(k) for k in SUBCOMMANDS)
     lines = [f"  {k.ljust(width)}  {h}" for k, (_, h) in SUBCOMMANDS.items()]
     return USAGE.format(commands="\n".join(lines))
+
+
+def plain(text: str | None) -> str:
+    """A docstring as help text: reStructuredText roles and double backticks removed."""
+    text = re.sub(r":(?:func|class|mod|meth|attr|data):`~?([^`]+)`", r"\1", text or "")
+    return text.replace("``", "")
 
 
 def fail(message: str) -> int:

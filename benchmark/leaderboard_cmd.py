@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from benchmark.cli import plain
 from benchmark.store import ResultStore
 
 
@@ -13,7 +14,7 @@ def main(argv: list[str]) -> int:
     from benchmark.export import write_csvs
     from benchmark.run_cmd import format_leaderboard
 
-    p = argparse.ArgumentParser(prog="cacc-bench leaderboard", description=__doc__)
+    p = argparse.ArgumentParser(prog="cacc-bench leaderboard", description=plain(__doc__))
     p.add_argument("results_dir", nargs="+", help="results folder(s) written by `cacc-bench run`")
     p.add_argument("--quiet", action="store_true", help="do not print the table")
     p.add_argument("--pool-seeds", action="store_true",

@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import argparse
 
+from benchmark.cli import plain
 from controllers.registry import CONTROLLERS
 from envs.scenarios import list_scenarios
 
 
 def main(argv: list[str]) -> int:
     """Print the registered scenarios and controllers."""
-    p = argparse.ArgumentParser(prog="cacc-bench list", description=__doc__)
+    p = argparse.ArgumentParser(prog="cacc-bench list", description=plain(__doc__))
     p.parse_args(argv)
     print("scenarios (id: targets d*, v*; length; description):")
     for s in list_scenarios():

@@ -14,6 +14,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from benchmark.cli import plain
 from benchmark.executors import EXECUTORS
 from envs.errors import ConfigError, UnknownNameError
 
@@ -42,7 +43,7 @@ FAMILY_GROUPS: dict[str, tuple[str, ...]] = {
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="cacc-bench pareto", description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(prog="cacc-bench pareto", description=plain(__doc__.split("\n")[0]))
     p.add_argument("--scenarios", default="catchup-v1",
                    help="comma list of scenario ids (default: %(default)s)")
     p.add_argument("--episodes", type=int, default=3,

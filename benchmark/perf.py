@@ -17,6 +17,8 @@ from typing import Any
 
 import numpy as np
 
+from benchmark.cli import plain
+
 PUBLISHED_ENV_VEHICLE_STEPS_PER_S = 32_000.0
 PUBLISHED_TRAIN_STEPS_PER_S = {"ia2c": 307.0, "bdc": 195.0}
 TARGET_ENV_VEHICLE_STEPS_PER_S = 10_000_000.0
@@ -98,7 +100,7 @@ def main(argv: list[str]) -> int:
     """Measure and print a table (``--json`` for a JSON object)."""
     from controllers.registry import MARL_ALGORITHMS, available_controllers
 
-    p = argparse.ArgumentParser(prog="cacc-bench perf", description=__doc__,
+    p = argparse.ArgumentParser(prog="cacc-bench perf", description=plain(__doc__),
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
     p.add_argument("--quick", action="store_true", help="shorter measurements (for tests)")

@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from benchmark.cli import plain
 from benchmark.store import STORE_NAME, ResultStore
 
 
@@ -16,7 +17,7 @@ def main(argv: list[str]) -> int:
     from benchmark.export import leaderboard_frame, runs_frame
     from envs.scenarios import make_scenario
 
-    p = argparse.ArgumentParser(prog="cacc-bench plot", description=__doc__)
+    p = argparse.ArgumentParser(prog="cacc-bench plot", description=plain(__doc__))
     p.add_argument("results_dir", help="results folder written by `cacc-bench run`, or a training "
                                        "folder of `cacc-bench train --out` (learning curves)")
     p.add_argument("--out", default=None, help="figure folder (default: RESULTS_DIR/figures)")

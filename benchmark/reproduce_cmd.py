@@ -23,6 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from benchmark.cli import plain
 from benchmark.executors import EXECUTORS
 from envs.errors import ConfigError, UnknownNameError
 
@@ -72,7 +73,7 @@ MANIFEST = "reproduce.json"
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="cacc-bench reproduce", description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(prog="cacc-bench reproduce", description=plain(__doc__.split("\n")[0]))
     p.add_argument("--out", default="results/reproduce", help="output folder (default: %(default)s)")
     p.add_argument("--budget", choices=sorted(BUDGETS), default="paper",
                    help="quick: a smoke test in minutes; paper: 3 seeds x 6e5 steps, 50 episodes "

@@ -38,3 +38,11 @@ def test_python_dash_m_benchmark() -> None:
     res = subprocess.run([sys.executable, "-m", "benchmark", "nope"], capture_output=True,
                          text=True, timeout=120)
     assert res.returncode == 2 and "unknown command 'nope'" in res.stderr
+
+
+@pytest.mark.parametrize("cmd", sorted(SUBCOMMANDS))
+def test_help_texts_have_no_markup(cmd: str, capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        main([cmd, "--help"])
+    out = capsys.readouterr().out
+    assert "``" not in out and ":func:" not in out and ":class:" not in out
