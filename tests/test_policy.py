@@ -278,22 +278,35 @@ def _reference(name: str, scenario: str) -> dict[str, float]:
 
 #: Shipped policies that avoid collisions on slowdown-v1 by crawling: fewer collisions than their
 #: untrained policy, but no better mean reward (an untrained episode ends at its early collision,
-#: so its mean covers fewer steps). Measured: bdc -1,845 (2/150), fprint -2,979 (4/50), against
-#: -1,817 (45/50) untrained.
-CRAWLING: frozenset[tuple[str, str]] = frozenset({("bdc", "slowdown-v1"), ("fprint", "slowdown-v1")})
+#: so its mean covers fewer steps). Measured, three seeds pooled: bdc -1,845 (2/150), dcea -3,369
+#: (0/150), against -1,817 (45/50) untrained.
+CRAWLING: frozenset[tuple[str, str]] = frozenset({("bdc", "slowdown-v1"), ("dcea", "slowdown-v1")})
+
+#: What the README's table reads, three training seeds pooled (150 episodes): (collisions, mean
+#: reward) per algorithm and scenario; ``ovm`` -641 on catchup-v1 and -731 on slowdown-v1.
+MEASURED: dict[tuple[str, str], tuple[int, float]] = {
+    ("bdc", "catchup-v1"): (0, -445.88), ("dcea", "catchup-v1"): (0, -447.41),
+    ("wac", "catchup-v1"): (0, -458.78), ("dial", "catchup-v1"): (0, -499.14),
+    ("commnet", "catchup-v1"): (0, -506.19), ("fprint", "catchup-v1"): (2, -552.78),
+    ("ia2c", "catchup-v1"): (0, -602.57),
+    ("bdc", "slowdown-v1"): (2, -1845.02), ("dcea", "slowdown-v1"): (0, -3368.67),
+    ("wac", "slowdown-v1"): (0, -1643.28), ("dial", "slowdown-v1"): (19, -938.50),
+    ("commnet", "slowdown-v1"): (34, -1002.56), ("fprint", "slowdown-v1"): (10, -1718.17),
+    ("ia2c", "slowdown-v1"): (20, -888.99),
+}
 
 
 @pytest.mark.parametrize("scenario", ["catchup-v1", "slowdown-v1"])
 def test_shipped_policies_on_the_evaluation_seeds(scenario) -> None:
     """What the README says of the shipped policies, on the 50 published evaluation seeds in the
-    default (sampled) mode, pooled over the shipped training seeds:
+    default (sampled) mode, pooled over the three shipped training seeds:
 
-    - every shipped policy collides in a smaller fraction of episodes than its untrained policy
-      (45 to 48 of 50) and, except those in :data:`CRAWLING`, scores a better reward;
-    - ``bdc`` ships seeds 0, 1 and 2; on catchup-v1 it has no collision and beats ``ovm``
-      (measured -446 against -641), and its greedy version of the same weights is worse (-663);
-      on slowdown-v1 it collides in 2 of 150 episodes and is far below ``ovm`` (-1,845
-      against -731): the issue's bar is not met there;
+    - every algorithm ships seeds 0, 1 and 2 and reads the README's numbers (:data:`MEASURED`);
+    - every policy collides in a smaller fraction of episodes than its untrained policy (45 to
+      48 of 50) and, except those in :data:`CRAWLING`, scores a better reward;
+    - catchup-v1: every algorithm beats ``ovm``; BDC is collision-free and its greedy version of
+      the same weights is worse (-663); slowdown-v1: no algorithm beats ``ovm`` (the issue's bar
+      is not met there), BDC collides in 2 of 150 episodes;
     - ``duty`` beats ``ovm`` on both scenarios.
     """
     from envs.params import EVAL_SEEDS
@@ -304,24 +317,24 @@ def test_shipped_policies_on_the_evaluation_seeds(scenario) -> None:
     assert duty["reward"] > ovm["reward"] + 50
     for name in ALGORITHM_NAMES:
         a = algorithm(name)
+        assert shipped_seeds(name, scenario) == [0, 1, 2], name
         pooled = pooled_evaluation(name, scenario)
-        assert pooled["seeds"] >= 1, name
+        collisions, reward = MEASURED[(name, scenario)]
+        assert pooled["collisions"] == collisions, name
+        assert pooled["reward"] == pytest.approx(reward, abs=0.01), name
         net = a.build_net(a.config_cls(), 8, False, torch.Generator().manual_seed(0))
         untrained = evaluate_policy(name, net, scenario, 8, EVAL_SEEDS)
         assert untrained["collisions"] >= 45, name
         assert pooled["collisions"] / pooled["episodes"] < untrained["collisions"] / 50, name
         if (name, scenario) not in CRAWLING:
-            assert pooled["reward"] > untrained["reward"] + 100, name
-        if name == "bdc":
-            assert shipped_seeds("bdc", scenario) == [0, 1, 2]
-            if scenario == "catchup-v1":
-                assert pooled["collisions"] == 0
-                assert pooled["reward"] > ovm["reward"] + 150
-                greedy = pooled_evaluation("bdc", scenario, "greedy")
-                assert greedy["reward"] < pooled["reward"] - 100
-            else:
-                assert pooled["collisions"] == 2
-                assert pooled["reward"] < ovm["reward"] - 500
+            assert pooled["reward"] > untrained["reward"] + 50, name
+        if scenario == "catchup-v1":
+            assert pooled["reward"] > ovm["reward"] + 30, name
+        else:
+            assert pooled["reward"] < ovm["reward"], name
+    if scenario == "catchup-v1":
+        greedy = pooled_evaluation("bdc", scenario, "greedy")
+        assert greedy["reward"] < MEASURED[("bdc", scenario)][1] - 100
 
 
 def test_bdc_slowdown_curves_never_reach_the_bar() -> None:
