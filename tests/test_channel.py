@@ -50,10 +50,17 @@ def test_losses_depend_only_on_the_episode_seed() -> None:
     assert np.all((batch >= 0) & (batch < 1))
 
 
-@pytest.mark.parametrize(("delay", "loss"), [(-0.1, 0.0), (0.0, -0.1), (0.0, 1.5)])
-def test_bad_settings(delay: float, loss: float) -> None:
-    with pytest.raises(ConfigError):
+@pytest.mark.parametrize(("delay", "loss", "message"), [
+    (-0.1, 0.0, r"delay must be >= 0 s, got -0.1"),
+    (float("nan"), 0.0, r"delay must be >= 0 s, got nan"),
+    (0.0, -0.1, r"loss must lie in \[0, 1\], got -0.1"),
+    (0.0, 1.5, r"loss must lie in \[0, 1\], got 1.5"),
+])
+def test_bad_settings(delay: float, loss: float, message: str) -> None:
+    with pytest.raises(ConfigError, match=message):
         ChannelConfig(delay, loss)
+    with pytest.raises(ConfigError, match="a message carries at least one number"):
+        V2VChannel([(0, 1)], 0, [0])
 
 
 def test_the_loss_stream_is_pinned() -> None:

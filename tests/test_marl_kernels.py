@@ -354,3 +354,48 @@ def test_returns_and_sharing_keep_float64() -> None:
                         torch.zeros(3, 1, 2, dtype=torch.bool), 0.9)
     assert out.dtype == torch.float64
     assert out[0, 0, 0].item() == (1 + 0.9 + 0.81) / 3.0
+
+
+def test_qsgd_defaults_are_the_papers_one_level() -> None:
+    """s = 1 (ternary entries, the paper's setting) is every QSGD function's default."""
+    import inspect
+
+    from marl.quantize import ErrorFeedbackQSGD, qsgd, qsgd_bits, qsgd_variance_bound
+
+    for fn in (qsgd, qsgd_bits, qsgd_variance_bound, ErrorFeedbackQSGD.__init__):
+        assert inspect.signature(fn).parameters["s"].default == 1, fn
+
+
+@pytest.mark.parametrize(("d", "s", "bucket"), [(100, 2, None), (100, 4, None), (100, 2, 16),
+                                                  (9, 3, None)])
+def test_qsgd_bound_and_bits_for_several_levels(d: int, s: int, bucket: int | None) -> None:
+    """omega = min(d_b / s^2, sqrt(d_b) / s) with d_b the bucket size; bits = one 32-bit norm per
+    bucket + log2(2s + 1) per entry (by hand)."""
+    import math
+
+    from marl.quantize import qsgd_bits, qsgd_variance_bound
+
+    db = d if bucket is None else min(bucket, d)
+    assert qsgd_variance_bound(d, s, bucket) == min(db / s**2, math.sqrt(db) / s)
+    norms = 1 if bucket is None else math.ceil(d / bucket)
+    assert qsgd_bits(d, s, bucket=bucket) == norms * 32 + d * math.log2(2 * s + 1)
+    assert qsgd_variance_bound(100, 2) == 5.0 and qsgd_bits(10, 2) == 32 + 10 * math.log2(5)
+
+
+def test_qsgd_with_a_bucket_that_does_not_divide_the_tensor() -> None:
+    """9 entries in buckets of 4 (the last bucket padded): shape kept, every entry a multiple
+    of its own bucket's norm / s, and unbiased over many draws."""
+    from marl.quantize import qsgd
+
+    g = torch.arange(1.0, 19.0).reshape(2, 9)
+    gen = torch.Generator().manual_seed(0)
+    q = qsgd(g, 2, gen, bucket=4)
+    assert q.shape == (2, 9)
+    for row in range(2):
+        for start in (0, 4, 8):
+            blk = g[row, start:start + 4]
+            norm = torch.linalg.vector_norm(blk)
+            k = q[row, start:start + 4] / (norm / 2)
+            torch.testing.assert_close(k, k.round(), atol=1e-5, rtol=0)
+    mean = torch.stack([qsgd(g, 2, gen, bucket=4) for _ in range(4000)]).mean(0)
+    torch.testing.assert_close(mean, g, atol=0.35, rtol=0.03)
