@@ -49,3 +49,13 @@ def test_help_texts_have_no_markup(cmd: str, capsys: pytest.CaptureFixture[str])
     assert code == 0
     out = capsys.readouterr().out
     assert "``" not in out and ":func:" not in out and ":class:" not in out
+
+
+def test_missing_policy_checkpoint_fails_before_any_run(tmp_path, capsys) -> None:
+    """A policy without a checkpoint for the asked N stops the sweep before it starts: exit 2,
+    the train command to make it, and no results folder."""
+    out = tmp_path / "r"
+    assert main(["run", "--controllers", "ovm,bdc", "--scenarios", "catchup-v1", "--vehicles", "4",
+                 "--episodes", "1", "--out", str(out)]) == 2
+    assert "cacc-bench train --algo bdc --scenario catchup-v1 --vehicles 4" in capsys.readouterr().err
+    assert not out.exists()
