@@ -219,3 +219,52 @@ def test_openacc_scenarios_start_from_real_followers(sc: str) -> None:
     np.testing.assert_allclose(ep.leader_speed_mps[0], w.leader_speed_mps[:601])
     if sc == "openacc-m-v1":
         assert "dynamic_part8" in scenario.note and "dynamic_part9" in scenario.note
+
+
+# --------------------------------------------------------------------------- edges (mutation tests)
+@pytest.mark.parametrize("bad", [-1, 4])
+def test_actions_outside_the_set_are_refused(bad: int) -> None:
+    from envs.dynamics import action_to_command_mps2
+
+    z = np.zeros((1, 2))
+    with pytest.raises(ValueError, match=r"actions must be in 0\.\.3"):
+        action_to_command_mps2(np.array([[0, bad]]), z + 20.0, z + 15.0, z + 15.0)
+    # both ends inside are fine
+    action_to_command_mps2(np.array([[0, 3]]), z + 20.0, z + 15.0, z + 15.0)
+
+
+def test_the_commands_use_the_given_ovm_parameters() -> None:
+    """Another OVM (gap_go 25 m): V(15) = 15 (1 - cos(pi/2)) = 15, so action 1 at gap 15 m and
+    speed 0 commands 0.5 * 15 = 7.5 m/s^2 (unclipped), not the default's 0.5 * 7.5."""
+    from envs.dynamics import action_to_command_mps2, ovm_command_mps2
+
+    p = PlatoonParams(gap_go_m=25.0)
+    z = np.zeros((1, 1))
+    assert action_to_command_mps2(np.array([[1]]), z + 15.0, z, z, p)[0, 0] == pytest.approx(7.5)
+    assert ovm_command_mps2(z + 15.0, z, z, 0.5, 0.0, p)[0, 0] == pytest.approx(7.5)
+    assert action_to_command_mps2(np.array([[1]]), z + 15.0, z, z)[0, 0] == pytest.approx(3.75)
+
+
+def test_observation_clips_at_plus_minus_two() -> None:
+    """Blocks 1 and 2 are clipped to [-2, 2]: a predecessor 20 m/s faster or slower, and an
+    optimal speed 30 m/s above or the car 30 m/s above it (published)."""
+    from envs.dynamics import vehicle_blocks
+
+    gap = np.array([[40.0, 3.0]])
+    v = np.array([[0.0, 30.0]])
+    vp = np.array([[20.0, 10.0]])
+    b = vehicle_blocks(gap, v, vp, np.zeros((1, 2)), 20.0, 15.0)
+    np.testing.assert_allclose(b[0, :, 1], [2.0, -2.0])
+    np.testing.assert_allclose(b[0, :, 2], [2.0, -2.0])
+
+
+def test_reward_terms_without_power_and_the_default_combination() -> None:
+    from envs.dynamics import combine_reward, reward_terms
+
+    g = np.array([[22.0]])
+    terms = reward_terms(g, g * 0 + 15.0, g * 0, None, 20.0, 15.0)
+    np.testing.assert_array_equal(terms["power"], [[0.0]])
+    with_power = reward_terms(g, g * 0 + 15.0, g * 0, np.array([[2.0]]), 20.0, 15.0)
+    # the default includes the power term: -4 (gap) - 10 * 2 (power)
+    assert combine_reward(with_power, training=False)[0, 0] == pytest.approx(-24.0)
+    assert combine_reward(with_power, training=False, include_power=False)[0, 0] == -4.0
