@@ -243,6 +243,11 @@ def test_the_commands_use_the_given_ovm_parameters() -> None:
     assert action_to_command_mps2(np.array([[1]]), z + 15.0, z, z, p)[0, 0] == pytest.approx(7.5)
     assert ovm_command_mps2(z + 15.0, z, z, 0.5, 0.0, p)[0, 0] == pytest.approx(7.5)
     assert action_to_command_mps2(np.array([[1]]), z + 15.0, z, z)[0, 0] == pytest.approx(3.75)
+    from envs.dynamics import vehicle_blocks
+
+    # observation block 2, (V(gap) - v) / 5: 15 / 5 clipped to 2 with these parameters, 1.5 by default
+    assert vehicle_blocks(z + 15.0, z, z, z, 20.0, 15.0, p)[0, 0, 2] == pytest.approx(2.0)
+    assert vehicle_blocks(z + 15.0, z, z, z, 20.0, 15.0)[0, 0, 2] == pytest.approx(1.5)
 
 
 def test_observation_clips_at_plus_minus_two() -> None:
