@@ -44,7 +44,7 @@ def final_train_reward(curve: Any, fraction: float = FINAL_FRACTION) -> float:
 
 
 def validation_points(curve: Any, mode: str = "sampled") -> tuple[np.ndarray, np.ndarray]:
-    """Steps and validation reward (benchmark score, 32 validation seeds) of one curve."""
+    """Steps and validation reward (benchmark score on the validation seeds) of one curve."""
     col = f"eval_reward_{mode}"
     if col not in curve:  # a curve of an older format: no validation in this mode
         return np.array([]), np.array([])
@@ -182,7 +182,7 @@ def learning_curve_figure(curves: Mapping[CurveKey, Any], algos: Sequence[str], 
         ax.plot(grid, mean, color=cmap(j % 10), label=f"{algo} ({n} seed{'s' if n > 1 else ''})")
         ax.fill_between(grid, lo, hi, color=cmap(j % 10), alpha=0.15)
     ax.set_xlabel("training environment steps")
-    ax.set_ylabel("validation reward (sampled, 32 seeds)")
+    ax.set_ylabel("validation reward (sampled)")
     if missing:
         title += f"\nno sampled validation in the curves of: {', '.join(missing)}"
     ax.set_title(title, fontsize=10)

@@ -37,12 +37,15 @@ class Budget:
     seeds: tuple[int, ...]
     episodes: int
     description: str
+    #: validation episodes per snapshot evaluation (the protocol: all 32)
+    validation_episodes: int = 32
 
 
 BUDGETS: dict[str, Budget] = {
     "quick": Budget("quick", 1_800, (0, 1), 2,
-                    "smoke test of the pipeline: 2 training seeds x 1,800 steps per run, 2 "
-                    "evaluation episodes; its numbers say nothing about the algorithms"),
+                    "smoke test of the pipeline: 2 training seeds x 1,800 steps per run, 4 "
+                    "validation and 2 evaluation episodes; its numbers say nothing about the "
+                    "algorithms", validation_episodes=4),
     "paper": Budget("paper", 600_000, (0, 1, 2), 50,
                     "the paper's protocol: 3 training seeds x 6e5 steps, the 50 published "
                     "evaluation seeds"),
@@ -98,7 +101,7 @@ def _job(name: str, algo: str, scenario: str, vehicles: int, seed: int, folder: 
          options: dict[str, Any], budget: Budget, study: str) -> dict[str, Any]:
     return {"name": name, "algo": algo, "scenario": scenario, "vehicles": vehicles,
             "steps": budget.steps, "seed": seed, "out": str(folder), "options": options,
-            "progress": False, "study": study}
+            "progress": False, "study": study, "validation_episodes": budget.validation_episodes}
 
 
 def _tuned(algo: str, config_scenario: str, extra: dict[str, Any], label: str) -> dict[str, Any]:
@@ -379,9 +382,9 @@ def write_report(jobs: list[dict[str, Any]], names: dict[str, str], scenarios: l
             f"over the last {rp.FINAL_FRACTION:.0%} of the training episodes, with the training-"
             "only safety term and each algorithm's tuned shaping (power baseline, sharing alpha), "
             "actions sampled: rows trained on different shapings are not comparable. The "
-            "*validation reward* is the benchmark's score of the final weights on the 32 "
-            "validation seeds, actions sampled: comparable across rows. Mean (std) over the "
-            "training seeds. The paper prints one number per algorithm and does not say which.",
+            f"*validation reward* is the benchmark's score of the final weights on the "
+            f"{budget.validation_episodes} validation seeds, actions sampled: comparable across "
+            "rows. Mean (std) over the training seeds. The paper prints one number per algorithm and does not say which.",
             "",
         ]
         t1v = t1.assign(train=[f"{m:.1f} ({s:.1f})" for m, s in
@@ -415,7 +418,8 @@ def write_report(jobs: list[dict[str, Any]], names: dict[str, str], scenarios: l
             lines.append("")
         # figures
         lines += ["## Learning curves (Figs. 2 and 4)", "",
-                  "Validation reward (benchmark score, actions sampled, 32 validation seeds) "
+                  f"Validation reward (benchmark score, actions sampled, "
+                  f"{budget.validation_episodes} validation seeds) "
                   "against training steps: mean over seeds, band from the lowest to the highest "
                   "seed.", ""]
         for sc in scenarios:

@@ -98,6 +98,7 @@ def _train_job(job: dict) -> dict:
     import torch
 
     from benchmark.policy_eval import validation_evaluator
+    from envs.params import VALIDATION_SEEDS
     from marl.common import algorithm, checkpoint_stem, run_training
 
     torch.set_num_threads(1)
@@ -119,8 +120,10 @@ def _train_job(job: dict) -> dict:
         )
         result = run_training(algo, config, job["scenario"], job["vehicles"], job["steps"],
                               job["seed"], out, progress=_Bar(job["progress"]), log=log,
-                              evaluate=validation_evaluator(job["algo"], job["scenario"],
-                                                            job["vehicles"]))
+                              evaluate=validation_evaluator(
+                                  job["algo"], job["scenario"], job["vehicles"],
+                                  VALIDATION_SEEDS[: job.get("validation_episodes")
+                                                   or len(VALIDATION_SEEDS)]))
     return {"algo": job["algo"], "scenario": job["scenario"], "seed": job["seed"],
             "checkpoint": str(result.checkpoint),
             "curve": str(result.curve_csv), "log": str(log_path),
