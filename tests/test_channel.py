@@ -124,3 +124,17 @@ def test_a_broadcast_is_lost_per_link_and_counted_once_per_sender() -> None:
     np.testing.assert_array_equal(got, want)
     assert np.any(got[:, 0] != got[:, 1])  # the two receivers do not share their losses
     assert ch.bits_sent == 60 * 1 * 32 and ch.messages_sent == 60
+
+
+def test_payload_shape_counts_and_rates() -> None:
+    """A payload of the wrong width is refused (the batch size right); messages count once per
+    sender and episode; the per-vehicle rate divides by episodes, vehicles and time."""
+    ch = V2VChannel.predecessor(3, 2, [0, 1])  # senders: leader, followers 1 and 2
+    with pytest.raises(ValueError, match=r"does not fit \(B=2, V, width=2\)"):
+        ch.transmit(np.zeros((2, 4, 3)))
+    for _ in range(10):
+        ch.transmit(np.zeros((2, 4, 2)))
+    assert ch.messages_sent == 10 * 2 * 3
+    assert ch.bits_sent == 10 * 2 * 3 * 2 * 32
+    assert ch.bits_per_vehicle_per_s(3, 10, 0.1) == pytest.approx(10 * 2 * 3 * 2 * 32 / (2 * 3 * 10 * 0.1))
+    assert ch.bits_per_vehicle_per_s(3, 0, 0.1) == 0.0
