@@ -399,3 +399,16 @@ def test_qsgd_with_a_bucket_that_does_not_divide_the_tensor() -> None:
             torch.testing.assert_close(k, k.round(), atol=1e-5, rtol=0)
     mean = torch.stack([qsgd(g, 2, gen, bucket=4) for _ in range(4000)]).mean(0)
     torch.testing.assert_close(mean, g, atol=0.35, rtol=0.03)
+
+
+def test_qsgd_argument_checks() -> None:
+    """s >= 1 and bucket >= 1 (a one-entry bucket is allowed: each entry sent as +-norm or 0)."""
+    from marl.quantize import qsgd
+
+    g = torch.tensor([[3.0, -4.0]])
+    with pytest.raises(ValueError, match="QSGD needs s >= 1 levels, got 0"):
+        qsgd(g, 0)
+    with pytest.raises(ValueError, match="QSGD bucket must be >= 1 entries, got 0"):
+        qsgd(g, 1, bucket=0)
+    q = qsgd(g, 1, torch.Generator().manual_seed(0), bucket=1)
+    torch.testing.assert_close(q, g)  # |g_k| / ||g_k|| = 1: exactly +-norm
