@@ -152,25 +152,18 @@ def _stem(job: dict[str, Any]) -> str:
     return checkpoint_stem(job["algo"], job["scenario"], job["vehicles"], job["seed"])
 
 
-def _wanted_config(job: dict[str, Any]) -> dict[str, Any]:
-    from marl.common import algorithm
-
-    config = algorithm(job["algo"]).config_cls(**job["options"]).resolved(job["scenario"])
-    return dataclasses.asdict(config)
-
-
 def _source_file(job: dict[str, Any]) -> Path:
     return Path(job["out"]) / f"{_stem(job)}.source.json"
 
 
 def _done(job: dict[str, Any]) -> bool:
     """Finished in the output folder (trained there, or a shipped copy with the same config)."""
-    from benchmark.train_cmd import _finished
+    from benchmark.train_cmd import _finished, job_config
 
     src = _source_file(job)
     if src.exists():
         info = json.loads(src.read_text())
-        if info.get("config") == _wanted_config(job) and info.get("steps", 0) >= job["steps"]:
+        if info.get("config") == job_config(job) and info.get("steps", 0) >= job["steps"]:
             return (Path(job["out"]) / f"{_stem(job)}.pt").exists()
     return _finished(job)
 
@@ -179,6 +172,7 @@ def _shipped(job: dict[str, Any]) -> Path | None:
     """The shipped checkpoint of ``job`` if it has the same config and at least its budget."""
     import torch
 
+    from benchmark.train_cmd import job_config
     from controllers.policy import CHECKPOINT_DIR
 
     path = CHECKPOINT_DIR / f"{_stem(job)}.pt"
@@ -187,7 +181,7 @@ def _shipped(job: dict[str, Any]) -> Path | None:
         return None
     data = torch.load(path, map_location="cpu", weights_only=True)
     total = data.get("curve_summary", {}).get("total_steps", data.get("steps", 0))
-    if data.get("config") != _wanted_config(job) or total < job["steps"]:
+    if data.get("config") != job_config(job) or total < job["steps"]:
         return None
     return path
 

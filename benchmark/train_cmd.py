@@ -161,22 +161,30 @@ def _names(text: str, flag: str) -> list[str]:
     return names
 
 
+def job_config(job: dict) -> dict:
+    """The whole resolved config a training job runs with (as recorded in its checkpoint)."""
+    import dataclasses
+
+    from marl.common import algorithm
+
+    config = algorithm(job["algo"]).config_cls(**job["options"]).resolved(job["scenario"])
+    return dataclasses.asdict(config)
+
+
 def _finished(job: dict) -> bool:
     """Whether ``job``'s run finished in its folder with the same config and budget (a
     different one is an error: a finished run is never overwritten silently)."""
-    import dataclasses
 
     import torch
 
-    from marl.common import algorithm, checkpoint_stem
+    from marl.common import checkpoint_stem
 
     stem = checkpoint_stem(job["algo"], job["scenario"], job["vehicles"], job["seed"])
     final = Path(job["out"]) / f"{stem}.final.pt"
     if not final.exists():
         return False
     data = torch.load(final, map_location="cpu", weights_only=True)
-    want = algorithm(job["algo"]).config_cls(**job["options"]).resolved(job["scenario"])
-    if data["config"] != dataclasses.asdict(want) or data["steps"] < job["steps"]:
+    if data["config"] != job_config(job) or data["steps"] < job["steps"]:
         raise ConfigError(
             f"{final} holds a finished run with another config or fewer steps than asked "
             f"({data['steps']} < {job['steps']} or config differs); use another --out, or "

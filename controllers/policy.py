@@ -181,10 +181,7 @@ class PolicyController(Controller):
 
     # ---------------------------------------------------------------- interface
     def reset(self, ctx: EpisodeContext) -> None:
-        key = (ctx.scenario.id, ctx.n_vehicles)
-        if self.net is None or getattr(self, "_key", None) != key:
-            self.net = self._load(key[0], ctx.n_vehicles)
-            self._key = key
+        self.preflight(ctx.scenario, ctx.n_vehicles)
         self.params = ctx.params
         n = ctx.n_vehicles
         self.state = self.net.initial_state(ctx.batch_size)
