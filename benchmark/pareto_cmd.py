@@ -2,7 +2,8 @@
 
 Each family is swept along its own energy/tracking knob (``mpc``: the energy weight;
 ``mpc-qp`` and ``cmpc``: the input weight against tracking; ``cacc``: time gap and gain);
-``ovm``, ``duty`` and the shipped MARL policies are single points. Runs go through the results
+BDC and IA2C along the power weight w5 of their training reward (shipped variants); ``ovm``,
+``duty`` and the other MARL policies are single points. Runs go through the results
 store and the harness executors (resumable, identical on every executor); ``OUT/pareto.csv``
 and one figure per scenario come out.
 """
@@ -27,6 +28,22 @@ SWEEPS: dict[str, tuple[str, str, tuple[float, ...]]] = {
     "cacc (time gap)": ("cacc", "time_gap_s", (0.3, 0.5, 0.8, 1.2)),
     "cacc (gain kp)": ("cacc", "kp", (0.1, 0.2, 0.4)),
 }
+
+#: MARL algorithms swept along the power weight w5 of their training reward (-10 is the
+#: shipped leaderboard policy; the others are shipped variants ``w5_<value>``, seed 0, made by
+#: ``cacc-bench train --algo bdc,ia2c --scenario catchup-v1 --tuned --set reward_w_power=W``).
+MARL_SWEEPS: dict[str, tuple[float, ...]] = {
+    "bdc": (0.0, -1.0, -5.0, -10.0, -20.0),
+    "ia2c": (0.0, -1.0, -5.0, -10.0, -20.0),
+}
+#: The power weight of the shipped leaderboard policies.
+DEFAULT_W5 = -10.0
+
+
+def w5_variant(w5: float) -> str:
+    """Folder name of the shipped variant trained with power weight ``w5`` (``w5_m1`` for -1)."""
+    return f"w5_{'m' if w5 < 0 else ''}{abs(w5):g}"
+
 
 #: Controllers shown as single points.
 POINTS: tuple[str, ...] = ("ovm", "duty")
@@ -64,7 +81,7 @@ def settings_for(families: list[str], scenarios: list[str], n_vehicles: int
                  ) -> list[dict[str, Any]]:
     """The controller settings of the chosen families: label, family, controller, knob, value,
     options."""
-    from controllers.policy import checkpoint_path
+    from controllers.policy import VARIANT_DIR, checkpoint_path
     from controllers.registry import controller_label
     from marl.common import ALGORITHM_NAMES
 
@@ -84,8 +101,17 @@ def settings_for(families: list[str], scenarios: list[str], n_vehicles: int
                 add(name, name, {}, "", "")
         if group == "marl":
             for algo in ALGORITHM_NAMES:
-                if all(checkpoint_path(algo, sc, n_vehicles).exists() for sc in scenarios):
+                if not all(checkpoint_path(algo, sc, n_vehicles).exists() for sc in scenarios):
+                    continue
+                if algo not in MARL_SWEEPS:
                     add(f"marl {algo}", algo, {}, "", "")
+                    continue
+                for w5 in MARL_SWEEPS[algo]:
+                    opts = {} if w5 == DEFAULT_W5 else {"variant": w5_variant(w5)}
+                    folder = VARIANT_DIR / opts["variant"] if opts else None
+                    if all(checkpoint_path(algo, sc, n_vehicles, 0, folder).exists()
+                           for sc in scenarios):
+                        add(f"marl {algo} (power weight w5)", algo, opts, "reward_w_power", w5)
     return out
 
 

@@ -30,6 +30,15 @@ from envs.platoon import PlatoonState
 CHECKPOINT_DIR = Path(__file__).resolve().parent / "checkpoints"
 #: Name of the per-episode uniform stream sampled actions are drawn from.
 ACTION_STREAM = "policy-actions"
+#: Shipped policies trained with another config than the leaderboard's (one folder each).
+VARIANT_DIR = CHECKPOINT_DIR / "variants"
+
+
+def shipped_variants() -> list[str]:
+    """Names of the shipped checkpoint variants (folders of ``VARIANT_DIR``), sorted."""
+    if not VARIANT_DIR.is_dir():
+        return []
+    return sorted(p.name for p in VARIANT_DIR.iterdir() if p.is_dir())
 
 
 def checkpoint_path(
@@ -57,6 +66,10 @@ class PolicyController(Controller):
         ``checkpoint``, the training seeds of one folder pool into one leaderboard row.
     seed : int
         Training seed of the shipped checkpoint (0).
+    variant : str, optional
+        A shipped variant trained with another config (a folder of
+        ``controllers/checkpoints/variants``, e.g. ``w5_m1``: the power weight w5 = -1 of
+        ``cacc-bench pareto``); see :func:`shipped_variants`.
     untrained : bool
         Act with freshly initialised weights (the "untrained policy" reference; no file read).
     mode : {"sampled", "greedy"}
@@ -76,6 +89,7 @@ class PolicyController(Controller):
         checkpoint: str | None = None,
         checkpoint_dir: str | None = None,
         seed: int | str = 0,
+        variant: str | None = None,
         untrained: bool | str = False,
         mode: str = "sampled",
         **options: Any,
@@ -86,7 +100,7 @@ class PolicyController(Controller):
         if options:
             raise ConfigError(
                 f"{algo} has no option(s) {sorted(options)}; its options are: checkpoint, "
-                "checkpoint_dir, mode, scenario, seed, untrained"
+                "checkpoint_dir, mode, scenario, seed, untrained, variant"
             )
         if mode not in EVAL_MODES:
             raise ConfigError(f"{algo}: mode must be one of {', '.join(EVAL_MODES)}, got {mode!r}")
@@ -100,6 +114,15 @@ class PolicyController(Controller):
             raise ConfigError(
                 f"unknown MARL algorithm {algo!r}; valid: {', '.join(ALGORITHM_NAMES)}"
             )
+        if variant is not None:
+            if checkpoint_dir is not None:
+                raise ConfigError(f"{algo}: give variant or checkpoint_dir, not both")
+            known = shipped_variants()
+            if variant not in known:
+                raise ConfigError(
+                    f"{algo}: unknown variant {variant!r}; shipped: {', '.join(known) or 'none'}"
+                )
+        self.variant = variant
         self.algo = algo
         self.name = algo
         self.scenario = scenario
@@ -116,6 +139,7 @@ class PolicyController(Controller):
                 "checkpoint": checkpoint,
                 "checkpoint_dir": checkpoint_dir,
                 "seed": seed if seed else None,
+                "variant": variant,
                 "untrained": True if self.untrained else None,
                 "mode": mode if mode != EVAL_MODES[0] else None,
             }.items()
@@ -151,11 +175,18 @@ class PolicyController(Controller):
             self.loaded = {"steps": 0, "scenario": scenario_id}
             return algo.build_net(config, n_vehicles, with_critic=False, generator=gen)
         source = self.scenario or scenario_id
+        folder = VARIANT_DIR / self.variant if self.variant else self.checkpoint_dir
         path = (
             Path(self.checkpoint)
             if self.checkpoint
-            else checkpoint_path(self.algo, source, n_vehicles, self.seed, self.checkpoint_dir)
+            else checkpoint_path(self.algo, source, n_vehicles, self.seed, folder)
         )
+        if not path.exists() and self.variant:
+            have = sorted(f.name for f in (VARIANT_DIR / self.variant).glob("*.pt"))
+            raise ConfigError(
+                f"variant {self.variant!r} has no {self.algo} policy for {source} with "
+                f"N = {n_vehicles} ({path.name} missing); it holds: {', '.join(have) or 'nothing'}"
+            )
         if not path.exists():
             cmd = train_command(self.algo, source, n_vehicles, self.seed, self.checkpoint_dir or "")
             raise ConfigError(

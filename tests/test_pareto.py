@@ -73,3 +73,22 @@ def test_pareto_csv_is_identical_across_executors_and_reruns(tmp_path: Path) -> 
 def test_pareto_bad_family_exits_2(capsys: pytest.CaptureFixture[str]) -> None:
     assert cli(["pareto", "--families", "mpc,nope"]) == 2
     assert "nope" in capsys.readouterr().err
+
+
+def test_marl_sweep_uses_the_shipped_w5_variants(tmp_path: Path, monkeypatch) -> None:
+    import controllers.policy as policy
+    from benchmark.pareto_cmd import settings_for, w5_variant
+
+    assert [w5_variant(w) for w in (0.0, -1.0, -20.0, 2.5)] == ["w5_0", "w5_m1", "w5_m20",
+                                                                 "w5_2.5"]
+    monkeypatch.setattr(policy, "VARIANT_DIR", tmp_path)
+    (tmp_path / "w5_m1").mkdir()
+    (tmp_path / "w5_m1" / "bdc__catchup-v1__n8__s0.pt").write_bytes(b"")
+    settings = settings_for(["marl"], ["catchup-v1"], 8)
+    bdc = [s for s in settings if s["family"] == "marl bdc (power weight w5)"]
+    assert [(s["label"], s["knob_value"]) for s in bdc] == [("bdc[variant=w5_m1]", -1.0),
+                                                             ("bdc", -10.0)]
+    # a variant missing on one scenario is left out rather than failing the sweep
+    assert [s["label"] for s in settings_for(["marl"], ["catchup-v1", "slowdown-v1"], 8)
+            if s["controller"] == "bdc"] == ["bdc"]
+    assert {s["family"] for s in settings} >= {"marl wac", "marl ia2c (power weight w5)"}

@@ -189,6 +189,27 @@ def test_untrained_and_bad_options() -> None:
         PolicyController("ia2c", horizon=3)
 
 
+def test_variant_loads_its_folder_and_bad_variants_fail(tmp_path, monkeypatch) -> None:
+    import controllers.policy as policy
+
+    monkeypatch.setattr(policy, "VARIANT_DIR", tmp_path / "variants")
+    folder = tmp_path / "variants" / "w5_m1"
+    folder.mkdir(parents=True)
+    path, _ = _ckpt(tmp_path, "ia2c", n=4)
+    path.rename(folder / "ia2c__catchup-v1__n4__s0.pt")
+    assert policy.shipped_variants() == ["w5_m1"]
+    ctrl = PolicyController("ia2c", variant="w5_m1")
+    same = PolicyController("ia2c", checkpoint=str(folder / "ia2c__catchup-v1__n4__s0.pt"))
+    np.testing.assert_array_equal(_rollout(ctrl)[0], _rollout(same)[0])
+    assert ctrl.options == {"variant": "w5_m1"}
+    with pytest.raises(ConfigError, match="unknown variant 'w5_m2'; shipped: w5_m1"):
+        PolicyController("ia2c", variant="w5_m2")
+    with pytest.raises(ConfigError, match="not both"):
+        PolicyController("ia2c", variant="w5_m1", checkpoint_dir=str(tmp_path))
+    with pytest.raises(ConfigError, match="no bdc policy for catchup-v1 .* holds: ia2c__"):
+        _rollout(PolicyController("bdc", variant="w5_m1"))
+
+
 def test_registry_builds_policy() -> None:
     from controllers.registry import make_controller
 
