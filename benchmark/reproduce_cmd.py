@@ -15,8 +15,6 @@ import dataclasses
 import json
 import os
 import platform
-import shutil
-import subprocess
 import sys
 import time
 from dataclasses import dataclass
@@ -25,6 +23,7 @@ from typing import Any
 
 from benchmark.cli import plain
 from benchmark.executors import EXECUTORS
+from benchmark.policy_training import make_job, source_file, stem, train_stage, tuned_config
 from envs.errors import ConfigError, UnknownNameError
 
 
@@ -97,23 +96,6 @@ def _parser() -> argparse.ArgumentParser:
 
 
 # ------------------------------------------------------------------------------ training
-def _job(name: str, algo: str, scenario: str, vehicles: int, seed: int, folder: Path,
-         options: dict[str, Any], budget: Budget, study: str) -> dict[str, Any]:
-    return {"name": name, "algo": algo, "scenario": scenario, "vehicles": vehicles,
-            "steps": budget.steps, "seed": seed, "out": str(folder), "options": options,
-            "progress": False, "study": study, "validation_episodes": budget.validation_episodes}
-
-
-def _tuned(algo: str, config_scenario: str, extra: dict[str, Any], label: str) -> dict[str, Any]:
-    from benchmark.train_cmd import tuned_options
-    from controllers.registry import build_config
-    from marl.common import algorithm
-
-    options = {**tuned_options(algo, config_scenario), **extra}
-    config = build_config(algorithm(algo).config_cls, options, f"{label} (tuned)")
-    return {f: getattr(config, f) for f in options}
-
-
 def _train_plan(algos: list[str], scenarios: list[str], budget: Budget, out: Path,
                 studies: set[str]) -> list[dict[str, Any]]:
     """Every training run of the reproduction, with its tuned config and its folder.
@@ -130,126 +112,21 @@ def _train_plan(algos: list[str], scenarios: list[str], budget: Budget, out: Pat
     for name, algo, extra in variants:
         folder = ckpt if name == algo else ckpt / name
         for sc in scenarios:
-            options = _tuned(algo, sc, extra, name)
-            jobs += [_job(name, algo, sc, N_VEHICLES, seed, folder, options, budget, "main")
-                     for seed in budget.seeds]
+            options = tuned_config(algo, sc, extra, name)
+            jobs += [make_job(name, algo, sc, N_VEHICLES, seed, folder, options, budget.steps,
+                              "main", budget.validation_episodes) for seed in budget.seeds]
     if "sizes" in studies and SIZE_SCENARIO in scenarios:
         for algo in (a for a in SIZE_ALGOS if a in algos):
-            options = _tuned(algo, SIZE_SCENARIO, {}, algo)
-            jobs += [_job(algo, algo, SIZE_SCENARIO, n, seed, ckpt, options, budget, "sizes")
+            options = tuned_config(algo, SIZE_SCENARIO, {}, algo)
+            jobs += [make_job(algo, algo, SIZE_SCENARIO, n, seed, ckpt, options, budget.steps,
+                              "sizes", budget.validation_episodes)
                      for n in SIZES for seed in budget.seeds]
     if "openacc" in studies and "bdc" in algos:
-        options = _tuned("bdc", SIZE_SCENARIO, {}, "bdc")
-        jobs += [_job("bdc", "bdc", train_id, OPENACC_VEHICLES, seed, ckpt, options, budget,
-                      "openacc")
+        options = tuned_config("bdc", SIZE_SCENARIO, {}, "bdc")
+        jobs += [make_job("bdc", "bdc", train_id, OPENACC_VEHICLES, seed, ckpt, options,
+                          budget.steps, "openacc", budget.validation_episodes)
                  for train_id in OPENACC_GROUPS.values() for seed in budget.seeds]
     return jobs
-
-
-def _stem(job: dict[str, Any]) -> str:
-    from marl.common import checkpoint_stem
-
-    return checkpoint_stem(job["algo"], job["scenario"], job["vehicles"], job["seed"])
-
-
-def _source_file(job: dict[str, Any]) -> Path:
-    return Path(job["out"]) / f"{_stem(job)}.source.json"
-
-
-def _done(job: dict[str, Any]) -> bool:
-    """Finished in the output folder (trained there, or a shipped copy with the same config)."""
-    from benchmark.train_cmd import _finished, job_config
-
-    src = _source_file(job)
-    if src.exists():
-        info = json.loads(src.read_text())
-        if info.get("config") == job_config(job) and info.get("steps", 0) >= job["steps"]:
-            return (Path(job["out"]) / f"{_stem(job)}.pt").exists()
-    return _finished(job)
-
-
-def _shipped(job: dict[str, Any]) -> Path | None:
-    """The shipped checkpoint of ``job`` if it has the same config and at least its budget."""
-    import torch
-
-    from benchmark.train_cmd import job_config
-    from controllers.policy import CHECKPOINT_DIR
-
-    path = CHECKPOINT_DIR / f"{_stem(job)}.pt"
-    curve = path.with_suffix("").with_suffix(".curve.csv")
-    if not path.exists() or not curve.exists():
-        return None
-    data = torch.load(path, map_location="cpu", weights_only=True)
-    total = data.get("curve_summary", {}).get("total_steps", data.get("steps", 0))
-    if data.get("config") != job_config(job) or total < job["steps"]:
-        return None
-    return path
-
-
-def _last_commit(path: Path) -> str:
-    try:
-        return subprocess.run(["git", "log", "-1", "--format=%h", "--", path.name], cwd=path.parent,
-                              capture_output=True, text=True, timeout=10,
-                              check=True).stdout.strip() or "uncommitted"
-    except Exception:
-        return "unknown"
-
-
-def _copy_shipped(job: dict[str, Any], path: Path) -> None:
-    import torch
-
-    out = Path(job["out"])
-    out.mkdir(parents=True, exist_ok=True)
-    stem = _stem(job)
-    for suffix in (".pt", ".curve.csv", ".log"):
-        src = path.parent / f"{stem}{suffix}"
-        if src.exists():
-            shutil.copyfile(src, out / f"{stem}{suffix}")
-    data = torch.load(path, map_location="cpu", weights_only=True)
-    _source_file(job).write_text(json.dumps({
-        "source": "shipped", "path": str(path), "commit": _last_commit(path),
-        "config": data["config"], "steps": int(data["curve_summary"].get("total_steps", 0)),
-        "wall_s": data["curve_summary"].get("wall_s"),
-    }, indent=1, sort_keys=True))
-
-
-def _record_trained(job: dict[str, Any]) -> None:
-    import torch
-
-    from benchmark.provenance import git_sha
-
-    data = torch.load(Path(job["out"]) / f"{_stem(job)}.final.pt", map_location="cpu",
-                      weights_only=True)
-    _source_file(job).write_text(json.dumps({
-        "source": "trained", "commit": git_sha(), "config": data["config"],
-        "steps": int(data["steps"]), "wall_s": data["curve_summary"].get("wall_s"),
-    }, indent=1, sort_keys=True))
-
-
-def train_stage(jobs: list[dict[str, Any]], budget: Budget, args: argparse.Namespace) -> None:
-    """Train what is missing; copy matching shipped checkpoints (paper budget only)."""
-    from benchmark.executors import map_jobs
-    from benchmark.progress import Progress
-    from benchmark.train_cmd import _train_job
-
-    todo = []
-    for job in jobs:
-        if _done(job):
-            continue
-        shipped = _shipped(job) if budget.name == "paper" and job["name"] == job["algo"] else None
-        if shipped is not None:
-            _copy_shipped(job, shipped)
-        else:
-            todo.append(job)
-    print(f"training: {len(jobs) - len(todo)} of {len(jobs)} policies ready, {len(todo)} to train",
-          file=sys.stderr)
-    progress = Progress(len(todo), "training runs")
-    by_key = {str(Path(j["out"]) / f"{_stem(j)}.pt"): j for j in todo}
-    for res in map_jobs(_train_job, todo, args.executor, args.workers, args.ray_address):
-        job = by_key[str(Path(res["checkpoint"]))]
-        _record_trained(job)
-        progress.advance(note=f"{job['name']} {job['scenario']} s{job['seed']}")
-    progress.close()
 
 
 # ------------------------------------------------------------------------------ evaluation
@@ -321,7 +198,7 @@ def _curves(jobs: list[dict[str, Any]], study: str = "main",
     import pandas as pd
 
     return {(f"{j['name']} N={j['vehicles']}" if by_size else j["name"], j["scenario"], j["seed"]):
-            pd.read_csv(Path(j["out"]) / f"{_stem(j)}.curve.csv")
+            pd.read_csv(Path(j["out"]) / f"{stem(j)}.curve.csv")
             for j in jobs if j["study"] == study}
 
 
@@ -621,9 +498,9 @@ def main(argv: list[str]) -> int:
     manifest: dict[str, Any] = {"settings": settings,
                                 "command": "cacc-bench reproduce " + " ".join(argv)}
     manifest_path.write_text(json.dumps({**manifest, "status": "started"}, indent=1))
-    train_stage(jobs, budget, args)
+    train_stage(jobs, args, reuse_shipped=budget.name == "paper")
     names = eval_stage(jobs, scenarios, budget, args, out)
-    train_wall = sum(float(json.loads(_source_file(j).read_text()).get("wall_s") or 0.0)
+    train_wall = sum(float(json.loads(source_file(j).read_text()).get("wall_s") or 0.0)
                      for j in jobs)
     import pandas as pd
 

@@ -1,0 +1,149 @@
+"""Training stage shared by ``cacc-bench reproduce`` and ``cacc-bench sensitivity``.
+
+A job is a dict (algorithm, scenario, N, seed, folder, config options, budget); a job is done
+when its folder holds its checkpoint with the same config and budget, trained there or copied
+from the shipped checkpoints (with a ``.source.json`` saying which).
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+#: Training stops at the first update after its step budget: a shipped run counts as having
+#: the same budget when its total lies within this fraction above it.
+BUDGET_OVERSHOOT = 0.05
+
+
+def make_job(name: str, algo: str, scenario: str, vehicles: int, seed: int, folder: Path,
+             options: dict[str, Any], steps: int, study: str,
+             validation_episodes: int = 32) -> dict[str, Any]:
+    """One training run: ``name`` (the algorithm, or an ablation/variant of it) trained into
+    ``folder`` with config ``options`` for ``steps`` environment steps."""
+    return {"name": name, "algo": algo, "scenario": scenario, "vehicles": vehicles,
+            "steps": steps, "seed": seed, "out": str(folder), "options": options,
+            "progress": False, "study": study, "validation_episodes": validation_episodes}
+
+
+def tuned_config(algo: str, config_scenario: str, extra: dict[str, Any], label: str
+                 ) -> dict[str, Any]:
+    """The tuned options of ``algo`` on ``config_scenario`` with ``extra`` on top, checked."""
+    from benchmark.train_cmd import tuned_options
+    from controllers.registry import build_config
+    from marl.common import algorithm
+
+    options = {**tuned_options(algo, config_scenario), **extra}
+    config = build_config(algorithm(algo).config_cls, options, f"{label} (tuned)")
+    return {f: getattr(config, f) for f in options}
+
+
+def stem(job: dict[str, Any]) -> str:
+    from marl.common import checkpoint_stem
+
+    return checkpoint_stem(job["algo"], job["scenario"], job["vehicles"], job["seed"])
+
+
+def source_file(job: dict[str, Any]) -> Path:
+    return Path(job["out"]) / f"{stem(job)}.source.json"
+
+
+def is_done(job: dict[str, Any]) -> bool:
+    """Finished in the output folder (trained there, or a shipped copy with the same config)."""
+    from benchmark.train_cmd import _finished, job_config
+
+    src = source_file(job)
+    if src.exists():
+        info = json.loads(src.read_text())
+        if info.get("config") == job_config(job) and info.get("steps", 0) >= job["steps"]:
+            return (Path(job["out"]) / f"{stem(job)}.pt").exists()
+    return _finished(job)
+
+
+def shipped_checkpoint(job: dict[str, Any]) -> Path | None:
+    """The shipped checkpoint of ``job`` if it has the same config and budget."""
+    import torch
+
+    from benchmark.train_cmd import job_config
+    from controllers.policy import CHECKPOINT_DIR
+
+    path = CHECKPOINT_DIR / f"{stem(job)}.pt"
+    curve = path.with_suffix("").with_suffix(".curve.csv")
+    if not path.exists() or not curve.exists():
+        return None
+    data = torch.load(path, map_location="cpu", weights_only=True)
+    total = data.get("curve_summary", {}).get("total_steps", data.get("steps", 0))
+    if data.get("config") != job_config(job) or not (
+            job["steps"] <= total <= job["steps"] * (1 + BUDGET_OVERSHOOT)):
+        return None
+    return path
+
+
+def _last_commit(path: Path) -> str:
+    try:
+        return subprocess.run(["git", "log", "-1", "--format=%h", "--", path.name], cwd=path.parent,
+                              capture_output=True, text=True, timeout=10,
+                              check=True).stdout.strip() or "uncommitted"
+    except Exception:
+        return "unknown"
+
+
+def copy_shipped(job: dict[str, Any], path: Path) -> None:
+    import torch
+
+    out = Path(job["out"])
+    out.mkdir(parents=True, exist_ok=True)
+    name = stem(job)
+    for suffix in (".pt", ".curve.csv", ".log"):
+        src = path.parent / f"{name}{suffix}"
+        if src.exists():
+            shutil.copyfile(src, out / f"{name}{suffix}")
+    data = torch.load(path, map_location="cpu", weights_only=True)
+    source_file(job).write_text(json.dumps({
+        "source": "shipped", "path": str(path), "commit": _last_commit(path),
+        "config": data["config"], "steps": int(data["curve_summary"].get("total_steps", 0)),
+        "wall_s": data["curve_summary"].get("wall_s"),
+    }, indent=1, sort_keys=True))
+
+
+def record_trained(job: dict[str, Any]) -> None:
+    import torch
+
+    from benchmark.provenance import git_sha
+
+    data = torch.load(Path(job["out"]) / f"{stem(job)}.final.pt", map_location="cpu",
+                      weights_only=True)
+    source_file(job).write_text(json.dumps({
+        "source": "trained", "commit": git_sha(), "config": data["config"],
+        "steps": int(data["steps"]), "wall_s": data["curve_summary"].get("wall_s"),
+    }, indent=1, sort_keys=True))
+
+
+def train_stage(jobs: list[dict[str, Any]], args: Any, reuse_shipped: bool) -> None:
+    """Train what is missing (``args``: executor, workers, ray_address); with
+    ``reuse_shipped``, copy shipped checkpoints of the same config and budget instead."""
+    from benchmark.executors import map_jobs
+    from benchmark.progress import Progress
+    from benchmark.train_cmd import _train_job
+
+    todo = []
+    for job in jobs:
+        if is_done(job):
+            continue
+        shipped = shipped_checkpoint(job) if reuse_shipped and job["name"] == job["algo"] else None
+        if shipped is not None:
+            copy_shipped(job, shipped)
+        else:
+            todo.append(job)
+    print(f"training: {len(jobs) - len(todo)} of {len(jobs)} policies ready, {len(todo)} to train",
+          file=sys.stderr)
+    progress = Progress(len(todo), "training runs")
+    by_key = {str(Path(j["out"]) / f"{stem(j)}.pt"): j for j in todo}
+    for res in map_jobs(_train_job, todo, args.executor, args.workers, args.ray_address):
+        job = by_key[str(Path(res["checkpoint"]))]
+        record_trained(job)
+        progress.advance(note=f"{job['name']} {job['scenario']} s{job['seed']}")
+    progress.close()

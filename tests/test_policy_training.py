@@ -1,0 +1,63 @@
+"""The shared training stage: when a shipped checkpoint stands in for a training run."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+
+import controllers.policy as policy
+from benchmark.policy_training import (
+    copy_shipped,
+    is_done,
+    make_job,
+    shipped_checkpoint,
+    source_file,
+)
+from benchmark.train_cmd import job_config
+
+
+def _ship(folder: Path, job: dict, total_steps: int, **config_changes: object) -> Path:
+    config = {**job_config(job), **config_changes}
+    path = folder / "bdc__catchup-v1__n8__s0.pt"
+    torch.save({"config": config, "steps": total_steps // 2,
+                "curve_summary": {"total_steps": total_steps, "wall_s": 12.5}}, path)
+    path.with_suffix("").with_suffix(".curve.csv").write_text("episode,steps\n1,720\n")
+    return path
+
+
+@pytest.fixture
+def job(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> dict:
+    monkeypatch.setattr(policy, "CHECKPOINT_DIR", tmp_path / "shipped")
+    (tmp_path / "shipped").mkdir()
+    return make_job("bdc", "bdc", "catchup-v1", 8, 0, tmp_path / "out", {"gamma": 0.995},
+                    600_000, "main")
+
+
+def test_a_shipped_run_stands_in_only_with_the_same_config_and_budget(
+        tmp_path: Path, job: dict) -> None:
+    shipped = tmp_path / "shipped"
+    assert shipped_checkpoint(job) is None  # nothing shipped
+    path = _ship(shipped, job, 602_340)  # stops at the first update past the budget
+    assert shipped_checkpoint(job) == path
+    _ship(shipped, job, 1_000_000)  # a longer run is another budget
+    assert shipped_checkpoint(job) is None
+    _ship(shipped, job, 590_000)
+    assert shipped_checkpoint(job) is None
+    _ship(shipped, job, 600_000, gamma=0.99)
+    assert shipped_checkpoint(job) is None
+
+
+def test_a_copied_run_is_done_and_records_where_it_came_from(tmp_path: Path, job: dict) -> None:
+    import json
+
+    path = _ship(tmp_path / "shipped", job, 600_720)
+    assert not is_done(job)
+    copy_shipped(job, path)
+    assert is_done(job)
+    info = json.loads(source_file(job).read_text())
+    assert info["source"] == "shipped" and info["steps"] == 600_720 and info["wall_s"] == 12.5
+    assert (Path(job["out"]) / "bdc__catchup-v1__n8__s0.curve.csv").exists()
+    longer = {**job, "steps": 700_000}
+    assert not is_done(longer)
