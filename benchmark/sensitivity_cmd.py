@@ -1,0 +1,293 @@
+"""``cacc-bench sensitivity``: BDC-MARL's knobs one at a time, and its tolerance of V2V faults.
+
+From BDC's tuned config on each scenario one knob changes at a time: the consensus step eps
+(0.01x to 10x the tuned value), the QSGD levels s (1, 2, 4, off), what is shared (the critic's
+LSTM, the whole critic) and gamma (0.99, 0.995). Each variant trains (seed 0 unless --seeds)
+into ``OUT/checkpoints/<variant>``; the unchanged config reuses the shipped policy when its
+config and budget match. Every variant then runs on the evaluation seeds, and the unchanged
+policy also under V2V delay 0.1-0.3 s and packet loss 10-30 %. ``OUT/sensitivity.csv``,
+``OUT/report.md`` and figures come out; everything is resumable.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+from benchmark.cli import plain
+from benchmark.executors import EXECUTORS
+from envs.errors import ConfigError, UnknownNameError
+
+#: Multiples of the tuned consensus eps tried (two decades and more around it).
+EPS_FACTORS: tuple[float, ...] = (0.01, 0.1, 1.0, 10.0)
+#: QSGD levels s tried (0: QSGD off).
+QSGD_LEVELS: tuple[int, ...] = (1, 2, 4, 0)
+GAMMAS: tuple[float, ...] = (0.99, 0.995)
+#: V2V degradation at execution: delays (s) at no loss, and losses at no delay.
+DELAYS_S: tuple[float, ...] = (0.1, 0.2, 0.3)
+LOSSES: tuple[float, ...] = (0.1, 0.2, 0.3)
+KNOBS: tuple[str, ...] = ("consensus_eps", "qsgd_levels", "shared", "gamma", "v2v")
+DEFAULT_SCENARIOS = ("catchup-v1", "slowdown-v1")
+N_VEHICLES = 8
+MANIFEST = "sensitivity.json"
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="cacc-bench sensitivity",
+                                description=plain(__doc__.split("\n")[0]))
+    p.add_argument("--scenarios", default=",".join(DEFAULT_SCENARIOS),
+                   help="comma list of scenario ids (default: %(default)s)")
+    p.add_argument("--knobs", default=",".join(KNOBS),
+                   help="comma list among " + ", ".join(KNOBS) + " (default: all)")
+    p.add_argument("--seeds", default="0", help="training seeds (default: %(default)s)")
+    p.add_argument("--steps", type=int, default=600_000,
+                   help="environment steps per training run (default 6e5, the shipped budget)")
+    p.add_argument("--validation-episodes", type=int, default=32,
+                   help="validation episodes per snapshot evaluation (default: 32)")
+    p.add_argument("--episodes", type=int, default=50,
+                   help="first K published evaluation seeds (default: %(default)s)")
+    p.add_argument("--out", default="results/sensitivity",
+                   help="output folder (default: %(default)s)")
+    p.add_argument("--resume", action="store_true", help="complete a study in --out")
+    p.add_argument("--executor", choices=EXECUTORS, default="serial",
+                   help="serial, process or ray (default: %(default)s)")
+    p.add_argument("--workers", type=int, default=2, help="processes or Ray CPUs (default 2)")
+    p.add_argument("--ray-address", default=None, help="attach to this Ray cluster")
+    return p
+
+
+def variants(knobs: list[str], tuned: dict[str, Any]) -> list[dict[str, Any]]:
+    """The trained variants: ``name``, ``knob``, ``value``, config ``overrides``, ``is_base``.
+
+    The unchanged (tuned) config comes first and stands as one value of every knob.
+    """
+    eps = float(tuned["consensus_eps"])
+    out = [{"name": "base", "knob": "", "value": "", "overrides": {}, "is_base": True}]
+
+    def add(name: str, knob: str, value: Any, overrides: dict[str, Any]) -> None:
+        out.append({"name": name, "knob": knob, "value": value, "overrides": overrides,
+                    "is_base": False})
+
+    if "consensus_eps" in knobs:
+        for f in EPS_FACTORS:
+            if f != 1.0:
+                add(f"eps_x{f:g}", "consensus_eps", float(f"{eps * f:.3g}"),
+                    {"consensus_eps": eps * f})
+    if "qsgd_levels" in knobs:
+        for s in QSGD_LEVELS:
+            if s != tuned["qsgd_levels"]:
+                add(f"qsgd_s{s}" if s else "qsgd_off", "qsgd_levels", s or "off",
+                    {"qsgd_levels": s})
+    if "shared" in knobs and not tuned["share_whole_critic"]:
+        add("share_whole_critic", "shared", "whole critic", {"share_whole_critic": True})
+    if "gamma" in knobs:
+        for g in GAMMAS:
+            if g != tuned["gamma"]:
+                add(f"gamma_{g:g}", "gamma", g, {"gamma": g})
+    return out
+
+
+def _base_value(knob: str, tuned: dict[str, Any]) -> Any:
+    return {"consensus_eps": float(f"{float(tuned['consensus_eps']):.3g}"),
+            "qsgd_levels": tuned["qsgd_levels"] or "off",
+            "shared": "whole critic" if tuned["share_whole_critic"] else "critic LSTM",
+            "gamma": tuned["gamma"]}[knob]
+
+
+def plan(scenarios: list[str], knobs: list[str], seeds: list[int], steps: int,
+         validation_episodes: int, out: Path) -> tuple[list[dict[str, Any]],
+                                                      list[dict[str, Any]]]:
+    """Training jobs and evaluation settings (see :func:`analysis.sensitivity.sensitivity_frame`;
+    ``training`` holds the jobs until their summaries are read)."""
+    from benchmark.policy_training import make_job, tuned_config
+    from controllers.registry import controller_label
+    from marl.common import algorithm
+
+    jobs: list[dict[str, Any]] = []
+    settings: list[dict[str, Any]] = []
+    for sc in scenarios:
+        import dataclasses
+
+        tuned_opts = tuned_config("bdc", sc, {}, "bdc")
+        tuned = dataclasses.asdict(algorithm("bdc").config_cls(**tuned_opts))
+        for v in variants(knobs, tuned):
+            folder = out / "checkpoints" / v["name"]
+            options = tuned_config("bdc", sc, v["overrides"], f"bdc {v['name']}")
+            vjobs = [make_job("bdc" if v["is_base"] else f"bdc-{v['name']}", "bdc", sc,
+                              N_VEHICLES, seed, folder, options, steps, "sensitivity",
+                              validation_episodes) for seed in seeds]
+            jobs += vjobs
+            ctrls = [("bdc", {"checkpoint_dir": str(folder), "seed": str(seed)})
+                     for seed in seeds]
+            labels = [controller_label(name, opts) for name, opts in ctrls]
+            rows = []
+            if v["is_base"]:
+                rows = [(k, _base_value(k, tuned), 0.0, 0.0) for k in knobs if k != "v2v"]
+                if "v2v" in knobs:
+                    rows += [("v2v_delay_s", 0.0, 0.0, 0.0)]
+                    rows += [("v2v_delay_s", d, d, 0.0) for d in DELAYS_S]
+                    rows += [("v2v_packet_loss", 0.0, 0.0, 0.0)]
+                    rows += [("v2v_packet_loss", x, 0.0, x) for x in LOSSES]
+            else:
+                rows = [(v["knob"], v["value"], 0.0, 0.0)]
+            for knob, value, delay, loss in rows:
+                settings.append({"scenario": sc, "knob": knob, "knob_value": value,
+                                 "variant": v["name"], "is_base": v["is_base"] and not delay
+                                 and not loss, "labels": labels, "controllers": ctrls,
+                                 "comm_delay_s": delay,
+                                 "packet_loss": loss, "training": vjobs})
+        settings.append({"scenario": sc, "knob": "reference", "knob_value": "", "variant": "ovm",
+                         "is_base": False, "labels": ["ovm"], "controllers": [("ovm", {})],
+                         "comm_delay_s": 0.0,
+                         "packet_loss": 0.0, "training": []})
+    return jobs, settings
+
+
+def _eval_keys(settings: list[dict[str, Any]], seeds: list[int]) -> list[Any]:
+    from benchmark.suite import build_sweep
+
+    keys = {k for s in settings
+            for k in build_sweep(s["controllers"], [s["scenario"]], [N_VEHICLES], seeds,
+                                 [s["comm_delay_s"]], [s["packet_loss"]])}
+    return sorted(keys, key=lambda k: k.id)
+
+
+def _summaries(settings: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """``settings`` with each training job replaced by its checkpoint's curve summary."""
+    import torch
+
+    from benchmark.policy_training import stem
+
+    cache: dict[str, dict[str, float]] = {}
+    out = []
+    for s in settings:
+        summaries = []
+        for job in s["training"]:
+            path = str(Path(job["out"]) / f"{stem(job)}.pt")
+            if path not in cache:
+                cache[path] = torch.load(path, map_location="cpu",
+                                         weights_only=True)["curve_summary"]
+            summaries.append(cache[path])
+        out.append({**s, "training": summaries})
+    return out
+
+
+def _names(text: str, flag: str, valid: tuple[str, ...] | None = None) -> list[str]:
+    names = list(dict.fromkeys(x.strip() for x in text.split(",") if x.strip()))
+    if not names:
+        raise ConfigError(f"{flag}: nothing named")
+    for n in names if valid else ():
+        if n not in valid:
+            raise UnknownNameError(flag.lstrip("-").rstrip("s"), n, valid)
+    return names
+
+
+def write_report(df: Any, out: Path, command: str, steps: int, seeds: list[int],
+                 episodes: int) -> Path:
+    """``OUT/report.md`` with a table per scenario, the knob effects and the figures."""
+    from analysis.reproduction import format_table
+    from analysis.sensitivity import knob_effects, plot_bits_against_reward, plot_sensitivity
+    from benchmark.provenance import git_sha
+
+    fig_dir = out / "figures"
+    lines = ["# BDC-MARL sensitivity", "",
+             f"Command: `{command}` (git {git_sha()}). Each variant trained with seed(s) "
+             f"{', '.join(map(str, seeds))} for {steps:,} steps from the tuned config, one knob "
+             f"changed; evaluated on the first {episodes} published evaluation seeds, actions "
+             "sampled. Intervals: 95 % bootstrap over episodes (and seeds, two-stage, when "
+             "there are several). Training bits: what one agent sent in its run (per-step "
+             "messages plus consensus rounds); the QSGD payload is applied locally, not sent.",
+             ""]
+    cols = [("knob", "knob"), ("knob_value", "value"), ("collisions", "collisions"),
+            ("reward_mean", "reward"), ("reward_ci_low", "low"), ("reward_ci_high", "high"),
+            ("energy_kwh_per_100km_mean", "kWh/100 km"), ("gap_rmse_m_mean", "gap RMSE m"),
+            ("training_bits_sent_per_agent", "training bits sent"),
+            ("qsgd_payload_bits_per_agent", "QSGD payload bits")]
+    for sc in dict.fromkeys(df["scenario"]):
+        plot_sensitivity(df, sc, fig_dir, f"sensitivity__{sc}")
+        lines += [f"## {sc}", "", format_table(df[df["scenario"] == sc], cols, 3), "",
+                  f"![sensitivity on {sc}](figures/sensitivity__{sc}.png)", ""]
+    effects = knob_effects(df)
+    effects.to_csv(out / "knob_effects.csv", index=False)
+    plot_bits_against_reward(df, fig_dir, "bits_against_reward")
+    lines += ["## Which knob matters", "",
+              "Spread: the largest minus the smallest mean reward over the knob's values; "
+              "'differs' when some value's interval lies wholly off the unchanged policy's.", "",
+              format_table(effects, [("scenario", "scenario"), ("knob", "knob"),
+                                     ("reward_spread", "spread"), ("best_value", "best"),
+                                     ("worst_value", "worst"), ("collisions", "collisions"),
+                                     ("differs_from_base", "differs")], 1), "",
+              "## Communication against performance", "",
+              "![training bits against reward](figures/bits_against_reward.png)", ""]
+    path = out / "report.md"
+    path.write_text("\n".join(lines))
+    return path
+
+
+def main(argv: list[str]) -> int:
+    """Entry point of ``cacc-bench sensitivity``."""
+    import pandas as pd
+
+    from analysis.sensitivity import sensitivity_frame
+    from benchmark.policy_training import train_stage
+    from benchmark.run_cmd import execute_sweep
+    from benchmark.suite import seeds_from_episodes
+    from envs.scenarios import make_scenario
+
+    args = _parser().parse_args(argv)
+    scenarios = _names(args.scenarios, "--scenarios")
+    for sc in scenarios:
+        make_scenario(sc)
+    knobs = _names(args.knobs, "--knobs", KNOBS)
+    try:
+        seeds = [int(x) for x in _names(args.seeds, "--seeds")]
+    except ValueError:
+        raise ConfigError(f"--seeds must be a comma list of integers, got {args.seeds!r}") from None
+    for flag, value, low in (("--steps", args.steps, 1), ("--episodes", args.episodes, 1),
+                             ("--validation-episodes", args.validation_episodes, 1),
+                             ("--workers", args.workers, 1)):
+        if value < low:
+            raise ConfigError(f"{flag} must be >= {low}, got {value}")
+    if min(seeds) < 0:
+        raise ConfigError(f"--seeds must be >= 0, got {min(seeds)}")
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"--out {out} exists and is not a folder")
+    settings_key = {"scenarios": scenarios, "knobs": knobs, "seeds": seeds, "steps": args.steps,
+                    "validation_episodes": args.validation_episodes, "episodes": args.episodes}
+    manifest = out / MANIFEST
+    if manifest.exists():
+        previous = json.loads(manifest.read_text())
+        if not args.resume:
+            raise ConfigError(f"{out} already holds a sensitivity study; add --resume to "
+                              "complete it, or choose another --out")
+        if previous != settings_key:
+            raise ConfigError(f"{out} holds a study with other settings ({previous}); use "
+                              "another --out")
+    elif out.exists() and any(out.iterdir()) and not args.resume:
+        raise ConfigError(f"{out} is not empty; choose another --out (or --resume)")
+    jobs, settings = plan(scenarios, knobs, seeds, args.steps, args.validation_episodes, out)
+    out.mkdir(parents=True, exist_ok=True)
+    manifest.write_text(json.dumps(settings_key, indent=1))
+    print(f"sensitivity: {len(jobs)} training runs, {len(settings)} settings", file=sys.stderr)
+    train_stage(jobs, args, reuse_shipped=True)
+    eval_seeds = seeds_from_episodes(args.episodes)
+    keys = _eval_keys(settings, eval_seeds)
+    print(f"evaluation: {len(keys)} runs", file=sys.stderr)
+    rc = execute_sweep(keys, out / "runs", resume=True, executor=args.executor,
+                       workers=args.workers, ray_address=args.ray_address, quiet=True,
+                       first_seed=eval_seeds[0])
+    if rc != 0:
+        raise ConfigError(f"some evaluation runs failed (see {out / 'runs' / 'runs.csv'}); fix "
+                          "the cause and rerun with --resume")
+    runs = pd.read_csv(out / "runs" / "runs.csv")
+    runs = runs[runs["status"] == "ok"]
+    df = sensitivity_frame(runs, _summaries(settings))
+    df.to_csv(out / "sensitivity.csv", index=False)
+    report = write_report(df, out, "cacc-bench sensitivity " + " ".join(argv), args.steps, seeds,
+                          args.episodes)
+    print(f"wrote {out / 'sensitivity.csv'} ({len(df)} rows) and {report}")
+    return 0
