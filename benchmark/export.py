@@ -11,6 +11,7 @@ import numpy as np
 from analysis.statistics import bootstrap_ci, hierarchical_bootstrap_ci
 from benchmark.rollout import Trajectory
 from benchmark.suite import KEY_COLUMNS
+from envs.errors import ConfigError
 
 RUN_COLUMNS: tuple[str, ...] = (
     "controller", "family", "scenario", "n_vehicles", "seed", "status", "error", "steps",
@@ -147,14 +148,35 @@ def leaderboard_frame(runs: Any, pool_seeds: bool = False) -> Any:
 def write_csvs(
     folder: Path, records: list[dict[str, Any]], pool_seeds: bool = False
 ) -> tuple[Path, Path, Any]:
-    """Write runs.csv and leaderboard.csv into ``folder``; returns the paths and the leaderboard."""
+    """Write runs.csv and leaderboard.csv into ``folder``; returns the paths and the leaderboard.
+
+    Refuses (ConfigError) to replace a runs.csv that holds more runs than ``records``: the
+    store is the source of truth, and one with fewer runs than its CSV is not the same store.
+    """
+    runs_path = folder / "runs.csv"
+    before = _csv_rows(runs_path)
+    if before > len(records):
+        raise ConfigError(
+            f"{runs_path} lists {before} runs but the store beside it holds {len(records)}; "
+            "nothing was overwritten: rerun the sweep with --resume to fill the store, or "
+            "choose another --out"
+        )
     runs = runs_frame(records)
     lb = leaderboard_frame(runs, pool_seeds)
-    runs_path = folder / "runs.csv"
     lb_path = folder / "leaderboard.csv"
     _atomic_csv(runs, runs_path)
     _atomic_csv(lb, lb_path)
     return runs_path, lb_path, lb
+
+
+def _csv_rows(path: Path) -> int:
+    """Data rows of a CSV file (0 if there is none)."""
+    import csv
+
+    if not path.exists():
+        return 0
+    with path.open(newline="") as f:
+        return max(sum(1 for _ in csv.reader(f)) - 1, 0)
 
 
 def _atomic_csv(df: Any, path: Path) -> None:

@@ -22,9 +22,9 @@ def main(argv: list[str]) -> int:
                         "bdc:seed=1, ...): a two-stage bootstrap over seeds, then episodes")
     args = p.parse_args(argv)
     for folder in args.results_dir:
-        with ResultStore(Path(folder), create=False) as store:
+        with ResultStore(Path(folder), create=False, writer=True) as store:
             records = store.records()
-        runs_path, lb_path, lb = write_csvs(Path(folder), records, args.pool_seeds)
+            runs_path, lb_path, lb = write_csvs(Path(folder), records, args.pool_seeds)
         if not args.quiet:
             print(format_leaderboard(lb))
         print(f"wrote {runs_path} ({len(records)} runs) and {lb_path}")

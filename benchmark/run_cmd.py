@@ -160,7 +160,7 @@ def execute_sweep(
 
     if out.exists() and not out.is_dir():
         raise ConfigError(f"--out {out} exists and is not a folder")
-    store = ResultStore(out)
+    store = ResultStore(out, writer=True)
     try:
         done_ok = store.ids("ok")
         stored = store.ids()
@@ -190,9 +190,9 @@ def execute_sweep(
             progress.advance(note=f"{rec['controller']} {rec['scenario']} s{rec['seed']}")
         progress.close()
         records = store.records()
+        runs_path, lb_path, lb = write_csvs(out, records, pool_seeds)
     finally:
         store.close()
-    runs_path, lb_path, lb = write_csvs(out, records, pool_seeds)
     if not quiet:
         print(format_leaderboard(lb))
     print(f"wrote {runs_path} ({len(records)} runs) and {lb_path}")

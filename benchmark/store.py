@@ -1,7 +1,10 @@
 """The results store: an embedded SQLite file, one committed transaction per finished run.
 
 It is the source of truth of a results folder: the CSV files are rebuilt from it, a killed sweep
-loses only the runs in flight, and ``--resume`` skips what is stored.
+loses only the runs in flight, and ``--resume`` skips what is stored. A writer holds the folder's
+lock (``store.lock``, via ``filelock``) for as long as the store is open, so two commands never
+write one folder; the holder's pid and command are in ``store.owner``. Opening checks the file's
+integrity (SQLite ``quick_check``) and every record's JSON.
 """
 
 from __future__ import annotations
@@ -9,7 +12,9 @@ from __future__ import annotations
 import io
 import json
 import math
+import os
 import sqlite3
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -19,6 +24,8 @@ import numpy as np
 from envs.errors import ConfigError
 
 STORE_NAME = "store.sqlite"
+LOCK_NAME = "store.lock"
+OWNER_NAME = "store.owner"
 SCHEMA_VERSION = 1
 
 _SCHEMA = """
@@ -44,31 +51,78 @@ def _clean(value: Any) -> Any:
 class ResultStore:
     """SQLite store of finished runs in ``folder/store.sqlite``."""
 
-    def __init__(self, folder: Path | str, create: bool = True) -> None:
+    def __init__(self, folder: Path | str, create: bool = True, writer: bool = False) -> None:
         self.folder = Path(folder)
         self.path = self.folder / STORE_NAME
+        self._lock: Any = None
         if not create and not self.path.exists():
             raise ConfigError(
                 f"no results store in {self.folder} (expected {self.path}); "
                 "run `cacc-bench run --out DIR` first"
             )
+        if self.path.exists() and self.path.stat().st_size == 0:
+            raise ConfigError(
+                f"{self.path} is empty (0 bytes), not a results store; remove it to start a new "
+                "store in this folder, or choose another --out"
+            )
         self.folder.mkdir(parents=True, exist_ok=True)
+        if writer:
+            self._acquire()
         try:
             self.conn = sqlite3.connect(self.path, timeout=30)
+            check = self.conn.execute("PRAGMA quick_check").fetchone()
+            if check is None or check[0] != "ok":
+                raise sqlite3.DatabaseError(f"integrity check: {check[0] if check else 'no answer'}")
             self.conn.executescript(_SCHEMA)
             version = self.get_meta("schema_version")
         except sqlite3.DatabaseError as exc:
-            raise ConfigError(f"{self.path} is not a readable results store: {exc}") from None
+            self._release()
+            raise ConfigError(
+                f"{self.path} is not a readable results store ({exc}); the CSV files beside it "
+                "are left as they are: move the file away and rerun the sweep into this folder, "
+                "or choose another --out"
+            ) from None
         if version is None:
             self.set_meta("schema_version", SCHEMA_VERSION)
         elif int(version) != SCHEMA_VERSION:
+            self.close()
             raise ConfigError(
                 f"{self.path} has store schema {version}, this cacc-bench reads {SCHEMA_VERSION}"
             )
 
+    def _acquire(self) -> None:
+        """Take the folder's writer lock, or refuse naming the process that holds it."""
+        from filelock import FileLock, Timeout
+
+        lock = FileLock(self.folder / LOCK_NAME, timeout=0)
+        try:
+            lock.acquire()
+        except Timeout:
+            owner = self.folder / OWNER_NAME
+            try:
+                info = json.loads(owner.read_text())
+                who = f"pid {info['pid']} (`{info['command']}`, started {info['started']})"
+            except (OSError, ValueError, KeyError):
+                who = "another process"
+            raise ConfigError(
+                f"{self.folder} is being written by {who}; wait for it to finish, or choose "
+                "another --out"
+            ) from None
+        self._lock = lock
+        (self.folder / OWNER_NAME).write_text(json.dumps({
+            "pid": os.getpid(), "command": " ".join(["cacc-bench", *sys.argv[1:]]),
+            "started": time.strftime("%Y-%m-%d %H:%M:%S")}))
+
+    def _release(self) -> None:
+        if self._lock is not None:
+            (self.folder / OWNER_NAME).unlink(missing_ok=True)
+            self._lock.release()
+            self._lock = None
+
     def close(self) -> None:
-        """Close the connection."""
+        """Close the connection and release the writer lock."""
         self.conn.close()
+        self._release()
 
     def __enter__(self) -> ResultStore:
         return self
@@ -120,8 +174,25 @@ class ResultStore:
         return {r[0] for r in rows}
 
     def records(self) -> list[dict[str, Any]]:
-        """All stored run records."""
-        return [json.loads(r[0]) for r in self.conn.execute("SELECT record FROM runs")]
+        """All stored run records (a consistent snapshot: one read transaction)."""
+        out = []
+        try:
+            rows = self.conn.execute("SELECT id, record FROM runs ORDER BY id").fetchall()
+        except sqlite3.DatabaseError as exc:
+            raise ConfigError(f"{self.path}: the runs table cannot be read ({exc}); move the "
+                              "file away and rerun the sweep, or choose another --out") from None
+        for run_id, text in rows:
+            try:
+                rec = json.loads(text)
+                if not isinstance(rec, dict) or rec.get("id") != run_id:
+                    raise ValueError("not the record of this run")
+            except ValueError as exc:
+                raise ConfigError(
+                    f"{self.path}: the stored record of run {run_id!r} is unreadable ({exc}); "
+                    "remove that row (or the file) and rerun with --resume"
+                ) from None
+            out.append(rec)
+        return out
 
     def trajectory(self, run_id: str) -> dict[str, np.ndarray] | None:
         """The stored trajectory arrays of a run, if any."""
