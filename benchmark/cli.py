@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import importlib
 import re
+import signal
 import sys
+import threading
 from collections.abc import Callable, Sequence
 
 from envs.errors import CaccBenchError
@@ -90,13 +92,28 @@ def main(argv: Sequence[str] | None = None) -> int:
             return fail(f"command {cmd!r} is not available in this version")
         raise
     entry: Callable[[list[str]], int] = module.main
+    from envs.interrupt import Interrupted, install, restore
+
+    previous = install() if threading.current_thread() is threading.main_thread() else {}
     try:
         return int(entry(rest) or 0)
     except CaccBenchError as exc:
         return fail(str(exc))
-    except KeyboardInterrupt:
-        print("cacc-bench: interrupted; finished runs are stored (use --resume)", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:
+        signum = exc.signum if isinstance(exc, Interrupted) else signal.SIGINT
+        print(f"cacc-bench: interrupted ({signal.Signals(signum).name}); the run in flight was "
+              "not stored, finished runs are (complete with --resume)", file=sys.stderr)
+        return 128 + int(signum)
+    finally:
+        _shutdown_ray()
+        restore(previous)
+
+
+def _shutdown_ray() -> None:
+    """Stop the Ray instance a command started or attached to (every exit path)."""
+    ray = sys.modules.get("ray")
+    if ray is not None and getattr(ray, "is_initialized", lambda: False)():
+        ray.shutdown()
 
 
 if __name__ == "__main__":

@@ -17,13 +17,47 @@ from envs.errors import ConfigError
 EXECUTORS = ("serial", "process", "ray")
 
 
-def _worker_init() -> None:
+def _worker_env() -> None:
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     os.environ.setdefault("MKL_NUM_THREADS", "1")
 
 
+def _worker_init(parent_pid: int) -> None:
+    """Start of a process-executor worker: one thread per library, interrupts that no solver
+    swallows, and death with the parent (whatever kills it, SIGKILL included)."""
+    _worker_env()
+    from envs.interrupt import install
+
+    install()
+    die_with_parent(parent_pid)
+
+
+def die_with_parent(parent_pid: int) -> None:
+    """End this process when ``parent_pid`` ends: the kernel's parent-death signal on Linux,
+    a watchdog thread elsewhere; at once if the parent is already gone."""
+    import sys
+    import threading
+    import time
+
+    if sys.platform.startswith("linux"):
+        import ctypes
+        import signal
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, int(signal.SIGKILL))  # PR_SET_PDEATHSIG
+    else:
+        def watch() -> None:
+            while os.getppid() == parent_pid:
+                time.sleep(0.5)
+            os._exit(1)
+
+        threading.Thread(target=watch, daemon=True).start()
+    if os.getppid() != parent_pid:
+        os._exit(1)
+
+
 def _run(args: tuple[RunKey, bool]) -> dict:
-    _worker_init()
+    _worker_env()
     return execute_run(*args)
 
 
@@ -66,7 +100,8 @@ def _process(fn: Callable[[Any], Any], items: Sequence[Any], workers: int) -> It
     from concurrent.futures import ProcessPoolExecutor, as_completed
 
     ctx = mp.get_context("spawn")
-    pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init)
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init,
+                               initargs=(os.getpid(),))
     try:
         futures = [pool.submit(fn, item) for item in items]
         for fut in as_completed(futures):

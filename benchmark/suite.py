@@ -14,6 +14,7 @@ from dataclasses import asdict, dataclass
 
 from controllers.registry import controller_label, resolve
 from envs.channel import ChannelConfig
+from envs.interrupt import raise_if_interrupted
 from envs.params import PlatoonParams
 from envs.scenarios import make_scenario
 
@@ -116,6 +117,7 @@ def execute_run(key: RunKey, keep_trajectory: bool = False) -> dict:
         if keep_trajectory:
             record["_trajectory"] = traj
     except Exception as exc:  # a failing controller must not end the sweep
+        raise_if_interrupted()  # an interrupted run is not a failed run: it is not stored
         record["status"] = "failed"
         record["error"] = f"{type(exc).__name__}: {exc}"
         record["traceback"] = traceback.format_exc(limit=8)

@@ -34,6 +34,7 @@ from controllers.mpc_common import (
 )
 from controllers.registry import build_config
 from envs.errors import ConfigError
+from envs.interrupt import raise_if_interrupted
 from envs.params import PlatoonParams
 from envs.platoon import PlatoonState
 
@@ -217,6 +218,8 @@ class CentralisedMPCController(Controller):
                 ok, plan = pr.solve(self.config.solver.upper(), self.config.eps)
             except Exception:  # noqa: BLE001 - a solver error must never end a run
                 ok, plan = False, np.full((n, h), np.nan)
+            if not ok:
+                raise_if_interrupted()  # a signal is not a solver failure
             if ok and np.all(np.isfinite(plan[:, 0])):
                 u[bi] = plan[:, 0]
                 self._plan_u[bi] = plan

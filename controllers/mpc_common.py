@@ -90,6 +90,7 @@ from controllers.base import Controller, EpisodeContext
 from controllers.registry import build_config
 from envs.channel import V2VChannel
 from envs.errors import ConfigError
+from envs.interrupt import raise_if_interrupted
 from envs.params import PlatoonParams
 from envs.platoon import PlatoonState
 
@@ -839,6 +840,8 @@ class DistributedMPCBase(Controller):
                     )
                 except Exception:  # noqa: BLE001 - a solver error must never end a run
                     ok, warm = False, None
+                if not ok:
+                    raise_if_interrupted()  # a signal is not a solver failure
                 self.solve_count += 1
                 if ok:
                     u[bi, i] = res.command_mps2

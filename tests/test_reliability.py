@@ -128,3 +128,97 @@ def test_csvs_are_never_replaced_by_fewer_rows(finished: Path, tmp_path: Path,
     assert cli(["leaderboard", str(out)]) == 2
     assert "lists 2 runs but the store beside it holds 1" in capsys.readouterr().err
     assert (out / "runs.csv").read_bytes() == csv_before
+
+
+MPC = ["run", "--controllers", "mpc", "--scenarios", "catchup-v1", "--vehicles", "4",
+       "--episodes", "6", "--quiet"]
+
+
+def _start(out: Path, *extra: str) -> subprocess.Popen[str]:
+    return subprocess.Popen([sys.executable, "-m", "benchmark.cli", *MPC, "--out", str(out),
+                             *extra], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, start_new_session=True)
+
+
+def _stored(out: Path) -> list[dict]:
+    import json
+
+    path = out / "store.sqlite"
+    if not path.exists():
+        return []
+    try:
+        with sqlite3.connect(path, timeout=1) as conn:
+            return [json.loads(r[0]) for r in conn.execute("SELECT record FROM runs")]
+    except sqlite3.OperationalError:
+        return []
+
+
+def _wait_for_runs(out: Path, n: int, proc: subprocess.Popen[str]) -> None:
+    import time
+
+    deadline = time.monotonic() + 180
+    while len(_stored(out)) < n and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert proc.poll() is None, "the sweep ended before the signal"
+
+
+@pytest.mark.parametrize("sig, code", [("SIGINT", 130), ("SIGTERM", 143)])
+def test_a_signal_during_mpc_stores_nothing_wrong_and_exits_128_plus_signum(
+        tmp_path: Path, sig: str, code: int) -> None:
+    import signal
+    import time
+
+    out = tmp_path / "mpc"
+    proc = _start(out)
+    _wait_for_runs(out, 1, proc)
+    time.sleep(0.5)  # well inside the next run: the solver is what runs
+    proc.send_signal(getattr(signal, sig))
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == code, err
+    assert f"interrupted ({sig})" in err and "Traceback" not in err
+    stored = _stored(out)
+    assert 1 <= len(stored) < 6
+    # the interrupted solve is neither a solver failure nor a failed run
+    assert all(r["status"] == "ok" and r["solver_failures"] == 0 for r in stored)
+    res = _cli(*MPC, "--out", str(out), "--resume")
+    assert res.returncode == 0, res.stderr
+    assert f"{len(stored)} of 6 runs already stored" in res.stderr
+    assert all(r["status"] == "ok" and r["solver_failures"] == 0 for r in _stored(out))
+
+
+def test_process_workers_die_with_a_killed_parent(tmp_path: Path) -> None:
+    import signal
+    import time
+
+    proc = _start(tmp_path / "p", "--executor", "process", "--workers", "2")
+
+    def children() -> list[int]:
+        try:
+            text = Path(f"/proc/{proc.pid}/task/{proc.pid}/children").read_text()
+        except FileNotFoundError:
+            return []
+        return [int(x) for x in text.split()]
+
+    if not Path(f"/proc/{os.getpid()}").exists():
+        pytest.skip("needs /proc (Linux)")
+    deadline = time.monotonic() + 120
+    while len(children()) < 2 and time.monotonic() < deadline:
+        time.sleep(0.1)
+    workers = children()
+    assert len(workers) >= 2
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(timeout=30)
+
+    def alive(pid: int) -> bool:
+        try:
+            return Path(f"/proc/{pid}/stat").read_text().split()[2] != "Z"
+        except FileNotFoundError:
+            return False
+
+    deadline = time.monotonic() + 10
+    while any(alive(p) for p in workers) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    left = [p for p in workers if alive(p)]
+    for p in left:
+        os.kill(p, signal.SIGKILL)
+    assert not left, f"orphan workers {left} outlived their parent"
