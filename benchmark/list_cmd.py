@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 from benchmark.cli import plain
-from controllers.registry import CONTROLLERS
+from controllers.registry import CONTROLLERS, controller_options
 from envs.scenarios import list_scenarios
 
 
@@ -20,8 +20,13 @@ def main(argv: list[str]) -> int:
         pub = " (published)" if s.published else ""
         print(f"  {s.id:<14} d*={s.target_gap_m:g} m, v*={s.target_speed_mps:g} m/s, "
               f"{s.n_steps} steps, N={s.default_vehicles} by default{pub}: {s.description}{extra}")
-    print("\ncontrollers (name [family]: description; V2V):")
+    print("\ncontrollers (name [family]: description; V2V; options with their defaults, set as "
+          "name:key=value):")
     for c in CONTROLLERS.values():
-        state = "" if c.available else "  (not available in this version)"
-        print(f"  {c.name:<8} [{c.family}] {c.description}; V2V: {c.v2v}{state}")
+        if not c.available:
+            print(f"  {c.name:<8} [{c.family}] {c.description}  (not available in this version)")
+            continue
+        print(f"  {c.name:<8} [{c.family}] {c.description}; V2V: {c.v2v}")
+        opts = ", ".join(f"{k}={v}" for k, v in controller_options(c.name).items())
+        print(f"           options: {opts or 'none'}")
     return 0

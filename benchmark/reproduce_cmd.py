@@ -323,7 +323,7 @@ def write_report(jobs: list[dict[str, Any]], names: dict[str, str], scenarios: l
             for name in shown:
                 ids = [r["id"] for r in records if names.get(r["controller"]) == name
                        and r["scenario"] == sc and r["id"] in with_traj
-                       and json.loads(r["options"]).get("seed") == "0"]
+                       and json.loads(r["options"]).get("seed", "0") == "0"]
                 if not ids:
                     continue
                 arrays = store.trajectory(sorted(ids)[0])

@@ -13,7 +13,13 @@ from benchmark.progress import Progress
 from benchmark.suite import RunKey, build_sweep, seeds_from_episodes, unique
 from controllers.registry import default_controllers, parse_controller_list
 from envs.errors import ConfigError
-from envs.scenarios import DEFAULT_SCENARIOS, MAX_VEHICLES, MIN_VEHICLES, make_scenario
+from envs.scenarios import (
+    DEFAULT_SCENARIOS,
+    MAX_VEHICLES,
+    MIN_VEHICLES,
+    make_scenario,
+    parse_scenario_list,
+)
 
 
 def _csv(kind: str, cast: type) -> Any:
@@ -49,9 +55,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--controllers", default=",".join(default_controllers()),
                    help="comma list; options as name:key=value,key=value (default: %(default)s)")
     p.add_argument("--scenarios", default=",".join(DEFAULT_SCENARIOS),
-                   help="comma list of scenario ids (default: %(default)s)")
-    p.add_argument("--vehicles", type=_csv("--vehicles", int), default=[8],
-                   help="comma list of platoon sizes N, followers (default: 8)")
+                   help="comma list of scenario ids, each with options as id:key=value "
+                        "(sine-v1:amplitude_mps=2,frequency_hz=0.5; default: %(default)s)")
+    p.add_argument("--vehicles", type=_csv("--vehicles", int), default=None,
+                   help="comma list of platoon sizes N, followers (default: each scenario's own, "
+                        "8 for the published ones, 4 for OpenACC; see `cacc-bench list`)")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--episodes", type=int, default=None,
                    help="first K published evaluation seeds 2000, 2010, ... (default: 10)")
@@ -81,12 +89,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _validate(args: argparse.Namespace) -> tuple[list[tuple[str, dict[str, str]]], list[str], list[int]]:
     controllers = parse_controller_list(args.controllers)
-    scenarios = unique(s.strip() for s in args.scenarios.split(",") if s.strip())
-    if not scenarios:
+    if not args.scenarios.strip(" ,"):
         raise ConfigError("--scenarios: no scenario named")
+    scenarios = unique(parse_scenario_list(args.scenarios))
     for sc in scenarios:
         make_scenario(sc)
-    for n in args.vehicles:
+    for n in args.vehicles or ():
         if not MIN_VEHICLES <= n <= MAX_VEHICLES:
             raise ConfigError(
                 f"--vehicles: a platoon needs {MIN_VEHICLES} to {MAX_VEHICLES} followers, got {n}"
@@ -132,9 +140,13 @@ def main(argv: list[str]) -> int:
     """Entry point of ``cacc-bench run``."""
     args = build_parser().parse_args(argv)
     controllers, scenarios, seeds = _validate(args)
-    keys = build_sweep(controllers, scenarios, args.vehicles, seeds, args.comm_delay,
-                       args.packet_loss, args.lag)
-    _preflight(controllers, scenarios, args.vehicles)
+    keys: list[RunKey] = []
+    for sc in scenarios:
+        vehicles = args.vehicles or [make_scenario(sc).default_vehicles]
+        keys += build_sweep(controllers, [sc], vehicles, seeds, args.comm_delay,
+                            args.packet_loss, args.lag)
+        _preflight(controllers, [sc], vehicles)
+    keys = sorted(set(keys))
     return execute_sweep(keys, Path(args.out), resume=args.resume, trajectories=args.trajectories,
                          executor=args.executor, workers=args.workers,
                          ray_address=args.ray_address, quiet=args.quiet, first_seed=seeds[0],
@@ -210,7 +222,8 @@ def format_leaderboard(lb: Any) -> str:
     if len(lb) == 0:
         return "(no runs)"
     lines = []
-    head = (f"{'rank':>4}  {'controller':<22} {'scenario':<14} {'N':>2} {'eps':>3} {'coll':>4} "
+    sw = max(14, *(len(str(x)) for x in lb["scenario"]))
+    head = (f"{'rank':>4}  {'controller':<22} {'scenario':<{sw}} {'N':>2} {'eps':>3} {'coll':>4} "
             f"{'fail':>4}  {'reward [95% CI]':<26} {'tracking':>9} {'kWh':>7} {'gap rmse':>8} "
             f"{'str.gain':>8} {'ms/veh':>7} {'bit/s':>7}")
     setting_cols = ["comm_delay_s", "packet_loss", "lag_s"]
@@ -222,7 +235,7 @@ def format_leaderboard(lb: Any) -> str:
             ci = f"{r['reward_mean']:.2f} [{r['reward_ci_low']:.2f}, {r['reward_ci_high']:.2f}]"
             det = "" if r.get("deterministic") in (True, None) else "*"
             lines.append(
-                f"{int(r['rank']):>4}  {(str(r['controller']) + det)[:22]:<22} {r['scenario']:<14} "
+                f"{int(r['rank']):>4}  {(str(r['controller']) + det)[:22]:<22} {r['scenario']:<{sw}} "
                 f"{int(r['n_vehicles']):>2} {int(r['n_episodes']):>3} {int(r['collisions']):>4} "
                 f"{int(r['failed']):>4}  {ci:<26} {r['tracking_reward_mean']:>9.2f} "
                 f"{r['energy_kwh_mean']:>7.3f} {r['gap_rmse_m_mean']:>8.2f} "

@@ -12,7 +12,7 @@ import traceback
 from collections.abc import Iterable, Sequence
 from dataclasses import asdict, dataclass
 
-from controllers.registry import controller_label, resolve
+from controllers.registry import canonical_options, controller_label, resolve
 from envs.channel import ChannelConfig
 from envs.interrupt import raise_if_interrupted
 from envs.params import PlatoonParams
@@ -68,8 +68,9 @@ def build_sweep(
     for sc in scenarios:
         make_scenario(sc)
     keys = []
-    for name, opts in controllers:
+    for name, given in controllers:
         resolve(name)
+        opts = canonical_options(name, given)
         label = controller_label(name, opts)
         opt_json = json.dumps(opts, sort_keys=True)
         for sc in scenarios:

@@ -165,9 +165,11 @@ class CentralisedMPCController(Controller):
     v2v = "full state of the platoon (centralised; 3 floats per follower per step)"
     needs_observation = False
 
+    config_cls = CMPCConfig
+
     def __init__(self, **options: Any) -> None:
         super().__init__()
-        self.config: CMPCConfig = build_config(CMPCConfig, options, "cmpc")
+        self.config: CMPCConfig = build_config(self.config_cls, options, "cmpc")
         self.options = dict(options)
         self._problems: dict[tuple[Any, ...], CentralisedProblem] = {}
 

@@ -119,9 +119,11 @@ class DutyController(Controller):
     deterministic = True
     v2v = "none"
 
+    config_cls = DutyConfig
+
     def __init__(self, **options: object) -> None:
         super().__init__()
-        self.config: DutyConfig = build_config(DutyConfig, options, "duty")
+        self.config: DutyConfig = build_config(self.config_cls, options, "duty")
         self.options = dict(options)
         self.chosen_k: int | None = self.config.k
 

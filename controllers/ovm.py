@@ -33,9 +33,11 @@ class OVMController(Controller):
     deterministic = True
     v2v = "none"
 
+    config_cls = OVMConfig
+
     def __init__(self, **options: object) -> None:
         super().__init__()
-        self.config: OVMConfig = build_config(OVMConfig, options, "ovm")
+        self.config: OVMConfig = build_config(self.config_cls, options, "ovm")
         self.options = dict(options)
 
     def reset(self, ctx: EpisodeContext) -> None:

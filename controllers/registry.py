@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from envs.errors import ConfigError, UnknownNameError
+from envs.naming import format_label, parse_named_list
 
 
 @dataclass(frozen=True)
@@ -140,36 +141,58 @@ def available_controllers() -> list[ControllerSpec]:
 
 def parse_controller_list(text: str) -> list[tuple[str, dict[str, str]]]:
     """Parse ``"mpc:solver=ipopt,horizon=30,cacc"`` into ``[("mpc", {...}), ("cacc", {})]``."""
-    out: list[tuple[str, dict[str, str]]] = []
-    for raw in text.split(","):
-        item = raw.strip()
-        if not item:
-            continue
-        if ":" in item:
-            name, opt = item.split(":", 1)
-            out.append((name.strip(), {}))
-            item = opt
-            if not item:
-                continue
-        elif "=" not in item:
-            out.append((item, {}))
-            continue
-        if "=" not in item:
-            raise ConfigError(f"controller option {item!r} must be written key=value")
-        if not out:
-            raise ConfigError(f"option {item!r} comes before any controller name")
-        key, value = item.split("=", 1)
-        out[-1][1][key.strip()] = value.strip()
-    if not out:
-        raise ConfigError("no controller named")
-    return out
+    return parse_named_list(text, "controller")
 
 
 def controller_label(name: str, options: dict[str, Any]) -> str:
-    """Leaderboard label: the name, plus its non-default options in brackets, sorted."""
-    if not options:
-        return name
-    return name + "[" + ",".join(f"{k}={options[k]}" for k in sorted(options)) + "]"
+    """Leaderboard label: the name, plus its non-default options in brackets, sorted (an option
+    given at its default value adds nothing: ``ovm:alpha=0.5`` is ``ovm``)."""
+    return format_label(name, canonical_options(name, options))
+
+
+def _factory(spec: ControllerSpec) -> Callable[..., Any]:
+    module_name, attr = spec.target.split(":", 1)
+    return getattr(importlib.import_module(module_name), attr)
+
+
+def controller_options(name: str) -> dict[str, Any]:
+    """The options a registered controller takes, with their defaults (its config dataclass's
+    fields, or its constructor's keyword arguments)."""
+    spec = resolve(name)
+    factory = _factory(spec)
+    config_cls = getattr(factory, "config_cls", None)
+    if config_cls is not None and dataclasses.is_dataclass(config_cls):
+        return {f.name: (f.default if f.default is not dataclasses.MISSING
+                         else f.default_factory())  # type: ignore[misc]
+                for f in dataclasses.fields(config_cls) if f.init}
+    import inspect
+
+    params = inspect.signature(factory).parameters.values()
+    return {p.name: p.default for p in params
+            if p.kind is p.POSITIONAL_OR_KEYWORD and p.name not in spec.fixed
+            and p.default is not p.empty}
+
+
+def _is_default(value: Any, default: Any, key: str, owner: str) -> bool:
+    if not isinstance(value, str):
+        return bool(value == default)
+    if default is None:
+        return value.strip().lower() in ("none", "")
+    if isinstance(default, bool | int | float):
+        try:
+            return bool(_coerce(value, type(default), key, owner) == default)
+        except ConfigError:
+            return False  # a bad value is the controller's to refuse, with its own message
+    return value == str(default)
+
+
+def canonical_options(name: str, options: dict[str, Any]) -> dict[str, Any]:
+    """``options`` without those given at their default value (unregistered names: as given)."""
+    if not options or name not in CONTROLLERS or not CONTROLLERS[name].available:
+        return dict(options)
+    defaults = controller_options(name)
+    return {k: v for k, v in options.items()
+            if not (k in defaults and _is_default(v, defaults[k], k, name))}
 
 
 def resolve(name: str) -> ControllerSpec:
@@ -183,9 +206,7 @@ def resolve(name: str) -> ControllerSpec:
 def make_controller(name: str, **options: Any) -> Any:
     """Build a controller by registered name with keyword options (strings are coerced)."""
     spec = resolve(name)
-    module_name, attr = spec.target.split(":", 1)
-    factory: Callable[..., Any] = getattr(importlib.import_module(module_name), attr)
-    return factory(**spec.fixed, **options)
+    return _factory(spec)(**spec.fixed, **options)
 
 
 def _coerce(value: Any, annotation: Any, key: str, owner: str) -> Any:

@@ -33,9 +33,11 @@ class RealACCRecord(Controller):
     deterministic = True
     v2v = "none (real ACC cars)"
 
+    config_cls = RealACCConfig
+
     def __init__(self, **options: object) -> None:
         super().__init__()
-        build_config(RealACCConfig, options, self.name)
+        build_config(self.config_cls, options, self.name)
 
     def preflight(self, scenario: Scenario, n_vehicles: int) -> None:
         """Check that the scenario is an OpenACC replay that holds ``n_vehicles`` followers."""

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from envs.errors import ConfigError, UnknownNameError
+from envs.naming import format_label, parse_label, parse_named_list
 from envs.params import PlatoonParams
 
 MIN_VEHICLES = 2
@@ -382,7 +383,8 @@ def _coerce(value: Any, like: Any, key: str, scenario_id: str) -> Any:
 
 
 def make_scenario(scenario_id: str, **options: Any) -> Scenario:
-    """Build a registered scenario by id, with options (e.g. ``frequency_hz`` of ``sine-v1``).
+    """Build a registered scenario by id, with options (e.g. ``frequency_hz`` of ``sine-v1``);
+    the id may carry them as a label (``sine-v1[amplitude_mps=2]`` or ``sine-v1:amplitude_mps=2``).
 
     Raises
     ------
@@ -391,6 +393,8 @@ def make_scenario(scenario_id: str, **options: Any) -> Scenario:
     ConfigError
         For an unknown option or an impossible value.
     """
+    base, given = parse_label(scenario_id, "scenario")
+    scenario_id, options = base, {**given, **options}
     try:
         spec = SCENARIOS[scenario_id]
     except KeyError:
@@ -420,6 +424,24 @@ def make_scenario(scenario_id: str, **options: Any) -> Scenario:
         note=spec.note,
         _builder=spec.builder,
     )
+
+
+def scenario_label(text: str) -> str:
+    """The canonical label of a scenario with options (``sine-v1:amplitude_mps=2.0`` ->
+    ``sine-v1[amplitude_mps=2.0]``); options at their default value are left out, so they never
+    make a second leaderboard row. Checks the id and the options."""
+    sc = make_scenario(text)
+    spec = SCENARIOS[sc.id]
+    _, given = parse_label(text, "scenario")
+    changed = {k: repr(sc.options[k]) if isinstance(sc.options[k], float) else str(sc.options[k])
+               for k in given if sc.options[k] != spec.defaults[k]}
+    return format_label(sc.id, changed)
+
+
+def parse_scenario_list(text: str) -> list[str]:
+    """Canonical labels of a ``--scenarios`` list (``catchup-v1,sine-v1:amplitude_mps=2``)."""
+    return [scenario_label(format_label(name, opts))
+            for name, opts in parse_named_list(text, "scenario")]
 
 
 def list_scenarios() -> list[ScenarioSpec]:

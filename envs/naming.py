@@ -1,0 +1,86 @@
+"""Names with options, one grammar for controllers and scenarios.
+
+On the command line: ``name:key=value,key=value`` in a comma list, where a ``key=value`` item
+belongs to the name before it (``mpc:horizon=30,solver=ipopt,cacc``). In labels (the leaderboard,
+the store): ``name[key=value,...]`` with the keys sorted. Both forms parse back.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from envs.errors import ConfigError
+
+
+def parse_named_list(text: str, kind: str) -> list[tuple[str, dict[str, str]]]:
+    """Parse ``"mpc:solver=ipopt,horizon=30,cacc"`` into ``[("mpc", {...}), ("cacc", {})]``;
+    labels (``"sine-v1[amplitude_mps=2]"``) are accepted as items too."""
+    out: list[tuple[str, dict[str, str]]] = []
+    for raw in _split_outside_brackets(text):
+        item = raw.strip()
+        if not item:
+            continue
+        if "[" in item:
+            out.append(parse_label(item, kind))
+            continue
+        if ":" in item:
+            name, opt = item.split(":", 1)
+            out.append((name.strip(), {}))
+            item = opt
+            if not item:
+                continue
+        elif "=" not in item:
+            out.append((item, {}))
+            continue
+        if "=" not in item:
+            raise ConfigError(f"{kind} option {item!r} must be written key=value")
+        if not out:
+            raise ConfigError(f"option {item!r} comes before any {kind} name")
+        key, value = item.split("=", 1)
+        out[-1][1][key.strip()] = value.strip()
+    if not out:
+        raise ConfigError(f"no {kind} named")
+    return out
+
+
+def _split_outside_brackets(text: str) -> list[str]:
+    parts, depth, cur = [], 0, []
+    for ch in text:
+        if ch == "[":
+            depth += 1
+        elif ch == "]":
+            depth = max(depth - 1, 0)
+        if ch == "," and depth == 0:
+            parts.append("".join(cur))
+            cur = []
+        else:
+            cur.append(ch)
+    parts.append("".join(cur))
+    return parts
+
+
+def format_label(name: str, options: dict[str, Any]) -> str:
+    """``name`` or ``name[key=value,...]`` (keys sorted)."""
+    if not options:
+        return name
+    return name + "[" + ",".join(f"{k}={options[k]}" for k in sorted(options)) + "]"
+
+
+def parse_label(label: str, kind: str = "name") -> tuple[str, dict[str, str]]:
+    """``"name[k=v,...]"`` or ``"name:k=v,..."`` or ``"name"`` -> ``(name, {k: v})``."""
+    text = label.strip()
+    if text.endswith("]") and "[" in text:
+        name, inner = text[:-1].split("[", 1)
+    elif ":" in text:
+        name, inner = text.split(":", 1)
+    else:
+        return text, {}
+    options: dict[str, str] = {}
+    for item in inner.split(","):
+        if not item.strip():
+            continue
+        if "=" not in item:
+            raise ConfigError(f"{kind} option {item.strip()!r} in {label!r} must be key=value")
+        key, value = item.split("=", 1)
+        options[key.strip()] = value.strip()
+    return name.strip(), options
