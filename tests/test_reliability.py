@@ -222,3 +222,42 @@ def test_process_workers_die_with_a_killed_parent(tmp_path: Path) -> None:
     for p in left:
         os.kill(p, signal.SIGKILL)
     assert not left, f"orphan workers {left} outlived their parent"
+
+
+def test_a_version_1_store_is_relabelled_without_duplicates(tmp_path: Path) -> None:
+    import json
+
+    out = tmp_path / "v1"
+    assert cli(["run", "--controllers", "ovm,ovm:beta=0.4", "--scenarios", "catchup-v1",
+                "--vehicles", "2", "--episodes", "2", "--out", str(out), "--quiet"]) == 0
+    # make it a version-1 store: one run labelled with an option at its default value, both
+    # the old-style row and the current one for another seed (two rows that become one)
+    with sqlite3.connect(out / "store.sqlite") as conn:
+        rows = conn.execute("SELECT id, record, finished_at FROM runs "
+                            "WHERE id LIKE 'ovm|%' ORDER BY id").fetchall()
+        old_id, text, finished = rows[0]
+        rec = json.loads(text)
+        rec["controller"], rec["options"] = "ovm[alpha=0.5]", json.dumps({"alpha": "0.5"})
+        rec["id"] = "ovm[alpha=0.5]" + old_id[len("ovm"):]
+        conn.execute("DELETE FROM runs WHERE id = ?", (old_id,))
+        conn.execute("INSERT INTO runs VALUES (?, ?, ?, ?)", (rec["id"], "ok", json.dumps(rec),
+                                                              finished))
+        conn.execute("UPDATE trajectories SET id = ? WHERE id = ?", (rec["id"], old_id))
+        dup_id, dup_text, dup_finished = rows[1]
+        dup = json.loads(dup_text)
+        dup["controller"], dup["options"] = "ovm[alpha=0.50]", json.dumps({"alpha": "0.50"})
+        dup["id"] = "ovm[alpha=0.50]" + dup_id[len("ovm"):]
+        conn.execute("INSERT INTO runs VALUES (?, ?, ?, ?)", (dup["id"], "ok", json.dumps(dup),
+                                                              dup_finished - 1.0))
+        conn.execute("UPDATE meta SET value = '1' WHERE key = 'schema_version'")
+    with ResultStore(out) as store:
+        ids = sorted(store.ids())
+        assert store.get_meta("schema_version") == 2
+        assert old_id in store.trajectory_ids()
+    assert set(ids) == {r[0] for r in rows} | {i for i in ids if i.startswith("ovm[beta=0.4]")}
+    assert len(ids) == 4
+    # a resumed sweep finds every run stored: nothing reruns, nothing doubles
+    res = _cli("run", "--controllers", "ovm,ovm:beta=0.4", "--scenarios", "catchup-v1",
+               "--vehicles", "2", "--episodes", "2", "--out", str(out), "--resume", "--quiet")
+    assert res.returncode == 0 and "4 of 4 runs already stored, 0 to run" in res.stderr
+    assert len(pd.read_csv(out / "runs.csv")) == 4
