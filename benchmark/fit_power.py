@@ -94,6 +94,10 @@ def main(argv: list[str] | None = None) -> int:
     given, else 0.
     """
     args = _parser().parse_args(argv)
+    if args.figure is not None:
+        from benchmark.paths import writable_dir
+
+        writable_dir(args.figure, "--figure", create=True)
     fit = energy.fit_power_polynomial()
     for line in _quality_lines(fit):
         print(line)

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 from typing import Any
 
 from benchmark.cli import plain
@@ -139,13 +138,17 @@ def main(argv: list[str]) -> int:
     if args.episodes < 1:
         raise ConfigError(f"--episodes must be >= 1, got {args.episodes}")
     check_vehicles(args.vehicles)
+    if args.workers < 1:
+        raise ConfigError(f"--workers must be >= 1, got {args.workers}")
     settings = settings_for(families, scenarios, args.vehicles)
     if not settings:
         raise ConfigError("nothing to run: no shipped MARL policy for these scenarios and N")
     seeds = seeds_from_episodes(args.episodes)
     keys = build_sweep([(s["controller"], s["options"]) for s in settings], scenarios,
                        [args.vehicles], seeds)
-    out = Path(args.out)
+    from benchmark.paths import writable_dir
+
+    out = writable_dir(args.out)
     print(f"pareto: {len(settings)} settings x {len(scenarios)} scenarios x {len(seeds)} "
           f"episodes = {len(keys)} runs", file=sys.stderr)
     rc = execute_sweep(keys, out / "runs", resume=args.resume, executor=args.executor,

@@ -472,9 +472,9 @@ def main(argv: list[str]) -> int:
         make_scenario(sc)
     if args.workers < 1:
         raise ConfigError(f"--workers must be >= 1, got {args.workers}")
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise ConfigError(f"--out {out} exists and is not a folder")
+    from benchmark.paths import writable_dir
+
+    out = writable_dir(args.out)
     manifest_path = out / MANIFEST
     skip = [x.strip() for x in args.skip.split(",") if x.strip()]
     for x in skip:

@@ -10,7 +10,7 @@ from typing import Any
 
 from benchmark.executors import EXECUTORS, run_keys
 from benchmark.progress import Progress
-from benchmark.suite import RunKey, build_sweep, seeds_from_episodes, unique
+from benchmark.suite import MAX_SEED, RunKey, build_sweep, seeds_from_episodes, unique
 from controllers.registry import default_controllers, parse_controller_list
 from envs.errors import ConfigError
 from envs.scenarios import (
@@ -113,8 +113,8 @@ def _validate(args: argparse.Namespace) -> tuple[list[tuple[str, dict[str, str]]
     if args.seeds is not None:
         seeds = unique(str(s) for s in args.seeds)
         seed_list = [int(s) for s in seeds]
-        if any(s < 0 for s in seed_list):
-            raise ConfigError("--seeds must be >= 0")
+        if any(not 0 <= s <= MAX_SEED for s in seed_list):
+            raise ConfigError(f"--seeds must lie in 0..{MAX_SEED}")
     else:
         episodes = 10 if args.episodes is None else args.episodes
         if episodes < 1:
@@ -123,29 +123,34 @@ def _validate(args: argparse.Namespace) -> tuple[list[tuple[str, dict[str, str]]
     return controllers, scenarios, seed_list
 
 
-def _preflight(controllers: list[tuple[str, dict[str, str]]], scenarios: list[str], vehicles: list[int]) -> None:
-    """Build each controller once so bad options or missing checkpoints fail before any run."""
+def _preflight(controllers: list[tuple[str, dict[str, str]]], scenarios: list[str],
+               vehicles: list[int], lags_s: list[float]) -> None:
+    """Build each controller once and check it against every setting, so bad options, missing
+    checkpoints or a loop unstable with the lag fail before any run."""
     from controllers.registry import make_controller
+    from envs.params import PlatoonParams
 
     for name, opts in controllers:
         ctrl = make_controller(name, **opts)
-        check = getattr(ctrl, "preflight", None)
-        if check is not None:
-            for sc in scenarios:
-                for n in vehicles:
-                    check(make_scenario(sc), n)
+        for sc in scenarios:
+            for n in vehicles:
+                for lag in lags_s:
+                    ctrl.preflight(make_scenario(sc), n, PlatoonParams(lag_s=lag))
 
 
 def main(argv: list[str]) -> int:
     """Entry point of ``cacc-bench run``."""
     args = build_parser().parse_args(argv)
     controllers, scenarios, seeds = _validate(args)
+    from benchmark.paths import writable_dir
+
+    writable_dir(args.out)
     keys: list[RunKey] = []
     for sc in scenarios:
         vehicles = args.vehicles or [make_scenario(sc).default_vehicles]
         keys += build_sweep(controllers, [sc], vehicles, seeds, args.comm_delay,
                             args.packet_loss, args.lag)
-        _preflight(controllers, [sc], vehicles)
+        _preflight(controllers, [sc], vehicles, args.lag)
     keys = sorted(set(keys))
     return execute_sweep(keys, Path(args.out), resume=args.resume, trajectories=args.trajectories,
                          executor=args.executor, workers=args.workers,

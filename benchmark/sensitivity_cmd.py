@@ -253,9 +253,9 @@ def main(argv: list[str]) -> int:
             raise ConfigError(f"{flag} must be >= {low}, got {value}")
     if min(seeds) < 0:
         raise ConfigError(f"--seeds must be >= 0, got {min(seeds)}")
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise ConfigError(f"--out {out} exists and is not a folder")
+    from benchmark.paths import writable_dir
+
+    out = writable_dir(args.out)
     settings_key = {"scenarios": scenarios, "knobs": knobs, "seeds": seeds, "steps": args.steps,
                     "validation_episodes": args.validation_episodes, "episodes": args.episodes}
     manifest = out / MANIFEST

@@ -102,6 +102,9 @@ def _check_args(args: argparse.Namespace) -> None:
         )
     if args.n_omega < 1:
         raise ConfigError(f"--n-omega must be >= 1, got {args.n_omega}")
+    from envs.scenarios import check_vehicles
+
+    check_vehicles(args.n_vehicles)
 
 
 def _fmt(value: Any) -> str:
@@ -203,6 +206,10 @@ def _entries(args: argparse.Namespace) -> list[_Entry]:
                 ctrl = make_controller(name, **opts)
             ctrl.config.check_lag(args.lag)
             loop = PloegLoop.from_controller(ctrl, args.delay, args.lag)
+        elif not args.empirical:
+            raise ConfigError(f"{name} has no transfer function to analyse (only the linear "
+                              "controllers acc and cacc have one); add --empirical to measure its "
+                              "string gain in closed loop")
         entries.append(_Entry(name, controller_label(name, options), opts, loop))
     return entries
 
@@ -436,8 +443,9 @@ def main(argv: list[str]) -> int:
         return int(exc.code or 0)
     _check_args(args)
     entries = _entries(args)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    from benchmark.paths import writable_dir
+
+    out = writable_dir(args.out, create=True)
     omegas_plot = np.geomspace(0.01, 10.0, 300)
 
     summary, curves, notes = _analytic(entries, omegas_plot)

@@ -67,7 +67,11 @@ class ResultStore:
                 f"{self.path} is empty (0 bytes), not a results store; remove it to start a new "
                 "store in this folder, or choose another --out"
             )
-        self.folder.mkdir(parents=True, exist_ok=True)
+        try:
+            self.folder.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise ConfigError(f"cannot make the results folder {self.folder} ({exc.strerror}); "
+                              "choose a writable --out") from None
         if writer:
             self._acquire()
         try:

@@ -14,6 +14,7 @@ from dataclasses import asdict, dataclass
 
 from controllers.registry import canonical_options, controller_label, resolve
 from envs.channel import ChannelConfig
+from envs.errors import ConfigError
 from envs.interrupt import raise_if_interrupted
 from envs.params import PlatoonParams
 from envs.scenarios import make_scenario
@@ -126,9 +127,18 @@ def execute_run(key: RunKey, keep_trajectory: bool = False) -> dict:
     return record
 
 
+#: The most episodes one setting may ask for (beyond the 50 published seeds, 2000 + 10 k).
+MAX_EPISODES = 10_000
+#: Seeds are drawn into 32-bit generators.
+MAX_SEED = 2**31 - 1
+
+
 def seeds_from_episodes(episodes: int) -> list[int]:
     """The first ``episodes`` published evaluation seeds (2000, 2010, ...)."""
     from envs.params import EVAL_SEEDS
+
+    if not 1 <= episodes <= MAX_EPISODES:
+        raise ConfigError(f"--episodes must lie in 1..{MAX_EPISODES}, got {episodes}")
 
     return list(EVAL_SEEDS[:episodes]) if episodes <= len(EVAL_SEEDS) else [
         2000 + 10 * k for k in range(episodes)

@@ -241,6 +241,9 @@ def main(argv: list[str]) -> int:
             options = {**(tuned_options(a, sc) if args.tuned else {}), **overrides}
             config = build_config(algorithm(a).config_cls, options, f"{a} (--set)")
             configs[(a, sc)] = {f: getattr(config, f) for f in options}
+    from benchmark.paths import writable_dir
+
+    writable_dir(args.out)
     tty = sys.stderr.isatty()
     single = len(seeds) * len(configs) == 1 and args.executor == "serial"
     jobs = [

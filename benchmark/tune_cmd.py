@@ -202,7 +202,9 @@ def main(argv: list[str]) -> int:
         import optuna  # noqa: F401
     except ImportError:
         raise ConfigError("cacc-bench tune needs Optuna (a dependency): reinstall with `pip install -e .`") from None
-    out = Path(args.out)
+    from benchmark.paths import writable_dir
+
+    out = writable_dir(args.out)
     jobs = [
         {"algo": a, "scenario": s, "vehicles": args.vehicles, "trials": args.trials,
          "steps": args.steps, "seed": args.seed, "out": str(out)}

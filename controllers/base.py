@@ -137,6 +137,13 @@ class Controller(ABC):
         self.solver_failures = 0
         self.options: dict[str, object] = {}
 
+    def preflight(self, scenario: Scenario, n_vehicles: int, params: PlatoonParams | None = None
+                  ) -> None:
+        """Fail now (:class:`envs.errors.ConfigError`) if this controller cannot run
+        ``scenario`` with N followers and ``params``: a sweep calls it for every setting
+        before its first run. Default: nothing to check."""
+        return None
+
     @abstractmethod
     def reset(self, ctx: EpisodeContext) -> None:
         """Prepare for a batch of episodes (build problems, make channels)."""

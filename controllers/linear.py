@@ -43,7 +43,9 @@ from controllers.base import Controller, EpisodeContext
 from controllers.registry import build_config
 from envs.channel import V2VChannel
 from envs.errors import ConfigError
+from envs.params import PlatoonParams
 from envs.platoon import PlatoonState
+from envs.scenarios import Scenario
 
 
 def _finite(value: float, name: str) -> float:
@@ -157,6 +159,12 @@ class PloegController(Controller):
     def standstill_m(self) -> float:
         """Standstill distance r used in the current batch (m), known after :meth:`reset`."""
         return self._standstill_m
+
+    def preflight(self, scenario: Scenario, n_vehicles: int, params: PlatoonParams | None = None
+                  ) -> None:
+        """The loop must be stable with the run's actuator lag."""
+        if params is not None:
+            self.config.check_lag(params.lag_s)
 
     def reset(self, ctx: EpisodeContext) -> None:
         cfg = self.config

@@ -131,7 +131,10 @@ class PolicyController(Controller):
         self.seed = seed
         self.mode = mode
         self.deterministic = mode == "greedy"
-        self.untrained = str(untrained).lower() in ("1", "true", "yes", "on")
+        flag = str(untrained).strip().lower()
+        if flag not in ("1", "true", "yes", "on", "0", "false", "no", "off"):
+            raise ConfigError(f"{algo}: untrained must be true or false, got {untrained!r}")
+        self.untrained = flag in ("1", "true", "yes", "on")
         self.options = {
             k: v
             for k, v in {
@@ -202,7 +205,7 @@ class PolicyController(Controller):
         self.loaded = data
         return net
 
-    def preflight(self, scenario: Any, n_vehicles: int) -> None:
+    def preflight(self, scenario: Any, n_vehicles: int, params: Any = None) -> None:
         """Load the policy for ``scenario`` and N now, so a missing or mismatched checkpoint
         fails before a sweep starts (a clear error, nothing stored)."""
         key = (scenario.id, n_vehicles)

@@ -39,7 +39,7 @@ class RealACCRecord(Controller):
         super().__init__()
         build_config(self.config_cls, options, self.name)
 
-    def preflight(self, scenario: Scenario, n_vehicles: int) -> None:
+    def preflight(self, scenario: Scenario, n_vehicles: int, params: object = None) -> None:
         """Check that the scenario is an OpenACC replay that holds ``n_vehicles`` followers."""
         self._window(scenario, n_vehicles)
 

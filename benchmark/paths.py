@@ -1,0 +1,36 @@
+"""Output folders checked before any work: a folder that cannot be made or written is a clear
+error (exit 2), not a traceback after the first runs."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from envs.errors import ConfigError
+
+
+def writable_dir(path: str | Path, flag: str = "--out", create: bool = False) -> Path:
+    """Check that ``path`` is, or can be made as, a folder files can be written in; make it
+    when ``create`` (otherwise nothing is made, so a refusal later leaves no trace)."""
+    out = Path(path)
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"{flag} {out} exists and is not a folder; choose another {flag}")
+    missing = []
+    probe = out.absolute()
+    while not probe.exists():
+        missing.append(probe)
+        probe = probe.parent
+    if not probe.is_dir():
+        raise ConfigError(f"{flag} {out}: {probe} is a file, so the folder cannot be made; "
+                          f"choose another {flag}")
+    try:  # the real test (root passes os.access everywhere): make it, undo unless asked
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError(f"{flag} {out}: cannot make this folder ({exc.strerror}); choose "
+                          f"a writable place for {flag}") from None
+    if not os.access(out, os.W_OK | os.X_OK):
+        raise ConfigError(f"{flag} {out} is not writable; choose another {flag}")
+    if not create:
+        for folder in missing:
+            folder.rmdir()
+    return out
