@@ -1,14 +1,17 @@
-"""Progress on a terminal (runs done / total, time left); silent when output is not a terminal."""
+"""Progress on a terminal with tqdm (done / total, rate, time left, within 80 columns); silent
+when the output is not a terminal (logs stay clean)."""
 
 from __future__ import annotations
 
 import sys
-import time
-from typing import TextIO
+from typing import Any, TextIO
+
+#: Width of a progress line (fits an 80-column terminal).
+WIDTH = 80
 
 
 class Progress:
-    """A one-line progress report on ``stream`` if it is a terminal."""
+    """A one-line tqdm bar on ``stream`` if it is a terminal, counting ``label``."""
 
     def __init__(self, total: int, label: str = "runs", stream: TextIO | None = None) -> None:
         self.total = total
@@ -16,36 +19,25 @@ class Progress:
         self.label = label
         self.stream = stream if stream is not None else sys.stderr
         self.enabled = bool(getattr(self.stream, "isatty", lambda: False)()) and total > 0
-        self.t0 = time.monotonic()
-        self._last = 0.0
+        self._bar: Any = None
+        if self.enabled:
+            from tqdm import tqdm
+
+            self._bar = tqdm(total=total, unit=f" {label}", file=self.stream, ncols=WIDTH,
+                             mininterval=0.1, dynamic_ncols=False, leave=True,
+                             bar_format="{n_fmt}/{total_fmt}{unit} {percentage:3.0f}% "
+                                        "|{bar}| {elapsed}<{remaining} {rate_fmt}{postfix}")
 
     def advance(self, n: int = 1, note: str = "") -> None:
-        """Count ``n`` finished items and redraw (at most 10 times a second)."""
+        """Count ``n`` finished items; ``note`` (the last item) shows after the bar, shortened
+        to keep the line within :data:`WIDTH` columns."""
         self.done += n
-        now = time.monotonic()
-        if not self.enabled or (now - self._last < 0.1 and self.done < self.total):
-            return
-        self._last = now
-        elapsed = now - self.t0
-        left = elapsed / self.done * (self.total - self.done) if self.done else 0.0
-        pct = 100.0 * self.done / self.total
-        msg = f"\r{self.done}/{self.total} {self.label} ({pct:3.0f}%), {_fmt(elapsed)} elapsed, {_fmt(left)} left"
-        if note:
-            msg += f"  {note}"
-        self.stream.write(msg[:120].ljust(100))
-        self.stream.flush()
+        if self._bar is not None:
+            if note:
+                self._bar.set_postfix_str(note[:24], refresh=False)
+            self._bar.update(n)
 
     def close(self) -> None:
         """End the progress line."""
-        if self.enabled:
-            self.stream.write("\n")
-            self.stream.flush()
-
-
-def _fmt(seconds: float) -> str:
-    s = int(round(seconds))
-    if s < 60:
-        return f"{s}s"
-    if s < 3600:
-        return f"{s // 60}m{s % 60:02d}s"
-    return f"{s // 3600}h{(s % 3600) // 60:02d}m"
+        if self._bar is not None:
+            self._bar.close()

@@ -13,6 +13,7 @@ import argparse
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 from envs.errors import ConfigError, UnknownNameError
 
@@ -67,12 +68,14 @@ def _parser() -> argparse.ArgumentParser:
 
 
 class _Bar:
-    """A one-line progress bar on a terminal (nothing otherwise)."""
+    """A one-line tqdm bar of training steps on a terminal (nothing otherwise), with the last
+    training and validation rewards."""
 
     def __init__(self, enabled: bool) -> None:
         self.enabled = enabled
-        self.t0 = time.perf_counter()
         self.last_eval = float("nan")
+        self._bar: Any = None
+        self._steps = 0
 
     def __call__(self, steps: int, total: int, row: dict[str, float]) -> None:
         value = row.get("eval_reward_sampled", float("nan"))
@@ -80,17 +83,19 @@ class _Bar:
             self.last_eval = value
         if not self.enabled:
             return
-        frac = min(steps / max(total, 1), 1.0)
-        rate = steps / max(time.perf_counter() - self.t0, 1e-9)
-        eta = (total - steps) / max(rate, 1e-9)
-        bar = "#" * int(30 * frac)
-        sys.stderr.write(
-            f"\r[{bar:<30}] {100 * frac:5.1f}% {steps}/{total} steps {rate:.0f}/s "
-            f"eta {eta:.0f}s train {row['train_reward']:.1f} validation {self.last_eval:.1f}  "
-        )
-        sys.stderr.flush()
+        if self._bar is None:
+            from tqdm import tqdm
+
+            from benchmark.progress import WIDTH
+
+            self._bar = tqdm(total=total, unit=" steps", unit_scale=True, file=sys.stderr,
+                             ncols=WIDTH, mininterval=0.2)
+        self._bar.set_postfix_str(f"train {row['train_reward']:.0f} val {self.last_eval:.0f}",
+                                  refresh=False)
+        self._bar.update(max(min(steps, total) - self._steps, 0))
+        self._steps = min(steps, total)
         if steps >= total:
-            sys.stderr.write("\n")
+            self._bar.close()
 
 
 def _train_job(job: dict) -> dict:

@@ -44,7 +44,14 @@ def test_progress_on_terminal_only() -> None:
     for _ in range(4):
         p.advance()
     p.close()
-    assert "4/4 runs (100%)" in tty.getvalue() and "left" in tty.getvalue()
+    lines = [ln for ln in tty.getvalue().replace("\r", "\n").splitlines() if ln.strip()]
+    assert "4/4 runs 100%" in lines[-1] and "<00:00" in lines[-1]
+    assert max(len(ln) for ln in lines) <= 80
+    wide = _Tty()
+    w = Progress(12345, "training runs", stream=wide)
+    w.advance(5, note="bdc[checkpoint_dir=results/very/long/folder,seed=2] slowdown-v1 s2")
+    w.close()
+    assert all(len(ln) <= 80 for ln in wide.getvalue().replace("\r", "\n").splitlines())
     log = io.StringIO()
     q = Progress(4, stream=log)
     q.advance()
