@@ -88,37 +88,66 @@ BAR_METRICS = (
 )
 
 
+#: Bar colour of each controller family (a legend shows only the families drawn).
+FAMILY_COLOURS: dict[str, str] = {"human": "tab:grey", "linear": "tab:blue", "mpc": "tab:green",
+                                  "marl": "tab:orange", "data": "tab:purple"}
+#: Panels per row of the leaderboard figure before it wraps.
+FACET_COLUMNS = 3
+
+
+def _setting_names(lb: Any) -> Any:
+    names = lb["scenario"] + " N=" + lb["n_vehicles"].astype(str)
+    for col, unit in (("comm_delay_s", "s delay"), ("packet_loss", " loss"), ("lag_s", "s lag")):
+        if col in lb.columns and (lb[col] != 0).any():
+            names = names + np.where(lb[col] != 0, ", " + lb[col].astype(str) + unit, "")
+    return names
+
+
 def plot_leaderboard(lb: Any, out_dir: Path, stem: str = "leaderboard") -> list[Path]:
-    """Bars of the main metrics per controller and scenario, with 95 % bootstrap intervals."""
+    """Horizontal bars of the main metrics, one panel per metric and setting (wrapped into rows
+    of :data:`FACET_COLUMNS`), controllers named on each panel's axis in rank order, coloured by
+    family, with 95 % bootstrap intervals: readable with 20 controllers or more."""
+    import math
+
     plt = _plt()
     lb = lb.copy()
-    lb["setting"] = lb["scenario"] + " N=" + lb["n_vehicles"].astype(str)
+    lb["setting"] = _setting_names(lb)
     settings = list(dict.fromkeys(lb["setting"]))
-    controllers = list(dict.fromkeys(lb["controller"]))
     metrics = [(m, lab) for m, lab in BAR_METRICS if f"{m}_mean" in lb.columns]
-    fig, axes = plt.subplots(len(metrics), 1, figsize=(max(6, 1.6 * len(settings) * max(1, len(controllers)) / 2), 2.4 * len(metrics)))
-    axes = np.atleast_1d(axes)
-    width = 0.8 / max(len(controllers), 1)
-    cmap = plt.get_cmap("tab10")
-    x = np.arange(len(settings))
-    for ax, (metric, label) in zip(axes, metrics, strict=True):
-        for j, ctrl in enumerate(controllers):
-            sub = lb[lb["controller"] == ctrl].set_index("setting")
-            mean = np.array([sub[f"{metric}_mean"].get(s, np.nan) for s in settings], dtype=float)
-            lo = np.array([sub[f"{metric}_ci_low"].get(s, np.nan) for s in settings], dtype=float)
-            hi = np.array([sub[f"{metric}_ci_high"].get(s, np.nan) for s in settings], dtype=float)
-            err = np.vstack([mean - lo, hi - mean])
-            ax.bar(x + (j - (len(controllers) - 1) / 2) * width, mean, width, yerr=err,
-                   capsize=2, color=cmap(j % 10), label=ctrl)
-        ax.set_ylabel(label, fontsize=8)
-        ax.set_xticks(x)
-        ax.set_xticklabels(settings, fontsize=8)
-        ax.grid(axis="y", alpha=0.3)
+    panels = [(m, lab, st) for m, lab in metrics for st in settings]
+    ncols = min(len(settings), FACET_COLUMNS)
+    nrows = math.ceil(len(panels) / ncols)
+    most = max(int((lb["setting"] == st).sum()) for st in settings)
+    fig, axes = plt.subplots(nrows, ncols, squeeze=False,
+                             figsize=(4.6 * ncols, (0.7 + 0.2 * most) * nrows))
+    families = set()
+    for ax, (metric, label, setting) in zip(axes.ravel(), panels, strict=False):
+        sub = lb[lb["setting"] == setting]
+        if "rank" in sub.columns:
+            sub = sub.sort_values("rank", kind="mergesort")
+        mean = sub[f"{metric}_mean"].to_numpy(dtype=float)
+        err = np.abs(np.vstack([mean - sub[f"{metric}_ci_low"].to_numpy(dtype=float),
+                                sub[f"{metric}_ci_high"].to_numpy(dtype=float) - mean]))
+        fams = sub["family"].tolist() if "family" in sub.columns else ["other"] * len(sub)
+        families.update(fams)
+        y = np.arange(len(sub))[::-1]
+        ax.barh(y, mean, xerr=err, capsize=2, height=0.7,
+                color=[FAMILY_COLOURS.get(f, "tab:brown") for f in fams])
+        ax.set_yticks(y, [str(c) for c in sub["controller"]], fontsize=7)
+        ax.set_title(f"{label}, {setting}", fontsize=8)
+        ax.tick_params(axis="x", labelsize=7)
+        ax.grid(axis="x", alpha=0.3)
         if metric == "string_gain":
-            ax.axhline(1.0, color="red", ls="--", lw=0.8)
-    axes[0].legend(fontsize=8, ncol=min(4, len(controllers)), loc="best")
-    axes[0].set_title("leaderboard: means with 95 % bootstrap intervals over episodes")
-    fig.tight_layout()
+            ax.axvline(1.0, color="red", ls="--", lw=0.8)
+    for ax in axes.ravel()[len(panels):]:
+        ax.set_visible(False)
+    from matplotlib.patches import Patch
+
+    handles = [Patch(color=FAMILY_COLOURS.get(f, "tab:brown"), label=f) for f in sorted(families)]
+    fig.legend(handles=handles, loc="upper center", ncol=len(handles), fontsize=8,
+               bbox_to_anchor=(0.5, 1.0), title="family (bars: means, 95 % bootstrap intervals)",
+               title_fontsize=8)
+    fig.tight_layout(rect=(0, 0, 1, 0.97))
     return _save(fig, out_dir, stem)
 
 
@@ -145,17 +174,19 @@ def plot_radar(lb: Any, scenario: str, n_vehicles: int, out_dir: Path, stem: str
     angles = np.linspace(0, 2 * np.pi, len(labels), endpoint=False)
     fig = plt.figure(figsize=(5.5, 5.5))
     ax = fig.add_subplot(111, polar=True)
-    cmap = plt.get_cmap("tab10")
+    cmap = plt.get_cmap("tab10" if len(sub) <= 10 else "tab20")
     for j, (_, r) in enumerate(sub.iterrows()):
         v = np.abs(vals[j]) / scale
-        ax.plot(np.append(angles, angles[0]), np.append(v, v[0]), color=cmap(j % 10),
-                label=str(r["controller"]))
-        ax.fill(np.append(angles, angles[0]), np.append(v, v[0]), color=cmap(j % 10), alpha=0.1)
+        colour = cmap(j % cmap.N)
+        ax.plot(np.append(angles, angles[0]), np.append(v, v[0]), color=colour,
+                label=str(r["controller"]), ls="-" if j < cmap.N else "--")
+        ax.fill(np.append(angles, angles[0]), np.append(v, v[0]), color=colour, alpha=0.1)
     ax.set_xticks(angles)
     ax.set_xticklabels([f"{lab}\nmax {s:.3g}" for lab, s in zip(labels, scale, strict=True)],
                        fontsize=8)
     ax.set_yticklabels([])
     ax.tick_params(axis="x", pad=14)
     ax.set_title(f"{scenario}, N={n_vehicles} (each axis / its max; centre is best)", fontsize=10)
-    ax.legend(loc="upper right", bbox_to_anchor=(1.35, 1.1), fontsize=8)
+    ax.legend(loc="upper left", bbox_to_anchor=(1.15, 1.1), fontsize=7,
+              ncol=1 if len(sub) <= 12 else 2)
     return _save(fig, out_dir, stem)
