@@ -297,23 +297,23 @@ def _reference(name: str, scenario: str) -> dict[str, float]:
             "collisions": float(sum(t.collided for t in trajs))}
 
 
-#: Shipped policies that avoid collisions on slowdown-v1 by crawling: fewer collisions than their
-#: untrained policy, but no better mean reward (an untrained episode ends at its early collision,
-#: so its mean covers fewer steps). Measured, three seeds pooled: bdc -1,845 (2/150), dcea -3,369
-#: (0/150), against -1,817 (45/50) untrained.
-CRAWLING: frozenset[tuple[str, str]] = frozenset({("bdc", "slowdown-v1"), ("dcea", "slowdown-v1")})
+#: Shipped policies that avoid collisions by crawling: fewer collisions than their untrained
+#: policy, but no better mean reward. None since the slowdown-v1 policies were trained for 1e6
+#: steps (at 6e5, BDC and DCEA crawled there: -1,845 and -3,369).
+CRAWLING: frozenset[tuple[str, str]] = frozenset()
 
 #: What the README's table reads, three training seeds pooled (150 episodes): (collisions, mean
-#: reward) per algorithm and scenario; ``ovm`` -641 on catchup-v1 and -731 on slowdown-v1.
+#: reward) per algorithm and scenario (catchup-v1 trained 6e5 steps, slowdown-v1 1e6 steps, the
+#: same for all seven); ``ovm`` -641 on catchup-v1 and -731 on slowdown-v1.
 MEASURED: dict[tuple[str, str], tuple[int, float]] = {
     ("bdc", "catchup-v1"): (0, -445.88), ("dcea", "catchup-v1"): (0, -447.41),
     ("wac", "catchup-v1"): (0, -458.78), ("dial", "catchup-v1"): (0, -499.14),
     ("commnet", "catchup-v1"): (0, -506.19), ("fprint", "catchup-v1"): (2, -552.78),
     ("ia2c", "catchup-v1"): (0, -602.57),
-    ("bdc", "slowdown-v1"): (2, -1845.02), ("dcea", "slowdown-v1"): (0, -3368.67),
-    ("wac", "slowdown-v1"): (0, -1643.28), ("dial", "slowdown-v1"): (19, -938.50),
-    ("commnet", "slowdown-v1"): (34, -1002.56), ("fprint", "slowdown-v1"): (10, -1718.17),
-    ("ia2c", "slowdown-v1"): (20, -888.99),
+    ("bdc", "slowdown-v1"): (1, -797.52), ("dcea", "slowdown-v1"): (5, -739.53),
+    ("wac", "slowdown-v1"): (4, -1030.12), ("dial", "slowdown-v1"): (17, -860.16),
+    ("commnet", "slowdown-v1"): (13, -938.91), ("fprint", "slowdown-v1"): (1, -780.59),
+    ("ia2c", "slowdown-v1"): (10, -723.23),
 }
 
 
@@ -326,8 +326,8 @@ def test_shipped_policies_on_the_evaluation_seeds(scenario) -> None:
     - every policy collides in a smaller fraction of episodes than its untrained policy (45 to
       48 of 50) and, except those in :data:`CRAWLING`, scores a better reward;
     - catchup-v1: every algorithm beats ``ovm``; BDC is collision-free and its greedy version of
-      the same weights is worse (-663); slowdown-v1: no algorithm beats ``ovm`` (the issue's bar
-      is not met there), BDC collides in 2 of 150 episodes;
+      the same weights is worse (-663); slowdown-v1: no algorithm is both collision-free and
+      better than ``ovm`` (the issue's bar is not met there), BDC collides in 1 of 150 episodes;
     - ``duty`` beats ``ovm`` on both scenarios.
     """
     from envs.params import EVAL_SEEDS
@@ -351,17 +351,17 @@ def test_shipped_policies_on_the_evaluation_seeds(scenario) -> None:
             assert pooled["reward"] > untrained["reward"] + 50, name
         if scenario == "catchup-v1":
             assert pooled["reward"] > ovm["reward"] + 30, name
-        else:
-            assert pooled["reward"] < ovm["reward"], name
+        else:  # no learned policy is both collision-free and better than ovm
+            assert pooled["collisions"] > 0 or pooled["reward"] < ovm["reward"], name
     if scenario == "catchup-v1":
         greedy = pooled_evaluation("bdc", scenario, "greedy")
         assert greedy["reward"] < MEASURED[("bdc", scenario)][1] - 100
 
 
-def test_bdc_slowdown_curves_never_reach_the_bar() -> None:
-    """``docs/bdc-slowdown-study.md``: in the learning curves of the three shipped BDC seeds on
-    slowdown-v1, every evaluated snapshot either collides (sampled validation) or scores -1,701
-    or worse; ``ovm`` scores about -731."""
+def test_bdc_slowdown_curves_at_1e6_steps() -> None:
+    """``docs/bdc-slowdown-study.md``: the three shipped BDC seeds on slowdown-v1 (1e6 steps)
+    keep collision-free validation snapshots scoring -728.0, -914.7 and -838.9 (``ovm`` -764.9
+    on the same validation seeds): only seed 0 beats the human driver there."""
     import pandas as pd
 
     from controllers.policy import CHECKPOINT_DIR
@@ -370,6 +370,6 @@ def test_bdc_slowdown_curves_never_reach_the_bar() -> None:
     for seed in (0, 1, 2):
         curve = pd.read_csv(CHECKPOINT_DIR / f"bdc__slowdown-v1__n8__s{seed}.curve.csv")
         ev = curve.dropna(subset=["eval_reward_sampled"])
-        assert len(ev) == 27
+        assert ev["steps"].max() >= 1_000_000
         best.append(ev.loc[ev["eval_collisions_sampled"] == 0, "eval_reward_sampled"].max())
-    assert np.round(best, 1).tolist() == [-2052.6, -1701.5, -1854.6]
+    assert np.round(best, 1).tolist() == [-728.0, -914.7, -838.9]
