@@ -206,12 +206,16 @@ def write_report(df: Any, out: Path, command: str, steps: int, seeds: list[int],
             ("energy_kwh_per_100km_mean", "kWh/100 km"), ("gap_rmse_m_mean", "gap RMSE m"),
             ("training_bits_sent_per_agent", "training bits sent"),
             ("qsgd_payload_bits_per_agent", "QSGD payload bits")]
+    shown = df.assign(knob_value=[f"{v:.3g}" if isinstance(v, float) else str(v)
+                                  for v in df["knob_value"]])
     for sc in dict.fromkeys(df["scenario"]):
         plot_sensitivity(df, sc, fig_dir, f"sensitivity__{sc}")
-        lines += [f"## {sc}", "", format_table(df[df["scenario"] == sc], cols, 3), "",
+        lines += [f"## {sc}", "", format_table(shown[shown["scenario"] == sc], cols, 3), "",
                   f"![sensitivity on {sc}](figures/sensitivity__{sc}.png)", ""]
     effects = knob_effects(df)
     effects.to_csv(out / "knob_effects.csv", index=False)
+    effects = effects.assign(**{c: [f"{v:.3g}" if isinstance(v, float) else str(v)
+                                    for v in effects[c]] for c in ("best_value", "worst_value")})
     plot_bits_against_reward(df, fig_dir, "bits_against_reward")
     lines += ["## Which knob matters", "",
               "Spread: the largest minus the smallest mean reward over the knob's values; "
