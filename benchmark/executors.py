@@ -17,6 +17,15 @@ from envs.errors import ConfigError
 EXECUTORS = ("serial", "process", "ray")
 
 
+def add_executor_options(parser: Any, default: str = "serial") -> None:
+    """``--executor``, ``--workers`` and ``--ray-address``, the same on every command."""
+    parser.add_argument("--executor", choices=EXECUTORS, default=default,
+                        help="serial, process or ray (default: %(default)s)")
+    parser.add_argument("--workers", type=int, default=2,
+                        help="processes or Ray CPUs (default 2)")
+    parser.add_argument("--ray-address", default=None, help="attach to this Ray cluster")
+
+
 def _worker_env() -> None:
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     os.environ.setdefault("MKL_NUM_THREADS", "1")

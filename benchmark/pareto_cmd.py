@@ -15,7 +15,7 @@ import sys
 from typing import Any
 
 from benchmark.cli import plain
-from benchmark.executors import EXECUTORS
+from benchmark.executors import add_executor_options
 from envs.errors import ConfigError, UnknownNameError
 
 #: family -> (controller, knob, values). The defaults sit inside each sweep (mpc 0.25, w_accel
@@ -69,10 +69,7 @@ def _parser() -> argparse.ArgumentParser:
                    help="comma list among " + ", ".join(FAMILY_GROUPS) + " (default: all)")
     p.add_argument("--out", default="results/pareto", help="output folder (default: %(default)s)")
     p.add_argument("--resume", action="store_true", help="complete a sweep in --out")
-    p.add_argument("--executor", choices=EXECUTORS, default="serial",
-                   help="serial, process or ray (default: %(default)s)")
-    p.add_argument("--workers", type=int, default=2, help="processes or Ray CPUs (default 2)")
-    p.add_argument("--ray-address", default=None, help="attach to this Ray cluster")
+    add_executor_options(p)
     return p
 
 

@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from benchmark.cli import plain
-from benchmark.executors import EXECUTORS
+from benchmark.executors import add_executor_options
 from envs.errors import ConfigError, UnknownNameError
 
 #: Multiples of the tuned consensus eps tried (two decades and more around it).
@@ -52,10 +52,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="results/sensitivity",
                    help="output folder (default: %(default)s)")
     p.add_argument("--resume", action="store_true", help="complete a study in --out")
-    p.add_argument("--executor", choices=EXECUTORS, default="serial",
-                   help="serial, process or ray (default: %(default)s)")
-    p.add_argument("--workers", type=int, default=2, help="processes or Ray CPUs (default 2)")
-    p.add_argument("--ray-address", default=None, help="attach to this Ray cluster")
+    add_executor_options(p)
     return p
 
 
