@@ -120,7 +120,7 @@ def plot_leaderboard(lb: Any, out_dir: Path, stem: str = "leaderboard") -> list[
     most = max(int((lb["setting"] == st).sum()) for st in settings)
     fig, axes = plt.subplots(nrows, ncols, squeeze=False,
                              figsize=(4.6 * ncols, (0.7 + 0.2 * most) * nrows))
-    families = set()
+    families: set[str] = set()
     for ax, (metric, label, setting) in zip(axes.ravel(), panels, strict=False):
         sub = lb[lb["setting"] == setting]
         if "rank" in sub.columns:

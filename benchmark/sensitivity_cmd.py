@@ -176,8 +176,8 @@ def _names(text: str, flag: str, valid: tuple[str, ...] | None = None) -> list[s
     names = list(dict.fromkeys(x.strip() for x in text.split(",") if x.strip()))
     if not names:
         raise ConfigError(f"{flag}: nothing named")
-    for n in names if valid else ():
-        if n not in valid:
+    for n in names:
+        if valid is not None and n not in valid:
             raise UnknownNameError(flag.lstrip("-").rstrip("s"), n, valid)
     return names
 

@@ -163,7 +163,7 @@ def controller_options(name: str) -> dict[str, Any]:
     config_cls = getattr(factory, "config_cls", None)
     if config_cls is not None and dataclasses.is_dataclass(config_cls):
         return {f.name: (f.default if f.default is not dataclasses.MISSING
-                         else f.default_factory())  # type: ignore[misc]
+                         else f.default_factory())  # type: ignore[misc,operator]
                 for f in dataclasses.fields(config_cls) if f.init}
     import inspect
 

@@ -34,7 +34,7 @@ def install() -> dict[int, Any]:
     the previous handlers for :func:`restore`."""
     global _received
     _received = None
-    previous = {}
+    previous: dict[int, Any] = {}
     for sig in (signal.SIGINT, signal.SIGTERM):
         previous[sig] = signal.signal(sig, _handler)
     return previous

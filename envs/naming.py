@@ -44,7 +44,9 @@ def parse_named_list(text: str, kind: str) -> list[tuple[str, dict[str, str]]]:
 
 
 def _split_outside_brackets(text: str) -> list[str]:
-    parts, depth, cur = [], 0, []
+    parts: list[str] = []
+    cur: list[str] = []
+    depth = 0
     for ch in text:
         if ch == "[":
             depth += 1
