@@ -65,7 +65,8 @@ def duty_scores(
     k run as one batch of ``k_max x 32`` episodes; results are cached per process.
     """
     sc = make_scenario(scenario) if isinstance(scenario, str) else scenario
-    key = (sc.id, repr(sorted(sc.options.items())), n_vehicles, k_max, params)
+    # the length is part of the key: a shortened copy of a scenario (perf timing) has the same id
+    key = (sc.id, repr(sorted(sc.options.items())), sc.n_steps, n_vehicles, k_max, params)
     if key not in _SCORES:
         _SCORES[key] = _duty_scores(sc, n_vehicles, k_max, params)
     return _SCORES[key]

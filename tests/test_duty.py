@@ -111,3 +111,16 @@ def test_greedy_bdc_reads_the_hold_speed_value() -> None:
     summary = load_checkpoint(checkpoint_path("bdc", "catchup-v1", 8, 0))["curve_summary"]
     assert summary["selected_eval_reward_greedy"] == pytest.approx(hold, abs=1e-3)
     assert summary["selected_eval_reward_sampled"] == pytest.approx(-449.92, abs=0.01)
+
+
+def test_the_best_k_of_a_shortened_scenario_is_not_the_full_ones() -> None:
+    """``perf`` times controllers on a shortened copy of a scenario (same id): duty's cache must
+    not hand its best k to the full-length scenario (it once did: 19 instead of 4)."""
+    import dataclasses
+
+    from controllers.duty import best_k
+    from envs.scenarios import make_scenario
+
+    short = dataclasses.replace(make_scenario("catchup-v1"), n_steps=150)
+    best_k(short, 8)
+    assert best_k("catchup-v1", 8) == 4
