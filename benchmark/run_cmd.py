@@ -91,9 +91,7 @@ def _validate(args: argparse.Namespace) -> tuple[list[tuple[str, dict[str, str]]
     controllers = parse_controller_list(args.controllers)
     if not args.scenarios.strip(" ,"):
         raise ConfigError("--scenarios: no scenario named")
-    scenarios = unique(parse_scenario_list(args.scenarios))
-    for sc in scenarios:
-        make_scenario(sc)
+    scenarios = unique(parse_scenario_list(args.scenarios))  # each checked once, there
     for n in args.vehicles or ():
         if not MIN_VEHICLES <= n <= MAX_VEHICLES:
             raise ConfigError(
