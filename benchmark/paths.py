@@ -4,6 +4,7 @@ error (exit 2), not a traceback after the first runs."""
 from __future__ import annotations
 
 import os
+import tempfile
 from pathlib import Path
 
 from envs.errors import ConfigError
@@ -15,22 +16,20 @@ def writable_dir(path: str | Path, flag: str = "--out", create: bool = False) ->
     out = Path(path)
     if out.exists() and not out.is_dir():
         raise ConfigError(f"{flag} {out} exists and is not a folder; choose another {flag}")
-    missing = []
     probe = out.absolute()
     while not probe.exists():
-        missing.append(probe)
         probe = probe.parent
     if not probe.is_dir():
         raise ConfigError(f"{flag} {out}: {probe} is a file, so the folder cannot be made; "
                           f"choose another {flag}")
-    try:  # the real test (root passes os.access everywhere): make it, undo unless asked
-        out.mkdir(parents=True, exist_ok=True)
+    try:  # the real test (root passes os.access everywhere): a private probe folder in the
+        # nearest existing ancestor, so two commands checking the same --out never race
+        os.rmdir(tempfile.mkdtemp(prefix=".cacc-bench-probe-", dir=probe))
+        if create:
+            out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise ConfigError(f"{flag} {out}: cannot make this folder ({exc.strerror}); choose "
                           f"a writable place for {flag}") from None
-    if not os.access(out, os.W_OK | os.X_OK):
+    if out.exists() and not os.access(out, os.W_OK | os.X_OK):
         raise ConfigError(f"{flag} {out} is not writable; choose another {flag}")
-    if not create:
-        for folder in missing:
-            folder.rmdir()
     return out

@@ -74,6 +74,21 @@ def test_two_writers_racing_leave_one_consistent_store(tmp_path: Path) -> None:
     assert len(pd.read_csv(out / "runs.csv")) == 16
 
 
+def test_checking_an_out_folder_never_touches_it(tmp_path: Path) -> None:
+    """The check made two racing writers fail: one removed the folder the other had made."""
+    from benchmark.paths import writable_dir
+
+    missing = tmp_path / "a" / "b"
+    writable_dir(missing)
+    assert list(tmp_path.iterdir()) == []  # nothing made, no probe left
+    other = tmp_path / "theirs"
+    other.mkdir()
+    (other / "store.sqlite").write_bytes(b"x")
+    writable_dir(other)
+    assert sorted(p.name for p in other.iterdir()) == ["store.sqlite"]
+    assert writable_dir(missing, create=True).is_dir()
+
+
 def test_an_empty_store_file_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]
                                         ) -> None:
     out = tmp_path / "empty"
