@@ -174,3 +174,37 @@ class PlatoonGymEnv(gymnasium.Env):
             over and not collided,
             info,
         )
+
+
+#: Gymnasium namespace of the registered scenarios: ``gymnasium.make("cacc_bench/catchup-v1")``.
+GYM_NAMESPACE = "cacc_bench"
+
+
+def register_gymnasium() -> list[str]:
+    """Register every scenario as ``cacc_bench/<scenario id>`` (the Gymnasium view,
+    :class:`PlatoonGymEnv`, at the scenario's default N); idempotent.
+
+    Runs when this module is imported, so ``gymnasium.make("envs.adapters:cacc_bench/catchup-v1",
+    n_vehicles=4)`` works in a fresh interpreter (Gymnasium imports the module before the id).
+
+    Returns
+    -------
+    list[str]
+        The registered ids.
+    """
+    from envs.scenarios import list_scenarios
+
+    ids = []
+    for spec in list_scenarios():
+        env_id = f"{GYM_NAMESPACE}/{spec.id}"
+        if env_id not in gymnasium.registry:
+            gymnasium.register(
+                env_id, entry_point="envs.adapters:PlatoonGymEnv",
+                kwargs={"scenario": spec.id, "n_vehicles": spec.default_vehicles},
+                disable_env_checker=False,
+            )
+        ids.append(env_id)
+    return ids
+
+
+register_gymnasium()
