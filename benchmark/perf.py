@@ -75,15 +75,17 @@ def harness_throughput(episodes: int = 10) -> dict[str, float]:
 
 
 def controller_timing(name: str, n_steps: int = 150, n_vehicles: int = 8,
-                      scenario_id: str = "catchup-v1") -> dict[str, float]:
-    """Wall time per vehicle per step of one controller (first call, the build, apart)."""
+                      scenario_id: str = "catchup-v1",
+                      options: dict[str, str] | None = None) -> dict[str, float]:
+    """Wall time per vehicle per step of one controller, built with ``options`` (first call,
+    the build, apart)."""
     from benchmark.rollout import rollout
     from controllers.registry import make_controller
     from envs.scenarios import make_scenario
 
     sc = make_scenario(scenario_id)
     sc = dataclasses.replace(sc, n_steps=min(n_steps, sc.n_steps))
-    ctrl = make_controller(name)
+    ctrl = make_controller(name, **(options or {}))
     traj = rollout(ctrl, sc, n_vehicles, 2000)
     ms = traj.compute_s * 1000.0 / n_vehicles
     rest = ms[1:]
@@ -98,7 +100,8 @@ def controller_timing(name: str, n_steps: int = 150, n_vehicles: int = 8,
 
 def main(argv: list[str]) -> int:
     """Measure and print a table (``--json`` for a JSON object)."""
-    from controllers.registry import MARL_ALGORITHMS, available_controllers
+    from controllers.registry import MARL_ALGORITHMS, available_controllers, make_controller
+    from envs.errors import ConfigError
 
     p = argparse.ArgumentParser(prog="cacc-bench perf", description=plain(__doc__),
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -107,15 +110,14 @@ def main(argv: list[str]) -> int:
     p.add_argument("--only", default="env,harness,controllers,train",
                    help="comma list of parts: env, harness, controllers, train (default: all)")
     p.add_argument("--controllers", default=None,
-                   help="comma list of controllers to time (default: every available non-MARL "
-                        "controller and every MARL policy with a shipped checkpoint)")
+                   help="comma list of controllers to time, with options as in run "
+                        "(mpc:horizon=30,cacc); default: every available non-MARL controller "
+                        "and every MARL policy with a shipped checkpoint")
     p.add_argument("--algos", default=None, help="comma list of MARL algorithms to time")
     args = p.parse_args(argv)
     parts = {x.strip() for x in args.only.split(",") if x.strip()}
     unknown = parts - {"env", "harness", "controllers", "train"}
     if unknown:
-        from envs.errors import ConfigError
-
         raise ConfigError(f"--only: unknown part(s) {sorted(unknown)}; valid: env, harness, controllers, train")
     out: dict[str, Any] = {}
     if "env" in parts:
@@ -124,18 +126,24 @@ def main(argv: list[str]) -> int:
     if "harness" in parts:
         out.update(harness_throughput(episodes=2 if args.quick else 10))
     if "controllers" in parts:
-        names = (
-            [c.strip() for c in args.controllers.split(",") if c.strip()]
-            if args.controllers else [c.name for c in available_controllers()]
-        )
+        from controllers.registry import controller_label, parse_controller_list
+
+        specs = (parse_controller_list(args.controllers) if args.controllers
+                 else [(c.name, {}) for c in available_controllers()])
+        if not specs:
+            raise ConfigError("--controllers: no controller named")
         timing: dict[str, dict[str, float] | str] = {}
-        for name in names:
+        for name, opts in specs:
+            label = controller_label(name, opts)
+            if args.controllers:  # named ones must work: a bad option is exit 2, before timing
+                make_controller(name, **opts)
             try:
-                timing[name] = controller_timing(name, n_steps=40 if args.quick else 150)
+                timing[label] = controller_timing(name, n_steps=40 if args.quick else 150,
+                                                  options=opts)
             except Exception as exc:  # a missing checkpoint, say: report it, keep measuring
                 if args.controllers:
                     raise
-                timing[name] = f"not measured: {exc}"
+                timing[label] = f"not measured: {exc}"
         out["controller_ms_per_vehicle_step"] = {
             k: v["median_ms"] for k, v in timing.items() if isinstance(v, dict)
         }
@@ -181,13 +189,14 @@ def _print_table(out: dict[str, Any]) -> None:
               f"{out['harness_steps_per_s']:,.0f} steps/s, {out['harness_default_sweep_s']:.2f} s")
     if "controller_timing" in out:
         print("controllers (ms per vehicle per step; first call apart):")
-        print(f"  {'name':<10} {'median':>9} {'p95':>9} {'p99':>9} {'first':>9}")
+        w = max([10, *(len(name) for name in out["controller_timing"])])
+        print(f"  {'name':<{w}} {'median':>9} {'p95':>9} {'p99':>9} {'first':>9}")
         for name, t in out["controller_timing"].items():
             if isinstance(t, dict):
-                print(f"  {name:<10} {t['median_ms']:9.4f} {t['p95_ms']:9.4f} {t['p99_ms']:9.4f} "
-                      f"{t['first_ms']:9.2f}")
+                print(f"  {name:<{w}} {t['median_ms']:9.4f} {t['p95_ms']:9.4f} "
+                      f"{t['p99_ms']:9.4f} {t['first_ms']:9.2f}")
             else:
-                print(f"  {name:<10} {t}")
+                print(f"  {name:<{w}} {t}")
     if "train_env_steps_per_s" in out:
         print("training (environment steps/s, one process, one torch thread; median of the runs):")
         if not out["train_env_steps_per_s"]:

@@ -169,6 +169,8 @@ CASES: dict[str, list[list[str]]] = {
         ["--controllers", "nope"],
         ["--algos", "nope"],
         ["--controllers", "ovm:alpha=x"],
+        ["--controllers", "cacc:nope=1"],
+        ["--controllers", ","],
     ],
     "help": [["nope"]],
     "list": [["--bogus"]],

@@ -20,6 +20,14 @@ def test_perf_json_keys(capsys: pytest.CaptureFixture[str]) -> None:
     assert out["controller_ms_per_vehicle_step"]["ovm"] > 0
 
 
+def test_perf_takes_run_controller_syntax_and_labels_like_run(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["perf", "--quick", "--json", "--only", "controllers",
+                 "--controllers", "cacc:kp=0.3,ovm:alpha=0.5"]) == 0
+    timing = json.loads(capsys.readouterr().out)["controller_ms_per_vehicle_step"]
+    assert set(timing) == {"cacc[kp=0.3]", "ovm"}  # the default-valued option adds nothing
+
+
 def test_perf_train_key(capsys: pytest.CaptureFixture[str]) -> None:
     """The issue's key: one training rate per requested algorithm, with the runs behind it."""
     assert main(["perf", "--quick", "--json", "--only", "train", "--algos", "ia2c,bdc"]) == 0
