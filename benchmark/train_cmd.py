@@ -202,7 +202,7 @@ def main(argv: list[str]) -> int:
     """Entry point: ``cacc-bench train --algo NAME --scenario ID [...]``."""
     from benchmark.executors import map_jobs
     from controllers.registry import build_config
-    from envs.scenarios import check_vehicles, make_scenario
+    from envs.scenarios import SCENARIOS, check_vehicles, make_scenario, parse_scenario_list
     from marl.common import ALGORITHM_NAMES, algorithm
 
     args = _parser().parse_args(argv)
@@ -212,9 +212,16 @@ def main(argv: list[str]) -> int:
     for a in algos:
         if a not in ALGORITHM_NAMES:
             raise UnknownNameError("algorithm", a, ALGORITHM_NAMES)
-    scenarios = _names(args.scenario, "--scenario")
+    scenarios = parse_scenario_list(args.scenario)  # UnknownNameError for an unknown id
+    if not scenarios:
+        raise ConfigError("--scenario: no scenario named")
     for sc in scenarios:
-        make_scenario(sc)  # UnknownNameError for an unknown id
+        if sc not in SCENARIOS:
+            raise ConfigError(
+                f"--scenario {sc}: training takes plain scenario ids (checkpoints are named and "
+                f"loaded by id, so a policy trained with options would be read as trained on "
+                f"{sc.split('[')[0]}); train on {sc.split('[')[0]} and evaluate on {sc} with run")
+        make_scenario(sc)
     check_vehicles(args.vehicles)
     if args.steps < 1:
         raise ConfigError(f"--steps must be >= 1, got {args.steps}")
