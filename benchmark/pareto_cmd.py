@@ -69,7 +69,7 @@ def _parser() -> argparse.ArgumentParser:
                    help="comma list among " + ", ".join(FAMILY_GROUPS) + " (default: all)")
     p.add_argument("--out", default="results/pareto", help="output folder (default: %(default)s)")
     p.add_argument("--resume", action="store_true", help="complete a sweep in --out")
-    add_executor_options(p)
+    add_executor_options(p, default="process")  # a sweep of many runs: both cores
     return p
 
 
