@@ -492,11 +492,10 @@ def empirical_gain(
     seed : int
         Seed of the first episode (episode k gets ``seed + 10 k``; only the channel uses it).
     """
-    from controllers.base import EpisodeContext
+    from benchmark.rollout import rollout
     from controllers.registry import make_controller
     from envs.channel import ChannelConfig
     from envs.params import PlatoonParams
-    from envs.platoon import PlatoonEnv
     from envs.scenarios import check_vehicles, make_scenario
 
     n = check_vehicles(n_vehicles)
@@ -519,40 +518,24 @@ def empirical_gain(
     duration_s = transient_s + float(window_s.max())
     base = make_scenario("sine-v1", amplitude_mps=amplitude_mps)
     n_steps = max(base.n_steps, int(math.ceil(duration_s / dt)))
-    profiles = []
-    scenario = base
-    for w in omegas:
-        sc = make_scenario("sine-v1", amplitude_mps=amplitude_mps, frequency_hz=w / (2 * np.pi))
-        scenario = dataclasses.replace(sc, n_steps=n_steps)
-        profiles.append(scenario.episodes([seed], n).leader_speed_mps[0])
-    leader = np.stack(profiles)  # (W, T+1)
-
     ctrl = make_controller(controller_name, **dict(options or {}))
     b = len(omegas)
-    seeds = seed + 10 * np.arange(b)
-    env = PlatoonEnv(scenario, n, params, observe=bool(ctrl.needs_observation), include_power=False)
-    ctx = EpisodeContext(scenario, n, seeds, params, channel)
-    ctrl.reset(ctx)
-    obs = env.reset(seeds)
-    state = env.state
-    assert state is not None
-    state.leader_speed_mps[...] = leader  # one sine-v1 frequency per episode of the batch
-
     accel = np.zeros((n_steps, b, n + 1))
-    accel[:, :, 0] = (np.diff(leader, axis=1) / dt).T
     saturated = np.zeros(b, dtype=bool)
+    collided = np.zeros(b, dtype=bool)
     a_bound = min(-params.accel_min_mps2, params.accel_max_mps2) - 1e-9
-    for t in range(n_steps):
-        command = ctrl.act(state, obs)
-        res = env.step(command)
-        obs = res.observation
-        accel[t, :, 1:] = res.applied_accel_mps2
-        saturated |= np.any(np.abs(np.asarray(command)) >= a_bound, axis=1)
-        saturated |= np.any(
-            (state.speed_mps <= 0.0) | (state.speed_mps >= params.speed_max_mps), axis=1
+    for k, w in enumerate(omegas):  # one sine-v1 episode per frequency, through the harness's loop
+        sc = make_scenario("sine-v1", amplitude_mps=amplitude_mps, frequency_hz=w / (2 * np.pi))
+        sc = dataclasses.replace(sc, n_steps=n_steps)
+        traj = rollout(ctrl, sc, n, seed + 10 * k, params, channel)
+        leader = sc.episodes([seed], n).leader_speed_mps[0]
+        accel[:, k, 0] = np.diff(leader) / dt
+        accel[: traj.steps, k, 1:] = traj.accel_mps2[1:]
+        saturated[k] = bool(
+            np.any(np.abs(traj.command_mps2) >= a_bound)
+            or np.any((traj.speed_mps[1:] <= 0.0) | (traj.speed_mps[1:] >= params.speed_max_mps))
         )
-        if res.done.all():
-            break
+        collided[k] = traj.collided
 
     k0 = int(math.ceil(transient_s / dt))
     t_s = np.arange(n_steps) * dt
@@ -561,7 +544,6 @@ def empirical_gain(
         amp = np.abs(fit_sinusoid(accel[k0:, k, :], float(w), t_s[k0:]))
         with np.errstate(divide="ignore", invalid="ignore"):
             pair_gain[k] = amp[1:] / amp[:-1]
-    collided = state.collided.copy()
     pair_gain[collided] = np.nan
     return EmpiricalGain(
         controller=controller_name,

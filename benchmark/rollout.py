@@ -31,6 +31,9 @@ class Trajectory:
     leader_speed_mps, leader_accel_mps2 : (T+1,)
     reward, tracking_reward : (T,)
         Sum over agents of the evaluation reward with and without the power term.
+    command_mps2 : (T, N)
+        What the controller's ``act`` returned at each step, before the env's bounds and lag
+        (for a recorded platoon, the recorded acceleration).
     compute_s : (T,)
         Wall time of each ``act`` call (the whole platoon).
     collided : bool
@@ -47,6 +50,7 @@ class Trajectory:
     leader_accel_mps2: np.ndarray
     reward: np.ndarray
     tracking_reward: np.ndarray
+    command_mps2: np.ndarray
     compute_s: np.ndarray
     collided: bool
     steps: int
@@ -109,6 +113,7 @@ def rollout_batch(
     power = np.zeros_like(gap)
     reward = np.zeros((t_max, b))
     tracking = np.zeros((t_max, b))
+    commands = np.zeros((t_max, b, n_vehicles))
     compute = np.zeros(t_max)
     bits = np.zeros(t_max, dtype=np.int64)
     steps = np.full(b, t_max)
@@ -123,6 +128,7 @@ def rollout_batch(
         compute[t] = (clock() - t0) / b
         bits[t] = (ctx.bits_sent - bits_before) // b
         was_done = s.done.copy()
+        commands[t] = command
         res = env.step(command)
         t += 1
         gap[t], speed[t] = s.gap_m, s.speed_mps
@@ -153,6 +159,7 @@ def rollout_batch(
                 leader_accel_mps2=lead_accel,
                 reward=reward[:n_k, k],
                 tracking_reward=tracking[:n_k, k],
+                command_mps2=commands[:n_k, k],
                 compute_s=compute[:n_k],
                 collided=bool(s.collided[k]),
                 steps=n_k,
@@ -178,6 +185,7 @@ def _score_recorded(env: PlatoonEnv, rec: dict[str, np.ndarray], params: Platoon
     return Trajectory(
         gap_m=gap[: steps + 1], speed_mps=speed[: steps + 1], accel_mps2=accel[: steps + 1],
         power_kw=power[: steps + 1], leader_speed_mps=lead, leader_accel_mps2=lead_accel,
-        reward=reward[:steps], tracking_reward=tracking[:steps], compute_s=np.zeros(steps),
+        reward=reward[:steps], tracking_reward=tracking[:steps],
+        command_mps2=accel[1 : steps + 1].copy(), compute_s=np.zeros(steps),
         collided=bool(hit.size), steps=steps, bits_sent=0, solver_failures=0, dt_s=params.dt_s,
     )

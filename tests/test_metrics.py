@@ -22,6 +22,7 @@ def _traj(steps: int = 2) -> Trajectory:
         leader_accel_mps2=np.zeros(steps + 1),
         reward=np.array([-1.0, -3.0])[:steps],
         tracking_reward=np.array([-0.5, -1.5])[:steps],
+        command_mps2=np.array([[1.0, -1.0], [2.0, 0.0]])[:steps],
         compute_s=np.array([0.004, 0.002])[:steps],
         collided=False, steps=steps, bits_sent=400, solver_failures=3, dt_s=0.1,
     )
