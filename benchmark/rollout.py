@@ -10,6 +10,7 @@ import numpy as np
 
 from controllers.base import Controller, EpisodeContext
 from envs.channel import ChannelConfig
+from envs.errors import ControllerContractError
 from envs.params import PlatoonParams
 from envs.platoon import PlatoonEnv
 from envs.scenarios import Scenario
@@ -126,6 +127,7 @@ def rollout_batch(
         t0 = clock()
         command = controller.act(s, obs)
         compute[t] = (clock() - t0) / b
+        _check_command(controller, command, b, n_vehicles)
         bits[t] = (ctx.bits_sent - bits_before) // b
         was_done = s.done.copy()
         commands[t] = command
@@ -169,6 +171,16 @@ def rollout_batch(
             )
         )
     return out
+
+
+def _check_command(controller: Controller, command: np.ndarray, b: int, n: int) -> None:
+    """The loop's contract: ``act`` returns ``(B, N)`` finite accelerations."""
+    shape = np.shape(command)
+    if shape != (b, n):
+        raise ControllerContractError(
+            f"{controller.name}: act returned shape {shape}, expected (B, N) = ({b}, {n})")
+    if not np.all(np.isfinite(command)):
+        raise ControllerContractError(f"{controller.name}: act returned a non-finite command")
 
 
 def _score_recorded(env: PlatoonEnv, rec: dict[str, np.ndarray], params: PlatoonParams) -> Trajectory:

@@ -31,3 +31,8 @@ class UnknownNameError(CaccBenchError, KeyError):
 
 class TrainingDivergedError(CaccBenchError, RuntimeError):
     """A learner's weights became non-finite (NaN or infinite) during training."""
+
+
+class ControllerContractError(RuntimeError):
+    """A controller broke the closed loop's contract (a command of the wrong shape, or not
+    finite): a defect of the controller, reported as a failed run, never stored as a result."""

@@ -24,3 +24,24 @@ class FailingController(Controller):
         if state.step == 5:
             raise RuntimeError("deliberate failure at step 5")
         return np.zeros((1, self.n))
+
+
+class DefectiveController(Controller):
+    """Breaks the loop's contract at step 3: a command of the wrong shape (``defect="shape"``)
+    or a NaN (``defect="nan"``)."""
+
+    name = "defective"
+    family = "linear"
+
+    def __init__(self, defect: str = "shape") -> None:
+        super().__init__()
+        self.defect = defect
+
+    def reset(self, ctx: EpisodeContext) -> None:
+        self.b, self.n = ctx.batch_size, ctx.n_vehicles
+
+    def act(self, state: PlatoonState, observation: np.ndarray | None) -> np.ndarray:
+        u = np.zeros((self.b, self.n))
+        if state.step == 3:
+            return u[:, :1] if self.defect == "shape" else u + np.nan
+        return u

@@ -6,36 +6,30 @@ controller (registering one adds it to the parametrised tests).
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
-from controllers.base import FAMILIES, Controller, EpisodeContext
+from benchmark.rollout import rollout
+from controllers.base import FAMILIES, Controller
 from controllers.registry import make_controller, resolve
 from envs.channel import ChannelConfig
-from envs.platoon import PlatoonEnv
+from envs.errors import ControllerContractError
+from envs.params import PlatoonParams
 from envs.scenarios import make_scenario
 
 
 def _episode(ctrl: Controller, scenario_id: str, n: int, seed: int, steps: int,
              channel: ChannelConfig) -> tuple[np.ndarray, int]:
-    env = PlatoonEnv(scenario_id, n, observe=ctrl.needs_observation)
-    ctx = EpisodeContext(env.scenario, n, np.array([seed]), env.params, channel)
-    ctrl.reset(ctx)
-    obs = env.reset([seed])
-    out = []
-    for _ in range(steps):
-        assert env.state is not None
-        u = ctrl.act(env.state, obs)
-        u = np.asarray(u)
-        if u.shape != (1, n):
-            raise AssertionError(f"{ctrl.name}: act returned shape {u.shape}, expected (1, {n})")
-        if not np.all(np.isfinite(u)):
-            raise AssertionError(f"{ctrl.name}: act returned a non-finite command")
-        out.append(u.copy())
-        res = env.step(u)
-        obs = res.observation
-        if res.done[0]:
-            break
-    return np.concatenate(out), ctx.bits_sent
+    """The commands and V2V bits of the first ``steps`` steps of one episode, run by the
+    harness's own loop (which refuses commands of the wrong shape or not finite)."""
+    sc = make_scenario(scenario_id)
+    sc = dataclasses.replace(sc, n_steps=min(steps, sc.n_steps))
+    try:
+        traj = rollout(ctrl, sc, n, seed, PlatoonParams(), channel)
+    except ControllerContractError as exc:
+        raise AssertionError(str(exc)) from None
+    return traj.command_mps2, traj.bits_sent
 
 
 def check_controller(name: str, scenario_id: str = "catchup-v1", n_vehicles: int = 8,
