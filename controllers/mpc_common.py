@@ -79,7 +79,6 @@ in ``solver_failures``.
 from __future__ import annotations
 
 import math
-import time
 from abc import abstractmethod
 from dataclasses import dataclass, fields
 from typing import Any
@@ -875,59 +874,3 @@ class DistributedMPCBase(Controller):
             encode_plans(t, state.leader_speed_now_mps, plan_v)
         ).copy()
         return u
-
-
-# --------------------------------------------------------------------------- timing
-
-
-def time_controller(
-    name: str,
-    options: dict[str, Any] | None = None,
-    scenario: str = "catchup-v1",
-    n_vehicles: int = 8,
-    n_steps: int = 100,
-    seed: int = 2000,
-) -> dict[str, float]:
-    """Wall time of a controller's ``act`` per vehicle per step (ms), build excluded.
-
-    Runs one episode of ``scenario`` for ``n_steps`` steps (B = 1). ``first_ms`` is the first
-    ``act`` call (first, cold solves; the build happens in ``reset`` and is ``build_ms``);
-    ``median_ms``, ``p95_ms``, ``p99_ms`` are over the remaining calls. ``build_ms`` is the
-    whole ``reset`` (not per vehicle).
-
-    Returns
-    -------
-    dict
-        ``median_ms, p95_ms, p99_ms, first_ms, build_ms, steps, solver_failures``.
-    """
-    from controllers.registry import make_controller
-    from envs.platoon import PlatoonEnv
-
-    ctrl = make_controller(name, **(options or {}))
-    env = PlatoonEnv(scenario, n_vehicles, observe=ctrl.needs_observation)
-    seeds = np.array([seed])
-    ctx = EpisodeContext(env.scenario, n_vehicles, seeds, env.params)
-    t0 = time.perf_counter()
-    ctrl.reset(ctx)
-    build_s = time.perf_counter() - t0
-    obs = env.reset(seeds)
-    times = []
-    for _ in range(min(n_steps, env.n_steps)):
-        t0 = time.perf_counter()
-        u = ctrl.act(env.state, obs)
-        times.append(time.perf_counter() - t0)
-        res = env.step(u)
-        obs = res.observation
-        if res.done.all():
-            break
-    per = np.asarray(times) * 1e3 / n_vehicles
-    rest = per[1:] if len(per) > 1 else per
-    return {
-        "median_ms": float(np.median(rest)),
-        "p95_ms": float(np.percentile(rest, 95)),
-        "p99_ms": float(np.percentile(rest, 99)),
-        "first_ms": float(per[0]),
-        "build_ms": build_s * 1e3,
-        "steps": float(len(per)),
-        "solver_failures": float(ctrl.solver_failures),
-    }

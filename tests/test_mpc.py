@@ -4,12 +4,14 @@ checks marked slow)."""
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import pytest
 
+from benchmark.rollout import rollout_batch
 from controllers.base import EpisodeContext
 from controllers.mpc_common import (
     ParamLayout,
@@ -19,13 +21,13 @@ from controllers.mpc_common import (
     lqr_weights,
     make_parameters,
     shift_and_hold,
-    time_controller,
 )
 from controllers.registry import make_controller, parse_controller_list
 from envs.channel import ChannelConfig
 from envs.errors import ConfigError
 from envs.params import EVAL_SEEDS, PlatoonParams
 from envs.platoon import PlatoonEnv
+from envs.scenarios import make_scenario
 
 VARIANTS = ("mpc", "mpc-qp", "cmpc")
 SCENARIOS = (
@@ -82,7 +84,6 @@ class RunStats:
     failures: int
     u_min: float
     u_max: float
-    bits: int
 
 
 def run(
@@ -95,47 +96,25 @@ def run(
     params: PlatoonParams = PlatoonParams(),
     options: dict[str, object] | None = None,
 ) -> RunStats:
-    """Closed loop of one controller over a batch of episodes (the harness's loop)."""
+    """One controller over a batch of episodes, through the harness's own loop."""
     ctrl = make_controller(name, **(options or {}))
-    env0 = PlatoonEnv(scenario, 8, params, observe=False)
-    n = n_vehicles or env0.scenario.default_vehicles
-    env = PlatoonEnv(scenario, n, params, observe=False)
-    seeds_arr = np.asarray(seeds)
-    ctx = EpisodeContext(env.scenario, n, seeds_arr, params, channel)
-    ctrl.reset(ctx)
-    env.reset(seeds_arr)
-    s = env.state
-    assert s is not None
-    energy = np.zeros(len(seeds_arr))
-    se_gap = se_v = 0.0
-    count = 0
-    min_gap = np.inf
-    u_min, u_max = np.inf, -np.inf
-    for _ in range(n_steps or env.n_steps):
-        live = ~s.done
-        u = ctrl.act(s, None)
-        assert u.shape == (len(seeds_arr), n)
-        assert np.all(np.isfinite(u))
-        u_min = min(u_min, float(u[live].min()) if live.any() else u_min)
-        u_max = max(u_max, float(u[live].max()) if live.any() else u_max)
-        res = env.step(u)
-        energy += res.power_kw.sum(axis=1) * params.dt_s / 3600.0
-        se_gap += float(((s.gap_m - env.target_gap_m) ** 2)[live].sum())
-        se_v += float(((s.speed_mps - env.target_speed_mps) ** 2)[live].sum())
-        count += int(live.sum()) * n
-        min_gap = min(min_gap, float(s.gap_m.min()))
-        if res.done.all():
-            break
+    sc = make_scenario(scenario)
+    if n_steps is not None:
+        sc = dataclasses.replace(sc, n_steps=min(n_steps, sc.n_steps))
+    trajs = rollout_batch(ctrl, sc, n_vehicles or sc.default_vehicles, list(seeds), params,
+                          channel)
+    gap = np.concatenate([t.gap_m[1:] for t in trajs])
+    speed = np.concatenate([t.speed_mps[1:] for t in trajs])
+    u = np.concatenate([t.command_mps2 for t in trajs])
     return RunStats(
-        collided=s.collided.copy(),
-        energy_kwh=energy,
-        gap_rmse_m=float(np.sqrt(se_gap / count)),
-        speed_rmse_mps=float(np.sqrt(se_v / count)),
-        min_gap_m=min_gap,
+        collided=np.array([t.collided for t in trajs]),
+        energy_kwh=np.array([t.power_kw.sum() * params.dt_s / 3600.0 for t in trajs]),
+        gap_rmse_m=float(np.sqrt(np.mean((gap - sc.target_gap_m) ** 2))),
+        speed_rmse_mps=float(np.sqrt(np.mean((speed - sc.target_speed_mps) ** 2))),
+        min_gap_m=float(min(t.gap_m.min() for t in trajs)),
         failures=int(ctrl.solver_failures),
-        u_min=u_min,
-        u_max=u_max,
-        bits=ctx.bits_sent,
+        u_min=float(u.min()),
+        u_max=float(u.max()),
     )
 
 
@@ -207,16 +186,12 @@ def test_kinetic_energy_rate_is_about_the_equivalent_mass() -> None:
 def test_v2v_plans_age_with_the_channel_delay() -> None:
     """Delay 0.2 s = 2 steps: a plan used at step t was made at t - 3 (one step of DMPC)."""
     ctrl = make_controller("mpc-qp", horizon=10)
-    env = PlatoonEnv("catchup-v1", 3, observe=False)
-    ctx = EpisodeContext(env.scenario, 3, np.array([2000]), env.params, ChannelConfig(0.2, 0.0))
-    ctrl.reset(ctx)
-    env.reset([2000])
-    for _ in range(6):
-        env.step(ctrl.act(env.state, None))
+    sc = dataclasses.replace(make_scenario("catchup-v1"), n_steps=6)
+    traj = rollout_batch(ctrl, sc, 3, [2000], channel=ChannelConfig(0.2, 0.0))[0]
     # after act at step 5 the receivers hold the plans sent at step 3
     np.testing.assert_array_equal(ctrl._received[0, :, 0], [3, 3, 3])
     # every sender broadcasts H+2 floats of 32 bits each step
-    assert ctx.bits_sent == 6 * 3 * 12 * 32  # senders: the leader and followers 1, 2
+    assert traj.bits_sent == 6 * 3 * 12 * 32  # senders: the leader and followers 1, 2
 
 
 # --------------------------------------------------------------------------- two backends, LQR
@@ -399,17 +374,9 @@ def test_batched_equals_one_by_one(name: str) -> None:
     n, steps = 3, 30
 
     def commands(batch: list[int]) -> np.ndarray:
-        ctrl = make_controller(name, horizon=10)
-        env = PlatoonEnv("catchup-v1", n, observe=False)
-        ctx = EpisodeContext(env.scenario, n, np.array(batch), env.params)
-        ctrl.reset(ctx)
-        env.reset(batch)
-        out = []
-        for _ in range(steps):
-            u = ctrl.act(env.state, None)
-            out.append(u)
-            env.step(u)
-        return np.stack(out, axis=1)  # (B, T, N)
+        sc = dataclasses.replace(make_scenario("catchup-v1"), n_steps=steps)
+        trajs = rollout_batch(make_controller(name, horizon=10), sc, n, batch)
+        return np.stack([t.command_mps2 for t in trajs])  # (B, T, N)
 
     together = commands(seeds)
     alone = np.concatenate([commands([s]) for s in seeds])
@@ -418,8 +385,10 @@ def test_batched_equals_one_by_one(name: str) -> None:
     np.testing.assert_allclose(together, alone, atol=1e-4 if name == "cmpc" else 1e-10)
 
 
-def test_time_controller_reports_per_vehicle_times() -> None:
-    out = time_controller("mpc-qp", {"horizon": "10"}, n_vehicles=3, n_steps=5)
+def test_perf_timing_reports_per_vehicle_times() -> None:
+    from benchmark.perf import controller_timing
+
+    out = controller_timing("mpc-qp", n_steps=5, n_vehicles=3, options={"horizon": "10"})
     assert {"median_ms", "p95_ms", "first_ms"} <= set(out)
     assert 0 < out["median_ms"] <= out["p95_ms"] and out["first_ms"] > 0 and out["steps"] == 5
 
