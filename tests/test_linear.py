@@ -85,7 +85,7 @@ def test_a_set_standstill_distance_and_zero_time_gap() -> None:
     ({"kd": "0"}, "kd must be > 0"),
     ({"standstill_m": "-1"}, "standstill_m must be >= 0"),
     ({"kp": "nan"}, "option kp of acc"),
-    ({"feedforward": "true"}, "acc has no V2V feedforward"),
+    ({"feedforward": "true"}, "^acc has no V2V feedforward; use the cacc controller for it$"),
 ])
 def test_bad_gains_are_refused(bad: dict[str, str], needle: str) -> None:
     with pytest.raises(ConfigError, match=needle):
@@ -105,3 +105,14 @@ def test_the_lag_check_is_the_hurwitz_condition() -> None:
         roots = np.roots([tau, 1.0, 0.5, 2.0])
         assert roots.real.max() >= -1e-9  # the rule agrees with the polynomial's roots
     assert np.roots([0.249, 1.0, 0.5, 2.0]).real.max() < 0
+
+
+def test_preflight_checks_the_lag_of_the_run() -> None:
+    from envs.params import PlatoonParams
+
+    ctrl = make_controller("cacc", kp="2", kd="0.5")
+    sc = make_scenario("catchup-v1")
+    ctrl.preflight(sc, 4)  # no physics given: nothing to check
+    ctrl.preflight(sc, 4, PlatoonParams(lag_s=0.2))
+    with pytest.raises(ConfigError, match="unstable with this actuator lag"):
+        ctrl.preflight(sc, 4, PlatoonParams(lag_s=0.3))

@@ -82,3 +82,23 @@ def test_a_collision_is_reported() -> None:
     t = _traj()
     t.collided = True
     assert run_metrics(t, 20.0, 15.0)["collision"] is True
+
+
+def test_string_gains_leave_out_the_first_step_and_use_every_later_one() -> None:
+    """Rows 2..T only: a transient at step 1 is ignored, step 2 counts (hand-computed norms)."""
+    t = _traj()
+    rows = 5  # T = 4
+    t.steps = 4
+    t.leader_accel_mps2 = np.array([0.0, 9.0, 0.5, 1.0, 1.0])
+    t.accel_mps2 = np.array([[0, 0], [50, 50], [2, 1], [2, 1], [2, 1]], dtype=float)
+    t.gap_m = 20.0 + np.array([[0, 0], [80, 80], [2, 1], [1, 1], [1, 1]], dtype=float)
+    t.speed_mps = np.full((rows, 2), 15.0)
+    t.power_kw = np.ones((rows, 2))
+    t.reward, t.tracking_reward = np.ones(4), np.ones(4)
+    t.command_mps2, t.compute_s = np.zeros((4, 2)), np.ones(4)
+    m = run_metrics(t, 20.0, 15.0)
+    # follower 1 against the leader: sqrt(4 + 4 + 4) / sqrt(0.25 + 1 + 1); follower 2: 0.5
+    assert m["string_gain"] == pytest.approx(math.sqrt(12) / 1.5)
+    assert m["string_stable"] is False
+    # spacing errors of follower 2 against follower 1: sqrt(3) / sqrt(4 + 1 + 1)
+    assert m["spacing_string_gain"] == pytest.approx(math.sqrt(3 / 6))
