@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from envs import energy
+from envs.energy import power
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -110,7 +111,7 @@ def main(argv: list[str] | None = None) -> int:
         data = fit.to_json_dict()
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
-        energy._default_polynomial.cache_clear()
+        power._default_polynomial.cache_clear()
         print(f"wrote {path}")
     elif not readable:
         print("run `cacc-bench fit-power --write` to (re)create it", file=sys.stderr)

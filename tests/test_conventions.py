@@ -83,3 +83,13 @@ def test_list_shows_every_controller_option_with_its_default(
     assert "options: alpha=0.5, beta=0.5" in out
     assert "energy_weight=0.25" in out and "mode=sampled" in out
     assert "N=4 by default" in out
+
+
+def test_the_energy_modules_are_split_by_purpose_and_small() -> None:
+    """Runtime power, the physical models, the vehicle data and the offline fit are separate
+    modules, each under 400 lines; the runtime module does not import the fit."""
+    folder = Path(__file__).resolve().parent.parent / "envs" / "energy"
+    sizes = {p.name: len(p.read_text().splitlines()) for p in folder.glob("*.py")}
+    assert set(sizes) == {"__init__.py", "vehicle.py", "map_model.py", "power.py", "fit.py"}
+    assert max(sizes.values()) < 400, sizes
+    assert "envs.energy.fit" not in (folder / "power.py").read_text()

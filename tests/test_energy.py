@@ -1,4 +1,4 @@
-"""Tests of the energy models (envs/energy.py), the fit script and the energy figure."""
+"""Tests of the energy models (the envs.energy package), the fit script and the energy figure."""
 
 from __future__ import annotations
 

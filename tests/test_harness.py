@@ -300,10 +300,9 @@ def test_openacc_real_row_scores_the_recorded_followers(tmp_path: Path) -> None:
     # the polynomial is evaluated inside its fit domain, read from the shipped fit (not the code)
     import json
 
-    from envs.energy import __file__ as energy_file
-    from envs.energy import load_power_polynomial
+    from envs.energy import DEFAULT_POLYNOMIAL_FILE, load_power_polynomial
 
-    fit = json.loads((Path(energy_file).parent / "data" / "energy" / "power_poly.json").read_text())
+    fit = json.loads(DEFAULT_POLYNOMIAL_FILE.read_text())
     lo, hi = fit["grid"]["accel_range_mps2"]
     assert (a.min() < lo or a.max() > hi)  # the recorded data does leave the domain
     p = load_power_polynomial()(v[1:], np.clip(a, lo, hi))

@@ -1,0 +1,274 @@
+"""The offline fit of the power polynomial to the map model (``cacc-bench fit-power``), with its
+quality and provenance.
+"""
+
+
+from __future__ import annotations
+
+import datetime as _dt
+import hashlib
+import math
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from envs.energy.map_model import map_operating_point
+from envs.energy.power import POLYNOMIAL_FORMAT, PowerPolynomial
+from envs.energy.vehicle import (
+    DEFAULT_VEHICLE_FILE,
+    LossMap,
+    VehicleParams,
+    _as_path,
+    load_vehicle_params,
+)
+from envs.errors import ConfigError
+
+FloatArray = NDArray[np.floating[Any]]
+
+#: Version string written into the provenance of a fit (the package version when not installed).
+CACC_BENCH_VERSION = "0.1.0"
+
+# ---------------------------------------------------------------------------------------------
+# The fit
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class PowerFit:
+    """A least-squares fit of the polynomial to the map model, with its quality.
+
+    Attributes
+    ----------
+    coefficients_kw : ndarray, shape (degree+1, degree+1)
+        ``p[k, j]`` in SI units (kW, m/s, m/s^2), the coefficient of ``v^k u^j``.
+    r2, rmse_kw, max_abs_error_kw : float
+        Quality over the whole fit grid (reachable points).
+    r2_low_speed, rmse_kw_low_speed, max_abs_error_kw_low_speed : float
+        The same over the grid points with ``v <= low_speed_max_mps`` (20 m/s: the range the
+        spec cites), of the same fit.
+    n_points, n_points_low_speed : int
+        Grid points used (reachable), and those with ``v <= low_speed_max_mps``.
+    grid : dict
+        Description of the grid and the selection rule (JSON-ready).
+    """
+
+    coefficients_kw: NDArray[np.float64]
+    r2: float
+    rmse_kw: float
+    max_abs_error_kw: float
+    r2_low_speed: float
+    rmse_kw_low_speed: float
+    max_abs_error_kw_low_speed: float
+    n_points: int
+    n_points_low_speed: int
+    grid: dict[str, Any] = field(default_factory=dict)
+
+    def quality(self) -> dict[str, float | int]:
+        """The quality numbers as a JSON-ready dict."""
+        return {
+            "r2": self.r2,
+            "rmse_kw": self.rmse_kw,
+            "max_abs_error_kw": self.max_abs_error_kw,
+            "n_points": self.n_points,
+            "r2_low_speed": self.r2_low_speed,
+            "rmse_kw_low_speed": self.rmse_kw_low_speed,
+            "max_abs_error_kw_low_speed": self.max_abs_error_kw_low_speed,
+            "n_points_low_speed": self.n_points_low_speed,
+        }
+
+    def polynomial(self) -> PowerPolynomial:
+        """The fitted polynomial as a :class:`PowerPolynomial`."""
+        return PowerPolynomial(self.coefficients_kw, {"quality": self.quality(), "grid": self.grid})
+
+    def to_json_dict(
+        self,
+        params: VehicleParams | None = None,
+        source_file: str | Path | None = None,
+        fitted_on: str | None = None,
+    ) -> dict[str, Any]:
+        """Everything ``power_poly.json`` holds: coefficients, quality, grid, provenance.
+
+        Parameters
+        ----------
+        params : VehicleParams, optional
+            The vehicle the fit used (shipped BMW i3 when omitted).
+        source_file : str or Path, optional
+            The ``.dat`` file of the vehicle (shipped file when omitted); its SHA-256 is recorded.
+        fitted_on : str, optional
+            ISO date of the fit; today (UTC) when omitted.
+        """
+        src = _as_path(source_file, DEFAULT_VEHICLE_FILE)
+        vehicle = load_vehicle_params(src) if params is None else params
+        try:
+            rel = src.resolve().relative_to(Path(__file__).resolve().parent.parent).as_posix()
+        except ValueError:
+            rel = src.as_posix()
+        digest = hashlib.sha256(src.read_bytes()).hexdigest() if src.exists() else None
+        date = fitted_on or _dt.datetime.now(_dt.UTC).date().isoformat()
+        return {
+            "format": POLYNOMIAL_FORMAT,
+            "description": (
+                "Battery power P(v, u) in kW of a BMW i3 (efficiency-map model, flat road) as a "
+                "polynomial of speed v (m/s) and acceleration u (m/s^2); negative = regeneration."
+            ),
+            "formula": "P_kW = sum_k sum_j coefficients_kw[k][j] * v_mps**k * u_mps2**j",
+            "units": {"speed": "m/s", "acceleration": "m/s^2", "power": "kW"},
+            "coefficients_kw": [[float(c) for c in row] for row in self.coefficients_kw],
+            "quality": self.quality(),
+            "grid": self.grid,
+            "provenance": {
+                "model": (
+                    "envs.energy.map_battery_power_kw (spec/energy.md): wheel force, gearbox, motor "
+                    "torque/power limits, bilinear loss-map lookup, P_batt = T_m omega_m + P_loss + "
+                    "P_aux; no battery internal-resistance loss"
+                ),
+                "source_data": rel,
+                "source_sha256": digest,
+                "source_upstream": (
+                    "eclipse-sumo/sumo data/emissions/MMPEVEM/bmw_i3.dat (EPL-2.0), Koch et al., "
+                    "IEEE ITSC 2021, doi:10.1109/ITSC48978.2021.9564463"
+                ),
+                "vehicle_params": asdict(vehicle),
+                "fitted_on": date,
+                "generator": (
+                    "envs.energy.fit_power_polynomial, written by benchmark.fit_power "
+                    "(`cacc-bench fit-power --write`)"
+                ),
+                "cacc_bench_version": _package_version(),
+                "numpy_version": np.__version__,
+            },
+        }
+
+
+def _package_version() -> str:
+    try:
+        from importlib.metadata import PackageNotFoundError, version
+    except ImportError:  # pragma: no cover
+        return CACC_BENCH_VERSION
+    try:
+        return version("cacc-bench")
+    except PackageNotFoundError:
+        return CACC_BENCH_VERSION
+
+
+def _axis(lo: float, hi: float, step: float) -> NDArray[np.float64]:
+    n = int(round((hi - lo) / step)) + 1
+    if n < 2 or not hi > lo:
+        raise ConfigError(f"bad grid range [{lo}, {hi}] with step {step}")
+    return np.linspace(lo, hi, n)
+
+
+def _monomial_to_si(n: int, center: float, scale: float) -> NDArray[np.float64]:
+    """Matrix ``M`` (n x n) with ``((x - center) / scale)^k = sum_a M[k, a] x^a``."""
+    m = np.zeros((n, n))
+    base = np.array([-center / scale, 1.0 / scale])
+    cur = np.array([1.0])
+    for k in range(n):
+        m[k, : cur.size] = cur
+        cur = np.convolve(cur, base)
+    return m
+
+
+def fit_power_polynomial(
+    params: VehicleParams | None = None,
+    loss_map: LossMap | None = None,
+    *,
+    degree: int = 4,
+    speed_range_mps: tuple[float, float] = (0.5, 30.0),
+    accel_range_mps2: tuple[float, float] = (-3.0, 2.5),
+    speed_step_mps: float = 0.1,
+    accel_step_mps2: float = 0.05,
+    low_speed_max_mps: float = 20.0,
+) -> PowerFit:
+    """Least-squares fit of ``P(v, u) = sum p[k, j] v^k u^j`` to the map model.
+
+    The grid is the full tensor grid of ``speed_range_mps`` x ``accel_range_mps2`` with the given
+    steps (both ends included). A point enters the fit when the motor can reach it: motoring
+    demand within the motor torque and power limits. Braking beyond the regeneration limits is
+    kept (friction brakes take the rest, the battery sees the regeneration limit), so that the
+    polynomial does not promise unlimited regeneration for hard braking. Unweighted least squares
+    in centred and scaled variables ``x = (v - c_v)/s_v``, ``y = (u - c_u)/s_u`` (well
+    conditioned); the result is converted exactly to SI coefficients. Deterministic.
+
+    Parameters
+    ----------
+    params, loss_map : optional
+        Vehicle and loss map; the shipped BMW i3 when omitted.
+    degree : int
+        Highest power of each variable (4: 25 coefficients).
+    speed_range_mps, accel_range_mps2 : (float, float)
+        Grid ranges, default [0.5, 30] m/s and [-3, 2.5] m/s^2.
+    speed_step_mps, accel_step_mps2 : float
+        Grid steps, default 0.1 m/s and 0.05 m/s^2 (296 x 111 points).
+    low_speed_max_mps : float
+        Upper speed of the second quality report (20 m/s, the range the spec cites).
+
+    Returns
+    -------
+    PowerFit
+    """
+    if degree < 1:
+        raise ConfigError(f"degree must be >= 1, got {degree}")
+    speeds = _axis(*speed_range_mps, speed_step_mps)
+    accels = _axis(*accel_range_mps2, accel_step_mps2)
+    vg, ug = np.meshgrid(speeds, accels, indexing="ij")
+    op = map_operating_point(vg, ug, params, loss_map)
+    mask = op.reachable
+    v, u, y = vg[mask], ug[mask], op.battery_power_w[mask] / 1000.0
+
+    cv, sv = 0.5 * (speeds[0] + speeds[-1]), 0.5 * (speeds[-1] - speeds[0])
+    cu, su = 0.5 * (accels[0] + accels[-1]), 0.5 * (accels[-1] - accels[0])
+    x, z = (v - cv) / sv, (u - cu) / su
+    xp = np.vander(x, degree + 1, increasing=True)
+    zp = np.vander(z, degree + 1, increasing=True)
+    design = (xp[:, :, None] * zp[:, None, :]).reshape(x.size, -1)
+    q, *_ = np.linalg.lstsq(design, y, rcond=None)
+    q = q.reshape(degree + 1, degree + 1)
+    mv = _monomial_to_si(degree + 1, cv, sv)
+    mu = _monomial_to_si(degree + 1, cu, su)
+    coef = mv.T @ q @ mu
+
+    pred = PowerPolynomial(coef)(v, u)
+    err = pred - y
+    low = v <= low_speed_max_mps + 1e-9
+
+    def _quality(sel: NDArray[np.bool_]) -> tuple[float, float, float]:
+        e, t = err[sel], y[sel]
+        ss_res = float(np.sum(e * e))
+        ss_tot = float(np.sum((t - t.mean()) ** 2))
+        return 1.0 - ss_res / ss_tot, math.sqrt(ss_res / e.size), float(np.max(np.abs(e)))
+
+    r2, rmse, mx = _quality(np.ones_like(low))
+    r2_l, rmse_l, mx_l = _quality(low)
+    grid = {
+        "speed_range_mps": [float(speeds[0]), float(speeds[-1])],
+        "speed_step_mps": float(speed_step_mps),
+        "accel_range_mps2": [float(accels[0]), float(accels[-1])],
+        "accel_step_mps2": float(accel_step_mps2),
+        "n_grid": int(vg.size),
+        "low_speed_range_mps": [float(speeds[0]), float(low_speed_max_mps)],
+        "degree": int(degree),
+        "selection": (
+            "points the motor can reach: motoring demand within the motor torque and power limits; "
+            "braking beyond the regeneration limits kept (friction brakes take the rest)"
+        ),
+        "method": (
+            "unweighted linear least squares in centred, scaled variables, converted exactly to SI "
+            "coefficients; quality evaluated with the SI coefficients"
+        ),
+    }
+    return PowerFit(
+        coefficients_kw=coef,
+        r2=r2,
+        rmse_kw=rmse,
+        max_abs_error_kw=mx,
+        r2_low_speed=r2_l,
+        rmse_kw_low_speed=rmse_l,
+        max_abs_error_kw_low_speed=mx_l,
+        n_points=int(mask.sum()),
+        n_points_low_speed=int(low.sum()),
+        grid=grid,
+    )
