@@ -102,3 +102,35 @@ def test_string_gains_leave_out_the_first_step_and_use_every_later_one() -> None
     assert m["string_stable"] is False
     # spacing errors of follower 2 against follower 1: sqrt(3) / sqrt(4 + 1 + 1)
     assert m["spacing_string_gain"] == pytest.approx(math.sqrt(3 / 6))
+
+
+def _four_steps(leader_accel: list[float], accel: list[list[float]]) -> Trajectory:
+    t = _traj()
+    t.steps = 4
+    t.leader_accel_mps2 = np.array(leader_accel)
+    t.accel_mps2 = np.array(accel, dtype=float)
+    t.gap_m = np.full((5, 2), 20.0) + np.arange(10.0).reshape(5, 2)
+    t.speed_mps = np.full((5, 2), 15.0)
+    t.power_kw = np.ones((5, 2))
+    t.reward, t.tracking_reward = np.ones(4), np.ones(4)
+    t.command_mps2 = np.zeros((4, 2))
+    t.compute_s = np.array([0.010, 0.001, 0.002, 0.003])  # per vehicle: 5, 0.5, 1, 1.5 ms
+    return t
+
+
+def test_compute_percentiles_after_the_first_call() -> None:
+    m = run_metrics(_four_steps([0, 1, 1, 1, 1], [[0, 0], [1, 1], [1, 1], [1, 1], [1, 1]]),
+                    20.0, 15.0)
+    # numpy's linear percentiles of 0.5, 1, 1.5 ms
+    assert m["compute_ms_p50"] == pytest.approx(1.0)
+    assert m["compute_ms_p95"] == pytest.approx(1.45)
+    assert m["compute_ms_p99"] == pytest.approx(1.49)
+    assert m["compute_ms_first"] == pytest.approx(5.0)
+
+
+def test_a_gain_of_exactly_one_is_stable_and_an_undefined_gain_is_not() -> None:
+    same = run_metrics(_four_steps([0, 1, 1, 1, 1], [[0, 0], [1, 1], [1, 1], [1, 1], [1, 1]]),
+                       20.0, 15.0)
+    assert same["string_gain"] == pytest.approx(1.0) and same["string_stable"] is True
+    still = run_metrics(_four_steps([0, 0, 0, 0, 0], [[0, 0]] * 5), 20.0, 15.0)
+    assert math.isnan(still["string_gain"]) and still["string_stable"] is False
