@@ -100,8 +100,9 @@ def controller_timing(name: str, n_steps: int = 150, n_vehicles: int = 8,
 
 def main(argv: list[str]) -> int:
     """Measure and print a table (``--json`` for a JSON object)."""
-    from controllers.registry import MARL_ALGORITHMS, available_controllers, make_controller
+    from controllers.registry import available_controllers, make_controller
     from envs.errors import ConfigError
+    from envs.params import MARL_ALGORITHMS
 
     p = argparse.ArgumentParser(prog="cacc-bench perf", description=plain(__doc__),
                                 formatter_class=argparse.RawDescriptionHelpFormatter)

@@ -42,7 +42,7 @@ def tuned_config(algo: str, config_scenario: str, extra: dict[str, Any], label: 
 
 
 def stem(job: dict[str, Any]) -> str:
-    from marl.common import checkpoint_stem
+    from envs.naming import checkpoint_stem
 
     return checkpoint_stem(job["algo"], job["scenario"], job["vehicles"], job["seed"])
 

@@ -103,8 +103,9 @@ def _train_job(job: dict) -> dict:
     import torch
 
     from benchmark.policy_eval import validation_evaluator
+    from envs.naming import checkpoint_stem
     from envs.params import VALIDATION_SEEDS
-    from marl.common import algorithm, checkpoint_stem, run_training
+    from marl.common import algorithm, run_training
 
     torch.set_num_threads(1)
     algo = algorithm(job["algo"])
@@ -182,7 +183,7 @@ def _finished(job: dict) -> bool:
 
     import torch
 
-    from marl.common import checkpoint_stem
+    from envs.naming import checkpoint_stem
 
     stem = checkpoint_stem(job["algo"], job["scenario"], job["vehicles"], job["seed"])
     final = Path(job["out"]) / f"{stem}.final.pt"

@@ -24,6 +24,7 @@ from controllers.base import Controller, EpisodeContext
 from envs.channel import episode_uniforms
 from envs.dynamics import action_to_command_mps2
 from envs.errors import ConfigError
+from envs.naming import checkpoint_stem
 from envs.params import EVAL_MODES
 from envs.platoon import PlatoonState
 
@@ -46,7 +47,7 @@ def checkpoint_path(
 ) -> Path:
     """Where the checkpoint of a run lives: the shipped one, or the one in ``folder``."""
     base = CHECKPOINT_DIR if folder is None else Path(folder)
-    return base / f"{algo}__{scenario}__n{n_vehicles}__s{seed}.pt"
+    return base / f"{checkpoint_stem(algo, scenario, n_vehicles, seed)}.pt"
 
 
 class PolicyController(Controller):

@@ -19,6 +19,7 @@ from typing import Any
 
 from envs.errors import ConfigError, UnknownNameError
 from envs.naming import format_label, parse_named_list
+from envs.params import MARL_ALGORITHMS
 
 
 @dataclass(frozen=True)
@@ -60,7 +61,6 @@ class ControllerSpec:
 
 CONTROLLERS: dict[str, ControllerSpec] = {}
 
-MARL_ALGORITHMS: tuple[str, ...] = ("ia2c", "fprint", "dial", "commnet", "wac", "dcea", "bdc")
 
 
 def register_controller(spec: ControllerSpec) -> None:

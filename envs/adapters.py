@@ -15,10 +15,10 @@ import numpy as np
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
+from envs.dynamics import OBS_DIM
 from envs.params import OVM_ACTIONS, PlatoonParams
 from envs.platoon import PlatoonEnv
 
-OBS_DIM = 15
 #: Observation bound: no 60 s episode gets near it (a normalised gap of 1e4 is 200 km).
 OBS_BOUND = 1e4
 _SEED_LIMIT = 2**31 - 1

@@ -14,6 +14,12 @@ from envs.params import OVM_ACTIONS, PlatoonParams, RewardWeights
 FloatArray = np.ndarray
 
 
+#: Floats in one vehicle's observation block (published).
+BLOCK_DIM: int = 5
+#: Floats in an agent's observation: its own block, its front and rear neighbours' blocks.
+OBS_DIM: int = 3 * BLOCK_DIM
+
+
 def ovm_speed_mps(gap_m: FloatArray, params: PlatoonParams = PlatoonParams()) -> FloatArray:
     """Optimal velocity ``V(gap)`` of the OVM, in m/s.
 

@@ -86,3 +86,9 @@ def parse_label(label: str, kind: str = "name") -> tuple[str, dict[str, str]]:
         key, value = item.split("=", 1)
         options[key.strip()] = value.strip()
     return name.strip(), options
+
+
+def checkpoint_stem(algo: str, scenario_id: str, n_vehicles: int, seed: int) -> str:
+    """File stem of a trained policy: ``<algo>__<scenario>__n<N>__s<seed>`` (the one rule the
+    trainers write by and the policy controllers load by)."""
+    return f"{algo}__{scenario_id}__n{n_vehicles}__s{seed}"

@@ -8,6 +8,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from envs.dynamics import (
+    BLOCK_DIM,
+    OBS_DIM,
     action_to_command_mps2,
     agent_observations,
     combine_reward,
@@ -209,8 +211,8 @@ class PlatoonEnv:
             dt_s=self.params.dt_s,
         )
         # observation storage (15, N, B) viewed as (B, N, 15); the own block is a view into it
-        self._obs = np.zeros((15, n, b), dtype=self.dtype).transpose(2, 1, 0)
-        self._blocks = self._obs[:, :, 0:5]
+        self._obs = np.zeros((OBS_DIM, n, b), dtype=self.dtype).transpose(2, 1, 0)
+        self._blocks = self._obs[:, :, 0:BLOCK_DIM]
         return self.observation() if self.observe else None
 
     @property

@@ -37,19 +37,20 @@ import numpy as np
 import torch
 from torch import nn
 
+from envs.dynamics import BLOCK_DIM, OBS_DIM
 from envs.errors import ConfigError, TrainingDivergedError, UnknownNameError
-from envs.params import EVAL_MODES, RewardWeights
+from envs.naming import checkpoint_stem
+from envs.params import EVAL_MODES, MARL_ALGORITHMS, OVM_ACTIONS, RewardWeights
 from envs.platoon import PlatoonEnv
 from envs.scenarios import make_scenario
 from marl.layers import BatchedLinear, BatchedLSTMCell, per_agent_clip_
 from marl.returns import nstep_returns, share_rewards
 
-N_ACTIONS = 4
-OBS_DIM = 15
-BLOCK_FLOATS = 5
+N_ACTIONS = len(OVM_ACTIONS)
+BLOCK_FLOATS = BLOCK_DIM
 FLOAT_BITS = 32
 COLLISION_VALUES: tuple[str, ...] = ("absorbing", "published")
-ALGORITHM_NAMES: tuple[str, ...] = ("ia2c", "fprint", "dial", "commnet", "wac", "dcea", "bdc")
+ALGORITHM_NAMES: tuple[str, ...] = MARL_ALGORITHMS
 
 State = dict[str, torch.Tensor]
 ProgressFn = Callable[[int, int, dict[str, float]], None]
@@ -901,11 +902,6 @@ def config_from_dict(algo: Algorithm, values: dict[str, Any]) -> A2CConfig:
     if extra:
         raise ConfigError(f"{algo.name} config has no fields {sorted(extra)}")
     return algo.config_cls(**values)
-
-
-def checkpoint_stem(algo: str, scenario_id: str, n_vehicles: int, seed: int) -> str:
-    """File stem of a run: ``<algo>__<scenario>__n<N>__s<seed>``."""
-    return f"{algo}__{scenario_id}__n{n_vehicles}__s{seed}"
 
 
 def run_training(
