@@ -11,14 +11,13 @@ from __future__ import annotations
 import dataclasses
 import importlib
 import importlib.util
-import math
 import typing
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 from envs.errors import ConfigError, UnknownNameError
-from envs.naming import format_label, parse_named_list
+from envs.naming import coerce_option, format_label, parse_named_list
 from envs.params import MARL_ALGORITHMS
 
 
@@ -180,7 +179,7 @@ def _is_default(value: Any, default: Any, key: str, owner: str) -> bool:
         return value.strip().lower() in ("none", "")
     if isinstance(default, bool | int | float):
         try:
-            return bool(_coerce(value, type(default), key, owner) == default)
+            return bool(coerce_option(value, type(default), key, owner) == default)
         except ConfigError:
             return False  # a bad value is the controller's to refuse, with its own message
     return value == str(default)
@@ -209,37 +208,6 @@ def make_controller(name: str, **options: Any) -> Any:
     return _factory(spec)(**spec.fixed, **options)
 
 
-def _coerce(value: Any, annotation: Any, key: str, owner: str) -> Any:
-    if not isinstance(value, str):
-        return value
-    origin = typing.get_origin(annotation)
-    args = typing.get_args(annotation)
-    if origin is not None and type(None) in args:
-        if value.lower() in ("none", ""):
-            return None
-        annotation = next(a for a in args if a is not type(None))
-    try:
-        if annotation in (bool, "bool"):
-            if value.lower() in ("1", "true", "yes", "on"):
-                return True
-            if value.lower() in ("0", "false", "no", "off"):
-                return False
-            raise ValueError
-        if annotation in (int, "int"):
-            return int(value)
-        if annotation in (float, "float"):
-            out = float(value)
-            if not math.isfinite(out):
-                raise ValueError
-            return out
-    except ValueError:
-        raise ConfigError(
-            f"option {key} of {owner} must be of type {getattr(annotation, '__name__', annotation)}, "
-            f"got {value!r}"
-        ) from None
-    return value
-
-
 def build_config(config_cls: type, options: dict[str, Any], owner: str) -> Any:
     """Instantiate a frozen config dataclass from keyword options, coercing strings by type.
 
@@ -254,7 +222,7 @@ def build_config(config_cls: type, options: dict[str, Any], owner: str) -> Any:
             raise ConfigError(
                 f"{owner} has no option {key!r}; its options are: {', '.join(sorted(fields))}"
             )
-        kwargs[key] = _coerce(value, hints.get(key, str), key, owner)
+        kwargs[key] = coerce_option(value, hints.get(key, str), key, owner)
     try:
         return config_cls(**kwargs)
     except TypeError as exc:

@@ -7,6 +7,8 @@ the store): ``name[key=value,...]`` with the keys sorted. Both forms parse back.
 
 from __future__ import annotations
 
+import math
+import typing
 from typing import Any
 
 from envs.errors import ConfigError
@@ -92,3 +94,43 @@ def checkpoint_stem(algo: str, scenario_id: str, n_vehicles: int, seed: int) -> 
     """File stem of a trained policy: ``<algo>__<scenario>__n<N>__s<seed>`` (the one rule the
     trainers write by and the policy controllers load by)."""
     return f"{algo}__{scenario_id}__n{n_vehicles}__s{seed}"
+
+
+def coerce_option(value: Any, annotation: Any, key: str, owner: str) -> Any:
+    """A command-line option value (a string) as the type ``annotation`` names (``bool``,
+    ``int``, ``float``, ``X | None``); other values and types pass unchanged. The one rule for
+    controller, scenario and learner options.
+
+    Raises
+    ------
+    ConfigError
+        If the string is not of that type (floats must be finite).
+    """
+    if not isinstance(value, str):
+        return value
+    origin = typing.get_origin(annotation)
+    args = typing.get_args(annotation)
+    if origin is not None and type(None) in args:
+        if value.lower() in ("none", ""):
+            return None
+        annotation = next(a for a in args if a is not type(None))
+    try:
+        if annotation in (bool, "bool"):
+            if value.lower() in ("1", "true", "yes", "on"):
+                return True
+            if value.lower() in ("0", "false", "no", "off"):
+                return False
+            raise ValueError
+        if annotation in (int, "int"):
+            return int(value)
+        if annotation in (float, "float"):
+            out = float(value)
+            if not math.isfinite(out):
+                raise ValueError
+            return out
+    except ValueError:
+        raise ConfigError(
+            f"option {key} of {owner} must be of type "
+            f"{getattr(annotation, '__name__', annotation)}, got {value!r}"
+        ) from None
+    return value

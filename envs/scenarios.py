@@ -8,7 +8,6 @@ controller faces identical episodes.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -16,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from envs.errors import ConfigError, UnknownNameError
-from envs.naming import format_label, parse_label, parse_named_list
+from envs.naming import coerce_option, format_label, parse_label, parse_named_list
 from envs.params import PlatoonParams
 
 MIN_VEHICLES = 2
@@ -360,28 +359,6 @@ for _spec in (
 DEFAULT_SCENARIOS: tuple[str, ...] = ("catchup-v1", "slowdown-v1")
 
 
-def _coerce(value: Any, like: Any, key: str, scenario_id: str) -> Any:
-    if isinstance(like, bool):
-        if isinstance(value, str):
-            if value.lower() in ("1", "true", "yes"):
-                return True
-            if value.lower() in ("0", "false", "no"):
-                return False
-            raise ConfigError(f"option {key} of {scenario_id} must be true or false, got {value!r}")
-        return bool(value)
-    if isinstance(like, float):
-        try:
-            out = float(value)
-        except (TypeError, ValueError):
-            raise ConfigError(
-                f"option {key} of {scenario_id} must be a number, got {value!r}"
-            ) from None
-        if not math.isfinite(out):
-            raise ConfigError(f"option {key} of {scenario_id} must be finite")
-        return out
-    return value
-
-
 def make_scenario(scenario_id: str, **options: Any) -> Scenario:
     """Build a registered scenario by id, with options (e.g. ``frequency_hz`` of ``sine-v1``);
     the id may carry them as a label (``sine-v1[amplitude_mps=2]`` or ``sine-v1:amplitude_mps=2``).
@@ -407,7 +384,9 @@ def make_scenario(scenario_id: str, **options: Any) -> Scenario:
                 f"scenario {scenario_id} has no option {key!r}; "
                 f"its options are: {', '.join(allowed) or 'none'}"
             )
-        opts[key] = _coerce(value, spec.defaults[key], key, scenario_id)
+        kind = type(spec.defaults[key])  # an option takes the type of its default
+        opts[key] = coerce_option(value if isinstance(value, str) else str(value), kind, key,
+                                  scenario_id)
     if scenario_id == "sine-v1":
         if opts["amplitude_mps"] < 0 or opts["amplitude_mps"] > 10:
             raise ConfigError("sine-v1 amplitude_mps must lie in [0, 10] m/s")

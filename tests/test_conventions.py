@@ -93,3 +93,25 @@ def test_the_energy_modules_are_split_by_purpose_and_small() -> None:
     assert set(sizes) == {"__init__.py", "vehicle.py", "map_model.py", "power.py", "fit.py"}
     assert max(sizes.values()) < 400, sizes
     assert "envs.energy.fit" not in (folder / "power.py").read_text()
+
+
+@pytest.mark.parametrize(("value", "kind", "expected"), [
+    ("true", bool, True), ("Off", bool, False), ("3", int, 3), ("2.5", float, 2.5),
+    ("none", float | None, None), ("1e-3", float | None, 1e-3), ("ipopt", str, "ipopt"),
+    (0.5, float, 0.5),
+])
+def test_one_coercion_rule_for_every_option(value: object, kind: object, expected: object
+                                            ) -> None:
+    from envs.naming import coerce_option
+
+    assert coerce_option(value, kind, "k", "owner") == expected
+
+
+@pytest.mark.parametrize(("value", "kind"), [("maybe", bool), ("2.5", int), ("nan", float),
+                                             ("inf", float | None), ("x", float)])
+def test_the_coercion_rule_refuses_with_the_option_and_its_owner(value: str, kind: object
+                                                                 ) -> None:
+    from envs.naming import coerce_option
+
+    with pytest.raises(ConfigError, match=f"^option k of owner must be of type .*got '{value}'$"):
+        coerce_option(value, kind, "k", "owner")
