@@ -164,8 +164,8 @@ def write_csvs(
     runs = runs_frame(records)
     lb = leaderboard_frame(runs, pool_seeds)
     lb_path = folder / "leaderboard.csv"
-    _atomic_csv(runs, runs_path)
-    _atomic_csv(lb, lb_path)
+    write_csv(runs, runs_path, float_format="%.10g")
+    write_csv(lb, lb_path, float_format="%.10g")
     return runs_path, lb_path, lb
 
 
@@ -179,9 +179,13 @@ def _csv_rows(path: Path) -> int:
         return max(sum(1 for _ in csv.reader(f)) - 1, 0)
 
 
-def _atomic_csv(df: Any, path: Path) -> None:
+def write_csv(df: Any, path: Path, float_format: str | None = None) -> None:
+    """Write a data frame as CSV atomically (a temporary file renamed over ``path``): the one
+    CSV writer of every command, so a reader never sees half a file. ``float_format`` as in
+    pandas (None: every digit)."""
+    path = Path(path)
     tmp = path.with_suffix(path.suffix + ".tmp")
-    df.to_csv(tmp, index=False, float_format="%.10g")
+    df.to_csv(tmp, index=False, float_format=float_format)
     tmp.replace(path)
 
 
@@ -230,6 +234,4 @@ def write_trajectory_csv(path: Path, arrays: dict[str, np.ndarray]) -> None:
         }))
     df = pd.concat(frames).sort_values(["step", "vehicle"], kind="mergesort")
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".csv.tmp")
-    df.to_csv(tmp, index=False, float_format="%.6f")
-    tmp.replace(path)
+    write_csv(df, path, float_format="%.6f")

@@ -16,6 +16,7 @@ from typing import Any
 
 from benchmark.cli import plain
 from benchmark.executors import add_executor_options
+from benchmark.export import write_csv
 from envs.errors import ConfigError, UnknownNameError
 
 #: family -> (controller, knob, values). The defaults sit inside each sweep (mpc 0.25, w_accel
@@ -154,7 +155,7 @@ def main(argv: list[str]) -> int:
     runs = pd.read_csv(out / "runs" / "runs.csv")
     runs = runs[(runs["status"] == "ok") & (runs["n_vehicles"] == args.vehicles)]
     df = pareto_frame(runs, settings)
-    df.to_csv(out / "pareto.csv", index=False)
+    write_csv(df, out / "pareto.csv")
     for sc in scenarios:
         plot_pareto(df, sc, out / "figures", f"pareto__{sc}__n{args.vehicles}")
     front = df[df["non_dominated"]]

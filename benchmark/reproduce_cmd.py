@@ -23,6 +23,7 @@ from typing import Any
 
 from benchmark.cli import plain
 from benchmark.executors import EXECUTORS
+from benchmark.export import write_csv
 from benchmark.policy_training import make_job, source_file, stem, train_stage, tuned_config
 from envs.errors import ConfigError, UnknownNameError
 
@@ -231,9 +232,9 @@ def write_report(jobs: list[dict[str, Any]], names: dict[str, str], scenarios: l
         records = [r for r in records
                    if r["n_vehicles"] == N_VEHICLES and r["scenario"] in scenarios]
         t1 = rp.table_one(curves, policy_names)
-        t1.to_csv(out / "table1.csv", index=False)
+        write_csv(t1, out / "table1.csv")
         t2 = rp.table_two(runs, names)
-        t2.to_csv(out / "table2.csv", index=False)
+        write_csv(t2, out / "table2.csv")
         lines = [
             "# The BDC-MARL paper, reproduced with cacc-bench",
             "",
@@ -344,7 +345,7 @@ def write_report(jobs: list[dict[str, Any]], names: dict[str, str], scenarios: l
     lines += _size_section(jobs, all_runs, names, fig_dir, out, verdicts)
     lines += _openacc_section(jobs, all_runs, names, out, verdicts)
     claims = pd.DataFrame([dataclasses.asdict(v) for v in verdicts])
-    claims.to_csv(out / "claims.csv", index=False)
+    write_csv(claims, out / "claims.csv")
     lines += ["## The paper's claims", "",
               f"Table II's scenario in our reading is {sc0}; the claims are tested on both.", ""]
     lines.append(rp.format_table(claims, [("claim", "claim"), ("measured", "measured"),
@@ -409,7 +410,7 @@ def _size_section(jobs: list[dict[str, Any]], runs: Any, names: dict[str, str], 
     sizes = rp.size_table(runs, names, SIZE_SCENARIO)
     sizes = sizes[sizes["n_vehicles"].isin([*SIZES, N_VEHICLES])
                   & sizes["name"].isin([*SIZE_ALGOS, "ovm"])]
-    sizes.to_csv(out / "sizes.csv", index=False)
+    write_csv(sizes, out / "sizes.csv")
     lines += ["", rp.format_table(sizes, [
         ("name", "controller"), ("n_vehicles", "N"), ("collisions", "collisions"),
         ("reward_mean", "reward"), ("power_per_vehicle_kw_avg", "power/veh kW"),
@@ -430,7 +431,7 @@ def _openacc_section(jobs: list[dict[str, Any]], runs: Any, names: dict[str, str
         verdicts.append(rp.not_testable(claim, "the OpenACC study was skipped (or BDC not run)"))
         return []
     t3 = rp.table_three(runs, names)
-    t3.to_csv(out / "table3.csv", index=False)
+    write_csv(t3, out / "table3.csv")
     cols = [("group", "group"), ("name", "controller"), ("collisions", "collisions")]
     for key, label in (("speed_mps", "velocity m/s"), ("ivs_m", "IVS m"),
                        ("accel_mps2", "acceleration m/s^2")):

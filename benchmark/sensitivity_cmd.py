@@ -19,6 +19,7 @@ from typing import Any
 
 from benchmark.cli import plain
 from benchmark.executors import add_executor_options
+from benchmark.export import write_csv
 from envs.errors import ConfigError, UnknownNameError
 
 #: Multiples of the tuned consensus eps tried (two decades and more around it).
@@ -210,7 +211,7 @@ def write_report(df: Any, out: Path, command: str, steps: int, seeds: list[int],
         lines += [f"## {sc}", "", format_table(shown[shown["scenario"] == sc], cols, 3), "",
                   f"![sensitivity on {sc}](figures/sensitivity__{sc}.png)", ""]
     effects = knob_effects(df)
-    effects.to_csv(out / "knob_effects.csv", index=False)
+    write_csv(effects, out / "knob_effects.csv")
     effects = effects.assign(**{c: [f"{v:.3g}" if isinstance(v, float) else str(v)
                                     for v in effects[c]] for c in ("best_value", "worst_value")})
     plot_bits_against_reward(df, fig_dir, "bits_against_reward")
@@ -287,7 +288,7 @@ def main(argv: list[str]) -> int:
     runs = pd.read_csv(out / "runs" / "runs.csv")
     runs = runs[runs["status"] == "ok"]
     df = sensitivity_frame(runs, _summaries(settings))
-    df.to_csv(out / "sensitivity.csv", index=False)
+    write_csv(df, out / "sensitivity.csv")
     report = write_report(df, out, "cacc-bench sensitivity " + " ".join(argv), args.steps, seeds,
                           args.episodes)
     print(f"wrote {out / 'sensitivity.csv'} ({len(df)} rows) and {report}")

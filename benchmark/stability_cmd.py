@@ -15,7 +15,6 @@ Writes to ``--out`` (default ``results/stability``):
 from __future__ import annotations
 
 import argparse
-import csv
 import math
 import time
 from dataclasses import dataclass
@@ -24,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from benchmark.export import write_csv
 from envs.errors import ConfigError
 
 SUMMARY_COLUMNS = (
@@ -118,11 +118,10 @@ def _fmt(value: Any) -> str:
 
 
 def _write_csv(path: Path, columns: tuple[str, ...], rows: list[dict[str, Any]]) -> None:
-    with path.open("w", newline="") as fh:
-        writer = csv.writer(fh)
-        writer.writerow(columns)
-        for row in rows:
-            writer.writerow([_fmt(row.get(c)) for c in columns])
+    import pandas as pd
+
+    frame = pd.DataFrame([{c: row.get(c) for c in columns} for row in rows], columns=columns)
+    write_csv(frame, path, float_format="%.6g")
 
 
 def _print_table(rows: list[dict[str, Any]]) -> None:

@@ -38,6 +38,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from benchmark.export import write_csv
 from envs.errors import ConfigError, UnknownNameError
 
 #: Weight of one colliding validation episode in a trial's score.
@@ -217,7 +218,7 @@ def main(argv: list[str]) -> int:
         progress.advance(note=f"{res[0]['algo']} {res[0]['scenario']}" if res else "")
     progress.close()
     table = pd.DataFrame(rows).sort_values(["algo", "scenario", "trial"])
-    table.to_csv(out / "trials.csv", index=False)
+    write_csv(table, out / "trials.csv")
     command = "cacc-bench tune " + " ".join(shlex.quote(a) for a in argv)
     best = tuned_configs(table, args, command)
     (out / "tuned_configs.json").write_text(json.dumps(best, indent=1, sort_keys=True) + "\n")
