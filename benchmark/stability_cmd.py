@@ -25,6 +25,7 @@ import numpy as np
 
 from benchmark.export import write_csv
 from envs.errors import ConfigError
+from envs.params import PlatoonParams
 
 SUMMARY_COLUMNS = (
     "controller",
@@ -96,9 +97,10 @@ def _check_args(args: argparse.Namespace) -> None:
             raise ConfigError(f"{flag} must be > 0, got {value}")
     if args.omega_max < args.omega_min:
         raise ConfigError("--omega-max must be >= --omega-min")
-    if args.omega_max >= math.pi / 0.1:
+    nyquist = math.pi / PlatoonParams().dt_s
+    if args.omega_max >= nyquist:
         raise ConfigError(
-            f"--omega-max must lie below the Nyquist frequency {math.pi / 0.1:.4g} rad/s"
+            f"--omega-max must lie below the Nyquist frequency {nyquist:.4g} rad/s"
         )
     if args.n_omega < 1:
         raise ConfigError(f"--n-omega must be >= 1, got {args.n_omega}")
@@ -249,7 +251,7 @@ def _analytic(
         )
         dnorm = st.discrete_hinf_norm(loop)
         notes.append(
-            f"  {e.label}: discrete-time model of the simulator (dt = 0.1 s): "
+            f"  {e.label}: discrete-time model of the simulator (dt = {PlatoonParams().dt_s:g} s): "
             f"||Gamma||_inf = {dnorm.gain:.4f} at {dnorm.omega_rad_s:.3f} rad/s "
             f"(continuous {norm.gain:.4f} at {norm.omega_rad_s:.3f} rad/s)"
         )
@@ -406,10 +408,10 @@ def _empirical(
                     k,
                 )
             )
-            w_d = omegas_plot[omegas_plot < math.pi / 0.1]
+            w_d = omegas_plot[omegas_plot < math.pi / PlatoonParams().dt_s]
             drawn.append(
                 sp.GainCurve(
-                    f"{e.label} analytic (discrete, dt = 0.1 s)",
+                    f"{e.label} analytic (discrete, dt = {PlatoonParams().dt_s:g} s)",
                     w_d,
                     np.abs(st.discrete_gamma_response(w_d, e.loop)),
                     "discrete",

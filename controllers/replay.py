@@ -16,6 +16,7 @@ import numpy as np
 from controllers.base import Controller, EpisodeContext
 from controllers.registry import build_config
 from envs.errors import ConfigError
+from envs.params import PlatoonParams
 from envs.platoon import PlatoonState
 from envs.scenarios import Scenario, check_vehicles
 
@@ -75,7 +76,7 @@ class RealACCRecord(Controller):
         t1 = scenario.n_steps + 1
         speed = np.asarray(window.follower_speed_mps[:t1, :n_vehicles], dtype=np.float64)  # type: ignore[attr-defined]
         accel = np.zeros_like(speed)
-        accel[1:] = np.diff(speed, axis=0) / 0.1
+        accel[1:] = np.diff(speed, axis=0) / PlatoonParams().dt_s
         return {
             "gap_m": np.asarray(window.follower_gap_m[:t1, :n_vehicles], dtype=np.float64),  # type: ignore[attr-defined]
             "speed_mps": speed,
