@@ -11,8 +11,8 @@ from benchmark.store import ResultStore
 
 def main(argv: list[str]) -> int:
     """Rebuild the CSV files of one or more results folders from their stores."""
+    from analysis.tables import format_leaderboard
     from benchmark.export import write_csvs
-    from benchmark.run_cmd import format_leaderboard
 
     p = argparse.ArgumentParser(prog="cacc-bench leaderboard", description=plain(__doc__))
     p.add_argument("results_dir", nargs="+", help="results folder(s) written by `cacc-bench run`")

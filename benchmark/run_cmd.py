@@ -209,6 +209,8 @@ def execute_sweep(
     finally:
         store.close()
     if not quiet:
+        from analysis.tables import format_leaderboard
+
         print(format_leaderboard(lb))
     print(f"wrote {runs_path} ({len(records)} runs) and {lb_path}")
     failed = [r for r in records if r["status"] != "ok"]
@@ -218,41 +220,3 @@ def execute_sweep(
             print(f"  {r['id']}: {r['error']}", file=sys.stderr)
         return 1
     return 0
-
-
-def format_leaderboard(lb: Any) -> str:
-    """The leaderboard as a plain-text table with a note on what the intervals mean."""
-    if len(lb) == 0:
-        return "(no runs)"
-    lines = []
-    sw = max(14, *(len(str(x)) for x in lb["scenario"]))
-    head = (f"{'rank':>4}  {'controller':<22} {'scenario':<{sw}} {'N':>2} {'eps':>3} {'coll':>4} "
-            f"{'fail':>4}  {'reward [95% CI]':<26} {'tracking':>9} {'kWh':>7} {'gap rmse':>8} "
-            f"{'str.gain':>8} {'ms/veh':>7} {'bit/s':>7}")
-    setting_cols = ["comm_delay_s", "packet_loss", "lag_s"]
-    for setting, grp in lb.groupby(setting_cols, sort=True):
-        d, loss, lag = setting
-        lines.append(f"\nV2V delay {d:g} s, packet loss {loss:g}, actuator lag {lag:g} s")
-        lines.append(head)
-        for _, r in grp.iterrows():
-            ci = f"{r['reward_mean']:.2f} [{r['reward_ci_low']:.2f}, {r['reward_ci_high']:.2f}]"
-            det = "" if r.get("deterministic") in (True, None) else "*"
-            lines.append(
-                f"{int(r['rank']):>4}  {(str(r['controller']) + det)[:22]:<22} {r['scenario']:<{sw}} "
-                f"{int(r['n_vehicles']):>2} {int(r['n_episodes']):>3} {int(r['collisions']):>4} "
-                f"{int(r['failed']):>4}  {ci:<26} {r['tracking_reward_mean']:>9.2f} "
-                f"{r['energy_kwh_mean']:>7.3f} {r['gap_rmse_m_mean']:>8.2f} "
-                f"{r['string_gain_mean']:>8.3f} {r['compute_ms_p50_mean']:>7.3f} "
-                f"{r['comm_bits_per_s_mean']:>7.0f}"
-            )
-    lines.append(
-        "\nreward = mean over steps of the sum over agents (higher is better); rank: runs without"
-        " collision or failure first, then by reward. Deterministic controllers vary only through"
-        " the scenario's perturbation, so their intervals are episode variation, not training"
-        " variance; stochastic ones (sampled MARL policies) are marked *. A row over several"
-        " training seeds (seeds=0+1+2) has a two-stage bootstrap interval: seeds, then episodes."
-    )
-    scen = set(lb["scenario"])
-    if "openacc-m-v1" in scen:
-        lines.append(make_scenario("openacc-m-v1").note)
-    return "\n".join(lines)

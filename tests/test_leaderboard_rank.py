@@ -99,3 +99,17 @@ def test_rank_is_stable_under_row_order(name: str) -> None:
     b = leaderboard_frame(shuffled).set_index("controller")["rank"]
     assert a[name] == b[name]
     pd.testing.assert_series_equal(a.sort_index(), b.sort_index())
+
+
+def test_the_printed_table_never_cuts_a_label(tmp_path: Path) -> None:
+    """Two settings whose labels share their first 22 characters stay two readable rows."""
+    from analysis.tables import format_leaderboard
+
+    runs = pd.read_csv(GOLDEN / "smoke_runs.csv")
+    first = runs["controller"].iloc[0]
+    one = runs[runs["controller"] == first]
+    long_a, long_b = "mpc-qp[horizon=10,w_accel=0.01]", "mpc-qp[horizon=10,w_accel=0.03]"
+    lb = golden_leaderboard(pd.concat([one.assign(controller=long_a),
+                                       one.assign(controller=long_b)]))
+    text = format_leaderboard(lb)
+    assert long_a in text and long_b in text
