@@ -116,3 +116,21 @@ def test_preflight_checks_the_lag_of_the_run() -> None:
     ctrl.preflight(sc, 4, PlatoonParams(lag_s=0.2))
     with pytest.raises(ConfigError, match="unstable with this actuator lag"):
         ctrl.preflight(sc, 4, PlatoonParams(lag_s=0.3))
+
+
+@pytest.mark.parametrize("value", ["0.3", True, float("inf")])
+def test_gains_must_be_finite_numbers_given_directly(value: object) -> None:
+    from controllers.linear import PloegConfig
+
+    with pytest.raises(ConfigError, match=f"^kp must be a finite number, got {value!r}$"):
+        PloegConfig(kp=value)  # type: ignore[arg-type]
+
+
+def test_the_lag_message_names_the_numbers_and_the_remedy() -> None:
+    from controllers.linear import PloegConfig
+
+    with pytest.raises(ConfigError) as err:
+        PloegConfig(kp=2.0, kd=0.5).check_lag(0.3)
+    assert str(err.value) == (
+        "kd = 0.5 <= lag_s * kp = 0.3 * 2.0 = 0.6: the vehicle loop tau s^3 + s^2 + kd s + kp is "
+        "unstable with this actuator lag; raise kd or lower kp")
