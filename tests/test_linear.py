@@ -118,12 +118,14 @@ def test_preflight_checks_the_lag_of_the_run() -> None:
         ctrl.preflight(sc, 4, PlatoonParams(lag_s=0.3))
 
 
+@pytest.mark.parametrize("field", ["time_gap_s", "kp", "kd", "standstill_m"])
 @pytest.mark.parametrize("value", ["0.3", True, float("inf")])
-def test_gains_must_be_finite_numbers_given_directly(value: object) -> None:
+def test_gains_must_be_finite_numbers_given_directly(field: str, value: object) -> None:
     from controllers.linear import PloegConfig
 
-    with pytest.raises(ConfigError, match=f"^kp must be a finite number, got {value!r}$"):
-        PloegConfig(kp=value)  # type: ignore[arg-type]
+    with pytest.raises(ConfigError, match=f"^{field} must be a finite number, got {value!r}$"):
+        PloegConfig(**{field: value})  # type: ignore[arg-type]
+    PloegConfig(standstill_m=0.0)  # the bounds are inclusive: zero is allowed
 
 
 def test_the_lag_message_names_the_numbers_and_the_remedy() -> None:
