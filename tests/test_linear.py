@@ -136,3 +136,11 @@ def test_the_lag_message_names_the_numbers_and_the_remedy() -> None:
     assert str(err.value) == (
         "kd = 0.5 <= lag_s * kp = 0.3 * 2.0 = 0.6: the vehicle loop tau s^3 + s^2 + kd s + kp is "
         "unstable with this actuator lag; raise kd or lower kp")
+
+
+def test_options_are_recorded_and_feedforward_must_be_a_bool() -> None:
+    from controllers.linear import PloegConfig
+
+    assert make_controller("cacc", kp="0.3").options == {"kp": "0.3"}
+    with pytest.raises(ConfigError, match="^feedforward must be true or false, got 'yes'$"):
+        PloegConfig(feedforward="yes")  # type: ignore[arg-type]
