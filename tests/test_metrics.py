@@ -134,3 +134,8 @@ def test_a_gain_of_exactly_one_is_stable_and_an_undefined_gain_is_not() -> None:
     assert same["string_gain"] == pytest.approx(1.0) and same["string_stable"] is True
     still = run_metrics(_four_steps([0, 0, 0, 0, 0], [[0, 0]] * 5), 20.0, 15.0)
     assert math.isnan(still["string_gain"]) and still["string_stable"] is False
+
+
+def test_a_gain_of_one_and_a_half_is_unstable() -> None:
+    m = run_metrics(_four_steps([0, 1, 1, 1, 1], [[0, 0]] + [[1.5, 1.5]] * 4), 20.0, 15.0)
+    assert m["string_gain"] == pytest.approx(1.5) and m["string_stable"] is False
