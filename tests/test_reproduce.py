@@ -198,3 +198,27 @@ def test_quick_budget_reproduces_everything_in_minutes(tmp_path: Path) -> None:
     claims = pd.read_csv(tmp_path / "q" / "claims.csv")
     assert set(claims["verdict"]) <= VERDICTS
     assert "not testable here" != claims.set_index("claim").iloc[2]["verdict"]  # convergence ran
+
+
+def test_the_readme_quotes_the_committed_paper_report() -> None:
+    """The README's paper-budget verdicts are the committed report's (docs/paper-reproduction,
+    copied from the run that made it): rewards, collisions and verdicts as the CSVs hold them."""
+    docs = Path(__file__).resolve().parent.parent / "docs" / "paper-reproduction"
+    readme = (docs.parent.parent / "README.md").read_text()
+    readme = " ".join(readme.split())  # line breaks aside
+    t2 = pd.read_csv(docs / "table2.csv").set_index(["name", "scenario"])
+    for name, quoted in [("bdc", "-445.9"), ("dial", "-499.1"), ("commnet", "-506.2"),
+                         ("fprint", "-552.8"), ("ia2c", "-602.6")]:
+        assert f"{t2.loc[(name, 'catchup-v1'), 'reward_mean']:.1f}" == quoted
+        assert quoted in readme
+    slow = t2.loc[("bdc", "slowdown-v1")]
+    assert f"{slow['reward_mean']:,.0f}" == "-1,845" and slow["collisions"] == 2
+    assert "BDC -1,845 with 2 collisions" in readme
+    assert f"{t2.loc[('bdc', 'catchup-v1'), 'power_kw_avg']:.1f}" == "39.2"
+    claims = pd.read_csv(docs / "claims.csv")
+    verdicts = dict(zip(claims["claim"].str[:40] + " | " + claims["measured"].str[:11],
+                        claims["verdict"], strict=True))
+    assert sorted(verdicts.values()) == sorted(
+        ["holds", "holds", "does not hold", "not testable here", "inconclusive", "does not hold",
+         "does not hold", "not testable here", "holds", "holds"])
+    assert "8.97 % [8.15, 9.81]" in readme and "+8.97 % [+8.15, +9.81]" in claims["measured"][0]
