@@ -377,3 +377,21 @@ def test_bdc_slowdown_curves_at_1e6_steps() -> None:
         assert ev["steps"].max() >= 1_000_000
         best.append(ev.loc[ev["eval_collisions_sampled"] == 0, "eval_reward_sampled"].max())
     assert np.round(best, 1).tolist() == [-728.0, -914.7, -838.9]
+
+
+@pytest.mark.parametrize(("controller", "scenario", "n"), [
+    ("bdc", "catchup-v1", 2), ("bdc", "catchup-v1", 4), ("bdc", "catchup-v1", 6),
+    ("bdc:scenario=openacc-train-s-v1", "openacc-s-v1", 4),
+    ("bdc:scenario=openacc-train-m-v1", "openacc-m-v1", 4),
+    ("bdc:scenario=openacc-train-l-v1", "openacc-l-v1", 4),
+])
+def test_the_shipped_size_and_openacc_policies_run(controller: str, scenario: str, n: int) -> None:
+    """Seed 0 of the reproduction's platoon-size and OpenACC studies ships (README, Reproducing
+    the paper): `run --controllers bdc --vehicles 4` works after install."""
+    from benchmark.suite import build_sweep, execute_run
+    from controllers.registry import parse_controller_list
+
+    key = build_sweep(parse_controller_list(controller), [scenario], [n], [2000])[0]
+    rec = execute_run(key)
+    assert rec["status"] == "ok", rec.get("error")
+    assert not rec["collision"] and rec["steps"] > 100
