@@ -1,7 +1,7 @@
 """Executors of a sweep: ``serial``, ``process`` (a local pool) and ``ray`` (a cluster).
 
-Every executor runs :func:`benchmark.suite.execute_run` on the same keys and yields the records
-as runs finish; the caller (one process) writes them to the store, so there is a single writer.
+Every executor runs :func:`benchmark.suite.execute_batch` on the same batches of keys and yields
+the records as batches finish; the caller (one process) writes them to the store, so there is a single writer.
 Each run depends only on its key, so all executors give identical numbers.
 """
 
@@ -11,7 +11,7 @@ import os
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
-from benchmark.suite import RunKey, execute_run
+from benchmark.suite import RunKey, batch_keys, execute_batch
 from envs.errors import ConfigError
 
 EXECUTORS = ("serial", "process", "ray")
@@ -65,19 +65,22 @@ def die_with_parent(parent_pid: int) -> None:
         os._exit(1)
 
 
-def _run(args: tuple[RunKey, bool]) -> dict:
+def _run(args: tuple[list[RunKey], bool]) -> list[dict]:
     _worker_env()
-    return execute_run(*args)
+    return execute_batch(*args)
 
 
 def run_keys(
-    keys: Sequence[tuple[RunKey, bool]],
+    keys: Sequence[RunKey],
     executor: str = "serial",
     workers: int = 1,
     ray_address: str | None = None,
+    keep_trajectory: bool = False,
 ) -> Iterator[dict]:
-    """Yield the record of every ``(key, keep_trajectory)`` as it finishes (any order)."""
-    yield from map_jobs(_run, keys, executor, workers, ray_address)
+    """Yield the record of every key as its batch finishes (any order; :func:`batch_keys`)."""
+    batches = [(b, keep_trajectory) for b in batch_keys(keys, workers)]
+    for records in map_jobs(_run, batches, executor, workers, ray_address):
+        yield from records
 
 
 def map_jobs(

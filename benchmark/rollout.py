@@ -135,11 +135,13 @@ def rollout_batch(
         t += 1
         gap[t], speed[t] = s.gap_m, s.speed_mps
         accel[t], power[t] = res.applied_accel_mps2, res.power_kw
-        reward[t - 1] = res.reward.sum(axis=1)
+        # C order: a row's sum over agents must not depend on the batch (a Fortran-ordered
+        # (B, N) array would be summed in another order than a lone episode's row)
+        reward[t - 1] = np.ascontiguousarray(res.reward).sum(axis=1)
         tracking[t - 1] = np.where(
             res.collided & ~was_done,
             reward[t - 1],  # -1000 per agent, no power term
-            reward[t - 1] - weight_power * res.power_kw.sum(axis=1),
+            reward[t - 1] - weight_power * np.ascontiguousarray(res.power_kw).sum(axis=1),
         )
         steps[res.done & ~was_done] = t
         obs = res.observation
@@ -151,17 +153,18 @@ def rollout_batch(
         lead = s.leader_speed_mps[k, : n_k + 1]
         lead_accel = np.zeros(n_k + 1)
         lead_accel[1:] = np.diff(lead) / params.dt_s
+        c = np.ascontiguousarray  # an episode's arrays, laid out as if it had run alone
         out.append(
             Trajectory(
-                gap_m=gap[: n_k + 1, k],
-                speed_mps=speed[: n_k + 1, k],
-                accel_mps2=accel[: n_k + 1, k],
-                power_kw=power[: n_k + 1, k],
+                gap_m=c(gap[: n_k + 1, k]),
+                speed_mps=c(speed[: n_k + 1, k]),
+                accel_mps2=c(accel[: n_k + 1, k]),
+                power_kw=c(power[: n_k + 1, k]),
                 leader_speed_mps=lead,
                 leader_accel_mps2=lead_accel,
-                reward=reward[:n_k, k],
-                tracking_reward=tracking[:n_k, k],
-                command_mps2=commands[:n_k, k],
+                reward=c(reward[:n_k, k]),
+                tracking_reward=c(tracking[:n_k, k]),
+                command_mps2=c(commands[:n_k, k]),
                 compute_s=compute[:n_k],
                 collided=bool(s.collided[k]),
                 steps=n_k,

@@ -187,14 +187,14 @@ def execute_sweep(
         pending = [k for k in keys if k.id not in done_ok]
         if first_seed is None:
             first_seed = min(k.seed for k in keys) if keys else 0
-        todo = [(k, True) for k in pending]
+        todo = pending
         skipped = len(keys) - len(pending)
         if skipped:
             print(f"resuming: {skipped} of {len(keys)} runs already stored, {len(pending)} to run",
                   file=sys.stderr)
         store.set_meta("last_sweep", {"n_runs": len(keys), "executor": executor})
         progress = Progress(len(todo))
-        for rec in run_keys(todo, executor, workers, ray_address):
+        for rec in run_keys(todo, executor, workers, ray_address, keep_trajectory=True):
             traj = rec.pop("_trajectory", None)
             arrays = trajectory_arrays(traj) if traj is not None else None
             if arrays is not None and trajectories:

@@ -1,16 +1,21 @@
 """The suite: controllers x scenarios x sizes x seeds (x V2V and lag settings), one run each.
 
 A run is fully described by its :class:`RunKey`; :func:`execute_run` depends on nothing else, so
-every executor (serial, process pool, Ray) gives the same numbers.
+every executor (serial, process pool, Ray) gives the same numbers. The harness hands the
+executors batches of runs that differ only in their seed (:func:`batch_keys`,
+:func:`execute_batch`), which batch-invariant controllers step together.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import math
 import time
 import traceback
 from collections.abc import Iterable, Sequence
 from dataclasses import asdict, dataclass
+from typing import Any
 
 from controllers.registry import canonical_options, controller_label, resolve
 from envs.channel import ChannelConfig
@@ -87,37 +92,53 @@ def build_sweep(
     return sorted(set(keys))
 
 
-def execute_run(key: RunKey, keep_trajectory: bool = False) -> dict:
-    """Run one episode and return its record (status ``ok`` or ``failed`` with the error).
-
-    Never raises for a controller's failure: the error is part of the record.
-    """
-    from benchmark.metrics import run_metrics
+def _record(key: RunKey) -> dict:
+    """A run's record before it runs: its key, family, status ``ok`` and provenance."""
     from benchmark.provenance import git_sha, version
-    from benchmark.rollout import rollout
-    from controllers.registry import make_controller
 
-    spec = resolve(key.name)
-    record: dict = {
+    return {
         "id": key.id,
         **asdict(key),
-        "family": spec.family,
+        "family": resolve(key.name).family,
         "status": "ok",
         "error": "",
         "version": version(),
         "git_sha": git_sha(),
     }
+
+
+def _setting(key: RunKey) -> tuple[PlatoonParams, ChannelConfig]:
+    params = PlatoonParams(lag_s=key.lag_s)
+    return params, ChannelConfig(key.comm_delay_s, key.packet_loss, params.dt_s)
+
+
+def _finish(record: dict, traj: Any, target_gap_m: float, target_speed_mps: float,
+            keep_trajectory: bool) -> dict:
+    from benchmark.metrics import run_metrics
+
+    record.update(run_metrics(traj, target_gap_m, target_speed_mps))
+    if keep_trajectory:
+        record["_trajectory"] = traj
+    return record
+
+
+def execute_run(key: RunKey, keep_trajectory: bool = False) -> dict:
+    """Run one episode and return its record (status ``ok`` or ``failed`` with the error).
+
+    Never raises for a controller's failure: the error is part of the record.
+    """
+    from benchmark.rollout import rollout
+    from controllers.registry import make_controller
+
+    record = _record(key)
     t0 = time.perf_counter()
     try:
         scenario = make_scenario(key.scenario)
         controller = make_controller(key.name, **json.loads(key.options))
         record["deterministic"] = bool(getattr(controller, "deterministic", True))
-        params = PlatoonParams(lag_s=key.lag_s)
-        channel = ChannelConfig(key.comm_delay_s, key.packet_loss, params.dt_s)
+        params, channel = _setting(key)
         traj = rollout(controller, scenario, key.n_vehicles, key.seed, params, channel)
-        record.update(run_metrics(traj, scenario.target_gap_m, scenario.target_speed_mps))
-        if keep_trajectory:
-            record["_trajectory"] = traj
+        _finish(record, traj, scenario.target_gap_m, scenario.target_speed_mps, keep_trajectory)
     except Exception as exc:  # a failing controller must not end the sweep
         raise_if_interrupted()  # an interrupted run is not a failed run: it is not stored
         record["status"] = "failed"
@@ -125,6 +146,64 @@ def execute_run(key: RunKey, keep_trajectory: bool = False) -> dict:
         record["traceback"] = traceback.format_exc(limit=8)
     record["wall_s"] = time.perf_counter() - t0
     return record
+
+
+def execute_batch(keys: Sequence[RunKey], keep_trajectory: bool = False) -> list[dict]:
+    """The records of runs that differ only in their seed (one batch of :func:`batch_keys`).
+
+    A controller that is ``batch_invariant`` steps all the seeds together in one
+    :func:`benchmark.rollout.rollout_batch`; each record then equals :func:`execute_run`'s
+    except ``wall_s`` and the compute times, which are the batch's shares. Any other
+    controller, or a batch that raises, runs seed by seed through :func:`execute_run`, so a
+    failure is recorded for the run it belongs to.
+    """
+    from benchmark.rollout import rollout_batch
+    from controllers.registry import make_controller
+
+    if len({dataclasses.replace(k, seed=0) for k in keys}) > 1:
+        raise ValueError("execute_batch: the keys of one batch may differ only in their seed")
+    if len(keys) == 1:
+        return [execute_run(keys[0], keep_trajectory)]
+    head = keys[0]
+    t0 = time.perf_counter()
+    try:
+        scenario = make_scenario(head.scenario)
+        controller = make_controller(head.name, **json.loads(head.options))
+        if not getattr(controller, "batch_invariant", False):
+            return [execute_run(k, keep_trajectory) for k in keys]
+        params, channel = _setting(head)
+        trajs = rollout_batch(controller, scenario, head.n_vehicles, [k.seed for k in keys],
+                              params, channel)
+    except Exception:  # run one by one: the failure belongs to a run, not to the batch
+        raise_if_interrupted()
+        return [execute_run(k, keep_trajectory) for k in keys]
+    wall_s = (time.perf_counter() - t0) / len(keys)
+    records = []
+    for key, traj in zip(keys, trajs, strict=True):
+        record = _record(key)
+        record["deterministic"] = bool(getattr(controller, "deterministic", True))
+        _finish(record, traj, scenario.target_gap_m, scenario.target_speed_mps, keep_trajectory)
+        record["wall_s"] = wall_s
+        records.append(record)
+    return records
+
+
+#: Most episodes one batch of the harness steps together.
+MAX_BATCH = 50
+
+
+def batch_keys(keys: Sequence[RunKey], workers: int = 1) -> list[list[RunKey]]:
+    """Runs grouped into batches that :func:`execute_batch` runs: keys that differ only in
+    their seed, in key order, at most :data:`MAX_BATCH` per batch and, when there are fewer
+    settings than ``workers``, split so that every worker gets a batch. The grouping never
+    changes a result (a batch-invariant controller gives every episode the same run in any
+    batch; the others run seed by seed)."""
+    groups: dict[RunKey, list[RunKey]] = {}
+    for key in sorted(keys):
+        groups.setdefault(dataclasses.replace(key, seed=0), []).append(key)
+    per_worker = math.ceil(len(keys) / max(1, workers))
+    size = max(1, min(MAX_BATCH, per_worker))
+    return [grp[i : i + size] for grp in groups.values() for i in range(0, len(grp), size)]
 
 
 #: The most episodes one setting may ask for (beyond the 50 published seeds, 2000 + 10 k).

@@ -125,6 +125,12 @@ class Controller(ABC):
         What it receives over V2V, in words (``none`` for none).
     needs_observation : bool
         Whether :meth:`act` needs the agent observations ``(B, N, 15)``.
+    batch_invariant : bool
+        Whether an episode gives the same run, to the last bit, alone or stepped with others
+        (every metric but the wall times; tested for each such controller). The harness steps
+        the seeds of one setting together only for these. False for the learned policies (their
+        float32 matrix products round differently with the batch size, which can flip a sampled
+        action) and the MPC family (its solver-failure count is the batch's).
     """
 
     name: str = "controller"
@@ -132,6 +138,7 @@ class Controller(ABC):
     deterministic: bool = True
     v2v: str = "none"
     needs_observation: bool = False
+    batch_invariant: bool = False
 
     def __init__(self) -> None:
         self.solver_failures = 0

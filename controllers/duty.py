@@ -118,6 +118,7 @@ class DutyController(Controller):
     name = "duty"
     family = "human"
     deterministic = True
+    batch_invariant = True
     v2v = "none"
 
     config_cls = DutyConfig

@@ -141,6 +141,7 @@ class PloegController(Controller):
     name = "cacc"
     family = "linear"
     deterministic = True
+    batch_invariant = True
     v2v = "predecessor's commanded acceleration (1 float)"
     needs_observation = False
     config_cls: type[PloegConfig] = PloegConfig

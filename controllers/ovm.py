@@ -31,6 +31,7 @@ class OVMController(Controller):
     name = "ovm"
     family = "human"
     deterministic = True
+    batch_invariant = True
     v2v = "none"
 
     config_cls = OVMConfig

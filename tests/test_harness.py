@@ -360,3 +360,75 @@ def test_batched_rollout_equals_separate_with_collisions_at_different_steps() ->
         mb = run_metrics(tb, 20.0, 15.0)
         for key in ("reward", "energy_kwh", "gap_rmse_m", "min_gap_m", "steps", "collision"):
             assert ma[key] == mb[key], key
+
+
+def _batch_invariant_names() -> list[str]:
+    from controllers.registry import available_controllers, make_controller
+
+    names = []
+    for spec in available_controllers():
+        try:
+            ctrl = make_controller(spec.name)
+        except Exception:  # noqa: BLE001 - a controller that needs options is not batched here
+            continue
+        if getattr(ctrl, "batch_invariant", False):
+            names.append(spec.name)
+    return names
+
+
+def test_the_batch_invariant_controllers_are_the_cheap_laws() -> None:
+    assert _batch_invariant_names() == ["ovm", "duty", "acc", "cacc"]
+
+
+@pytest.mark.parametrize("name", ["ovm", "duty", "acc", "cacc"])
+@pytest.mark.parametrize(("scenario", "delay", "loss", "lag"), [
+    ("catchup-v1", 0.0, 0.0, 0.0), ("slowdown-v1", 0.2, 0.1, 0.2), ("brake-v1", 0.1, 0.3, 0.0),
+])
+def test_a_batch_gives_each_run_its_record_alone(name, scenario, delay, loss, lag) -> None:
+    """:func:`execute_batch` steps the seeds of a batch-invariant controller together; every
+    record equals the run alone to the last bit, except the wall times; acc collides on
+    brake-v1 with a 30 % loss in some episodes and not others."""
+    from benchmark.suite import execute_batch
+
+    keys = build_sweep([(name, {})], [scenario], [5], [2000, 2010, 2020, 2030, 2040], [delay],
+                       [loss], [lag])
+    batched = execute_batch(keys)
+    for key, rec in zip(keys, batched, strict=True):
+        alone = execute_run(key)
+        for col, value in alone.items():
+            if col in TIMING_COLUMNS or col == "wall_s":
+                continue
+            assert rec[col] == value or (value != value and rec[col] != rec[col]), (key.seed, col)
+
+
+def test_a_failing_batch_records_each_run_alone(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A batch that raises is run seed by seed, so the failure is stored with its own run."""
+    import benchmark.rollout
+    from benchmark.suite import execute_batch
+
+    original = benchmark.rollout.rollout_batch
+
+    def broken(controller, scenario, n, seeds, *args):
+        if len(seeds) > 1:
+            raise RuntimeError("batch broke")
+        return original(controller, scenario, n, seeds, *args)
+
+    monkeypatch.setattr(benchmark.rollout, "rollout_batch", broken)
+    keys = build_sweep([("cacc", {})], ["catchup-v1"], [3], [2000, 2010])
+    recs = execute_batch(keys)
+    assert [r["seed"] for r in recs] == [2000, 2010]
+    assert all(r["status"] == "ok" for r in recs)  # each alone: not broken
+    assert [r["reward"] for r in recs] == [execute_run(k)["reward"] for k in keys]
+
+
+def test_batches_group_seeds_of_one_setting() -> None:
+    from benchmark.suite import MAX_BATCH, batch_keys
+
+    keys = build_sweep([("ovm", {}), ("cacc", {})], ["catchup-v1"], [4],
+                       list(range(2000, 2000 + 10 * 120, 10)))
+    batches = batch_keys(keys, workers=2)
+    assert sorted(k for b in batches for k in b) == sorted(keys)
+    assert all(len({(k.controller, k.scenario) for k in b}) == 1 for b in batches)
+    assert max(len(b) for b in batches) == MAX_BATCH
+    one = build_sweep([("ovm", {})], ["catchup-v1"], [4], [2000, 2010, 2020, 2030])
+    assert [len(b) for b in batch_keys(one, workers=2)] == [2, 2]  # every worker gets work
