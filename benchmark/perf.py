@@ -61,17 +61,35 @@ def env_throughput(batch: int = 1024, n_vehicles: int = 8, seconds: float = 2.0)
     }
 
 
-def harness_throughput(episodes: int = 10) -> dict[str, float]:
-    """Steps per second of the harness with ``ovm`` on the default sweep (no store, no files)."""
+#: The sweep ``harness_sweep_500_s`` times (the architecture issue's reference sweep).
+SWEEP_CONTROLLERS = ("ovm", "acc", "cacc", "ia2c", "bdc")
+SWEEP_SCENARIOS = ("catchup-v1", "slowdown-v1")
+
+
+def harness_throughput(episodes: int = 10, sweep_episodes: int = 50) -> dict[str, float]:
+    """The harness's closed loop without store or files, serial, batches as in ``run``:
+    ``ovm`` on the default sweep (steps/s), and ``ovm, acc, cacc, ia2c, bdc`` on catchup-v1 and
+    slowdown-v1 with ``sweep_episodes`` seeds each (``harness_sweep_<runs>_s``; 500 runs at 50)."""
+    from benchmark.executors import run_keys
     from benchmark.suite import build_sweep, execute_run, seeds_from_episodes
 
     keys = build_sweep([("ovm", {})], ["catchup-v1", "slowdown-v1"], [8], seeds_from_episodes(episodes))
     execute_run(keys[0])  # warm caches (power polynomial, imports)
     t0 = time.perf_counter()
-    steps = sum(int(execute_run(k)["steps"]) for k in keys)
+    steps = sum(int(r["steps"]) for r in run_keys(keys))
     wall = time.perf_counter() - t0
+    sweep = build_sweep([(c, {}) for c in SWEEP_CONTROLLERS], list(SWEEP_SCENARIOS), [8],
+                        seeds_from_episodes(sweep_episodes))
+    for name in SWEEP_CONTROLLERS:  # warm: policy loading and imports
+        execute_run(build_sweep([(name, {})], ["catchup-v1"], [8], [2000])[0])
+    t0 = time.perf_counter()
+    records = list(run_keys(sweep))
+    sweep_s = time.perf_counter() - t0
+    failed = [r["id"] for r in records if r["status"] != "ok"]
+    if failed:
+        raise RuntimeError(f"harness sweep: {len(failed)} run(s) failed, e.g. {failed[0]}")
     return {"harness_steps_per_s": steps / wall, "harness_default_sweep_s": wall,
-            "harness_runs": float(len(keys))}
+            "harness_runs": float(len(keys)), f"harness_sweep_{len(sweep)}_s": sweep_s}
 
 
 def controller_timing(name: str, n_steps: int = 150, n_vehicles: int = 8,
@@ -125,7 +143,8 @@ def main(argv: list[str]) -> int:
         out.update(env_throughput(seconds=0.5 if args.quick else 2.0))
         out["env_speedup_vs_published"] = out["env_vehicle_steps_per_s"] / PUBLISHED_ENV_VEHICLE_STEPS_PER_S
     if "harness" in parts:
-        out.update(harness_throughput(episodes=2 if args.quick else 10))
+        out.update(harness_throughput(episodes=2 if args.quick else 10,
+                                      sweep_episodes=2 if args.quick else 50))
     if "controllers" in parts:
         from controllers.registry import controller_label, parse_controller_list
 
@@ -186,6 +205,10 @@ def _print_table(out: dict[str, Any]) -> None:
     if "harness_steps_per_s" in out:
         print(f"harness (ovm, default sweep of {int(out['harness_runs'])} runs): "
               f"{out['harness_steps_per_s']:,.0f} steps/s, {out['harness_default_sweep_s']:.2f} s")
+        for key in sorted(k for k in out if k.startswith("harness_sweep_")):
+            runs = key.split("_")[2]
+            print(f"harness sweep ({', '.join(SWEEP_CONTROLLERS)} on {' and '.join(SWEEP_SCENARIOS)}, "
+                  f"{runs} runs, serial): {out[key]:.2f} s")
     if "controller_timing" in out:
         print("controllers (ms per vehicle per step; first call apart):")
         w = max([10, *(len(name) for name in out["controller_timing"])])

@@ -17,6 +17,7 @@ def test_perf_json_keys(capsys: pytest.CaptureFixture[str]) -> None:
     out = json.loads(capsys.readouterr().out)
     assert out["env_vehicle_steps_per_s"] > 0
     assert out["harness_steps_per_s"] > 0
+    assert out["harness_sweep_20_s"] > 0  # 5 controllers x 2 scenarios x 2 seeds (quick)
     assert out["controller_ms_per_vehicle_step"]["ovm"] > 0
 
 
