@@ -1,6 +1,6 @@
 """String stability of platoon controllers: analytic for Ploeg's linear loop, measured for any.
 
-Analytic (``spec/controllers.md``), vehicle ``G(s) = 1 / (s^2 (tau s + 1))``, ``K(s) = kp + kd s``,
+Analytic (``docs/spec/controllers.md``), vehicle ``G(s) = 1 / (s^2 (tau s + 1))``, ``K(s) = kp + kd s``,
 ``H(s) = 1 + h s``, ``D(s) = exp(-theta s)``::
 
     Gamma(s) = (G K + D) / (H (1 + G K))      (CACC)

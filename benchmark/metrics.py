@@ -1,4 +1,4 @@
-"""Metrics of one run, from its trajectory (see ``spec/benchmark.md`` for the definitions).
+"""Metrics of one run, from its trajectory (see ``docs/spec/benchmark.md`` for the definitions).
 
 Statistics are over followers and steps (rows 1..T, the states after each step) unless named
 otherwise. The reward columns are the environment's own per-step rewards, so the reward is

@@ -1,7 +1,7 @@
 """``cacc-bench perf``: throughput of the environment, the harness, controllers and training.
 
 Every figure is measured in this one run, side by side, so ratios are meaningful on a busy
-machine; the published figures it compares with are constants from ``spec/marl.md`` (measured on
+machine; the published figures it compares with are constants from ``docs/spec/marl.md`` (measured on
 this project's 2-core machine kind): the published environment runs about 4,000 steps/s with 8
 followers (32,000 vehicle-steps/s); the published trainer about 307 (IA2C) and 195 (consensus)
 environment steps/s.

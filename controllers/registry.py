@@ -115,7 +115,7 @@ for _spec in (
 for _algo in MARL_ALGORITHMS:
     register_controller(
         ControllerSpec(
-            _algo, "marl", "see marl.md (neighbour blocks, messages)",
+            _algo, "marl", "see docs/spec/marl.md (neighbour blocks, messages)",
             f"trained {_algo} policy (shipped checkpoint; actions sampled, mode=greedy for argmax)",
             "controllers.policy:PolicyController",
             fixed={"algo": _algo},

@@ -2,7 +2,7 @@
 
 Shapes: ``B`` parallel episodes, ``N`` followers. Index 0 of the platoon is the leader, which is
 not part of the follower arrays: follower arrays are ``(B, N)``, per-episode arrays ``(B,)``.
-Every function here follows ``spec/environment.md`` exactly, quirks included.
+Every function here follows ``docs/spec/environment.md`` exactly, quirks included.
 """
 
 from __future__ import annotations

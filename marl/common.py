@@ -11,7 +11,7 @@ tensor op (:mod:`marl.layers`). B episodes run in parallel in one batched
 :class:`envs.platoon.PlatoonEnv` (``training=True, collision_mode="published"``); one batched
 step of B active episodes counts as B environment steps.
 
-Learner (published A2C, ``spec/marl.md``): n-step segments (60 steps; every episode length and
+Learner (published A2C, ``docs/spec/marl.md``): n-step segments (60 steps; every episode length and
 every published collision end is a multiple of 60), bootstrap from V of the observation after
 the segment (0 if terminal), truncated backprop through the LSTM within a segment, entropy
 bonus, per-agent global grad-norm clip, RMSprop. The acting LSTM state advances exactly once per

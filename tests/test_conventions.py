@@ -115,3 +115,20 @@ def test_the_coercion_rule_refuses_with_the_option_and_its_owner(value: str, kin
 
     with pytest.raises(ConfigError, match=f"^option k of owner must be of type .*got '{value}'$"):
         coerce_option(value, kind, "k", "owner")
+
+
+def test_every_document_the_code_cites_is_in_the_repository() -> None:
+    """Docstrings and messages cite files of this repository only (``docs/...``)."""
+    import re
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parent.parent
+    cited = set()
+    for pkg in ("envs", "controllers", "marl", "benchmark", "analysis"):
+        for py in (root / pkg).rglob("*.py"):
+            text = py.read_text()
+            cited |= set(re.findall(r"docs/[\w./-]+\.md", text))
+            assert not re.search(r"(?<!docs/)\bspec/\w+\.md", text), py
+    assert "docs/spec/energy.md" in cited
+    missing = sorted(c for c in cited if not (root / c).is_file())
+    assert not missing, missing

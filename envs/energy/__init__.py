@@ -1,6 +1,6 @@
 """Battery power models of an electric car: efficiency-map model, fitted polynomial, VT-CPEM.
 
-Follows ``spec/energy.md``. Three models of the battery power ``P(v, u)`` (kW) of one car driving
+Follows ``docs/spec/energy.md``. Three models of the battery power ``P(v, u)`` (kW) of one car driving
 at speed ``v`` (m/s) with acceleration ``u`` (m/s^2):
 
 ``"map"``

@@ -121,7 +121,7 @@ class PowerFit:
             "grid": self.grid,
             "provenance": {
                 "model": (
-                    "envs.energy.map_battery_power_kw (spec/energy.md): wheel force, gearbox, motor "
+                    "envs.energy.map_battery_power_kw (docs/spec/energy.md): wheel force, gearbox, motor "
                     "torque/power limits, bilinear loss-map lookup, P_batt = T_m omega_m + P_loss + "
                     "P_aux; no battery internal-resistance loss"
                 ),

@@ -1,5 +1,5 @@
 """Physical battery power models: the efficiency-map model of the BMW i3 (wheel force, gearbox,
-motor limits and loss map, ``spec/energy.md``) and VT-CPEM of a Nissan Leaf (Fiori et al.
+motor limits and loss map, ``docs/spec/energy.md``) and VT-CPEM of a Nissan Leaf (Fiori et al.
 2016) for sensitivity studies.
 """
 
@@ -74,7 +74,7 @@ def map_operating_point(
 ) -> MotorOperatingPoint:
     """Operating point and battery power of the efficiency-map model (numpy broadcasting).
 
-    Steps (``spec/energy.md``):
+    Steps (``docs/spec/energy.md``):
 
     1. Wheel force ``F = m g f cos(a) + m g sin(a) + 0.5 rho A Cd v^2 + (m + Theta/r^2) u``
        (``a`` = road grade, 0 by default). Rolling resistance is 0 at standstill (as SUMO).
@@ -92,7 +92,7 @@ def map_operating_point(
 
     With ``include_battery_loss=True`` the battery's internal resistance loss is added as in
     SUMO's MMPEVEM, ``P = U0^2/(2R) - U0 sqrt((U0^2 - 4 R P_batt) / (4 R^2))``. The spec's model
-    (the default) leaves it out; the reference table of ``spec/energy.md`` matches the variant
+    (the default) leaves it out; the reference table of ``docs/spec/energy.md`` matches the variant
     with it to 0.4 % and the default to 1.2 %.
 
     Negative speeds are treated as 0 (the platoon never reverses). Instantaneous: SUMO's

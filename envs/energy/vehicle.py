@@ -40,7 +40,7 @@ class EnergyDataError(ConfigError):
 
 @dataclass(frozen=True)
 class VehicleParams:
-    """Parameters of the efficiency-map model (defaults: BMW i3, ``spec/energy.md``).
+    """Parameters of the efficiency-map model (defaults: BMW i3, ``docs/spec/energy.md``).
 
     Attributes
     ----------
