@@ -412,3 +412,63 @@ def test_qsgd_argument_checks() -> None:
         qsgd(g, 1, bucket=0)
     q = qsgd(g, 1, torch.Generator().manual_seed(0), bucket=1)
     torch.testing.assert_close(q, g)  # |g_k| / ||g_k|| = 1: exactly +-norm
+
+
+def _draw_by_hand(probs: list[float], u: float) -> int:
+    """The first action whose cumulative probability exceeds u (a loop, in Python floats)."""
+    c = 0.0
+    for a, p in enumerate(probs):
+        c += p
+        if u < c:
+            return a
+    return len(probs) - 1
+
+
+def test_sample_from_logits_draws_the_policy() -> None:
+    """Inverse-CDF draws follow softmax(logits): 40,000 draws within 1 % of each probability,
+    and u just below / at a cumulative boundary picks the action on each side."""
+    from marl.common import sample_from_logits
+
+    logits = torch.log(torch.tensor([0.1, 0.2, 0.3, 0.4])).reshape(1, 1, 4).expand(1, 40_000, 4)
+    u = (np.arange(40_000) + 0.5).reshape(40_000, 1) / 40_000
+    u = np.random.default_rng(0).permutation(u)
+    a = sample_from_logits(logits, u)
+    freq = np.bincount(a.ravel(), minlength=4) / a.size
+    np.testing.assert_allclose(freq, [0.1, 0.2, 0.3, 0.4], atol=0.01)
+    edge = sample_from_logits(logits[:, :2], np.array([[0.0999999], [0.3000001]]))
+    assert edge.ravel().tolist() == [0, 2]
+
+
+def test_sample_from_logits_per_agent_and_episode_by_hand() -> None:
+    """Logits ``(N, B, A)`` with a different policy for every agent and episode, uniforms
+    ``(B, N)``: each action is the hand-drawn one of its own agent and episode; a uniform
+    exactly on a cumulative boundary takes the next action."""
+    from marl.common import sample_from_logits
+
+    n, b = 3, 2
+    logits = torch.tensor([[[0.1 * (i + 1) * (k - 1.5) + 0.3 * j for k in range(4)]
+                            for j in range(b)] for i in range(n)], dtype=torch.float32)
+    u = np.array([[0.05, 0.45, 0.93], [0.61, 0.18, 0.77]])
+    got = sample_from_logits(logits, u)
+    assert got.shape == (b, n) and got.dtype == np.int64
+    for i in range(n):
+        for j in range(b):
+            probs = torch.softmax(logits[i, j].double(), -1).tolist()
+            assert got[j, i] == _draw_by_hand(probs, float(u[j, i])), (i, j)
+    assert len(set(got.ravel().tolist())) >= 3  # the table exercises several actions
+    flat = torch.zeros(1, 1, 4)  # probabilities 1/4 each, cumulative 0.25, 0.5, 0.75 exactly
+    on_edges = np.array([[0.0], [0.25], [0.5], [0.75]])
+    assert sample_from_logits(flat.expand(1, 4, 4), on_edges).ravel().tolist() == [0, 1, 2, 3]
+
+
+def test_sample_from_logits_uses_double_precision_probabilities() -> None:
+    """The cumulative probabilities are computed in float64: for these logits float32's
+    softmax puts the first boundary 7e-9 higher, and a uniform on the float64 boundary takes
+    action 1 (float32 would take action 0)."""
+    from marl.common import sample_from_logits
+
+    logits = torch.tensor([3 / 37.0, 0.0, -0.5, 0.3], dtype=torch.float32)
+    p64 = torch.softmax(logits.double(), -1)
+    assert float(torch.softmax(logits, -1)[0]) > float(p64[0])  # the premise
+    u = np.array([[float(p64[0])]])
+    assert sample_from_logits(logits.reshape(1, 1, 4), u).item() == 1

@@ -474,6 +474,9 @@ def test_mpc_degraded_v2v_ten_seeds(scenario: str) -> None:
         (1.8, 10.0, 9.5, 2.0, -2.5),              # below 2 gap_min and closing: full brake
         (1.8, 10.0, 10.5, 2.0, 0.2 * -0.2 + 0.7 * 0.5),  # below but opening: the law
         (2.5, 10.0, 9.5, 2.0, 0.2 * 0.5 + 0.7 * -0.5),   # closing but not below: the law
+        (2.0, 10.0, 9.5, 2.0, 0.7 * -0.5),        # at exactly 2 gap_min: not below, the law
+        (1.8, 10.0, 10.0, 2.0, 0.2 * -0.2),       # below, speeds equal (not closing): the law
+        (5.0, 15.0, 15.0, 20.0, -2.5),            # the law's -3.0 clipped to accel_min
     ],
 )
 def test_fallback_law_and_its_emergency_brake(gap, v, v_pred, target, want) -> None:
@@ -483,3 +486,14 @@ def test_fallback_law_and_its_emergency_brake(gap, v, v_pred, target, want) -> N
 
     got = float(acc_fallback_mps2(gap, v, v_pred, target, PlatoonParams()))
     assert got == pytest.approx(want, abs=1e-12)
+
+
+def test_fallback_brake_threshold_scales_with_gap_min() -> None:
+    """The emergency threshold is 2 gap_min for any gap_min (the default is 1 m): with
+    gap_min = 2 m a gap of 3.5 m is below it, and with gap_min = 0.5 m a gap of 1.5 m is not."""
+    from controllers.mpc_common import acc_fallback_mps2
+
+    assert float(acc_fallback_mps2(3.5, 10.0, 9.5, 2.0, PlatoonParams(gap_min_m=2.0))) == -2.5
+    law = 0.2 * (1.5 - 2.0) + 0.7 * -0.5
+    got = float(acc_fallback_mps2(1.5, 10.0, 9.5, 2.0, PlatoonParams(gap_min_m=0.5)))
+    assert got == pytest.approx(law, abs=1e-12)

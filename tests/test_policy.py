@@ -16,7 +16,7 @@ from controllers.policy import PolicyController
 from envs.errors import ConfigError, UnknownNameError
 from envs.platoon import PlatoonEnv
 from marl.checkpoint import save_checkpoint
-from marl.common import ALGORITHM_NAMES, algorithm, sample_from_logits
+from marl.common import ALGORITHM_NAMES, algorithm
 
 
 def _ckpt(tmp_path, algo="ia2c", n=4, scenario="catchup-v1"):
@@ -155,20 +155,6 @@ def test_sampled_mode_is_reproducible_and_differs_from_greedy(tmp_path) -> None:
     assert greedy.deterministic and greedy.options == {"mode": "greedy"}
     with pytest.raises(ConfigError, match="mode must be one of"):
         PolicyController("ia2c", mode="argmax")
-
-
-def test_sample_from_logits_draws_the_policy() -> None:
-    """Inverse-CDF draws follow softmax(logits): 40,000 draws within 1 % of each probability,
-    and u just below / at a cumulative boundary picks the action on each side."""
-    logits = torch.log(torch.tensor([0.1, 0.2, 0.3, 0.4])).reshape(1, 1, 4).expand(1, 40_000, 4)
-    u = (np.arange(40_000) + 0.5).reshape(40_000, 1) / 40_000
-    rng = np.random.default_rng(0)
-    u = rng.permutation(u)
-    a = sample_from_logits(logits, u)
-    freq = np.bincount(a.ravel(), minlength=4) / a.size
-    np.testing.assert_allclose(freq, [0.1, 0.2, 0.3, 0.4], atol=0.01)
-    edge = sample_from_logits(logits[:, :2], np.array([[0.0999999], [0.3000001]]))
-    assert edge.ravel().tolist() == [0, 2]
 
 
 def test_missing_checkpoint_names_train_command(tmp_path) -> None:

@@ -46,3 +46,34 @@ def test_run_pools_training_seeds(tmp_path) -> None:
     assert main(["leaderboard", str(out), "--quiet"]) == 0
     lb2 = pd.read_csv(out / "leaderboard.csv")
     assert {"bdc[seed=1,untrained=true]", "bdc[seed=2,untrained=true]"} <= set(lb2["controller"])
+
+
+def _runs(rows: list[tuple[str, str, str]]) -> pd.DataFrame:
+    """A runs frame of (controller_name, family, options JSON) rows, labelled as the harness
+    labels them."""
+    return pd.DataFrame([{"controller": name if opts in ("", "{}") else f"{name}[{opts}]",
+                          "controller_name": name, "family": fam, "options": opts}
+                         for name, fam, opts in rows])
+
+
+def test_pool_training_seeds_table() -> None:
+    """Labels and ``train_seed`` by hand: a seed-less policy is seed 0, one row alone still
+    gets its seed, rows of other families (in any position) stay as they are with an empty,
+    numeric ``train_seed``, and empty options read as none."""
+    from benchmark.export import pool_training_seeds
+
+    runs = _runs([("ovm", "human", "{}"), ("bdc", "marl", "{}"), ("bdc", "marl", '{"seed": 1}'),
+                  ("ia2c", "marl", ""), ("cacc", "linear", "")])
+    out = pool_training_seeds(runs)
+    assert out["controller"].tolist() == ["ovm", "bdc[seeds=0+1]", "bdc[seeds=0+1]", "ia2c",
+                                          "cacc"]
+    assert out["train_seed"].dtype == np.float64
+    got = out["train_seed"].tolist()
+    assert np.isnan(got[0]) and np.isnan(got[4]) and got[1:4] == [0.0, 1.0, 0.0]
+    one = _runs([("bdc", "marl", '{"seed": 2}')])
+    alone = pool_training_seeds(one)
+    assert alone["train_seed"].tolist() == [2.0]
+    assert alone["controller"].tolist() == one["controller"].tolist()  # one seed: no pooled label
+    plain = pool_training_seeds(_runs([("ovm", "human", "{}")]))
+    assert plain.columns.tolist()[-1] == "train_seed" and plain["train_seed"].isna().all()
+    assert "train_seed" not in runs.columns  # the input is not modified
