@@ -15,7 +15,7 @@ def main(argv: list[str]) -> int:
     p.parse_args(argv)
     print("scenarios (id: targets d*, v*; length; description):")
     for s in list_scenarios():
-        opts = ", ".join(f"{k}={v}" for k, v in s.defaults.items() if k not in ("window", "cap_initial_speed"))
+        opts = ", ".join(f"{k}={v}" for k, v in s.defaults.items())
         extra = f" [options: {opts}]" if opts else ""
         pub = " (published)" if s.published else ""
         print(f"  {s.id:<14} d*={s.target_gap_m:g} m, v*={s.target_speed_mps:g} m/s, "

@@ -138,6 +138,24 @@ def main(argv: list[str]) -> int:
     unknown = parts - {"env", "harness", "controllers", "train"}
     if unknown:
         raise ConfigError(f"--only: unknown part(s) {sorted(unknown)}; valid: env, harness, controllers, train")
+    specs: list[tuple[str, dict[str, str]]] = []
+    if "controllers" in parts:  # bad names or options fail before anything is measured
+        from controllers.registry import make_controller, parse_controller_list
+
+        specs = (parse_controller_list(args.controllers) if args.controllers
+                 else [(c.name, {}) for c in available_controllers()])
+        if not specs:
+            raise ConfigError("--controllers: no controller named")
+        if args.controllers:
+            for name, opts in specs:
+                make_controller(name, **opts)  # checks the name and every option
+    algos = ([a.strip() for a in args.algos.split(",") if a.strip()] if args.algos
+             else list(MARL_ALGORITHMS))
+    if "train" in parts:
+        unknown_algos = [a for a in algos if a not in MARL_ALGORITHMS]
+        if unknown_algos or not algos:
+            raise ConfigError(f"--algos: unknown algorithm(s) {unknown_algos or '(none named)'}; "
+                              f"valid: {', '.join(MARL_ALGORITHMS)}")
     out: dict[str, Any] = {}
     if "env" in parts:
         out.update(env_throughput(seconds=0.5 if args.quick else 2.0))
@@ -146,12 +164,8 @@ def main(argv: list[str]) -> int:
         out.update(harness_throughput(episodes=2 if args.quick else 10,
                                       sweep_episodes=2 if args.quick else 50))
     if "controllers" in parts:
-        from controllers.registry import controller_label, parse_controller_list
+        from controllers.registry import controller_label
 
-        specs = (parse_controller_list(args.controllers) if args.controllers
-                 else [(c.name, {}) for c in available_controllers()])
-        if not specs:
-            raise ConfigError("--controllers: no controller named")
         timing: dict[str, dict[str, float] | str] = {}
         for name, opts in specs:
             label = controller_label(name, opts)
@@ -171,10 +185,6 @@ def main(argv: list[str]) -> int:
             from marl.perf import train_throughput
         except ImportError:
             train_throughput = None  # type: ignore[assignment]
-        algos = (
-            [a.strip() for a in args.algos.split(",") if a.strip()]
-            if args.algos else list(MARL_ALGORITHMS)
-        )
         # repeats interleaved across algorithms (a slow spell of the machine hits them all), the
         # median reported: single 3e4-step runs of the same seed varied by up to 25 % here
         repeats = 1 if args.quick else 3

@@ -281,7 +281,19 @@ def _openacc_train_spec(size: str, gap_m: float) -> ScenarioSpec:
 
 @dataclass(frozen=True)
 class ScenarioSpec:
-    """A registered scenario id: defaults and allowed options."""
+    """A registered scenario id: its options (with defaults, and a check of their values) and
+    the fixed settings its builder reads.
+
+    Attributes
+    ----------
+    defaults : dict
+        Options a user may set (``sine-v1:amplitude_mps=2``), with their defaults; a value takes
+        the type of its default.
+    fixed : dict
+        Settings of the id itself (an OpenACC window, a speed cap), not user options.
+    check : callable, optional
+        Raises :class:`envs.errors.ConfigError` for impossible option values.
+    """
 
     id: str
     description: str
@@ -293,6 +305,8 @@ class ScenarioSpec:
     default_vehicles: int = 8
     note: str = ""
     published: bool = False
+    fixed: dict[str, Any] = field(default_factory=dict)
+    check: Callable[[dict[str, Any]], None] | None = None
 
 
 def _openacc_spec(window: str, description: str) -> ScenarioSpec:
@@ -302,8 +316,16 @@ def _openacc_spec(window: str, description: str) -> ScenarioSpec:
     w = WINDOWS[window]
     return ScenarioSpec(
         w.scenario_id, description, w.target_gap_m, w.target_speed_mps, 600, _openacc,
-        defaults={"window": window}, default_vehicles=4, note=w.note,
+        fixed={"window": window}, default_vehicles=4, note=w.note,
     )
+
+
+def _check_sine(opts: dict[str, Any]) -> None:
+    if not 0 <= opts["amplitude_mps"] <= 10:
+        raise ConfigError("sine-v1 amplitude_mps must lie in [0, 10] m/s")
+    if not 0 < opts["frequency_hz"] < 5:
+        raise ConfigError("sine-v1 frequency_hz must lie in (0, 5) Hz (Nyquist at dt = 0.1 s)")
+
 
 SCENARIOS: dict[str, ScenarioSpec] = {}
 
@@ -330,12 +352,13 @@ for _spec in (
     ScenarioSpec(
         "slowdown-v2",
         "as slowdown-v1 with the initial speed capped at 30 m/s",
-        20.0, 15.0, 600, _slowdown, defaults={"cap_initial_speed": True},
+        20.0, 15.0, 600, _slowdown, fixed={"cap_initial_speed": True},
     ),
     ScenarioSpec(
         "sine-v1",
         "leader speed 15 + A sin(2 pi f t) from equilibrium (options amplitude_mps, frequency_hz)",
         20.0, 15.0, 600, _sine, defaults={"amplitude_mps": 1.0, "frequency_hz": 0.2},
+        check=_check_sine,
     ),
     ScenarioSpec(
         "brake-v1",
@@ -378,20 +401,17 @@ def make_scenario(scenario_id: str, **options: Any) -> Scenario:
         raise UnknownNameError("scenario", scenario_id, SCENARIOS) from None
     opts = dict(spec.defaults)
     for key, value in options.items():
-        if key not in spec.defaults or key in ("window", "cap_initial_speed"):
-            allowed = [k for k in spec.defaults if k not in ("window", "cap_initial_speed")]
+        if key not in spec.defaults:
             raise ConfigError(
                 f"scenario {scenario_id} has no option {key!r}; "
-                f"its options are: {', '.join(allowed) or 'none'}"
+                f"its options are: {', '.join(spec.defaults) or 'none'}"
             )
         kind = type(spec.defaults[key])  # an option takes the type of its default
         opts[key] = coerce_option(value if isinstance(value, str) else str(value), kind, key,
                                   scenario_id)
-    if scenario_id == "sine-v1":
-        if opts["amplitude_mps"] < 0 or opts["amplitude_mps"] > 10:
-            raise ConfigError("sine-v1 amplitude_mps must lie in [0, 10] m/s")
-        if opts["frequency_hz"] <= 0 or opts["frequency_hz"] >= 5:
-            raise ConfigError("sine-v1 frequency_hz must lie in (0, 5) Hz (Nyquist at dt = 0.1 s)")
+    if spec.check is not None:
+        spec.check(opts)
+    opts.update(spec.fixed)
     return Scenario(
         id=scenario_id,
         description=spec.description,

@@ -113,3 +113,57 @@ def test_the_printed_table_never_cuts_a_label(tmp_path: Path) -> None:
                                        one.assign(controller=long_b)]))
     text = format_leaderboard(lb)
     assert long_a in text and long_b in text
+
+
+def test_edges_of_the_leaderboard() -> None:
+    """No run: an empty frame with the key columns; one run: one row; a controller whose runs
+    all failed has no known determinism; missing solver-failure counts count as none."""
+    import numpy as np
+
+    from benchmark.export import GROUP_COLUMNS
+
+    empty = leaderboard_frame(pd.DataFrame())
+    assert len(empty) == 0 and empty.columns.tolist() == ["rank", *GROUP_COLUMNS]
+    one = leaderboard_frame(pd.DataFrame([_run("solo", -42.0)]))
+    assert one["controller"].tolist() == ["solo"] and one["reward_mean"].tolist() == [-42.0]
+    assert one["rank"].tolist() == [1]
+    lb = leaderboard_frame(_table_runs()).set_index("controller")
+    assert lb.loc["all_failed", "deterministic"] is None
+    assert lb.loc["clean_best", "deterministic"] == True  # noqa: E712 - a numpy bool
+    runs = pd.DataFrame([_run("mpcish", -1.0, seed=s) for s in (2000, 2010, 2020)])
+    runs["solver_failures"] = [np.nan, 2, np.nan]
+    assert int(leaderboard_frame(runs)["solver_failures"].iloc[0]) == 2
+
+
+@pytest.mark.parametrize("n_train_seeds", [2, 3])
+def test_pooled_intervals_are_the_two_stage_bootstrap_over_the_training_seeds(n_train_seeds) -> None:
+    """A policy pooled over 2 or 3 training seeds: every metric's interval is
+    ``hierarchical_bootstrap_ci`` over the per-seed episode groups with the export's seed; one
+    seed (and any deterministic controller) gets ``bootstrap_ci`` over its episodes."""
+    import json
+
+    import numpy as np
+
+    from analysis.statistics import bootstrap_ci, hierarchical_bootstrap_ci
+    from benchmark.export import BOOTSTRAP_SEED
+
+    rows, groups = [], []
+    rng = np.random.default_rng(7)
+    for t in range(n_train_seeds):
+        rewards = (-100.0 * (t + 1) + 30.0 * rng.standard_normal(12)).tolist()
+        groups.append(np.array(rewards))
+        for k, r in enumerate(rewards):
+            row = _run(f"bdc[seed={t}]", r, seed=2000 + 10 * k)
+            row.update(family="marl", controller_name="bdc", options=json.dumps({"seed": t}))
+            rows.append(row)
+    lb = leaderboard_frame(pd.DataFrame(rows), pool_seeds=True)
+    assert len(lb) == 1 and int(lb["n_train_seeds"].iloc[0]) == n_train_seeds
+    assert len(leaderboard_frame(pd.DataFrame(rows))) == n_train_seeds  # no pooling by default
+    want = hierarchical_bootstrap_ci(groups, seed=BOOTSTRAP_SEED)
+    got = tuple(lb[f"reward_{k}"].iloc[0] for k in ("mean", "ci_low", "ci_high"))
+    assert got == want
+    assert want != bootstrap_ci(np.concatenate(groups), seed=BOOTSTRAP_SEED)
+    plain = leaderboard_frame(pd.DataFrame(rows[:12]))
+    got1 = tuple(plain[f"reward_{k}"].iloc[0] for k in ("mean", "ci_low", "ci_high"))
+    assert got1 == bootstrap_ci(groups[0], seed=BOOTSTRAP_SEED)
+    assert got1 != bootstrap_ci(groups[0])  # the export's own seed, not the default

@@ -97,3 +97,14 @@ def test_short_training_is_pinned(name: str) -> None:
         trainer.run_batch()
     blob = b"".join(p.detach().numpy().tobytes() for p in trainer.net.parameters())
     assert hashlib.sha256(blob).hexdigest()[:16] == PINNED[name]
+
+
+def test_an_agent_with_one_running_step_gets_a_zero_advantage() -> None:
+    """One valid entry is its own mean: its standardised advantage is 0 (the running count is
+    1, not a floor above it); masked entries do not count."""
+    from marl.common import normalise_advantages
+
+    adv = torch.tensor([[[3.0, -2.0]], [[5.0, 4.0]]])  # (T=2, B=1, N=2)
+    mask = torch.tensor([[[1.0]], [[0.0]]])  # only t = 0 runs
+    out = normalise_advantages(adv, mask)
+    assert out[0].tolist() == [[0.0, 0.0]]

@@ -14,7 +14,9 @@ import pytest
 from benchmark.rollout import rollout_batch
 from controllers.base import EpisodeContext
 from controllers.mpc_common import (
+    DistributedMPCBase,
     ParamLayout,
+    SolveResult,
     VehicleModel,
     assumed_predecessor_speeds,
     kinetic_energy_rate,
@@ -497,3 +499,138 @@ def test_fallback_brake_threshold_scales_with_gap_min() -> None:
     law = 0.2 * (1.5 - 2.0) + 0.7 * -0.5
     got = float(acc_fallback_mps2(1.5, 10.0, 9.5, 2.0, PlatoonParams(gap_min_m=0.5)))
     assert got == pytest.approx(law, abs=1e-12)
+
+
+# --------------------------------------------------------------------------- the shared loop, scripted
+
+
+class _ScriptedMPC(DistributedMPCBase):
+    """The distributed MPC loop with a scripted solver for N = 2 followers: each ``act``'s
+    solves pop the next entry for both followers (``None``: a failed solve; else
+    ``(command, plan_u)``); every solve records its parameters, the warm start it was given and
+    the plan it returned."""
+
+    name = "scripted-mpc"
+
+    def __init__(self, script: list[Any], **options: Any) -> None:
+        super().__init__(**options)
+        self.script = [entry for entry in script for _ in range(2)]  # both followers
+        self.calls: list[tuple[np.ndarray, Any]] = []
+        self.plans: list[np.ndarray] = []
+
+    def _build(self) -> None:
+        return None
+
+    def _solve(self, p: np.ndarray, warm: Any) -> tuple[SolveResult, Any]:
+        self.calls.append((p.copy(), warm))
+        entry = self.script.pop(0)
+        h = self.config.horizon
+        plan_v = 10.0 + np.arange(h + 1.0) + len(self.calls)  # a distinct plan per call
+        self.plans.append(plan_v)
+        if entry is None:
+            return SolveResult(False, float("nan"), np.full(h + 1, np.nan), np.zeros(h)), None
+        command, plan_u = entry
+        return SolveResult(True, command, plan_v, np.asarray(plan_u, float)), f"w{len(self.calls)}"
+
+
+def _scripted_env(ctrl: _ScriptedMPC, batch: int = 1, lag_s: float = 0.0):
+    env = PlatoonEnv("catchup-v1", 2, PlatoonParams(lag_s=lag_s), observe=False)
+    seeds = np.arange(2000, 2000 + 10 * batch, 10)
+    ctrl.reset(EpisodeContext(env.scenario, 2, seeds, env.params))
+    env.reset(seeds)
+    return env
+
+
+def test_mpc_loop_plans_warm_starts_and_falls_back_on_the_shifted_plan() -> None:
+    """Step by step with a scripted solver (H = 4, gaps held at 100 m so that the ACC
+    fallback asks for its maximum 2.5), follower 1: a command beyond the bounds is clipped; the
+    first problem assumes the measured speed held; each later one the last plan shifted by one
+    step; a solve gets the warm start the previous one returned, and none after a failure; a
+    failed solve falls back on min(the kept plan's command for now, ACC), and the kept plan goes
+    on shifting (its last command held) through further failures."""
+    h = 4
+    script = [(5.0, [5.0, 0.7, 0.9, 1.1]), (0.1, [0.1, 0.3, 0.5, 0.6]), None, None, None, None,
+              (0.2, [0.2] * h)]
+    ctrl = _ScriptedMPC(script, horizon=h)
+    env = _scripted_env(ctrl)
+    layout = ctrl.layout
+    us = []
+    for t in range(len(script)):
+        env.state.gap_m[:] = 100.0
+        if t == 0:
+            env.state.speed_mps[:] = 0.5  # a crawling start: the assumed plan is 0.5 m/s held
+        u = ctrl.act(env.state, None)
+        us.append(float(u[0, 0]))
+        p, _ = ctrl.calls[2 * t]  # follower 1's problem of this step
+        if t == 0:
+            np.testing.assert_array_equal(p[layout.vhat], np.full(h + 1, 0.5))
+        if t in (1, 2):  # follower 1's previous plan shifted by one step, its end held
+            prev = ctrl.plans[2 * (t - 1)]
+            np.testing.assert_array_equal(p[layout.vhat][1:], np.append(prev[2:], prev[-1]))
+        env.step(u)
+    assert us == [2.5, 0.1, 0.3, 0.5, 0.6, 0.6, 0.2]
+    assert [w for _, w in ctrl.calls[0::2]] == [None, "w1", "w3", None, None, None, None]
+    assert ctrl.solve_count == 2 * len(script) and ctrl.solver_failures == 2 * 4
+
+
+def test_mpc_loop_with_a_one_step_horizon_falls_back_on_acc() -> None:
+    """With H = 1 a plan made one step ago has nothing left for now: a failed solve takes the
+    ACC fallback (2.5 at a 100 m gap), not the old plan's 0.2."""
+    ctrl = _ScriptedMPC([(0.2, [0.2]), None], horizon=1)
+    env = _scripted_env(ctrl)
+    us = []
+    for _ in range(2):
+        env.state.gap_m[:] = 100.0
+        u = ctrl.act(env.state, None)
+        us.append(float(u[0, 0]))
+        env.step(u)
+    assert us == [0.2, 2.5]
+
+
+def test_mpc_loop_skips_ended_episodes_only() -> None:
+    """An ended episode of a batch is not solved (its commands are 0); the episodes after it
+    are."""
+    ctrl = _ScriptedMPC([(1.0, [1.0, 1.0])], horizon=2)
+    env = _scripted_env(ctrl, batch=2)
+    env.state.done[0] = True
+    u = ctrl.act(env.state, None)
+    assert u.tolist() == [[0.0, 0.0], [1.0, 1.0]] and ctrl.solve_count == 2
+
+
+def test_mpc_loop_passes_the_realised_acceleration_with_a_lag() -> None:
+    """With an actuator lag the problem's state holds the realised acceleration (feasible)."""
+    ctrl = _ScriptedMPC([(0.0, [0.0, 0.0])], horizon=2)
+    env = _scripted_env(ctrl, lag_s=0.2)
+    env.state.realised_accel_mps2[:] = 0.4
+    ctrl.act(env.state, None)
+    p, _ = ctrl.calls[0]
+    assert ctrl.layout.nx == 4 and p[2] == 0.4
+
+
+@pytest.mark.parametrize("lag_s", [0.1, 0.5])
+def test_feasible_lag_accel_keeps_the_coasting_speed_in_bounds(lag_s: float) -> None:
+    """With u = 0 from realised acceleration a, the lag ``a' = (1-g) a`` adds
+    ``dt a (1-g) / g`` to the speed in all (a geometric series, summed here step by step):
+    the clipped a takes a speed of 1 m/s exactly to 0, and 29 m/s exactly to 30 (speed_max);
+    accelerations that stay in bounds pass unchanged; without a lag nothing is clipped."""
+    from controllers.mpc_common import VehicleModel, feasible_lag_accel
+
+    params = PlatoonParams(lag_s=lag_s)
+    model = VehicleModel.from_params(params)
+    g = model.lag_gain
+
+    def coast(v: float, a: float) -> float:
+        for _ in range(5000):
+            a = (1 - g) * a
+            v += model.dt_s * a
+        return v
+
+    v = np.array([1.0, 29.0, 15.0])
+    a = np.array([-50.0, 50.0, 0.3])
+    clipped = feasible_lag_accel(v, a, model, params)
+    assert coast(1.0, clipped[0]) == pytest.approx(0.0, abs=1e-9)
+    assert coast(29.0, clipped[1]) == pytest.approx(params.speed_max_mps, abs=1e-9)
+    assert clipped[2] == 0.3
+    free = VehicleModel.from_params(PlatoonParams())
+    out = feasible_lag_accel(v, a, free, PlatoonParams())
+    assert out.dtype == np.float64 and out.tolist() == a.tolist()
