@@ -193,17 +193,24 @@ MAX_BATCH = 50
 
 
 def batch_keys(keys: Sequence[RunKey], workers: int = 1) -> list[list[RunKey]]:
-    """Runs grouped into batches that :func:`execute_batch` runs: keys that differ only in
-    their seed, in key order, at most :data:`MAX_BATCH` per batch and, when there are fewer
-    settings than ``workers``, split so that every worker gets a batch. The grouping never
-    changes a result (a batch-invariant controller gives every episode the same run in any
-    batch; the others run seed by seed)."""
+    """Runs grouped into batches that :func:`execute_batch` runs. A batch-invariant
+    controller's keys that differ only in their seed form batches (in key order, at most
+    :data:`MAX_BATCH`, split so that every worker gets one when there are few); every other run
+    is a batch of its own, so it is stored as soon as it finishes. The grouping never changes a
+    result: a batch-invariant controller gives every episode the same run in any batch."""
+    from controllers.registry import batch_invariant
+
     groups: dict[RunKey, list[RunKey]] = {}
+    singles: list[list[RunKey]] = []
     for key in sorted(keys):
-        groups.setdefault(dataclasses.replace(key, seed=0), []).append(key)
-    per_worker = math.ceil(len(keys) / max(1, workers))
+        if batch_invariant(key.name):
+            groups.setdefault(dataclasses.replace(key, seed=0), []).append(key)
+        else:
+            singles.append([key])
+    per_worker = math.ceil(sum(map(len, groups.values())) / max(1, workers))
     size = max(1, min(MAX_BATCH, per_worker))
-    return [grp[i : i + size] for grp in groups.values() for i in range(0, len(grp), size)]
+    batches = [grp[i : i + size] for grp in groups.values() for i in range(0, len(grp), size)]
+    return batches + singles
 
 
 #: The most episodes one setting may ask for (beyond the 50 published seeds, 2000 + 10 k).

@@ -154,6 +154,15 @@ def _factory(spec: ControllerSpec) -> Callable[..., Any]:
     return getattr(importlib.import_module(module_name), attr)
 
 
+def batch_invariant(name: str) -> bool:
+    """Whether the registered controller declares ``batch_invariant`` (the harness may step
+    its seeds together; see :class:`controllers.base.Controller`)."""
+    try:
+        return bool(getattr(_factory(resolve(name)), "batch_invariant", False))
+    except ImportError:
+        return False
+
+
 def controller_options(name: str) -> dict[str, Any]:
     """The options a registered controller takes, with their defaults (its config dataclass's
     fields, or its constructor's keyword arguments)."""

@@ -432,3 +432,6 @@ def test_batches_group_seeds_of_one_setting() -> None:
     assert max(len(b) for b in batches) == MAX_BATCH
     one = build_sweep([("ovm", {})], ["catchup-v1"], [4], [2000, 2010, 2020, 2030])
     assert [len(b) for b in batch_keys(one, workers=2)] == [2, 2]  # every worker gets work
+    # a controller that is not batch-invariant runs (and is stored) one run at a time
+    mpc = build_sweep([("mpc-qp", {}), ("ia2c", {})], ["catchup-v1"], [4], [2000, 2010, 2020])
+    assert [len(b) for b in batch_keys(mpc, workers=1)] == [1] * 6
