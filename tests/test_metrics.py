@@ -139,3 +139,13 @@ def test_a_gain_of_exactly_one_is_stable_and_an_undefined_gain_is_not() -> None:
 def test_a_gain_of_one_and_a_half_is_unstable() -> None:
     m = run_metrics(_four_steps([0, 1, 1, 1, 1], [[0, 0]] + [[1.5, 1.5]] * 4), 20.0, 15.0)
     assert m["string_gain"] == pytest.approx(1.5) and m["string_stable"] is False
+
+
+def test_a_gain_of_exactly_one_plus_the_tolerance_is_stable() -> None:
+    """The tolerance is inclusive: a gain equal to 1 + STRING_GAIN_TOL (1.01, exactly in
+    floating point here) counts as string stable."""
+    from benchmark.metrics import STRING_GAIN_TOL
+
+    m = run_metrics(_four_steps([0, 1, 1, 1, 1], [[0, 0]] + [[1.01, 1.01]] * 4), 20.0, 15.0)
+    assert m["string_gain"] == 1.0 + STRING_GAIN_TOL  # the premise, to the last bit
+    assert m["string_stable"] is True

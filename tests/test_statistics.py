@@ -56,3 +56,23 @@ def test_one_group_is_the_plain_bootstrap_and_nan_and_empty_groups_drop() -> Non
     assert hierarchical_bootstrap_ci([x, np.array([np.nan]), []]) == bootstrap_ci(x)
     assert all(np.isnan(v) for v in hierarchical_bootstrap_ci([[np.nan], []]))
     assert bootstrap_ci([3.0]) == (3.0, 3.0, 3.0)
+
+
+def test_two_stage_resamples_count_every_drawn_group_with_few_resamples() -> None:
+    """With four resamples, each resample's mean is that of the g groups it drew (their
+    first-stage picks are the generator's first draw; groups of constant values make the
+    second stage irrelevant): the interval at confidence 1 spans exactly the smallest and
+    largest of those means, even where a group is drawn by no resample at some position."""
+    from analysis.statistics import hierarchical_bootstrap_ci
+
+    values, sizes = (0.0, 10.0, 20.0), (1, 2, 3)
+    groups = [np.full(n, v) for v, n in zip(values, sizes, strict=True)]
+    unpicked = 0
+    for seed in range(10):
+        picks = np.random.Generator(np.random.PCG64(seed)).integers(0, 3, size=(4, 3))
+        unpicked += sum(len(set(picks[:, j])) < 3 for j in range(3))
+        means = [sum(values[k] * sizes[k] for k in row) / sum(sizes[k] for k in row)
+                 for row in picks]
+        _, lo, hi = hierarchical_bootstrap_ci(groups, confidence=1.0, n_resamples=4, seed=seed)
+        assert (lo, hi) == pytest.approx((min(means), max(means)), abs=1e-12), seed
+    assert unpicked > 0  # the case the test is for occurs
