@@ -62,18 +62,20 @@ class ResultStore:
                 f"no results store in {self.folder} (expected {self.path}); "
                 "run `cacc-bench run --out DIR` first"
             )
-        if self.path.exists() and self.path.stat().st_size == 0:
-            raise ConfigError(
-                f"{self.path} is empty (0 bytes), not a results store; remove it to start a new "
-                "store in this folder, or choose another --out"
-            )
         try:
             self.folder.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise ConfigError(f"cannot make the results folder {self.folder} ({exc.strerror}); "
                               "choose a writable --out") from None
         if writer:
+            # the lock first: a racing writer's new file is 0 bytes until its schema is written
             self._acquire()
+        if self.path.exists() and self.path.stat().st_size == 0:
+            self._release()
+            raise ConfigError(
+                f"{self.path} is empty (0 bytes), not a results store; remove it to start a new "
+                "store in this folder, or choose another --out"
+            )
         try:
             self.conn = sqlite3.connect(self.path, timeout=30)
             check = self.conn.execute("PRAGMA quick_check").fetchone()

@@ -14,6 +14,7 @@ import pytest
 
 from benchmark.cli import main as cli
 from benchmark.store import ResultStore
+from envs.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parent.parent
 SMALL = ["--controllers", "ovm", "--scenarios", "catchup-v1", "--vehicles", "2", "--episodes",
@@ -99,6 +100,20 @@ def test_an_empty_store_file_is_refused(tmp_path: Path, capsys: pytest.CaptureFi
         assert cli(argv) == 2
         assert "is empty (0 bytes)" in capsys.readouterr().err
     assert (out / "runs.csv").read_text() == "keep me\n"
+
+
+def test_a_writer_creating_its_store_is_named_not_called_empty(tmp_path: Path) -> None:
+    """A writer's new store file is 0 bytes until its schema is written; a second writer that
+    arrives then must be told who writes the folder, not that the store is empty (the race that
+    made the two-writers test flaky)."""
+    out = tmp_path / "new"
+    out.mkdir()
+    with ResultStore(out, writer=True) as first:
+        first.conn.close()
+        (out / "store.sqlite").write_bytes(b"")  # as between sqlite3.connect and the schema
+        with pytest.raises(ConfigError, match=f"being written by pid {os.getpid()}"):
+            ResultStore(out, writer=True)
+        first.conn = sqlite3.connect(":memory:")
 
 
 @pytest.mark.parametrize("damage", ["page", "truncate", "header"])
