@@ -90,7 +90,7 @@ def rollout_batch(
     while the others go on, and its trajectory stops at its own last step. With one seed this is
     :func:`rollout`. Every episode depends only on its own seed (the env, the channels and the
     sampled policies draw from per-episode streams), so an episode gives the same trajectory
-    alone or in a batch, up to the float rounding of batched matrix products.
+    alone or in a batch; for a controller that is ``batch_invariant``, to the last bit.
     ``compute_s`` and ``bits_sent`` of each episode are its share (1/B) of the batch's, counted
     while the episode runs, and ``solver_failures`` is the batch's; with one seed all are exact.
     """

@@ -128,9 +128,10 @@ class Controller(ABC):
     batch_invariant : bool
         Whether an episode gives the same run, to the last bit, alone or stepped with others
         (every metric but the wall times; tested for each such controller). The harness steps
-        the seeds of one setting together only for these. False for the learned policies (their
-        float32 matrix products round differently with the batch size, which can flip a sampled
-        action) and the MPC family (its solver-failure count is the batch's).
+        the seeds of one setting together only for these. True for the cheap laws and the
+        learned policies (whose network always sees at least two rows, see
+        ``controllers.policy.MIN_LANES``); False for the MPC family (its solver-failure count is
+        the batch's).
     """
 
     name: str = "controller"

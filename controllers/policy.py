@@ -33,6 +33,8 @@ CHECKPOINT_DIR = Path(__file__).resolve().parent / "checkpoints"
 ACTION_STREAM = "policy-actions"
 #: Shipped policies trained with another config than the leaderboard's (one folder each).
 VARIANT_DIR = CHECKPOINT_DIR / "variants"
+#: Fewest rows the policy network is evaluated on (see :meth:`PolicyController.reset`).
+MIN_LANES = 2
 
 
 def shipped_variants() -> list[str]:
@@ -80,6 +82,7 @@ class PolicyController(Controller):
 
     family = "marl"
     deterministic = False
+    batch_invariant = True
     v2v = "neighbours' vehicle blocks (5 floats), plus learned messages for fprint/dial/commnet"
     needs_observation = True
 
@@ -219,7 +222,11 @@ class PolicyController(Controller):
         self.preflight(ctx.scenario, ctx.n_vehicles)
         self.params = ctx.params
         n = ctx.n_vehicles
-        self.state = self.net.initial_state(ctx.batch_size)
+        # at least two lanes: a one-row matrix product takes another kernel (gemv) whose
+        # rounding differs from the rows of a batch; with >= 2 rows each row's numbers do not
+        # depend on the batch, so an episode acts the same alone or batched (tested)
+        self._lanes = max(ctx.batch_size, MIN_LANES)
+        self.state = self.net.initial_state(self._lanes)
         self.seeds = ctx.seeds
         self.t = 0
         self.block_channel = ctx.make_channel(5, f"{self.algo}-blocks", links="neighbours")
@@ -248,27 +255,31 @@ class PolicyController(Controller):
         if observation is None:
             raise ConfigError(f"{self.algo} needs the agent observations (needs_observation)")
         b, n, _ = observation.shape
+
+        def lanes(x: np.ndarray) -> np.ndarray:  # (b, ...) -> (lanes, ...), repeating row 0
+            return x if b == self._lanes else np.concatenate([x, np.repeat(x[:1], self._lanes - b, 0)])
+
         own = observation[:, :, :5]
         payload = np.zeros((b, n + 1, 5))
         payload[:, 1:] = own
         front_blk, rear_blk = self._split(self.block_channel.transmit(payload), n)
-        obs = np.concatenate([own, front_blk, rear_blk], axis=-1).astype(np.float32)
+        obs = lanes(np.concatenate([own, front_blk, rear_blk], axis=-1).astype(np.float32))
         messages: tuple[torch.Tensor | None, torch.Tensor | None] = (None, None)
         if self.msg_channel is not None:
-            msg = self.net.message(self.state)  # (N, B, W)
+            msg = self.net.message(self.state)[:, :b]  # (N, B, W)
             out = np.zeros((b, n + 1, self.net.msg_width))
             out[:, 1:] = msg.detach().numpy().transpose(1, 0, 2)
             f, r = self._split(self.msg_channel.transmit(out), n)
 
             def t(x: np.ndarray) -> torch.Tensor:
-                return torch.from_numpy(x.transpose(1, 0, 2).astype(np.float32)).contiguous()
+                return torch.from_numpy(lanes(x).transpose(1, 0, 2).astype(np.float32)).contiguous()
 
             messages = (t(f), t(r))
         uniforms = None
         if self.mode == "sampled":
-            uniforms = episode_uniforms(self.seeds, ACTION_STREAM, self.t, n)
+            uniforms = lanes(episode_uniforms(self.seeds, ACTION_STREAM, self.t, n))
         self.t += 1
         actions, self.state = policy_actions(self.net, obs, self.state, messages, uniforms)
         return action_to_command_mps2(
-            actions, state.gap_m, state.speed_mps, state.pred_speed_mps, self.params
+            actions[:b], state.gap_m, state.speed_mps, state.pred_speed_mps, self.params
         )

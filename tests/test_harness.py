@@ -377,7 +377,8 @@ def _batch_invariant_names() -> list[str]:
 
 
 def test_the_batch_invariant_controllers_are_the_cheap_laws() -> None:
-    assert _batch_invariant_names() == ["ovm", "duty", "acc", "cacc"]
+    assert _batch_invariant_names() == ["ovm", "duty", "acc", "cacc", "ia2c", "fprint", "dial",
+                                        "commnet", "wac", "dcea", "bdc"]
 
 
 @pytest.mark.parametrize("name", ["ovm", "duty", "acc", "cacc"])
@@ -393,6 +394,35 @@ def test_a_batch_gives_each_run_its_record_alone(name, scenario, delay, loss, la
     keys = build_sweep([(name, {})], [scenario], [5], [2000, 2010, 2020, 2030, 2040], [delay],
                        [loss], [lag])
     batched = execute_batch(keys)
+    for key, rec in zip(keys, batched, strict=True):
+        alone = execute_run(key)
+        for col, value in alone.items():
+            if col in TIMING_COLUMNS or col == "wall_s":
+                continue
+            assert rec[col] == value or (value != value and rec[col] != rec[col]), (key.seed, col)
+
+
+@pytest.mark.parametrize(("name", "options", "scenario", "n", "delay", "loss", "mixed"), [
+    ("bdc", {}, "slowdown-v1", 8, 0.0, 0.0, False),
+    ("dial", {"mode": "greedy"}, "catchup-v1", 8, 0.2, 0.1, False),
+    ("commnet", {}, "catchup-v1", 8, 0.1, 0.3, False),
+    ("fprint", {"untrained": "true"}, "catchup-v1", 4, 0.1, 0.2, True),
+    ("ia2c", {"untrained": "true"}, "slowdown-v1", 8, 0.0, 0.0, True),
+])
+def test_a_batch_of_policy_runs_gives_each_run_its_record_alone(
+    name, options, scenario, n, delay, loss, mixed
+) -> None:
+    """Policies are batched too (their network sees at least two rows, so no row's rounding
+    depends on the batch): each record equals the run alone to the last bit, sampled and greedy,
+    with messages under delay and loss, and where some episodes of the batch collide and others
+    do not (``mixed``)."""
+    from benchmark.suite import execute_batch
+
+    keys = build_sweep([(name, options)], [scenario], [n], [2000, 2010, 2020, 2030], [delay],
+                       [loss])
+    batched = execute_batch(keys)
+    if mixed:
+        assert {r["collision"] for r in batched} == {True, False}
     for key, rec in zip(keys, batched, strict=True):
         alone = execute_run(key)
         for col, value in alone.items():
@@ -433,5 +463,5 @@ def test_batches_group_seeds_of_one_setting() -> None:
     one = build_sweep([("ovm", {})], ["catchup-v1"], [4], [2000, 2010, 2020, 2030])
     assert [len(b) for b in batch_keys(one, workers=2)] == [2, 2]  # every worker gets work
     # a controller that is not batch-invariant runs (and is stored) one run at a time
-    mpc = build_sweep([("mpc-qp", {}), ("ia2c", {})], ["catchup-v1"], [4], [2000, 2010, 2020])
+    mpc = build_sweep([("mpc-qp", {}), ("cmpc", {})], ["catchup-v1"], [4], [2000, 2010, 2020])
     assert [len(b) for b in batch_keys(mpc, workers=1)] == [1] * 6
