@@ -119,7 +119,6 @@ def rollout_batch(
     bits = np.zeros(t_max, dtype=np.int64)
     steps = np.full(b, t_max)
     gap[0], speed[0] = s.gap_m, s.speed_mps
-    weight_power = env.weights.power
     t = 0
     clock = time.perf_counter
     while t < t_max:
@@ -138,11 +137,7 @@ def rollout_batch(
         # C order: a row's sum over agents must not depend on the batch (a Fortran-ordered
         # (B, N) array would be summed in another order than a lone episode's row)
         reward[t - 1] = np.ascontiguousarray(res.reward).sum(axis=1)
-        tracking[t - 1] = np.where(
-            res.collided & ~was_done,
-            reward[t - 1],  # -1000 per agent, no power term
-            reward[t - 1] - weight_power * np.ascontiguousarray(res.power_kw).sum(axis=1),
-        )
+        tracking[t - 1] = np.ascontiguousarray(res.tracking_reward).sum(axis=1)
         steps[res.done & ~was_done] = t
         obs = res.observation
         if res.done.all():

@@ -95,6 +95,9 @@ class StepResult:
         Applied accelerations of the step.
     observation : (B, N, 15) or None
         Agent observations after the step (if the env observes).
+    tracking_reward : (B, N)
+        The evaluation reward without the power term (the published benchmark's reward), by the
+        same rules: the collision penalty at a collision step, 0 once an episode has ended.
     """
 
     reward: np.ndarray
@@ -103,6 +106,7 @@ class StepResult:
     power_kw: np.ndarray
     applied_accel_mps2: np.ndarray
     observation: np.ndarray | None
+    tracking_reward: np.ndarray
 
 
 class PlatoonEnv:
@@ -271,6 +275,7 @@ class PlatoonEnv:
             self.weights,
         )
         reward = combine_reward(terms, training=self.training, include_power=self.include_power)
+        tracking = combine_reward(terms, training=False, include_power=False)
         new_collision = (gap < self.params.gap_min_m).any(axis=1)
         frozen = s.done | s.collided
         if new_collision.any() or frozen.any():
@@ -284,8 +289,8 @@ class PlatoonEnv:
             applied = np.where(keep, 0.0, applied)
             power = np.where(keep, 0.0, power)
             hit = s.collided & ~s.done
-            reward[hit] = self.weights.collision
-            reward[s.done] = 0.0
+            reward[hit] = tracking[hit] = self.weights.collision
+            reward[s.done] = tracking[s.done] = 0.0
             if self.collision_mode == "terminate":
                 s.done |= s.collided
             else:
@@ -295,7 +300,7 @@ class PlatoonEnv:
         if s.step >= self.n_steps:
             s.done[:] = True
         obs = self.observation() if self.observe else None
-        return StepResult(reward, s.done.copy(), s.collided.copy(), power, applied, obs)
+        return StepResult(reward, s.done.copy(), s.collided.copy(), power, applied, obs, tracking)
 
     def battery_power_kw(self, speed_mps: np.ndarray, accel_mps2: np.ndarray) -> np.ndarray:
         """Battery power (kW) by the fitted polynomial, evaluated inside its fit domain."""

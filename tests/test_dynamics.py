@@ -136,6 +136,28 @@ def test_collision_rules(mode: str) -> None:
         assert s.step % 60 == 0
 
 
+def test_step_tracking_reward_is_the_reward_without_its_power_term() -> None:
+    """The env returns the tracking reward itself (the terms of ``reward_terms`` without power),
+    with the reward's collision and end rules; nothing downstream subtracts the power term."""
+    env = PlatoonEnv("catchup-v1", 2, observe=False)
+    env.reset([0, 1])
+    s = env.state
+    assert s is not None
+    w5 = env.weights.power
+    while True:
+        res = env.step(np.array([[0.0, 2.5], [0.0, 0.0]]))  # episode 0 collides, 1 does not
+        live = ~res.collided
+        np.testing.assert_allclose(res.tracking_reward[live],
+                                   res.reward[live] - w5 * res.power_kw[live], rtol=1e-12)
+        assert np.all(res.tracking_reward[live] <= 0)
+        if res.collided[0]:
+            break
+    assert np.all(res.tracking_reward[0] == -1000.0) and np.all(res.reward[0] == -1000.0)
+    res = env.step(np.zeros((2, 2)))
+    assert np.all(res.tracking_reward[0] == 0.0) and np.all(res.reward[0] == 0.0)
+    assert res.tracking_reward[1].sum() < 0
+
+
 def test_batched_env_equals_separate_runs() -> None:
     seeds = [2000, 2010, 2020, 7]
     rng = np.random.default_rng(0)
