@@ -1,6 +1,7 @@
 """``cacc-bench fit-power``: refit the energy polynomial from the shipped BMW i3 map data.
 
-Prints the fit quality (R^2, RMSE, max error over the full grid and over v in [0.5, 20] m/s),
+Prints the fit quality (R^2, RMSE, max error over the full grid and over v in [0.5, 20] m/s,
+and the error at the spec's reference points),
 compares the refit with the shipped coefficients (``envs/data/energy/power_poly.json``),
 optionally overwrites them (``--write``) and draws the figure (``--figure DIR``).
 """
@@ -56,6 +57,17 @@ def _quality_lines(fit: energy.PowerFit) -> list[str]:
     ]
 
 
+def _reference_lines(fit: energy.PowerFit) -> list[str]:
+    """The refit against the map model at the reference points of docs/spec/energy.md."""
+    from envs.energy.fit import reference_errors
+
+    lines = ["at the reference points of docs/spec/energy.md (map model, polynomial, error):"]
+    for v, u, want, got, rel in reference_errors(fit.polynomial()):
+        lines.append(f"  v = {v:4.1f} m/s, u = {u:+.0f} m/s^2: {want:7.2f} kW  {got:7.2f} kW  "
+                     f"{100 * rel:+5.1f} %")
+    return lines
+
+
 def _compare(fit: energy.PowerFit, path: Path) -> tuple[bool, list[str]]:
     """Compare the refit with a stored polynomial file: (readable, report lines)."""
     try:
@@ -101,6 +113,8 @@ def main(argv: list[str] | None = None) -> int:
         writable_dir(args.figure, "--figure", create=True)
     fit = energy.fit_power_polynomial()
     for line in _quality_lines(fit):
+        print(line)
+    for line in _reference_lines(fit):
         print(line)
     path = energy.DEFAULT_POLYNOMIAL_FILE
     readable, lines = _compare(fit, path)

@@ -143,6 +143,33 @@ class PowerFit:
         }
 
 
+#: The operating points of the map model's reference table in ``docs/spec/energy.md``
+#: (speed m/s, acceleration m/s^2), where ``cacc-bench fit-power`` reports the polynomial's error.
+REFERENCE_POINTS: tuple[tuple[float, float], ...] = (
+    (5.0, 0.0), (11.1, 0.0), (20.0, 0.0), (11.0, 1.0), (11.0, -1.0), (11.0, -3.0),
+)
+
+
+def reference_errors(
+    polynomial: PowerPolynomial,
+    params: VehicleParams | None = None,
+    loss_map: LossMap | None = None,
+) -> list[tuple[float, float, float, float, float]]:
+    """The polynomial against the map model at :data:`REFERENCE_POINTS`.
+
+    Returns
+    -------
+    list of (v_mps, u_mps2, map_kw, polynomial_kw, relative_error)
+        ``relative_error = (polynomial_kw - map_kw) / |map_kw|``.
+    """
+    v = np.array([p[0] for p in REFERENCE_POINTS])
+    u = np.array([p[1] for p in REFERENCE_POINTS])
+    ref = map_operating_point(v, u, params, loss_map).battery_power_w / 1000.0
+    got = polynomial(v, u)
+    return [(float(a), float(b), float(m), float(g), float((g - m) / abs(m)))
+            for a, b, m, g in zip(v, u, ref, got, strict=True)]
+
+
 def _package_version() -> str:
     try:
         from importlib.metadata import PackageNotFoundError, version
