@@ -26,6 +26,26 @@ def add_executor_options(parser: Any, default: str = "serial") -> None:
     parser.add_argument("--ray-address", default=None, help="attach to this Ray cluster")
 
 
+#: ``--executor auto`` (the default of ``cacc-bench run``): see :func:`resolve_executor`.
+AUTO = "auto"
+
+
+def resolve_executor(keys: Sequence[RunKey], executor: str, workers: int) -> str:
+    """The executor ``auto`` stands for: ``process`` when more than one worker is allowed, the
+    sweep holds more than one batch and some run is an optimiser or a learned policy (family
+    ``mpc`` or ``marl``, each worth a worker's start-up of a few seconds); else ``serial``.
+    Any other executor is returned as given. The choice never changes a number, only the wall
+    time (every executor gives identical records)."""
+    if executor != AUTO:
+        return executor
+    from controllers.registry import resolve
+
+    heavy = any(resolve(k.name).family in ("mpc", "marl") for k in keys)
+    if workers > 1 and heavy and len(batch_keys(keys, workers)) > 1:
+        return "process"
+    return "serial"
+
+
 def _worker_env() -> None:
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     os.environ.setdefault("MKL_NUM_THREADS", "1")

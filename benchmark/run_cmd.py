@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from benchmark.executors import EXECUTORS, run_keys
+from benchmark.executors import AUTO, EXECUTORS, resolve_executor, run_keys
 from benchmark.progress import Progress
 from benchmark.suite import MAX_SEED, RunKey, build_sweep, seeds_from_episodes, unique
 from controllers.registry import default_controllers, parse_controller_list
@@ -75,7 +75,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="complete the sweep in --out: skip stored runs, retry failed ones")
     p.add_argument("--trajectories", action="store_true",
                    help="also write one trajectory CSV per run into OUT/trajectories/")
-    p.add_argument("--executor", choices=EXECUTORS, default="serial")
+    p.add_argument("--executor", choices=(AUTO, *EXECUTORS), default=AUTO,
+                   help="auto (default: the process pool when a sweep has several batches of "
+                        "MPC or policy runs, else serial), serial, process or ray")
     p.add_argument("--workers", type=int, default=2, help="processes or Ray CPUs (default 2)")
     p.add_argument("--ray-address", default=None,
                    help="attach to this Ray cluster (default: RAY_ADDRESS, else a local instance)")
@@ -192,6 +194,7 @@ def execute_sweep(
         if skipped:
             print(f"resuming: {skipped} of {len(keys)} runs already stored, {len(pending)} to run",
                   file=sys.stderr)
+        executor = resolve_executor(todo, executor, workers)
         store.set_meta("last_sweep", {"n_runs": len(keys), "executor": executor})
         progress = Progress(len(todo))
         for rec in run_keys(todo, executor, workers, ray_address, keep_trajectory=True):

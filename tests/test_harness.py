@@ -431,6 +431,22 @@ def test_a_batch_of_policy_runs_gives_each_run_its_record_alone(
             assert rec[col] == value or (value != value and rec[col] != rec[col]), (key.seed, col)
 
 
+def test_the_auto_executor_uses_the_pool_only_for_several_batches_of_heavy_runs() -> None:
+    from benchmark.executors import resolve_executor
+
+    cheap = build_sweep([("ovm", {}), ("cacc", {})], ["catchup-v1"], [4], [2000, 2010, 2020])
+    mpc = build_sweep([("mpc-qp", {})], ["catchup-v1"], [4], [2000, 2010])
+    policy = build_sweep([("bdc", {})], ["catchup-v1", "slowdown-v1"], [8], [2000])
+    assert resolve_executor(cheap, "auto", 2) == "serial"  # cheap laws: a pool costs more
+    assert resolve_executor(mpc, "auto", 2) == "process"
+    assert resolve_executor(mpc[:1], "auto", 2) == "serial"  # one batch: nothing to share
+    assert resolve_executor(mpc, "auto", 1) == "serial"
+    assert resolve_executor(policy, "auto", 2) == "process"
+    assert resolve_executor(policy[:1] + cheap, "auto", 2) == "process"
+    for name in ("serial", "process", "ray"):
+        assert resolve_executor(mpc, name, 2) == name
+
+
 def test_a_failing_batch_records_each_run_alone(monkeypatch: pytest.MonkeyPatch) -> None:
     """A batch that raises is run seed by seed, so the failure is stored with its own run."""
     import benchmark.rollout

@@ -192,14 +192,16 @@ def _wait_for_runs(out: Path, n: int, proc: subprocess.Popen[str]) -> None:
     assert proc.poll() is None, "the sweep ended before the signal"
 
 
-@pytest.mark.parametrize("sig, code", [("SIGINT", 130), ("SIGTERM", 143)])
+@pytest.mark.parametrize("sig, code, executor", [("SIGINT", 130, "serial"),
+                                                 ("SIGTERM", 143, "auto")])
 def test_a_signal_during_mpc_stores_nothing_wrong_and_exits_128_plus_signum(
-        tmp_path: Path, sig: str, code: int) -> None:
+        tmp_path: Path, sig: str, code: int, executor: str) -> None:
+    """In the serial loop and in the process pool that ``auto`` picks for an MPC sweep."""
     import signal
     import time
 
     out = tmp_path / "mpc"
-    proc = _start(out)
+    proc = _start(out, "--executor", executor)
     _wait_for_runs(out, 1, proc)
     time.sleep(0.5)  # well inside the next run: the solver is what runs
     proc.send_signal(getattr(signal, sig))
@@ -210,9 +212,12 @@ def test_a_signal_during_mpc_stores_nothing_wrong_and_exits_128_plus_signum(
     assert 1 <= len(stored) < 6
     # the interrupted solve is neither a solver failure nor a failed run
     assert all(r["status"] == "ok" and r["solver_failures"] == 0 for r in stored)
-    res = _cli(*MPC, "--out", str(out), "--resume")
+    res = _cli(*MPC, "--out", str(out), "--resume", "--executor", executor)
     assert res.returncode == 0, res.stderr
     assert f"{len(stored)} of 6 runs already stored" in res.stderr
+    with sqlite3.connect(out / "store.sqlite") as conn:
+        meta = conn.execute("SELECT value FROM meta WHERE key = 'last_sweep'").fetchone()[0]
+    assert f'"executor": "{"serial" if executor == "serial" else "process"}"' in meta
     assert all(r["status"] == "ok" and r["solver_failures"] == 0 for r in _stored(out))
 
 
