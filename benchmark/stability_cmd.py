@@ -127,17 +127,7 @@ def _write_csv(path: Path, columns: tuple[str, ...], rows: list[dict[str, Any]])
 
 
 def _print_table(rows: list[dict[str, Any]]) -> None:
-    cols = (
-        "controller",
-        "kind",
-        "time_gap_s",
-        "delay_s",
-        "lag_s",
-        "peak_gain",
-        "peak_omega_rad_s",
-        "h_min_s",
-        "string_stable",
-    )
+    cols = SUMMARY_COLUMNS
     table = [[_fmt(r.get(c)) for c in cols] for r in rows]
     widths = [
         max(len(c), *(len(t[i]) for t in table)) if table else len(c) for i, c in enumerate(cols)
