@@ -334,23 +334,27 @@ def _reference(name: str, scenario: str) -> dict[str, float]:
 
 
 #: Shipped policies that avoid collisions by crawling: fewer collisions than their untrained
-#: policy, but no better mean reward. None since the slowdown-v1 policies were trained for 1e6
-#: steps (at 6e5, BDC and DCEA crawled there: -1,845 and -3,369).
+#: policy, but no better mean reward. None since the slowdown-v1 policies were trained longer
+#: (at 6e5 steps, BDC and DCEA crawled there: -1,845 and -3,369).
 CRAWLING: frozenset[tuple[str, str]] = frozenset()
 
 #: What the README's table reads, three training seeds pooled (150 episodes): (collisions, mean
-#: reward) per algorithm and scenario (catchup-v1 trained 6e5 steps, slowdown-v1 1e6 steps, the
+#: reward) per algorithm and scenario (catchup-v1 trained 6e5 steps, slowdown-v1 2e6 steps, the
 #: same for all seven); ``ovm`` -641 on catchup-v1 and -731 on slowdown-v1.
 MEASURED: dict[tuple[str, str], tuple[int, float]] = {
     ("bdc", "catchup-v1"): (0, -445.88), ("dcea", "catchup-v1"): (0, -447.41),
     ("wac", "catchup-v1"): (0, -458.78), ("dial", "catchup-v1"): (0, -499.14),
     ("commnet", "catchup-v1"): (0, -506.19), ("fprint", "catchup-v1"): (2, -552.78),
     ("ia2c", "catchup-v1"): (0, -602.57),
-    ("bdc", "slowdown-v1"): (1, -797.52), ("dcea", "slowdown-v1"): (5, -739.53),
-    ("wac", "slowdown-v1"): (4, -1030.12), ("dial", "slowdown-v1"): (17, -860.16),
-    ("commnet", "slowdown-v1"): (13, -938.91), ("fprint", "slowdown-v1"): (1, -780.59),
-    ("ia2c", "slowdown-v1"): (10, -723.23),
+    ("bdc", "slowdown-v1"): (0, -652.45), ("dcea", "slowdown-v1"): (0, -658.35),
+    ("wac", "slowdown-v1"): (1, -641.70), ("dial", "slowdown-v1"): (7, -752.28),
+    ("commnet", "slowdown-v1"): (4, -728.06), ("fprint", "slowdown-v1"): (0, -556.79),
+    ("ia2c", "slowdown-v1"): (1, -631.24),
 }
+
+#: Algorithms that, pooled, are collision-free and better than ``ovm`` on slowdown-v1 (the
+#: README's reading; BDC among them is the MARL-credibility issue's bar).
+SAFE_AND_AHEAD_ON_SLOWDOWN = frozenset({"bdc", "fprint", "dcea"})
 
 
 @pytest.mark.parametrize("scenario", ["catchup-v1", "slowdown-v1"])
@@ -371,8 +375,9 @@ def test_shipped_policies_on_the_evaluation_seeds(name, scenario) -> None:
     - every algorithm ships seeds 0, 1 and 2 and reads the README's numbers (:data:`MEASURED`);
     - every policy collides in a smaller fraction of episodes than its untrained policy (45 to
       48 of 50) and, except those in :data:`CRAWLING`, scores a better reward;
-    - catchup-v1: every algorithm beats ``ovm``; slowdown-v1: no algorithm is both
-      collision-free and better than ``ovm`` (the issue's bar is not met there).
+    - catchup-v1: every algorithm beats ``ovm``; slowdown-v1: exactly the algorithms of
+      :data:`SAFE_AND_AHEAD_ON_SLOWDOWN`, BDC among them, are collision-free and better than
+      ``ovm``.
     """
     from envs.params import EVAL_SEEDS
 
@@ -391,8 +396,9 @@ def test_shipped_policies_on_the_evaluation_seeds(name, scenario) -> None:
         assert pooled["reward"] > untrained["reward"] + 50
     if scenario == "catchup-v1":
         assert pooled["reward"] > ovm["reward"] + 30
-    else:  # no learned policy is both collision-free and better than ovm
-        assert pooled["collisions"] > 0 or pooled["reward"] < ovm["reward"]
+    else:
+        safe_and_ahead = pooled["collisions"] == 0 and pooled["reward"] > ovm["reward"]
+        assert safe_and_ahead == (name in SAFE_AND_AHEAD_ON_SLOWDOWN)
 
 
 def test_bdc_greedy_is_worse_than_sampled_on_catchup() -> None:
@@ -402,10 +408,10 @@ def test_bdc_greedy_is_worse_than_sampled_on_catchup() -> None:
     assert greedy["reward"] < MEASURED[("bdc", "catchup-v1")][1] - 100
 
 
-def test_bdc_slowdown_curves_at_1e6_steps() -> None:
-    """``docs/bdc-slowdown-study.md``: the three shipped BDC seeds on slowdown-v1 (1e6 steps)
-    keep collision-free validation snapshots scoring -728.0, -914.7 and -838.9 (``ovm`` -764.9
-    on the same validation seeds): only seed 0 beats the human driver there."""
+def test_bdc_slowdown_curves_at_2e6_steps() -> None:
+    """``docs/bdc-slowdown-study.md``: the three shipped BDC seeds on slowdown-v1 (2e6 steps)
+    keep collision-free validation snapshots scoring -667.2, -691.4 and -693.3 (at 1e6 steps:
+    -728.0, -914.7, -838.9; ``ovm`` -764.9 on the same validation seeds)."""
     import pandas as pd
 
     from controllers.policy import CHECKPOINT_DIR
@@ -414,9 +420,9 @@ def test_bdc_slowdown_curves_at_1e6_steps() -> None:
     for seed in (0, 1, 2):
         curve = pd.read_csv(CHECKPOINT_DIR / f"bdc__slowdown-v1__n8__s{seed}.curve.csv")
         ev = curve.dropna(subset=["eval_reward_sampled"])
-        assert ev["steps"].max() >= 1_000_000
+        assert ev["steps"].max() >= 2_000_000
         best.append(ev.loc[ev["eval_collisions_sampled"] == 0, "eval_reward_sampled"].max())
-    assert np.round(best, 1).tolist() == [-728.0, -914.7, -838.9]
+    assert np.round(best, 1).tolist() == [-667.2, -691.4, -693.3]
 
 
 @pytest.mark.parametrize(("controller", "scenario", "n"), [
