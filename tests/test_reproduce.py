@@ -138,6 +138,12 @@ def tiny_reproduction(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return out
 
 
+#: Both tests of the tiny reproduction run on one pytest-xdist worker (``--dist loadgroup``), so
+#: its module fixture is built once, not once per worker (95 s each).
+_ONE_WORKER = pytest.mark.xdist_group("tiny_reproduction")
+
+
+@_ONE_WORKER
 def test_reproduce_writes_the_report_tables_and_claims(tiny_reproduction: Path) -> None:
     out = tiny_reproduction
     report = (out / "report.md").read_text()
@@ -170,6 +176,7 @@ def test_reproduce_writes_the_report_tables_and_claims(tiny_reproduction: Path) 
     assert not list((out / "checkpoints").rglob("*__openacc-[sml]-v1__*"))
 
 
+@_ONE_WORKER
 def test_reproduce_refuses_a_used_folder_and_resumes_without_redoing(
         tiny_reproduction: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tiny_reproduction
