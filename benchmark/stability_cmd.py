@@ -16,32 +16,14 @@ from __future__ import annotations
 
 import argparse
 import math
-import time
-from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from analysis.stability_report import SUMMARY_COLUMNS, Entry, StabilityTables
 from benchmark.export import write_csv
 from envs.errors import ConfigError
 from envs.params import PlatoonParams
-
-SUMMARY_COLUMNS = (
-    "controller",
-    "kind",
-    "time_gap_s",
-    "delay_s",
-    "lag_s",
-    "peak_gain",
-    "peak_omega_rad_s",
-    "h_min_s",
-    "string_stable",
-)
-CURVE_COLUMNS = ("controller", "kind", "time_gap_s", "delay_s", "lag_s", "omega_rad_s", "gain")
-#: Delays of the h_min and grid sweeps (s), and the lags of the h_min figure (s).
-SWEEP_DELAYS_S = (0.0, 0.02, 0.05, 0.1, 0.15, 0.2, 0.3)
-SWEEP_LAGS_S = (0.1, 0.5)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -119,13 +101,6 @@ def _fmt(value: Any) -> str:
     return str(value)
 
 
-def _write_csv(path: Path, columns: tuple[str, ...], rows: list[dict[str, Any]]) -> None:
-    import pandas as pd
-
-    frame = pd.DataFrame([{c: row.get(c) for c in columns} for row in rows], columns=columns)
-    write_csv(frame, path, float_format="%.6g")
-
-
 def _print_table(rows: list[dict[str, Any]]) -> None:
     cols = SUMMARY_COLUMNS
     table = [[_fmt(r.get(c)) for c in cols] for r in rows]
@@ -137,40 +112,7 @@ def _print_table(rows: list[dict[str, Any]]) -> None:
         print("  ".join(v.ljust(w) for v, w in zip(t, widths)))
 
 
-@dataclass
-class _Entry:
-    """One requested controller: registered name, label, options, analytic loop (or None)."""
-
-    name: str
-    label: str
-    options: dict[str, Any]
-    loop: Any  # analysis.stability.PloegLoop or None
-
-
-def _curve_rows(
-    label: str,
-    kind: str,
-    time_gap_s: float | None,
-    delay_s: float,
-    lag_s: float,
-    omegas: np.ndarray,
-    gains: np.ndarray,
-) -> list[dict[str, Any]]:
-    return [
-        {
-            "controller": label,
-            "kind": kind,
-            "time_gap_s": time_gap_s,
-            "delay_s": delay_s,
-            "lag_s": lag_s,
-            "omega_rad_s": w,
-            "gain": g,
-        }
-        for w, g in zip(omegas, gains)
-    ]
-
-
-def _entries(args: argparse.Namespace) -> list[_Entry]:
+def _entries(args: argparse.Namespace) -> list[Entry]:
     """Resolve and build the requested controllers (all names checked before any work)."""
     from analysis.stability import PloegLoop
     from controllers.registry import (
@@ -201,228 +143,8 @@ def _entries(args: argparse.Namespace) -> list[_Entry]:
             raise ConfigError(f"{name} has no transfer function to analyse (only the linear "
                               "controllers acc and cacc have one); add --empirical to measure its "
                               "string gain in closed loop")
-        entries.append(_Entry(name, controller_label(name, options), opts, loop))
+        entries.append(Entry(name, controller_label(name, options), opts, loop))
     return entries
-
-
-def _analytic(
-    entries: list[_Entry], omegas: np.ndarray
-) -> tuple[list[dict[str, Any]], list[dict[str, Any]], list[str]]:
-    """Summary rows, curve rows and discrete-model notes of the linear controllers."""
-    from analysis import stability as st
-
-    summary, curves, notes = [], [], []
-    for e in entries:
-        loop = e.loop
-        if loop is None:
-            continue
-        norm = st.hinf_norm(loop)
-        summary.append(
-            {
-                "controller": e.label,
-                "kind": "analytic",
-                "time_gap_s": loop.time_gap_s,
-                "delay_s": loop.delay_s,
-                "lag_s": loop.lag_s,
-                "peak_gain": norm.gain,
-                "peak_omega_rad_s": norm.omega_rad_s,
-                "h_min_s": st.h_min(loop.kp, loop.kd, loop.delay_s, loop.lag_s, loop.feedforward),
-                "string_stable": norm.string_stable and st.internally_stable(loop),
-            }
-        )
-        curves += _curve_rows(
-            e.label,
-            "analytic",
-            loop.time_gap_s,
-            loop.delay_s,
-            loop.lag_s,
-            omegas,
-            np.abs(st.gamma_response(omegas, loop)),
-        )
-        dnorm = st.discrete_hinf_norm(loop)
-        notes.append(
-            f"  {e.label}: discrete-time model of the simulator (dt = {PlatoonParams().dt_s:g} s): "
-            f"||Gamma||_inf = {dnorm.gain:.4f} at {dnorm.omega_rad_s:.3f} rad/s "
-            f"(continuous {norm.gain:.4f} at {norm.omega_rad_s:.3f} rad/s)"
-        )
-    return summary, curves, notes
-
-
-def _design(
-    entries: list[_Entry], args: argparse.Namespace, out: Path, omegas: np.ndarray
-) -> tuple[list[dict[str, Any]], list[Path], str]:
-    """Sweeps over time gaps and delays (grid, h_min) and their figures.
-
-    Returns the extra analytic curve rows (other time gaps), the figure files, a timing line.
-    """
-    from analysis import stability as st
-    from analysis import stability_plots as sp
-
-    delay, lag = args.delay, args.lag
-    loops = [e.loop for e in entries if e.loop is not None]
-    cacc = next((lp for lp in loops if lp.feedforward), None)
-    acc = next((lp for lp in loops if not lp.feedforward), None)
-    base = cacc or (acc.replace(feedforward=True) if acc else None)
-    base = base or st.PloegLoop(time_gap_s=args.time_gap, delay_s=delay, lag_s=lag)
-    if not st.internally_stable(base):
-        return [], [], "analytic sweeps skipped: kd <= lag kp, the linear loop is unstable"
-    delays = np.array(SWEEP_DELAYS_S)
-    t0 = time.perf_counter()
-    grid_h = np.linspace(0.1, 3.0, 50)
-    grid_gain, grid_omega = st.peak_gain_grid(grid_h, delays, base.kp, base.kd, lag, True)
-    h_min_by_lag = {
-        tau: np.array([st.h_min(base.kp, base.kd, th, tau, True) for th in delays])
-        for tau in sorted({*SWEEP_LAGS_S, lag})
-        if base.kd > tau * base.kp
-    }
-    acc_hmin = st.h_min(base.kp, base.kd, 0.0, lag, False)
-    timing = (
-        f"analytic sweep ({len(grid_h)} time gaps x {len(delays)} delays, and h_min for "
-        f"{len(h_min_by_lag)} lags x {len(delays)} delays): {time.perf_counter() - t0:.2f} s"
-    )
-    _write_csv(
-        out / "stability_grid.csv",
-        ("kp", "kd", "time_gap_s", "delay_s", "lag_s", "peak_gain", "peak_omega_rad_s"),
-        [
-            {
-                "kp": base.kp,
-                "kd": base.kd,
-                "time_gap_s": h,
-                "delay_s": th,
-                "lag_s": lag,
-                "peak_gain": grid_gain[i, j],
-                "peak_omega_rad_s": grid_omega[i, j],
-            }
-            for i, h in enumerate(grid_h)
-            for j, th in enumerate(delays)
-        ],
-    )
-    _write_csv(
-        out / "stability_h_min.csv",
-        ("kp", "kd", "lag_s", "delay_s", "h_min_s"),
-        [
-            {"kp": base.kp, "kd": base.kd, "lag_s": tau, "delay_s": th, "h_min_s": hs[j]}
-            for tau, hs in h_min_by_lag.items()
-            for j, th in enumerate(delays)
-        ],
-    )
-
-    # |Gamma| for several time gaps: a CACC panel and, if acc is requested, an ACC panel
-    curves: list[dict[str, Any]] = []
-    panels: list[tuple[str, list[sp.GainCurve]]] = []
-    label_of = {id(e.loop): e.label for e in entries if e.loop is not None}
-    for lp in ([base] if cacc is not None or acc is None else []) + ([acc] if acc else []):
-        label = label_of.get(id(lp), "cacc" if lp.feedforward else "acc")
-        gaps = (0.2, 0.3, 0.5, 1.0, 1.5) if lp.feedforward else (0.5, 1.0, 2.0, 4.0)
-        drawn = []
-        for k, h in enumerate(sorted({*gaps, lp.time_gap_s})):
-            g = np.abs(st.gamma_response(omegas, lp.replace(time_gap_s=h)))
-            drawn.append(sp.GainCurve(f"h = {h:g} s", omegas, g, "analytic", k))
-            if id(lp) in label_of and h != lp.time_gap_s:
-                curves += _curve_rows(label, "analytic", h, delay, lag, omegas, g)
-        hmin = st.h_min(lp.kp, lp.kd, lp.delay_s, lp.lag_s, lp.feedforward)
-        if math.isfinite(hmin):
-            g = np.abs(st.gamma_response(omegas, lp.replace(time_gap_s=hmin)))
-            drawn.append(sp.GainCurve(f"h = h_min = {hmin:.3f} s", omegas, g, "highlight"))
-        v2v = f", θ = {delay:g} s" if lp.feedforward else " (no V2V)"
-        panels.append((f"{label}: kp = {lp.kp:g}, kd = {lp.kd:g}, τ = {lag:g} s{v2v}", drawn))
-    gains = f"kp = {base.kp:g}, kd = {base.kd:g}"
-    written = sp.save_figure(sp.plot_gain_panels(panels), out, "gamma_time_gaps")
-    written += sp.save_figure(
-        sp.plot_h_min(delays, h_min_by_lag, acc_hmin, gains), out, "h_min_delay"
-    )
-    written += sp.save_figure(
-        sp.plot_peak_grid(grid_h, delays, grid_gain, f"CACC, {gains}, τ = {lag:g} s"),
-        out,
-        "peak_gain_grid",
-    )
-    return curves, written, timing
-
-
-def _empirical(
-    entries: list[_Entry], args: argparse.Namespace, out: Path, omegas_plot: np.ndarray
-) -> tuple[list[dict[str, Any]], list[dict[str, Any]], list[Path], list[str]]:
-    """Measured sweeps of every requested controller; summary rows, curve rows, figure, timings."""
-    from analysis import stability as st
-    from analysis import stability_plots as sp
-
-    omegas = np.geomspace(args.omega_min, args.omega_max, args.n_omega)
-    summary, curves, timings = [], [], []
-    drawn: list[sp.GainCurve] = []
-    for k, e in enumerate(entries):
-        t0 = time.perf_counter()
-        res = st.empirical_gain(
-            e.name,
-            omegas,
-            e.options,
-            n_vehicles=args.n_vehicles,
-            amplitude_mps=args.amplitude,
-            delay_s=args.delay,
-            lag_s=args.lag,
-        )
-        timings.append(
-            f"empirical sweep of {e.label} ({len(omegas)} frequencies, "
-            f"{res.duration_s:.0f} s simulated): {time.perf_counter() - t0:.2f} s"
-        )
-        bad = res.collided | res.saturated
-        if bad.any():
-            print(
-                f"warning: {e.label}: the sweep left the linear regime at {int(bad.sum())} "
-                "frequencies (collision or saturation); lower --amplitude"
-            )
-        ok = np.isfinite(res.gain)
-        i = int(np.nanargmax(res.gain)) if ok.any() else 0
-        peak = float(res.gain[i]) if ok.any() else math.nan
-        h = e.loop.time_gap_s if e.loop is not None else None
-        summary.append(
-            {
-                "controller": e.label,
-                "kind": "empirical",
-                "time_gap_s": h,
-                "delay_s": args.delay,
-                "lag_s": args.lag,
-                "peak_gain": peak,
-                "peak_omega_rad_s": float(omegas[i]) if ok.any() else math.nan,
-                "h_min_s": None,
-                "string_stable": bool(ok.any() and peak <= 1.0 + st.STRING_GAIN_TOL),
-            }
-        )
-        curves += _curve_rows(e.label, "empirical", h, args.delay, args.lag, omegas, res.gain)
-        if e.loop is not None:
-            drawn.append(
-                sp.GainCurve(
-                    f"{e.label} analytic (continuous)",
-                    omegas_plot,
-                    np.abs(st.gamma_response(omegas_plot, e.loop)),
-                    "analytic",
-                    k,
-                )
-            )
-            w_d = omegas_plot[omegas_plot < math.pi / PlatoonParams().dt_s]
-            drawn.append(
-                sp.GainCurve(
-                    f"{e.label} analytic (discrete, dt = {PlatoonParams().dt_s:g} s)",
-                    w_d,
-                    np.abs(st.discrete_gamma_response(w_d, e.loop)),
-                    "discrete",
-                    k,
-                )
-            )
-        drawn.append(
-            sp.GainCurve(
-                f"{e.label} measured (sine-v1, N = {res.n_vehicles})",
-                omegas,
-                res.gain,
-                "empirical",
-                k,
-            )
-        )
-    title = (
-        f"measured vs analytic, θ = {args.delay:g} s, τ = {args.lag:g} s, "
-        f"A = {args.amplitude:g} m/s"
-    )
-    written = sp.save_figure(sp.plot_gain_panels([(title, drawn)]), out, "gamma_empirical")
-    return summary, curves, written, timings
 
 
 def main(argv: list[str]) -> int:
@@ -439,26 +161,26 @@ def main(argv: list[str]) -> int:
     out = writable_dir(args.out, create=True)
     omegas_plot = np.geomspace(0.01, 10.0, 300)
 
-    summary, curves, notes = _analytic(entries, omegas_plot)
-    more_curves, written, timing = _design(entries, args, out, omegas_plot)
-    curves += more_curves
-    timings = [timing]
-    if args.empirical:
-        emp_summary, emp_curves, emp_written, emp_timings = _empirical(
-            entries, args, out, omegas_plot
-        )
-        summary += emp_summary
-        curves += emp_curves
-        written += emp_written
-        timings += emp_timings
+    from analysis import stability_report as report
 
-    _write_csv(out / "stability_summary.csv", SUMMARY_COLUMNS, summary)
-    _write_csv(out / "stability.csv", CURVE_COLUMNS, curves)
-    _print_table(summary)
-    for line in notes + timings:
+    tables = StabilityTables()
+    tables.extend(report.analytic(entries, omegas_plot))
+    tables.extend(report.design(entries, args.time_gap, args.delay, args.lag, omegas_plot, out))
+    if args.empirical:
+        omegas = np.geomspace(args.omega_min, args.omega_max, args.n_omega)
+        tables.extend(report.empirical(
+            entries, omegas, omegas_plot, n_vehicles=args.n_vehicles,
+            amplitude_mps=args.amplitude, delay_s=args.delay, lag_s=args.lag, figures_dir=out))
+    for name, frame in (("stability_grid.csv", tables.grid), ("stability_h_min.csv", tables.h_min),
+                        ("stability_summary.csv", tables.summary_frame()),
+                        ("stability.csv", tables.curve_frame())):
+        if frame is not None:
+            write_csv(frame, out / name, float_format="%.6g")
+    _print_table(tables.summary)
+    for line in tables.notes:
         print(line)
     print(
         f"wrote {out / 'stability_summary.csv'}, {out / 'stability.csv'} and "
-        f"{len(written)} figure files in {out}"
+        f"{len(tables.figures)} figure files in {out}"
     )
     return 0
