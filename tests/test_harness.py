@@ -381,6 +381,17 @@ def test_the_batch_invariant_controllers_are_the_cheap_laws() -> None:
                                         "commnet", "wac", "dcea", "bdc"]
 
 
+def _assert_each_record_equals_its_run_alone(keys, batched) -> None:
+    """Every batched record equals :func:`execute_run` of its key to the last bit (NaN equal to
+    NaN), except the wall and compute times."""
+    for key, rec in zip(keys, batched, strict=True):
+        alone = execute_run(key)
+        for col, value in alone.items():
+            if col in TIMING_COLUMNS or col == "wall_s":
+                continue
+            assert rec[col] == value or (value != value and rec[col] != rec[col]), (key.seed, col)
+
+
 @pytest.mark.parametrize("name", ["ovm", "duty", "acc", "cacc"])
 @pytest.mark.parametrize(("scenario", "delay", "loss", "lag"), [
     ("catchup-v1", 0.0, 0.0, 0.0), ("slowdown-v1", 0.2, 0.1, 0.2), ("brake-v1", 0.1, 0.3, 0.0),
@@ -394,12 +405,7 @@ def test_a_batch_gives_each_run_its_record_alone(name, scenario, delay, loss, la
     keys = build_sweep([(name, {})], [scenario], [5], [2000, 2010, 2020, 2030, 2040], [delay],
                        [loss], [lag])
     batched = execute_batch(keys)
-    for key, rec in zip(keys, batched, strict=True):
-        alone = execute_run(key)
-        for col, value in alone.items():
-            if col in TIMING_COLUMNS or col == "wall_s":
-                continue
-            assert rec[col] == value or (value != value and rec[col] != rec[col]), (key.seed, col)
+    _assert_each_record_equals_its_run_alone(keys, batched)
 
 
 @pytest.mark.parametrize(("name", "options", "scenario", "n", "delay", "loss", "mixed"), [
@@ -423,12 +429,7 @@ def test_a_batch_of_policy_runs_gives_each_run_its_record_alone(
     batched = execute_batch(keys)
     if mixed:
         assert {r["collision"] for r in batched} == {True, False}
-    for key, rec in zip(keys, batched, strict=True):
-        alone = execute_run(key)
-        for col, value in alone.items():
-            if col in TIMING_COLUMNS or col == "wall_s":
-                continue
-            assert rec[col] == value or (value != value and rec[col] != rec[col]), (key.seed, col)
+    _assert_each_record_equals_its_run_alone(keys, batched)
 
 
 def test_the_auto_executor_uses_the_pool_only_for_several_batches_of_heavy_runs() -> None:
