@@ -1,9 +1,13 @@
-"""The numbers the BDC-MARL paper reports, as printed (``bdc-marl-paper.tex``, Section IV).
+"""The numbers the BDC-MARL paper reports, as printed (``bdc-marl-paper.tex``, Section IV), and
+the protocol ``cacc-bench reproduce`` follows to reproduce them (budgets, baselines, studies).
 
 Kept as data so a reproduction report can print them beside ours; nothing here is computed.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
 
 #: The five algorithms of the paper's Tables I and II, in its column order (our names).
 PAPER_ALGOS: tuple[str, ...] = ("ia2c", "fprint", "commnet", "dial", "bdc")
@@ -61,3 +65,50 @@ ENERGY_SAVING_CLAIM_PCT = 5.8
 #: (follower 1 starts 10-30 m too far back, others at equilibrium), not slowdown-v1 (everyone
 #: starts 7.5-15 m/s too fast behind a braking leader).
 TABLE_II_SCENARIO = "catchup-v1"
+
+
+# ------------------------------------------------------------------ the reproduction's protocol
+@dataclass(frozen=True)
+class Budget:
+    """What one reproduction trains and runs."""
+
+    name: str
+    steps: int
+    seeds: tuple[int, ...]
+    episodes: int
+    description: str
+    #: validation episodes per snapshot evaluation (the protocol: all 32)
+    validation_episodes: int = 32
+
+
+BUDGETS: dict[str, Budget] = {
+    "quick": Budget("quick", 1_800, (0, 1), 2,
+                    "smoke test of the pipeline: 2 training seeds x 1,800 steps per run, 4 "
+                    "validation and 2 evaluation episodes; its numbers say nothing about the "
+                    "algorithms", validation_episodes=4),
+    "paper": Budget("paper", 600_000, (0, 1, 2), 50,
+                    "the paper's protocol: 3 training seeds x 6e5 steps, the 50 published "
+                    "evaluation seeds"),
+}
+
+#: Baselines run beside the policies (Table II's extra rows).
+BASELINES: tuple[str, ...] = ("ovm", "duty", "cacc", "mpc", "mpc-qp", "cmpc")
+
+#: Ablations trained beside the algorithms: name -> (algorithm, config overrides).
+ABLATIONS: dict[str, tuple[str, dict[str, Any]]] = {"bdc-noqsgd": ("bdc", {"qsgd_levels": 0})}
+
+DEFAULT_SCENARIOS = ("catchup-v1", "slowdown-v1")
+N_VEHICLES = 8
+
+#: The platoon-size study (paper Figs. 7, 8): these algorithms at these N (and 8) on catchup-v1.
+SIZE_ALGOS: tuple[str, ...] = ("bdc", "ia2c")
+SIZES: tuple[int, ...] = (2, 4, 6)
+SIZE_SCENARIO = "catchup-v1"
+
+#: The OpenACC study (paper Table III): test window -> the training family BDC learns on.
+OPENACC_GROUPS: dict[str, str] = {"openacc-s-v1": "openacc-train-s-v1",
+                                  "openacc-m-v1": "openacc-train-m-v1",
+                                  "openacc-l-v1": "openacc-train-l-v1"}
+OPENACC_VEHICLES = 4
+OPENACC_BASELINES: tuple[str, ...] = ("openacc-real", "cacc", "mpc")
+STUDIES = ("ablations", "sizes", "openacc")
