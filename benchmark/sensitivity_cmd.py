@@ -183,57 +183,11 @@ def _names(text: str, flag: str, valid: tuple[str, ...] | None = None) -> list[s
     return names
 
 
-def write_report(df: Any, out: Path, command: str, steps: int, seeds: list[int],
-                 episodes: int) -> Path:
-    """``OUT/report.md`` with a table per scenario, the knob effects and the figures."""
-    from analysis.reproduction import format_table
-    from analysis.sensitivity import knob_effects, plot_bits_against_reward, plot_sensitivity
-    from benchmark.provenance import git_sha
-
-    fig_dir = out / "figures"
-    lines = ["# BDC-MARL sensitivity", "",
-             f"Command: `{command}` (git {git_sha()}). Each variant trained with seed(s) "
-             f"{', '.join(map(str, seeds))} for {steps:,} steps from the tuned config, one knob "
-             f"changed; evaluated on the first {episodes} published evaluation seeds, actions "
-             "sampled. Intervals: 95 % bootstrap over episodes (and seeds, two-stage, when "
-             "there are several). Training bits: what one agent sent in its run (per-step "
-             "messages plus consensus rounds); the QSGD payload is applied locally, not sent.",
-             ""]
-    cols = [("knob", "knob"), ("knob_value", "value"), ("collisions", "collisions"),
-            ("reward_mean", "reward"), ("reward_ci_low", "low"), ("reward_ci_high", "high"),
-            ("energy_kwh_per_100km_mean", "kWh/100 km"), ("gap_rmse_m_mean", "gap RMSE m"),
-            ("training_bits_sent_per_agent", "training bits sent"),
-            ("qsgd_payload_bits_per_agent", "QSGD payload bits")]
-    shown = df.assign(knob_value=[f"{v:.3g}" if isinstance(v, float) else str(v)
-                                  for v in df["knob_value"]])
-    for sc in dict.fromkeys(df["scenario"]):
-        plot_sensitivity(df, sc, fig_dir, f"sensitivity__{sc}")
-        lines += [f"## {sc}", "", format_table(shown[shown["scenario"] == sc], cols, 3), "",
-                  f"![sensitivity on {sc}](figures/sensitivity__{sc}.png)", ""]
-    effects = knob_effects(df)
-    write_csv(effects, out / "knob_effects.csv")
-    effects = effects.assign(**{c: [f"{v:.3g}" if isinstance(v, float) else str(v)
-                                    for v in effects[c]] for c in ("best_value", "worst_value")})
-    plot_bits_against_reward(df, fig_dir, "bits_against_reward")
-    lines += ["## Which knob matters", "",
-              "Spread: the largest minus the smallest mean reward over the knob's values; "
-              "'differs' when some value's interval lies wholly off the unchanged policy's.", "",
-              format_table(effects, [("scenario", "scenario"), ("knob", "knob"),
-                                     ("reward_spread", "spread"), ("best_value", "best"),
-                                     ("worst_value", "worst"), ("collisions", "collisions"),
-                                     ("differs_from_base", "differs")], 1), "",
-              "## Communication against performance", "",
-              "![training bits against reward](figures/bits_against_reward.png)", ""]
-    path = out / "report.md"
-    path.write_text("\n".join(lines))
-    return path
-
-
 def main(argv: list[str]) -> int:
     """Entry point of ``cacc-bench sensitivity``."""
     import pandas as pd
 
-    from analysis.sensitivity import sensitivity_frame
+    from analysis.sensitivity import sensitivity_frame, write_report
     from benchmark.policy_training import train_stage
     from benchmark.run_cmd import execute_sweep
     from benchmark.suite import seeds_from_episodes
