@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from controllers.base import Controller, EpisodeContext
+from controllers.base import Controller, EpisodeContext, sends_v2v
 from envs.channel import ChannelConfig
 from envs.errors import ControllerContractError
 from envs.params import PlatoonParams
@@ -104,6 +104,10 @@ def rollout_batch(
         return [_score_recorded(env, recorded(scenario, n_vehicles), params) for _ in seeds_arr]
     ctx = EpisodeContext(scenario, n_vehicles, seeds_arr, params, channel)
     controller.reset(ctx)
+    if sends_v2v(controller) and not ctx.channels:
+        raise ControllerContractError(
+            f"{controller.name}: declares V2V ({controller.v2v}) but opened no channel at reset; "
+            "open it with ctx.make_channel so the run's delay, loss and bit count apply")
     obs = env.reset(seeds_arr)
     s = env.state
     assert s is not None

@@ -8,6 +8,7 @@ loss act on it and its bits are counted. The harness never needs to know a contr
 
 from __future__ import annotations
 
+import dataclasses
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -48,6 +49,11 @@ class EpisodeContext:
     params: PlatoonParams = PlatoonParams()
     channel_config: ChannelConfig = ChannelConfig()
     channels: list[V2VChannel] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        # the channels count delay in the run's steps: one ChannelConfig, on the run's dt
+        if self.channel_config.dt_s != self.params.dt_s:
+            self.channel_config = dataclasses.replace(self.channel_config, dt_s=self.params.dt_s)
 
     @property
     def batch_size(self) -> int:
@@ -95,12 +101,8 @@ class EpisodeContext:
             raise ValueError(f"unknown link pattern {links!r}")
         else:
             link_list = list(links)
-        config = ChannelConfig(
-            self.channel_config.delay_s, self.channel_config.packet_loss, self.params.dt_s
-        )
-        ch = V2VChannel(
-            link_list, width, self.seeds, config, bits_per_value, name=name, initial=initial
-        )
+        ch = V2VChannel(link_list, width, self.seeds, self.channel_config, bits_per_value,
+                        name=name, initial=initial)
         self.channels.append(ch)
         return ch
 
@@ -108,6 +110,13 @@ class EpisodeContext:
     def bits_sent(self) -> int:
         """V2V bits sent so far by all channels, over all episodes of the batch."""
         return sum(ch.bits_sent for ch in self.channels)
+
+
+def sends_v2v(controller: object) -> bool:
+    """Whether a controller declares V2V messages (its ``v2v`` is not ``none...``): such a
+    controller must open its channels with :meth:`EpisodeContext.make_channel` at reset, so
+    that delay, loss and bit counting act on what it exchanges (the closed loop checks it)."""
+    return not str(getattr(controller, "v2v", "none")).startswith("none")
 
 
 class Controller(ABC):

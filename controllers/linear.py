@@ -150,6 +150,8 @@ class PloegController(Controller):
         super().__init__()
         self.config: PloegConfig = build_config(self.config_cls, options, self.name)
         self.options = dict(options)
+        if not self.config.feedforward:
+            self.v2v = "none"
         self._channel: V2VChannel | None = None
         self._alpha = 0.0
         self._standstill_m = 0.0

@@ -28,7 +28,8 @@ class FailingController(Controller):
 
 class DefectiveController(Controller):
     """Breaks the loop's contract at step 3: a command of the wrong shape (``defect="shape"``)
-    or a NaN (``defect="nan"``)."""
+    or a NaN (``defect="nan"``); or declares V2V and opens no channel (``defect="silent_v2v"``:
+    what it would exchange would escape delay, loss and the bit count)."""
 
     name = "defective"
     family = "linear"
@@ -36,6 +37,8 @@ class DefectiveController(Controller):
     def __init__(self, defect: str = "shape") -> None:
         super().__init__()
         self.defect = defect
+        if defect == "silent_v2v":
+            self.v2v = "the predecessor's speed (1 float), read from the state"
 
     def reset(self, ctx: EpisodeContext) -> None:
         self.b, self.n = ctx.batch_size, ctx.n_vehicles

@@ -138,6 +138,19 @@ def test_the_lag_message_names_the_numbers_and_the_remedy() -> None:
         "unstable with this actuator lag; raise kd or lower kp")
 
 
+def test_cacc_without_feedforward_declares_no_v2v_and_sends_nothing() -> None:
+    """``cacc:feedforward=false`` opens no channel, so it must not declare V2V (the closed loop
+    refuses a controller that declares V2V and opens no channel)."""
+    from benchmark.suite import build_sweep, execute_run
+    from controllers.base import sends_v2v
+
+    assert sends_v2v(make_controller("cacc")) and not sends_v2v(make_controller("acc"))
+    assert not sends_v2v(make_controller("cacc", feedforward="false"))
+    rec = execute_run(build_sweep([("cacc", {"feedforward": "false"})], ["catchup-v1"], [3],
+                                  [2000])[0])
+    assert rec["status"] == "ok" and rec["comm_bits_per_s"] == 0
+
+
 def test_options_are_recorded_and_feedforward_must_be_a_bool() -> None:
     from controllers.linear import PloegConfig
 
