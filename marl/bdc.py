@@ -98,21 +98,23 @@ class BDC(Algorithm):
         return SeparateActorCriticNet(n_agents, config.hidden, with_critic, generator)
 
     def setup(self, trainer: Trainer) -> None:
-        cfg: BDCConfig = trainer.config  # type: ignore[assignment]
+        cfg = trainer.config
+        assert isinstance(cfg, BDCConfig)
         self.qsgd = ErrorFeedbackQSGD(max(cfg.qsgd_levels, 1), trainer.generator, cfg.qsgd_bucket)
 
     def before_step(self, trainer: Trainer) -> None:
-        cfg: BDCConfig = trainer.config  # type: ignore[assignment]
+        cfg = trainer.config
+        assert isinstance(cfg, BDCConfig)
         if cfg.qsgd_levels == 0:
             return
-        params = [p for p in trainer.net.critic_parameters() if p.grad is not None]
-        grads = [p.grad for p in params]
-        for p, q in zip(params, self.qsgd.compress(grads)):  # type: ignore[arg-type]
-            p.grad.copy_(q)  # type: ignore[union-attr]
-            trainer.bits["qsgd_local"] += qsgd_bits(p[0].numel(), cfg.qsgd_levels, bucket=cfg.qsgd_bucket)
+        grads = [p.grad for p in trainer.net.critic_parameters() if p.grad is not None]
+        for g, q in zip(grads, self.qsgd.compress(grads), strict=True):
+            g.copy_(q)
+            trainer.bits["qsgd_local"] += qsgd_bits(g[0].numel(), cfg.qsgd_levels, bucket=cfg.qsgd_bucket)
 
     def after_step(self, trainer: Trainer) -> None:
-        cfg: BDCConfig = trainer.config  # type: ignore[assignment]
+        cfg = trainer.config
+        assert isinstance(cfg, BDCConfig)
         net = trainer.net
         assert isinstance(net, SeparateActorCriticNet)
         shared = net.shared_critic_parameters(cfg.share_whole_critic)

@@ -89,39 +89,21 @@ class A2CConfig:
         the checkpoint.
     entropy_coef_final : float or None
         Entropy coefficient reached at the end of the run, linearly from ``entropy_coef``
-        (None: constant, as published). Departure, default 0.005: with the paper's reward the
-        scaled per-step rewards (about -0.05 per agent) are as large as the entropy bonus
-        (0.05 ln 4 = 0.07), so a constant 0.05 keeps the policy near uniform. ``cacc-bench tune``
-        searches it in [5e-4, 5e-2].
+        (None: constant, as published; default 0.005, a departure).
     return_norm : bool
         Divide the (scaled, shared) rewards by the running standard deviation of the discounted
-        return before the update (option, off by default as published). Motivation: with the
-        paper's power term and absorbing collisions the returns reach hundreds in the published
-        units, far for an RMSprop-trained value head. Measured on seed 0 (3e5 steps), it did not
-        help: IA2C on slowdown-v1 selected a snapshot with 43/50 evaluation collisions with it,
-        10/50 without (6e5 steps); BDC on catchup-v1 stayed greedy "hold speed" either way.
+        return before the update (off by default, as published).
     collision_value : {"absorbing", "published"}
-        What an episode ended early by the published collision rule is worth afterwards.
-        ``published``: 0 (terminal). ``absorbing`` (default, departure): the collided state keeps
-        paying the collision penalty (-1000 per agent, shared and scaled like every reward) at
-        every step to the scheduled end of the episode, folded into the last step's return. With
-        the paper's power term every surviving step costs, so under the published value a
-        collision just before a 60-step boundary ends the episode cheaply, and the learners find
-        it (measured: seed-0 IA2C on slowdown-v1 crashed its last vehicle at step 60 in 24 of
-        the 50 evaluation episodes).
+        What an episode ended early by the published collision rule is worth afterwards:
+        ``published`` 0 (terminal); ``absorbing`` (default, a departure) the collision penalty at
+        every step to the scheduled end, folded into the last step's return.
     advantage_norm : bool
         Standardise each agent's advantages over the running entries of every segment before
-        the policy loss (:func:`normalise_advantages`; option, off by default as published).
-        Measured on seed 0, it did not help: BDC still held speed greedily on catchup-v1 (3e5
-        steps) and crawled collision-free on slowdown-v1 (validation -3,855 to -12,358); WAC on
-        slowdown-v1 crawled too (-6,659 to -11,483 at 0 collisions, 3.4e5 steps).
+        the policy loss (:func:`normalise_advantages`; off by default, as published).
     episodes_parallel : int
         B episodes stepped together (sample budget counts all of them).
     lr_scale : float
-        Multiplier on both learning rates. One update here averages the gradient of B episodes'
-        segments, so a run makes B times fewer, less noisy updates than the published one-episode
-        learner with the same sample budget; 4.0 (with B = 8) compensates for that. 1.0 gives the
-        paper's per-update rates (measured: with B = 8 its greedy policy is still poor at 6e5).
+        Multiplier on both learning rates (4.0 with B = 8; 1.0: the paper's per-update rates).
     eval_every_steps : int
         Environment steps between evaluations on the validation seeds, in both modes (learning
         curve and checkpoint selection: the kept snapshot is the evaluated one with the fewest
@@ -136,16 +118,12 @@ class A2CConfig:
     power_baseline_kw : float or None
         Constant power subtracted from every running agent's power for learning: the power term
         becomes ``w5 (P - P0)``. 0 (default): the paper's term. None: the cruise power
-        ``P(v*, 0)`` at the scenario's target speed (4.5 kW at 15 m/s), resolved when training
-        starts and recorded. With the paper's reward the power term is about 88 % of the
-        per-step reward, most of it a constant that no action changes; subtracting it leaves
-        the advantages' signal and removes a large negative drift of the return.
+        ``P(v*, 0)`` at the scenario's target speed, resolved when training starts and recorded.
     min_active_fraction : float
-        At an n-step boundary, when fewer than this fraction of the B episodes are still running
-        (the others ended by the published collision rule), the rest are truncated (bootstrapped)
-        and a new batch starts, so no compute goes to stepping finished episodes. 0 (default)
-        disables it: measured on catchup-v1, truncating at 0.5 slowed IA2C's learning (the
-        agents then rarely see the late, steady part of an episode while collisions are common).
+        At an n-step boundary, when fewer than this fraction of the B episodes are still running,
+        the rest are truncated (bootstrapped) and a new batch starts (0, default: never).
+
+    Why each departure exists and what the options measured: ``docs/learner-options.md``.
     """
 
     n_step: int = 60
@@ -285,6 +263,8 @@ class AgentNet(nn.Module):
 
     msg_width: int = 0
     differentiable_messages: bool = False
+    actor_head: BatchedLinear
+    critic_head: BatchedLinear
 
     def __init__(self, n_agents: int, hidden: int, with_critic: bool) -> None:
         super().__init__()
@@ -317,12 +297,11 @@ class AgentNet(nn.Module):
 
     def logits(self, out: dict[str, torch.Tensor]) -> torch.Tensor:
         """Action logits ``(N, M, 4)``."""
-        return self.actor_head(out["h"])  # type: ignore[operator]
+        return self.actor_head(out["h"])
 
     def value(self, out: dict[str, torch.Tensor], nb_actions: torch.Tensor) -> torch.Tensor:
         """State value ``(N, M)`` from critic features and neighbours' one-hot actions."""
-        head = self.critic_head
-        return head(torch.cat([out["v"], nb_actions], dim=-1)).squeeze(-1)  # type: ignore[operator]
+        return self.critic_head(torch.cat([out["v"], nb_actions], dim=-1)).squeeze(-1)
 
     def after_policy(self, state: State, logits: torch.Tensor) -> State:
         """Update the state with this step's policy (FPrint keeps it as its fingerprint)."""

@@ -66,9 +66,9 @@ class DCEA(Algorithm):
     def after_step(self, trainer: Trainer) -> None:
         cfg = trainer.config
         net = trainer.net
-        assert isinstance(net, SeparateActorCriticNet)
-        shared = net.shared_critic_parameters(cfg.share_whole_critic)  # type: ignore[attr-defined]
-        rule = functools.partial(dcea, eps=cfg.consensus_eps)  # type: ignore[attr-defined]
+        assert isinstance(cfg, DCEAConfig) and isinstance(net, SeparateActorCriticNet)
+        shared = net.shared_critic_parameters(cfg.share_whole_critic)
+        rule = functools.partial(dcea, eps=cfg.consensus_eps)
         trainer.bits["consensus"] += consensus_round(shared, rule) * FLOAT_BITS
 
 

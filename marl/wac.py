@@ -55,9 +55,9 @@ class WAC(Algorithm):
         return SeparateActorCriticNet(n_agents, config.hidden, with_critic, generator)
 
     def after_step(self, trainer: Trainer) -> None:
-        net = trainer.net
-        assert isinstance(net, SeparateActorCriticNet)
-        shared = net.shared_critic_parameters(trainer.config.share_whole_critic)  # type: ignore[attr-defined]
+        cfg, net = trainer.config, trainer.net
+        assert isinstance(cfg, WACConfig) and isinstance(net, SeparateActorCriticNet)
+        shared = net.shared_critic_parameters(cfg.share_whole_critic)
         n_weights = consensus_round(shared, wac)
         trainer.bits["consensus"] += n_weights * FLOAT_BITS
 
