@@ -15,6 +15,7 @@ DIAL and CommNet, the algorithm's message (4 or 64 floats) likewise.
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 from typing import Any
 
@@ -22,7 +23,7 @@ import numpy as np
 
 from controllers.base import Controller, EpisodeContext
 from envs.channel import episode_uniforms
-from envs.dynamics import action_to_command_mps2
+from envs.dynamics import OBS_DIM, action_to_command_mps2
 from envs.errors import ConfigError
 from envs.naming import checkpoint_stem
 from envs.params import EVAL_MODES
@@ -35,6 +36,34 @@ ACTION_STREAM = "policy-actions"
 VARIANT_DIR = CHECKPOINT_DIR / "variants"
 #: Fewest rows the policy network is evaluated on (see :meth:`PolicyController.reset`).
 MIN_LANES = 2
+
+
+@functools.cache
+def rows_are_batch_invariant(algo: str, n_agents: int = 8) -> bool:
+    """Whether this machine's kernels give a row of ``algo``'s network the same numbers among
+    64 rows as among :data:`MIN_LANES` (a probe on random weights and inputs, once per process
+    and algorithm). Measured true on the machines this project runs on; where it is false the
+    harness runs policy episodes one at a time instead of batching them (still exact)."""
+    import torch
+
+    from marl.common import algorithm, exchange
+
+    spec = algorithm(algo)
+    with torch.no_grad():
+        net = spec.build_net(spec.config_cls(), n_agents, with_critic=False,
+                             generator=torch.Generator().manual_seed(0))
+        gen = torch.Generator().manual_seed(1)
+        obs = torch.randn(n_agents, 64, OBS_DIM, generator=gen)
+        state = {k: torch.randn(v.shape, generator=gen) for k, v in net.initial_state(64).items()}
+        logits, _, new = net.act_step(obs, state, *exchange(net, state))
+        for row in (0, 31, 63):
+            rows = [row] * MIN_LANES
+            sub = {k: v[:, rows].contiguous() for k, v in state.items()}
+            lg, _, nw = net.act_step(obs[:, rows].contiguous(), sub, *exchange(net, sub))
+            if not torch.equal(lg[:, 0], logits[:, row]) or not all(
+                    torch.equal(nw[k][:, 0], new[k][:, row]) for k in new):
+                return False
+    return True
 
 
 def shipped_variants() -> list[str]:
@@ -128,6 +157,8 @@ class PolicyController(Controller):
                 )
         self.variant = variant
         self.algo = algo
+        # batched episodes equal lone ones where the probe says rows do not depend on the batch
+        self.batch_invariant = rows_are_batch_invariant(algo)
         self.name = algo
         self.scenario = scenario
         self.checkpoint = checkpoint
@@ -154,6 +185,12 @@ class PolicyController(Controller):
         }
         self.net: Any = None
         self.loaded: dict[str, Any] = {}
+
+    @staticmethod
+    def batch_invariant_probe(algo: str, **_: Any) -> bool:
+        """Whether the harness may batch this algorithm's episodes here
+        (:func:`rows_are_batch_invariant`)."""
+        return rows_are_batch_invariant(algo)
 
     @classmethod
     def from_net(

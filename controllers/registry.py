@@ -156,11 +156,17 @@ def _factory(spec: ControllerSpec) -> Callable[..., Any]:
 
 def batch_invariant(name: str) -> bool:
     """Whether the registered controller declares ``batch_invariant`` (the harness may step
-    its seeds together; see :class:`controllers.base.Controller`)."""
+    its seeds together; see :class:`controllers.base.Controller`); a controller class with a
+    ``batch_invariant_probe(**fixed)`` decides on this machine (the learned policies)."""
+    spec = resolve(name)
     try:
-        return bool(getattr(_factory(resolve(name)), "batch_invariant", False))
+        factory = _factory(spec)
     except ImportError:
         return False
+    probe = getattr(factory, "batch_invariant_probe", None)
+    if probe is not None:
+        return bool(probe(**spec.fixed))
+    return bool(getattr(factory, "batch_invariant", False))
 
 
 def controller_options(name: str) -> dict[str, Any]:

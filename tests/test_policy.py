@@ -140,28 +140,35 @@ def test_training_validation_is_the_benchmark_loop(algo, mode) -> None:
 
 
 @pytest.mark.parametrize("algo", ALGORITHM_NAMES)
-def test_a_network_row_does_not_depend_on_the_batch(algo) -> None:
-    """The rows of one policy step: an episode's logits, value and next state are the same, to
-    the last bit, whether its row is computed among 50 or in the two rows (itself repeated) that
-    a lone episode's controller uses (``MIN_LANES``)."""
-    from controllers.policy import MIN_LANES
-    from marl.common import exchange
+def test_a_network_row_does_not_depend_on_the_batch(algo, monkeypatch) -> None:
+    """The probe behind batching policies: an episode's logits and next state are the same, to
+    the last bit, whether its row is computed among 64 or in the two rows (itself repeated) that
+    a lone episode's controller uses (``MIN_LANES``). With one row (gemv) they are not, on this
+    machine kind: the probe is not vacuous."""
+    import controllers.policy as cp
 
-    spec = algorithm(algo)
-    net = spec.build_net(spec.config_cls(), 5, with_critic=False,
-                         generator=torch.Generator().manual_seed(3))
-    gen = torch.Generator().manual_seed(4)
-    obs = torch.randn(5, 50, 15, generator=gen)
-    state = {k: torch.randn(v.shape, generator=gen) for k, v in net.initial_state(50).items()}
-    with torch.no_grad():
-        logits, _, new = net.act_step(obs, state, *exchange(net, state))
-        for row in (0, 17, 49):
-            rows = [row] * MIN_LANES
-            sub = {k: v[:, rows].contiguous() for k, v in state.items()}
-            lg, _, nw = net.act_step(obs[:, rows].contiguous(), sub, *exchange(net, sub))
-            assert torch.equal(lg[:, 0], logits[:, row])
-            for k in new:
-                assert torch.equal(nw[k][:, 0], new[k][:, row]), k
+    cp.rows_are_batch_invariant.cache_clear()
+    assert cp.rows_are_batch_invariant(algo)
+    monkeypatch.setattr(cp, "MIN_LANES", 1)
+    cp.rows_are_batch_invariant.cache_clear()
+    assert not cp.rows_are_batch_invariant(algo)
+    cp.rows_are_batch_invariant.cache_clear()
+
+
+def test_policies_run_one_at_a_time_where_the_probe_fails(monkeypatch) -> None:
+    """On a machine whose kernels made rows depend on the batch, the harness would not batch
+    policy episodes (each its own batch, stored as it finishes), and the records stay exact."""
+    import controllers.policy as cp
+    from benchmark.suite import batch_keys, build_sweep, execute_batch, execute_run
+
+    keys = build_sweep([("ia2c", {"untrained": "true"})], ["catchup-v1"], [3], [2000, 2010])
+    assert [len(b) for b in batch_keys(keys)] == [2]
+    monkeypatch.setattr(cp, "rows_are_batch_invariant", lambda algo, n_agents=8: False)
+    assert [len(b) for b in batch_keys(keys)] == [1, 1]
+    ctrl = cp.PolicyController("ia2c", untrained="true")
+    assert not ctrl.batch_invariant
+    recs = execute_batch(keys)  # a batch handed over anyway runs seed by seed
+    assert [r["reward"] for r in recs] == [execute_run(k)["reward"] for k in keys]
 
 
 def test_a_lone_episode_gives_the_network_two_rows(monkeypatch) -> None:
