@@ -90,6 +90,18 @@ def _run(args: tuple[list[RunKey], bool]) -> list[dict]:
     return execute_batch(*args)
 
 
+def run_batches(
+    keys: Sequence[RunKey],
+    executor: str = "serial",
+    workers: int = 1,
+    ray_address: str | None = None,
+    keep_trajectory: bool = False,
+) -> Iterator[list[dict]]:
+    """Yield the records of each batch of :func:`batch_keys` as it finishes (any order)."""
+    batches = [(b, keep_trajectory) for b in batch_keys(keys, workers)]
+    yield from map_jobs(_run, batches, executor, workers, ray_address)
+
+
 def run_keys(
     keys: Sequence[RunKey],
     executor: str = "serial",
@@ -98,8 +110,7 @@ def run_keys(
     keep_trajectory: bool = False,
 ) -> Iterator[dict]:
     """Yield the record of every key as its batch finishes (any order; :func:`batch_keys`)."""
-    batches = [(b, keep_trajectory) for b in batch_keys(keys, workers)]
-    for records in map_jobs(_run, batches, executor, workers, ray_address):
+    for records in run_batches(keys, executor, workers, ray_address, keep_trajectory):
         yield from records
 
 

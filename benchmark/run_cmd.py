@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from benchmark.executors import AUTO, EXECUTORS, resolve_executor, run_keys
+from benchmark.executors import AUTO, EXECUTORS, resolve_executor, run_batches
 from benchmark.progress import Progress
 from benchmark.suite import MAX_SEED, RunKey, build_sweep, seeds_from_episodes, unique
 from controllers.registry import default_controllers, parse_controller_list
@@ -197,15 +197,19 @@ def execute_sweep(
         executor = resolve_executor(todo, executor, workers)
         store.set_meta("last_sweep", {"n_runs": len(keys), "executor": executor})
         progress = Progress(len(todo))
-        for rec in run_keys(todo, executor, workers, ray_address, keep_trajectory=True):
-            traj = rec.pop("_trajectory", None)
-            arrays = trajectory_arrays(traj) if traj is not None else None
-            if arrays is not None and trajectories:
-                stem = RunKey(**{f: rec[f] for f in RunKey.__dataclass_fields__}).file_stem
-                write_trajectory_csv(out / "trajectories" / f"{stem}.csv", arrays)
-            keep = arrays if (arrays is not None and rec["seed"] == first_seed) else None
-            store.add(rec, keep)
-            progress.advance(note=f"{rec['controller']} {rec['scenario']} s{rec['seed']}")
+        for batch in run_batches(todo, executor, workers, ray_address, keep_trajectory=True):
+            finished = []
+            for rec in batch:
+                traj = rec.pop("_trajectory", None)
+                arrays = trajectory_arrays(traj) if traj is not None else None
+                if arrays is not None and trajectories:
+                    stem = RunKey(**{f: rec[f] for f in RunKey.__dataclass_fields__}).file_stem
+                    write_trajectory_csv(out / "trajectories" / f"{stem}.csv", arrays)
+                keep = arrays if (arrays is not None and rec["seed"] == first_seed) else None
+                finished.append((rec, keep))
+            store.add_batch(finished)  # one transaction per finished batch
+            for rec, _ in finished:
+                progress.advance(note=f"{rec['controller']} {rec['scenario']} s{rec['seed']}")
         progress.close()
         records = store.records()
         runs_path, lb_path, lb = write_csvs(out, records, pool_seeds)

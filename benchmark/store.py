@@ -1,10 +1,11 @@
-"""The results store: an embedded SQLite file, one committed transaction per finished run.
+"""The results store: an embedded SQLite file, one committed transaction per finished batch.
 
 It is the source of truth of a results folder: the CSV files are rebuilt from it, a killed sweep
-loses only the runs in flight, and ``--resume`` skips what is stored. A writer holds the folder's
-lock (``store.lock``, via ``filelock``) for as long as the store is open, so two commands never
-write one folder; the holder's pid and command are in ``store.owner``. Opening checks the file's
-integrity (SQLite ``quick_check``) and every record's JSON.
+loses only the runs in flight (a batch is stored as a whole when it finishes), and ``--resume``
+skips what is stored. A writer holds the folder's lock (``store.lock``, via ``filelock``) for as
+long as the store is open, so two commands never write one folder; the holder's pid and command
+are in ``store.owner``. Opening checks the file's integrity (SQLite ``quick_check``) and every
+record's JSON.
 """
 
 from __future__ import annotations
@@ -196,21 +197,26 @@ class ResultStore:
 
         A run stored again (a failed run retried by ``--resume``) replaces the old row.
         """
-        rec = {k: _clean(v) for k, v in record.items() if not k.startswith("_")}
-        blob = None
-        if trajectory is not None:
-            buf = io.BytesIO()
-            np.savez_compressed(buf, **trajectory)  # type: ignore[arg-type]
-            blob = buf.getvalue()
+        self.add_batch([(record, trajectory)])
+
+    def add_batch(self, runs: list[tuple[dict[str, Any], dict[str, np.ndarray] | None]]) -> None:
+        """Store the finished runs of one batch, each with an optional trajectory, in one
+        committed transaction (all or none of them: a batch finishes as a whole)."""
+        rows, blobs = [], []
+        now = time.time()
+        for record, trajectory in runs:
+            rec = {k: _clean(v) for k, v in record.items() if not k.startswith("_")}
+            rows.append((rec["id"], rec["status"], json.dumps(rec, sort_keys=True), now))
+            if trajectory is not None:
+                buf = io.BytesIO()
+                np.savez_compressed(buf, **trajectory)  # type: ignore[arg-type]
+                blobs.append((rec["id"], buf.getvalue()))
         with self.conn:
-            self.conn.execute(
+            self.conn.executemany(
                 "INSERT OR REPLACE INTO runs (id, status, record, finished_at) VALUES (?, ?, ?, ?)",
-                (rec["id"], rec["status"], json.dumps(rec, sort_keys=True), time.time()),
-            )
-            if blob is not None:
-                self.conn.execute(
-                    "INSERT OR REPLACE INTO trajectories (id, data) VALUES (?, ?)", (rec["id"], blob)
-                )
+                rows)
+            self.conn.executemany("INSERT OR REPLACE INTO trajectories (id, data) VALUES (?, ?)",
+                                  blobs)
 
     def ids(self, status: str | None = None) -> set[str]:
         """Ids of stored runs (optionally only those with ``status``)."""

@@ -43,6 +43,21 @@ def _copy(finished: Path, tmp_path: Path) -> Path:
     return out
 
 
+def test_a_batch_is_stored_whole_or_not_at_all(tmp_path: Path) -> None:
+    """The runs of one finished batch go into the store in one transaction: a record that cannot
+    be stored leaves none of its batch behind, and a good batch is stored with its trajectory."""
+    import numpy as np
+
+    good = {"id": "a", "status": "ok", "reward": 1.0}
+    bad = {"id": "b", "status": "ok", "reward": object()}  # not JSON
+    with ResultStore(tmp_path / "s", writer=True) as store:
+        with pytest.raises(TypeError):
+            store.add_batch([(good, None), (bad, None)])
+        assert store.ids() == set()
+        store.add_batch([(good, {"x": np.arange(3.0)}), ({**bad, "reward": 2.0}, None)])
+        assert store.ids("ok") == {"a", "b"} and store.trajectory_ids() == {"a"}
+
+
 def test_a_second_writer_is_refused_naming_the_first(tmp_path: Path) -> None:
     out = tmp_path / "r"
     with ResultStore(out, writer=True):
