@@ -13,6 +13,7 @@ from benchmark.progress import Progress
 from benchmark.suite import MAX_SEED, RunKey, build_sweep, seeds_from_episodes, unique
 from controllers.registry import default_controllers, parse_controller_list
 from envs.errors import ConfigError
+from envs.interrupt import raise_if_interrupted
 from envs.scenarios import (
     DEFAULT_SCENARIOS,
     MAX_VEHICLES,
@@ -208,6 +209,7 @@ def execute_sweep(
                 keep = arrays if (arrays is not None and rec["seed"] == first_seed) else None
                 finished.append((rec, keep))
             store.add_batch(finished)  # one transaction per finished batch
+            raise_if_interrupted()  # a signal a library swallowed: stop after what is stored
             for rec, _ in finished:
                 progress.advance(note=f"{rec['controller']} {rec['scenario']} s{rec['seed']}")
         progress.close()

@@ -29,7 +29,8 @@ class FailingController(Controller):
 class DefectiveController(Controller):
     """Breaks the loop's contract at step 3: a command of the wrong shape (``defect="shape"``)
     or a NaN (``defect="nan"``); or declares V2V and opens no channel (``defect="silent_v2v"``:
-    what it would exchange would escape delay, loss and the bit count)."""
+    what it would exchange would escape delay, loss and the bit count); or swallows the
+    exception of a SIGINT it receives at step 3 (``defect="swallow_sigint"``)."""
 
     name = "defective"
     family = "linear"
@@ -45,6 +46,15 @@ class DefectiveController(Controller):
 
     def act(self, state: PlatoonState, observation: np.ndarray | None) -> np.ndarray:
         u = np.zeros((self.b, self.n))
-        if state.step == 3:
+        if self.defect == "swallow_sigint" and state.step == 3:
+            import os
+            import signal
+
+            try:  # as a solver library that turns the signal's exception into its own status
+                os.kill(os.getpid(), signal.SIGINT)
+            except BaseException:  # noqa: BLE001 - swallowing it is the defect under test
+                pass
+            return u
+        if state.step == 3 and self.defect in ("shape", "nan"):
             return u[:, :1] if self.defect == "shape" else u + np.nan
         return u
