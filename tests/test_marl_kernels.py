@@ -472,3 +472,44 @@ def test_sample_from_logits_uses_double_precision_probabilities() -> None:
     assert float(torch.softmax(logits, -1)[0]) > float(p64[0])  # the premise
     u = np.array([[float(p64[0])]])
     assert sample_from_logits(logits.reshape(1, 1, 4), u).item() == 1
+
+
+def test_two_runs_stacked_as_one_agent_stack_act_and_learn_as_alone() -> None:
+    """The measured premise of population training (issue 17): K runs' networks stacked along
+    the agent axis (K x N agents in one ``BatchedLinear``/``BatchedLSTMCell`` stack) give each
+    run, to the last bit, the actor's logits, next state and gradients it has alone. (What
+    would mix runs is everything that shifts along the agent axis: the critic's neighbour
+    actions, messages, consensus; those need the run axis kept apart.)"""
+    from marl.common import algorithm
+
+    spec = algorithm("ia2c")
+    cfg = spec.config_cls()
+    nets = [spec.build_net(cfg, 4, False, torch.Generator().manual_seed(s)) for s in (1, 2)]
+    stack = spec.build_net(cfg, 8, False)
+    with torch.no_grad():
+        for name, p in stack.named_parameters():
+            p.copy_(torch.cat([dict(n.named_parameters())[name] for n in nets]))
+    gen = torch.Generator().manual_seed(3)
+    obs = torch.randn(8, 16, 15, generator=gen)
+    state = {k: torch.randn(v.shape, generator=gen) for k, v in stack.initial_state(16).items()}
+    actions = torch.randint(0, 4, (8, 16), generator=gen)
+
+    def loss_and_out(net, o, s, a):
+        logits, _, new = net.act_step(o, s, None, None)
+        logp = torch.log_softmax(logits, -1).gather(-1, a.unsqueeze(-1))
+        return -logp.mean(), logits, new
+
+    total, logits, new = loss_and_out(stack, obs, state, actions)
+    parts = [loss_and_out(n, obs[4 * k:4 * k + 4], {key: v[4 * k:4 * k + 4] for key, v in
+                                                    state.items()}, actions[4 * k:4 * k + 4])
+             for k, n in enumerate(nets)]
+    # each run's loss is its own mean: the stack's is their average, so scale back by K = 2
+    (2 * total).backward()
+    for k, (loss, lg, nw) in enumerate(parts):
+        loss.backward()
+        assert torch.equal(logits[4 * k:4 * k + 4], lg)
+        assert all(torch.equal(new[key][4 * k:4 * k + 4], nw[key]) for key in nw)
+        for name, p in stack.named_parameters():
+            g = dict(nets[k].named_parameters())[name].grad
+            assert g is not None and p.grad is not None
+            assert torch.equal(p.grad[4 * k:4 * k + 4], g), name
