@@ -12,7 +12,7 @@ Each agent has a separate actor and critic (as WAC/DCEA). After every update:
    diverged and the critic became NaN, see :class:`marl.quantize.ErrorFeedbackQSGD`).
    Payload per bucket and update: one 32-bit norm plus ``log2(2s+1)`` bits per entry.
 
-Both payloads are tallied per agent in ``trainer.bits`` and logged; only the first is sent.
+Both payloads are tallied per agent in the run's ``bits`` and logged; only the first is sent.
 
 Messages (each received by the front and rear neighbours; counted in bits per agent):
 
@@ -35,9 +35,10 @@ from typing import ClassVar
 from envs.errors import ConfigError
 from marl.common import (
     A2CConfig,
+    AgentNet,
     Algorithm,
+    Run,
     SeparateActorCriticNet,
-    Trainer,
 )
 from marl.consensus import bdc, consensus_round
 from marl.quantize import ErrorFeedbackQSGD, qsgd_bits, ternary_bits
@@ -97,29 +98,28 @@ class BDC(Algorithm):
     def build_net(self, config, n_agents, with_critic=True, generator=None):
         return SeparateActorCriticNet(n_agents, config.hidden, with_critic, generator)
 
-    def setup(self, trainer: Trainer) -> None:
-        cfg = trainer.config
+    def setup(self, run: Run) -> None:
+        cfg = run.config
         assert isinstance(cfg, BDCConfig)
-        self.qsgd = ErrorFeedbackQSGD(max(cfg.qsgd_levels, 1), trainer.generator, cfg.qsgd_bucket)
+        run.hook_state["qsgd"] = ErrorFeedbackQSGD(max(cfg.qsgd_levels, 1), run.generator,
+                                                   cfg.qsgd_bucket)
 
-    def before_step(self, trainer: Trainer) -> None:
-        cfg = trainer.config
+    def before_step(self, run: Run, net: AgentNet) -> None:
+        cfg = run.config
         assert isinstance(cfg, BDCConfig)
         if cfg.qsgd_levels == 0:
             return
-        grads = [p.grad for p in trainer.net.critic_parameters() if p.grad is not None]
-        for g, q in zip(grads, self.qsgd.compress(grads), strict=True):
+        grads = [p.grad[run.rows] for p in net.critic_parameters() if p.grad is not None]
+        for g, q in zip(grads, run.hook_state["qsgd"].compress(grads), strict=True):
             g.copy_(q)
-            trainer.bits["qsgd_local"] += qsgd_bits(g[0].numel(), cfg.qsgd_levels, bucket=cfg.qsgd_bucket)
+            run.bits["qsgd_local"] += qsgd_bits(g[0].numel(), cfg.qsgd_levels, bucket=cfg.qsgd_bucket)
 
-    def after_step(self, trainer: Trainer) -> None:
-        cfg = trainer.config
-        assert isinstance(cfg, BDCConfig)
-        net = trainer.net
-        assert isinstance(net, SeparateActorCriticNet)
-        shared = net.shared_critic_parameters(cfg.share_whole_critic)
+    def after_step(self, run: Run, net: AgentNet) -> None:
+        cfg = run.config
+        assert isinstance(cfg, BDCConfig) and isinstance(net, SeparateActorCriticNet)
+        shared = [p[run.rows] for p in net.shared_critic_parameters(cfg.share_whole_critic)]
         n_weights = consensus_round(shared, functools.partial(bdc, eps=cfg.consensus_eps))
-        trainer.bits["consensus"] += ternary_bits(n_weights, cfg.packed_bits)
+        run.bits["consensus"] += ternary_bits(n_weights, cfg.packed_bits)
 
 
 ALGORITHM = BDC()

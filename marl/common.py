@@ -28,7 +28,7 @@ import importlib
 import math
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar
@@ -222,24 +222,32 @@ class A2CConfig:
 
 
 # ---------------------------------------------------------------------------- networks
-def shift_front(x: torch.Tensor) -> torch.Tensor:
-    """What each agent gets from its front neighbour: ``out[i] = x[i-1]``, 0 for agent 0."""
+def shift_front(x: torch.Tensor, platoon_size: int | None = None) -> torch.Tensor:
+    """What each agent gets from its front neighbour: ``out[i] = x[i-1]``, 0 for agent 0.
+
+    ``x (A, ...)`` stacks ``A / platoon_size`` platoons (runs of a population) along the agent
+    axis; nothing crosses from one platoon to the next (default: one platoon of ``A``)."""
     out = torch.zeros_like(x)
-    out[1:] = x[:-1]
+    size = platoon_size or x.shape[0]
+    out.unflatten(0, (-1, size))[:, 1:] = x.unflatten(0, (-1, size))[:, :-1]
     return out
 
 
-def shift_rear(x: torch.Tensor) -> torch.Tensor:
-    """What each agent gets from its rear neighbour: ``out[i] = x[i+1]``, 0 for the last."""
+def shift_rear(x: torch.Tensor, platoon_size: int | None = None) -> torch.Tensor:
+    """What each agent gets from its rear neighbour: ``out[i] = x[i+1]``, 0 for the last of
+    each platoon (see :func:`shift_front`)."""
     out = torch.zeros_like(x)
-    out[:-1] = x[1:]
+    size = platoon_size or x.shape[0]
+    out.unflatten(0, (-1, size))[:, :-1] = x.unflatten(0, (-1, size))[:, 1:]
     return out
 
 
-def neighbour_action_onehot(actions: torch.Tensor) -> torch.Tensor:
-    """``(N, B)`` actions -> ``(N, B, 8)``: front and rear neighbours' one-hot actions."""
+def neighbour_action_onehot(actions: torch.Tensor, platoon_size: int | None = None) -> torch.Tensor:
+    """``(A, B)`` actions -> ``(A, B, 8)``: front and rear neighbours' one-hot actions, within
+    each platoon of ``platoon_size`` agents (default: one platoon)."""
     onehot = nn.functional.one_hot(actions, N_ACTIONS).to(torch.float32)
-    return torch.cat([shift_front(onehot), shift_rear(onehot)], dim=-1)
+    return torch.cat(
+        [shift_front(onehot, platoon_size), shift_rear(onehot, platoon_size)], dim=-1)
 
 
 class AgentNet(nn.Module):
@@ -259,6 +267,9 @@ class AgentNet(nn.Module):
         re-derives messages from the recomputed states instead of re-using the received ones.
     with_critic : bool
         Whether the critic is built (not for acting from a checkpoint).
+    platoon_size : int
+        Agents per platoon: ``n_agents`` for one run; a population's stacked network holds
+        ``n_agents / platoon_size`` runs' platoons, which never exchange anything.
     """
 
     msg_width: int = 0
@@ -269,6 +280,7 @@ class AgentNet(nn.Module):
     def __init__(self, n_agents: int, hidden: int, with_critic: bool) -> None:
         super().__init__()
         self.n_agents = n_agents
+        self.platoon_size = n_agents
         self.hidden = hidden
         self.with_critic = with_critic
 
@@ -450,14 +462,16 @@ class Algorithm:
         """The batched network of N agents."""
         raise NotImplementedError
 
-    def setup(self, trainer: Trainer) -> None:
-        """Called once after the network and optimiser exist."""
+    def setup(self, run: Run) -> None:
+        """Called once per run after the network exists; the run's own state of the algorithm
+        goes into ``run.hook_state``."""
 
-    def before_step(self, trainer: Trainer) -> None:
-        """After backward and per-agent clipping, before the optimiser step (e.g. QSGD)."""
+    def before_step(self, run: Run, net: AgentNet) -> None:
+        """After backward and per-agent clipping, before the optimiser step (e.g. QSGD), on the
+        run's rows ``run.rows`` of ``net``."""
 
-    def after_step(self, trainer: Trainer) -> None:
-        """After the optimiser step (e.g. a consensus round)."""
+    def after_step(self, run: Run, net: AgentNet) -> None:
+        """After the optimiser step (e.g. a consensus round), on the run's rows of ``net``."""
 
 
 def execution_bits_per_agent_step(net: AgentNet) -> int:
@@ -487,7 +501,7 @@ def exchange(net: AgentNet, state: State) -> tuple[torch.Tensor | None, torch.Te
     msg = net.message(state)
     if msg is None:
         return None, None
-    return shift_front(msg), shift_rear(msg)
+    return shift_front(msg, net.platoon_size), shift_rear(msg, net.platoon_size)
 
 
 # ---------------------------------------------------------------------------- trainer
@@ -510,153 +524,61 @@ class TrainResult:
     curve_csv: Path | None = None
 
 
-class Trainer:
-    """On-policy A2C over a batched env; algorithm hooks add the distinctive parts."""
+@dataclass
+class Run:
+    """One training run of a :class:`Trainer`: everything of its own.
 
-    def __init__(
-        self,
-        algo: Algorithm,
-        config: A2CConfig,
-        scenario_id: str,
-        n_vehicles: int,
-        seed: int,
-    ) -> None:
-        torch.set_num_threads(1)
-        self.algo = algo
-        self.config = config = config.resolved(scenario_id)
-        self.scenario_id = scenario_id
-        self.n_vehicles = n_vehicles
-        self.seed = seed
-        self.generator = torch.Generator().manual_seed(seed)
-        self.env = PlatoonEnv(
-            make_scenario(scenario_id), n_vehicles, training=True, collision_mode="published",
-            weights=config.reward_weights(),
-        )
-        assert config.power_baseline_kw is not None  # resolved above
-        #: per running agent and step, added to the env's reward: ``-w5 P0`` (0 as published)
-        self._baseline_reward = -config.reward_w_power * config.power_baseline_kw
-        self.net = algo.build_net(config, n_vehicles, True, self.generator)
-        self.optimizer = torch.optim.RMSprop(
-            [
-                {"params": self.net.actor_parameters(), "lr": config.actor_lr * config.lr_scale},
-                {"params": self.net.critic_parameters(), "lr": config.critic_lr * config.lr_scale},
-            ],
-            alpha=config.rmsprop_alpha,
-            eps=config.rmsprop_eps,
-        )
-        self.params = [p for g in self.optimizer.param_groups for p in g["params"]]
-        self.steps = 0
-        #: the run's step budget (entropy schedule); :func:`run_training` sets it
-        self.total_steps = 0
-        self.episodes = 0
-        self.updates = 0
-        #: training bits over the run, per agent: consensus messages sent to the neighbours,
-        #: and the payload of QSGD-compressed gradients that are applied locally (sent nowhere)
-        self.bits: dict[str, float] = {"consensus": 0.0, "qsgd_local": 0.0}
-        self._episode_counter = 0
-        #: running (count, mean, sum of squared deviations) of discounted returns (return_norm)
-        self._return_stats: tuple[float, float, float] = (0.0, 0.0, 0.0)
-        self._return_acc = torch.zeros(0)
-        algo.setup(self)
+    A population shares only the stacked network tensors (each run owns the agent rows
+    ``rows``); its random stream, environment, optimiser rates, return statistics, step counts,
+    bit tallies and algorithm state (``hook_state``) are its own, used in the order a run alone
+    uses them, so each run trains exactly as it would alone.
+    """
 
-    # -- sampling
-    def _sample(self, logits: torch.Tensor) -> torch.Tensor:
-        u = torch.rand(logits.shape, generator=self.generator).clamp_(1e-12, 1.0)
-        return (logits - torch.log(-torch.log(u))).argmax(-1)
+    index: int
+    seed: int
+    #: the resolved config (``reward_alpha`` and ``power_baseline_kw`` filled in)
+    config: A2CConfig
+    generator: torch.Generator
+    env: PlatoonEnv
+    #: its agents' rows in the stacked network, ``slice(index N, (index + 1) N)``
+    rows: slice
+    #: per running agent and step, added to the env's reward: ``-w5 P0`` (0 as published)
+    baseline_reward: float
+    #: the run's step budget (entropy schedule); :func:`run_population` sets it
+    total_steps: int = 0
+    steps: int = 0
+    episodes: int = 0
+    updates: int = 0
+    #: training bits over the run, per agent: consensus messages sent to the neighbours,
+    #: and the payload of QSGD-compressed gradients that are applied locally (sent nowhere)
+    bits: dict[str, float] = field(default_factory=lambda: {"consensus": 0.0, "qsgd_local": 0.0})
+    episode_counter: int = 0
+    #: running (count, mean, sum of squared deviations) of discounted returns (return_norm)
+    return_stats: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    return_acc: torch.Tensor = field(default_factory=lambda: torch.zeros(0))
+    #: what an algorithm keeps between updates (BDC: its QSGD residuals)
+    hook_state: dict[str, Any] = field(default_factory=dict)
+    #: why the run stopped early (its weights became non-finite), None while it is healthy
+    failed: str | None = None
 
-    def _training_seeds(self, batch: int) -> np.ndarray:
+    def training_seeds(self, batch: int) -> np.ndarray:
+        """Env seeds of the run's next ``batch`` training episodes."""
         base = 10_000_000 * (self.seed + 1)
-        seeds = base + self._episode_counter + np.arange(batch)
-        self._episode_counter += batch
+        seeds = base + self.episode_counter + np.arange(batch)
+        self.episode_counter += batch
         return seeds
 
-    @torch.no_grad()
-    def _act(self, obs_np: np.ndarray, state: State) -> dict[str, Any]:
-        """No-grad acting step: observation, messages received, logits, actions, next state."""
-        obs = torch.from_numpy(obs_np).transpose(0, 1).contiguous()
-        front, rear = exchange(self.net, state)
-        logits, out, new = self.net.act_step(obs, state, front, rear)
-        actions = self._sample(logits)
-        return {
-            "obs": obs,
-            "front": front,
-            "rear": rear,
-            "out": out,
-            "logits": logits,
-            "actions": actions,
-            "state": new,
-        }
+    def uniforms(self, shape: tuple[int, ...]) -> torch.Tensor:
+        """The run's uniforms for one sampling step (Gumbel-max over the last axis)."""
+        return torch.rand(shape, generator=self.generator).clamp_(1e-12, 1.0)
 
-    def run_batch(self) -> tuple[int, float]:
-        """Run B episodes to the end with an update every n steps.
-
-        Returns the environment steps taken and the mean training reward (the learner's own,
-        shaped when the config says so; mean over steps of the
-        sum over agents, as the paper reports).
-        """
-        cfg, net, env = self.config, self.net, self.env
-        b = cfg.episodes_parallel
-        obs_np = env.reset(self._training_seeds(b))
-        self._return_acc = torch.zeros(b, self.n_vehicles)
-        assert obs_np is not None
-        state = net.initial_state(b)
-        cur = self._act(obs_np, state)
-        active = np.ones(b, dtype=bool)
-        ep_reward = np.zeros(b)
-        ep_len = np.zeros(b)
-        steps = 0
-        t_episode = 0  # steps since reset (all B episodes start together)
-        finished = False
-        while not finished:
-            seg_state = state
-            record: list[dict[str, Any]] = []
-            rews, masks, terms, absorbed = [], [], [], []
-            for _ in range(cfg.n_step):
-                record.append(cur)
-                res = env.step_actions(cur["actions"].T.numpy())
-                t_episode += 1
-                state = cur["state"]
-                masks.append(active.copy())
-                terms.append(res.done & active)
-                if self._baseline_reward:
-                    running = active & ~res.collided
-                    rews.append(res.reward + self._baseline_reward * running[:, None])
-                else:
-                    rews.append(res.reward)
-                crashed = res.done & res.collided & active
-                absorbed.append(
-                    self._absorbing_value(env.n_steps - t_episode) * crashed
-                    if crashed.any() else np.zeros(b)
-                )
-                steps += int(active.sum())
-                ep_reward += np.where(active, rews[-1].sum(1), 0.0)
-                ep_len += active
-                active = ~res.done
-                if res.done.all():
-                    finished = True
-                    break
-                assert res.observation is not None
-                cur = self._act(res.observation, state)
-            if finished:
-                bootstrap = torch.zeros(b, self.n_vehicles)
-            else:
-                with torch.no_grad():
-                    nb = neighbour_action_onehot(cur["actions"])
-                    bootstrap = net.value(cur["out"], nb).T
-            self._update(seg_state, record, rews, masks, terms, bootstrap, absorbed)
-            if not finished and active.sum() < cfg.min_active_fraction * b:
-                # most episodes ended (published collision rule): truncate the rest (their last
-                # segment was bootstrapped) instead of stepping finished episodes
-                finished = True
-            if not finished:
-                # act on the next observation with the updated weights (same state, no re-advance)
-                cur = self._act(cur["obs"].transpose(0, 1).numpy(), state)
-        self.steps += steps
-        self.episodes += b
-        return steps, float((ep_reward / np.maximum(ep_len, 1)).mean())
+    def learning_rates(self) -> tuple[float, float]:
+        """RMSprop rates of actor and critic parameters."""
+        cfg = self.config
+        return cfg.actor_lr * cfg.lr_scale, cfg.critic_lr * cfg.lr_scale
 
     @torch.no_grad()
-    def _return_scale(
+    def return_scale(
         self, reward: torch.Tensor, term: torch.Tensor, mask: torch.Tensor
     ) -> torch.Tensor:
         """Running standard deviation of the discounted return (``return_norm``).
@@ -666,26 +588,26 @@ class Trainer:
         merged into running totals (Chan et al.), as Stable-Baselines3's reward normalisation.
         """
         cfg = self.config
-        acc = self._return_acc
+        acc = self.return_acc
         rets = []
         for t in range(reward.shape[0]):
             acc = acc * cfg.gamma + reward[t]
             rets.append(acc)
             acc = acc * (~term[t]).to(acc.dtype).unsqueeze(-1)
-        self._return_acc = acc
+        self.return_acc = acc
         x = torch.stack(rets)[mask.expand_as(reward) > 0].to(torch.float64)
         if x.numel():
             n_b, mean_b, var_b = float(x.numel()), float(x.mean()), float(x.var(unbiased=False))
-            n_a, mean_a, m2_a = self._return_stats
+            n_a, mean_a, m2_a = self.return_stats
             n = n_a + n_b
             delta = mean_b - mean_a
             m2 = m2_a + var_b * n_b + delta * delta * n_a * n_b / n
-            self._return_stats = (n, mean_a + delta * n_b / n, m2)
-        n, _, m2 = self._return_stats
+            self.return_stats = (n, mean_a + delta * n_b / n, m2)
+        n, _, m2 = self.return_stats
         std = math.sqrt(m2 / n) if n > 0 else 1.0
         return torch.tensor(max(std, 1e-6), dtype=reward.dtype)
 
-    def _absorbing_value(self, remaining_steps: int) -> float:
+    def absorbing_value(self, remaining_steps: int) -> float:
         """Per-agent value (unscaled, unshared) of a collided state with ``remaining_steps``
         scheduled steps left: the collision penalty at each of them, discounted (0 under
         ``collision_value="published"``)."""
@@ -698,16 +620,226 @@ class Trainer:
             return penalty * remaining_steps
         return penalty * (1.0 - g**remaining_steps) / (1.0 - g)
 
+
+@dataclass
+class _Segment:
+    """One run's part of an n-step segment: per step its rewards ``(B, N)``, running mask,
+    terminal flags, absorbing values ``(B,)``; and the bootstrap values ``(B, N)``."""
+
+    rews: list[np.ndarray] = field(default_factory=list)
+    masks: list[np.ndarray] = field(default_factory=list)
+    terms: list[np.ndarray] = field(default_factory=list)
+    absorbed: list[np.ndarray] = field(default_factory=list)
+    bootstrap: torch.Tensor | None = None
+
+
+#: Structural fields every run of a population shares (they shape the stacked tensors and the
+#: lockstep of segments); the others may differ from run to run.
+POPULATION_SHARED_FIELDS: tuple[str, ...] = ("hidden", "n_step", "episodes_parallel")
+
+
+class Trainer:
+    """On-policy A2C of K runs (a population; K = 1: one run) over batched envs.
+
+    The K runs' agents are stacked as one network of ``K N`` agents (every layer is per agent,
+    :mod:`marl.layers`), so each step acts for all runs in one forward and each update is one
+    backward; everything that crosses agents (messages, the critic's neighbour actions,
+    consensus, reward sharing) stays inside a run's platoon. Runs step in lockstep: their
+    batches start together and a run whose batch ended waits for the others. Each run draws
+    from its own generator in the order a run alone does, keeps its own environment, statistics
+    and optimiser state, and so trains exactly as alone (tested to the last bit).
+
+    Parameters
+    ----------
+    algo : Algorithm
+    config : A2CConfig or sequence of them
+        One config for every run, or one per run (equal in :data:`POPULATION_SHARED_FIELDS`).
+    scenario_id : str
+    n_vehicles : int
+    seed : int or sequence of int
+        The runs' seeds (one int: one run).
+    """
+
+    def __init__(
+        self,
+        algo: Algorithm,
+        config: A2CConfig | Sequence[A2CConfig],
+        scenario_id: str,
+        n_vehicles: int,
+        seed: int | Sequence[int],
+    ) -> None:
+        torch.set_num_threads(1)
+        seeds = [int(seed)] if isinstance(seed, int | np.integer) else [int(s) for s in seed]
+        configs = (
+            [config] * len(seeds) if isinstance(config, A2CConfig) else list(config)
+        )
+        if not seeds or len(configs) != len(seeds):
+            raise ConfigError(
+                f"a population needs one config per seed (got {len(configs)} configs for "
+                f"{len(seeds)} seeds)")
+        self.algo = algo
+        self.scenario_id = scenario_id
+        self.n_vehicles = n = n_vehicles
+        resolved = [c.resolved(scenario_id) for c in configs]
+        for f in POPULATION_SHARED_FIELDS:
+            values = {getattr(c, f) for c in resolved}
+            if len(values) > 1:
+                raise ConfigError(
+                    f"the runs of one population must share {f} (got {sorted(values)}); "
+                    "train them in separate populations")
+        self.shape = resolved[0]  # the shared structural fields
+        self.runs: list[Run] = []
+        nets = []
+        for k, (s, cfg) in enumerate(zip(seeds, resolved, strict=True)):
+            generator = torch.Generator().manual_seed(s)
+            env = PlatoonEnv(
+                make_scenario(scenario_id), n, training=True, collision_mode="published",
+                weights=cfg.reward_weights(),
+            )
+            assert cfg.power_baseline_kw is not None  # resolved above
+            run = Run(k, s, cfg, generator, env, slice(k * n, (k + 1) * n),
+                      -cfg.reward_w_power * cfg.power_baseline_kw)
+            nets.append(algo.build_net(cfg, n, True, generator))
+            self.runs.append(run)
+        self.net = nets[0] if len(nets) == 1 else stack_nets(algo, resolved[0], nets)
+        #: (parameter, is_critic): actor parameters, then the critic's
+        self.params = [(p, False) for p in self.net.actor_parameters()] + [
+            (p, True) for p in self.net.critic_parameters()]
+        self._square_avg = [torch.zeros_like(p) for p, _ in self.params]
+        self._views: dict[int, AgentNet] = {}
+        for run in self.runs:
+            algo.setup(run)
+
+    # -- acting
+    @torch.no_grad()
+    def _act(self, obs: torch.Tensor, state: State, sampling: Sequence[Run]) -> dict[str, Any]:
+        """No-grad acting step of the whole stack: observations ``(K N, B, 15)``, messages
+        received, logits, actions, next state. Only the runs in ``sampling`` draw their actions
+        (the others' rows are computed and ignored)."""
+        net = self.net
+        front, rear = exchange(net, state)
+        logits, out, new = net.act_step(obs, state, front, rear)
+        shape = (self.n_vehicles,) + tuple(logits.shape[1:])
+        drawing = {r.index for r in sampling}
+        parts = [r.uniforms(shape) if r.index in drawing else torch.full(shape, 0.5)
+                 for r in self.runs]
+        u = parts[0] if len(parts) == 1 else torch.cat(parts)
+        actions = (logits - torch.log(-torch.log(u))).argmax(-1)
+        return {"obs": obs, "front": front, "rear": rear, "out": out, "logits": logits,
+                "actions": actions, "state": new}
+
+    def _observation(self, obs_np: np.ndarray) -> torch.Tensor:
+        """Env observations ``(B, N, 15)`` -> agent-major ``(N, B, 15)``."""
+        return torch.from_numpy(obs_np).transpose(0, 1).contiguous()
+
+    def run_batch(self, runs: Sequence[Run] | None = None) -> list[tuple[int, float]]:
+        """Run B episodes of every run in ``runs`` (default all) to the end, with an update of
+        each run every n steps.
+
+        Returns per run the environment steps taken and the mean training reward (the
+        learner's own, shaped when the config says so; mean over steps of the sum over agents,
+        as the paper reports).
+        """
+        taking = list(self.runs if runs is None else runs)
+        net, n = self.net, self.n_vehicles
+        b = self.shape.episodes_parallel
+        obs = [torch.zeros(n, b, OBS_DIM) for _ in self.runs]  # rows of waiting runs: ignored
+        active, ep_reward, ep_len, steps = {}, {}, {}, {}
+        for r in taking:
+            obs_np = r.env.reset(r.training_seeds(b))
+            assert obs_np is not None
+            obs[r.index] = self._observation(obs_np)
+            r.return_acc = torch.zeros(b, n)
+            active[r.index] = np.ones(b, dtype=bool)
+            ep_reward[r.index], ep_len[r.index], steps[r.index] = np.zeros(b), np.zeros(b), 0
+        state = net.initial_state(b)
+        cur = self._act(self._stack(obs), state, taking)
+        going = list(taking)  # runs whose batch goes on
+        t_episode = 0  # steps since reset (every batch starts together)
+        while going:
+            seg_state = state
+            record: list[dict[str, Any]] = []
+            seg = {r.index: _Segment() for r in going}
+            stepping = list(going)
+            for _ in range(self.shape.n_step):
+                record.append(cur)
+                state = cur["state"]
+                t_episode += 1
+                ended = set()
+                for r in stepping:
+                    i, sg, act = r.index, seg[r.index], active[r.index]
+                    res = r.env.step_actions(cur["actions"][r.rows].T.numpy())
+                    sg.masks.append(act.copy())
+                    sg.terms.append(res.done & act)
+                    if r.baseline_reward:
+                        running = act & ~res.collided
+                        sg.rews.append(res.reward + r.baseline_reward * running[:, None])
+                    else:
+                        sg.rews.append(res.reward)
+                    crashed = res.done & res.collided & act
+                    sg.absorbed.append(
+                        r.absorbing_value(r.env.n_steps - t_episode) * crashed
+                        if crashed.any() else np.zeros(b)
+                    )
+                    steps[i] += int(act.sum())
+                    ep_reward[i] += np.where(act, sg.rews[-1].sum(1), 0.0)
+                    ep_len[i] += act
+                    active[i] = ~res.done
+                    if res.done.all():
+                        ended.add(i)
+                        sg.bootstrap = torch.zeros(b, n)
+                    else:
+                        assert res.observation is not None
+                        obs[i] = self._observation(res.observation)
+                stepping = [r for r in stepping if r.index not in ended]
+                if not stepping:
+                    break
+                cur = self._act(self._stack(obs), state, stepping)
+            if stepping:
+                with torch.no_grad():
+                    nb = neighbour_action_onehot(cur["actions"], net.platoon_size)
+                    values = net.value(cur["out"], nb)
+                for r in stepping:
+                    seg[r.index].bootstrap = values[r.rows].T
+            by_length: dict[int, list[Run]] = {}
+            for r in going:
+                by_length.setdefault(len(seg[r.index].rews), []).append(r)
+            for t_len, group in sorted(by_length.items()):
+                self._update(group, seg_state, record[:t_len], [seg[r.index] for r in group])
+            finished = {r.index for r in going if r.index not in {s.index for s in stepping}}
+            for r in going:
+                # most episodes ended (published collision rule): truncate the rest (their last
+                # segment was bootstrapped) instead of stepping finished episodes
+                if r.failed is not None or active[r.index].sum() < r.config.min_active_fraction * b:
+                    finished.add(r.index)
+            going = [r for r in going if r.index not in finished]
+            if going:
+                # act on the next observation with the updated weights (same state, no
+                # re-advance)
+                cur = self._act(cur["obs"], state, going)
+        out = []
+        for r in taking:
+            r.steps += steps[r.index]
+            r.episodes += b
+            out.append((steps[r.index],
+                         float((ep_reward[r.index] / np.maximum(ep_len[r.index], 1)).mean())))
+        return out
+
+    def _stack(self, parts: list[torch.Tensor]) -> torch.Tensor:
+        return parts[0] if len(parts) == 1 else torch.cat(parts)
+
+    # -- learning
     def _recompute(
         self, seg_state: State, record: list[dict[str, Any]]
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Re-run the segment with gradient: logits ``(T, N, B, 4)``, values ``(T, N, B)``,
-        actions ``(T, N, B)``. Non-recurrent layers run once over the whole segment."""
+        """Re-run the segment with gradient, agent-major: logits ``(A, T, B, 4)``, values
+        ``(A, T, B)``, actions ``(A, T, B)`` of all ``A = K N`` agents. Non-recurrent layers run
+        once over the whole segment."""
         net = self.net
         t_len = len(record)
-        n, b = self.n_vehicles, self.config.episodes_parallel
-        obs = torch.stack([r["obs"] for r in record], 1).reshape(n, t_len * b, OBS_DIM)
-        enc = {k: v.reshape(n, t_len, b, -1) for k, v in net.encode(obs).items()}
+        a, b = net.n_agents, self.shape.episodes_parallel
+        obs = torch.stack([r["obs"] for r in record], 1).reshape(a, t_len * b, OBS_DIM)
+        enc = {k: v.reshape(a, t_len, b, -1) for k, v in net.encode(obs).items()}
         # unbind, not enc[k][:, t]: the backward of T selects would allocate and zero-fill a
         # full-size gradient per step (measured: 85 % of BDC's training time); unbind's backward
         # stacks once
@@ -721,56 +853,141 @@ class Trainer:
                 front, rear = record[t]["front"], record[t]["rear"]
             out, state = net.recur({k: v[t] for k, v in enc_t.items()}, state, front, rear)
             outs.append(out)
-        flat = {k: torch.stack([o[k] for o in outs], 1).reshape(n, t_len * b, -1) for k in outs[0]}
-        actions = torch.stack([r["actions"] for r in record], 1).reshape(n, t_len * b)
-        logits = net.logits(flat).reshape(n, t_len, b, N_ACTIONS)
-        nb = neighbour_action_onehot(actions)
-        values = net.value(flat, nb).reshape(n, t_len, b)
-        return (
-            logits.permute(1, 0, 2, 3),
-            values.permute(1, 0, 2),
-            actions.reshape(n, t_len, b).permute(1, 0, 2),
-        )
+        flat = {k: torch.stack([o[k] for o in outs], 1).reshape(a, t_len * b, -1) for k in outs[0]}
+        actions = torch.stack([r["actions"] for r in record], 1).reshape(a, t_len * b)
+        logits = net.logits(flat).reshape(a, t_len, b, N_ACTIONS)
+        nb = neighbour_action_onehot(actions, net.platoon_size)
+        values = net.value(flat, nb).reshape(a, t_len, b)
+        return logits, values, actions.reshape(a, t_len, b)
 
-    def _update(
-        self, seg_state, record, rews, masks, terms, bootstrap: torch.Tensor, absorbed
-    ) -> None:
-        cfg = self.config
-        logits, values, actions = self._recompute(seg_state, record)
-        mask = torch.from_numpy(np.stack(masks)).to(torch.float32).unsqueeze(-1)  # (T, B, 1)
-        term = torch.from_numpy(np.stack(terms))
-        reward = torch.from_numpy(np.stack(rews)).to(torch.float32)
+    def _loss(self, run: Run, seg: _Segment, logits: torch.Tensor, values: torch.Tensor,
+              actions: torch.Tensor) -> torch.Tensor:
+        """The run's A2C loss over its segment from its rows of the recompute."""
+        cfg = run.config
+        mask = torch.from_numpy(np.stack(seg.masks)).to(torch.float32).unsqueeze(-1)  # (T, B, 1)
+        term = torch.from_numpy(np.stack(seg.terms))
+        reward = torch.from_numpy(np.stack(seg.rews)).to(torch.float32)
         # R_t = r_t + gamma V_absorbing at a step that ended the episode by collision
-        extra = torch.from_numpy(np.stack(absorbed)).to(torch.float32)  # (T, B)
+        extra = torch.from_numpy(np.stack(seg.absorbed)).to(torch.float32)  # (T, B)
         reward = reward + cfg.gamma * extra.unsqueeze(-1)
-        assert cfg.reward_alpha is not None  # resolved in __init__
+        assert cfg.reward_alpha is not None and seg.bootstrap is not None
         reward = share_rewards(reward * cfg.reward_scale, cfg.reward_alpha)
         if cfg.return_norm:
-            reward = reward / self._return_scale(reward, term, mask)
-        returns = nstep_returns(reward, bootstrap, term, cfg.gamma)  # (T, B, N)
-        terms_ = a2c_losses(logits, actions, values, returns, mask, cfg.advantage_norm)
-        ent_coef = cfg.entropy_at(self.steps / self.total_steps if self.total_steps else 0.0)
-        loss = terms_["policy"] + cfg.value_coef * terms_["value"] - ent_coef * terms_["entropy"]
-        self.optimizer.zero_grad(set_to_none=False)
-        loss.backward()
-        per_agent_clip_(self.params, cfg.grad_clip)
-        self.algo.before_step(self)
-        self.optimizer.step()
-        self.algo.after_step(self)
-        self.updates += 1
-        self._check_finite()
+            reward = reward / run.return_scale(reward, term, mask)
+        returns = nstep_returns(reward, seg.bootstrap, term, cfg.gamma)  # (T, B, N)
+        terms_ = a2c_losses(
+            logits[run.rows].permute(1, 0, 2, 3), actions[run.rows].permute(1, 0, 2),
+            values[run.rows].permute(1, 0, 2), returns, mask, cfg.advantage_norm)
+        ent_coef = cfg.entropy_at(run.steps / run.total_steps if run.total_steps else 0.0)
+        return terms_["policy"] + cfg.value_coef * terms_["value"] - ent_coef * terms_["entropy"]
 
-    def _check_finite(self) -> None:
-        """Stop with a clear error when any weight became NaN or infinite (a NaN policy would
-        otherwise act as "action 0" everywhere: the argmax of NaN logits)."""
-        bad = [n for n, p in self.net.named_parameters() if not bool(torch.isfinite(p).all())]
+    def _update(
+        self, group: list[Run], seg_state: State, record: list[dict[str, Any]],
+        segs: list[_Segment],
+    ) -> None:
+        """One update of every run in ``group`` (their segments have the same length)."""
+        logits, values, actions = self._recompute(seg_state, record)
+        losses = [self._loss(r, sg, logits, values, actions)
+                  for r, sg in zip(group, segs, strict=True)]
+        loss = losses[0]
+        for other in losses[1:]:  # each run's gradient is its own loss's (the sum's is 1 each)
+            loss = loss + other
+        for p, _ in self.params:
+            if p.grad is not None:
+                p.grad.zero_()
+        loss.backward()
+        params = [p for p, _ in self.params]
+        clips = {r.config.grad_clip for r in group}
+        if len(clips) == 1:
+            per_agent_clip_(params, clips.pop())
+        else:  # a config population: each run clips at its own norm (other rows have no grad)
+            per_agent_clip_(params, torch.tensor(
+                [r.config.grad_clip for r in self.runs]).repeat_interleave(self.n_vehicles))
+        for r in group:
+            self.algo.before_step(r, self.net)
+        self._rmsprop_step(group)
+        for r in group:
+            self.algo.after_step(r, self.net)
+            r.updates += 1
+            self._check_finite(r)
+
+    @torch.no_grad()
+    def _rmsprop_step(self, group: list[Run]) -> None:
+        """RMSprop (no momentum, not centred; the arithmetic of ``torch.optim.RMSprop``) on the
+        rows of the runs in ``group``, each with its own rates, smoothing and epsilon."""
+        settings = {(r.learning_rates(), r.config.rmsprop_alpha, r.config.rmsprop_eps)
+                    for r in group}
+        whole = len(group) == len(self.runs) and len(settings) == 1
+        for (p, is_critic), sq in zip(self.params, self._square_avg, strict=True):
+            assert p.grad is not None
+            if whole:
+                (lrs, alpha, eps), = settings
+                _rmsprop_(p, p.grad, sq, lrs[is_critic], alpha, eps)
+                continue
+            for r in group:
+                cfg = r.config
+                _rmsprop_(p[r.rows], p.grad[r.rows], sq[r.rows], r.learning_rates()[is_critic],
+                          cfg.rmsprop_alpha, cfg.rmsprop_eps)
+
+    def _check_finite(self, run: Run) -> None:
+        """Stop a run whose weights became NaN or infinite (a NaN policy would otherwise act as
+        "action 0" everywhere: the argmax of NaN logits); the other runs go on. Its rows are
+        zeroed so nothing non-finite stays in the stack."""
+        bad = [name for name, p in self.net.named_parameters()
+               if not bool(torch.isfinite(p[run.rows]).all())]
         if bad:
-            raise TrainingDivergedError(
-                f"{self.algo.name} on {self.scenario_id}: weights {', '.join(bad)} became "
-                f"non-finite after {self.updates} updates ({self.steps} environment steps "
-                "before this batch); lower the learning rates (actor_lr, critic_lr, lr_scale) "
-                "or check the algorithm's options. The best checkpoint evaluated so far is kept."
+            run.failed = (
+                f"{self.algo.name} on {self.scenario_id}, seed {run.seed}: weights "
+                f"{', '.join(bad)} became non-finite after {run.updates} updates ({run.steps} "
+                "environment steps before this batch); lower the learning rates (actor_lr, "
+                "critic_lr, lr_scale) or check the algorithm's options. The best checkpoint "
+                "evaluated so far is kept."
             )
+            with torch.no_grad():
+                for p in self.net.parameters():
+                    p[run.rows] = 0.0
+
+    # -- one run's view
+    def run_net(self, run: Run) -> AgentNet:
+        """The run's acting network as its checkpoint stores it: N agents, no critic, weights
+        rounded to the checkpoint's precision (validation scores what is saved, and a saved
+        snapshot scores in the harness exactly what validation measured)."""
+        from marl.checkpoint import WEIGHT_DTYPE
+
+        view = self._views.get(run.index)
+        if view is None:
+            view = self.algo.build_net(run.config, self.n_vehicles, False,
+                                       torch.Generator().manual_seed(0))
+            view.requires_grad_(False)
+            self._views[run.index] = view
+        whole = dict(self.net.named_parameters())
+        with torch.no_grad():
+            for name, p in view.named_parameters():
+                p.copy_(whole[name][run.rows].to(WEIGHT_DTYPE))
+        return view
+
+
+def _rmsprop_(
+    param: torch.Tensor, grad: torch.Tensor, square_avg: torch.Tensor, lr: float, alpha: float,
+    eps: float,
+) -> None:
+    """One RMSprop step in place, in the operation order of ``torch.optim.RMSprop``."""
+    square_avg.mul_(alpha).addcmul_(grad, grad, value=1 - alpha)
+    avg = square_avg.sqrt().add_(eps)
+    param.addcdiv_(grad, avg, value=-lr)
+
+
+def stack_nets(algo: Algorithm, config: A2CConfig, nets: Sequence[AgentNet]) -> AgentNet:
+    """One network of ``K N`` agents holding the K runs' networks' weights (and buffers) in
+    order; its ``platoon_size`` is N."""
+    n = nets[0].n_agents
+    big = algo.build_net(config, n * len(nets), True, torch.Generator().manual_seed(0))
+    parts = [dict(net.named_parameters()) | dict(net.named_buffers()) for net in nets]
+    with torch.no_grad():
+        for name, t in list(big.named_parameters()) + list(big.named_buffers()):
+            t.copy_(torch.cat([part[name] for part in parts]))
+    big.platoon_size = n
+    return big
 
 
 def a2c_losses(
@@ -901,7 +1118,8 @@ def run_training(
     Every ``config.eval_every_steps`` (and at the end) the policy is evaluated on the validation
     seeds in both modes by ``evaluate``; the snapshot kept as ``<stem>.pt`` is the best in
     ``config.selection_mode`` (fewest collisions, then mean reward; a tie goes to the later
-    snapshot). The final weights are saved as ``<stem>.final.pt``.
+    snapshot). The final weights are saved as ``<stem>.final.pt``. One run of
+    :func:`run_population`.
 
     Parameters
     ----------
@@ -919,71 +1137,120 @@ def run_training(
         Validation evaluator (required with ``out_dir``): the benchmark's closed loop on the
         validation seeds, :func:`benchmark.policy_eval.validation_evaluator`.
     """
+    return run_population(algo, [config], scenario_id, n_vehicles, total_steps, [seed], out_dir,
+                          progress, [log], schedule_steps, evaluate)[0]
+
+
+def run_population(
+    algo: Algorithm,
+    configs: Sequence[A2CConfig],
+    scenario_id: str,
+    n_vehicles: int = 8,
+    total_steps: int = 600_000,
+    seeds: Sequence[int] = (0,),
+    out_dir: str | Path | None = None,
+    progress: ProgressFn | None = None,
+    logs: Sequence[Callable[[str], None] | None] | None = None,
+    schedule_steps: int | None = None,
+    evaluate: Evaluator | None = None,
+) -> list[TrainResult]:
+    """Train K runs of ``algo`` at once (one :class:`Trainer`): run ``k`` with ``configs[k]`` and
+    ``seeds[k]``, each evaluated, selected and saved exactly as :func:`run_training` alone.
+
+    A run stops at its own budget; one whose weights become non-finite stops there while the
+    others go on, and the error is raised after they finished (their checkpoints are written).
+    ``logs[k]`` receives run k's lines; ``progress`` is called per run and batch. Wall time and
+    throughput of each result are the population's (its steps over the population's time).
+    """
     make_scenario(scenario_id)  # fail early on an unknown id
     if out_dir is not None and evaluate is None:
         raise ConfigError(
             "run_training with an output folder needs a validation evaluator: pass "
             "evaluate=benchmark.policy_eval.validation_evaluator(algo, scenario, N)"
         )
-    trainer = Trainer(algo, config, scenario_id, n_vehicles, seed)
-    trainer.total_steps = schedule_steps or total_steps
-    curve: list[dict[str, float]] = []
-    next_eval = config.eval_every_steps if out_dir is not None else math.inf
+    if len({int(s) for s in seeds}) != len(seeds):
+        raise ConfigError(f"the runs of a population need distinct seeds, got {list(seeds)}")
+    trainer = Trainer(algo, list(configs), scenario_id, n_vehicles, list(seeds))
+    runs = trainer.runs
+    log_of = list(logs) if logs is not None else [None] * len(runs)
+    for r in runs:
+        r.total_steps = schedule_steps or total_steps
+    curves: list[list[dict[str, float]]] = [[] for _ in runs]
+    next_eval = [r.config.eval_every_steps if out_dir is not None else math.inf for r in runs]
+    best = [(-math.inf, -math.inf) for _ in runs]
+    results = [TrainResult(algo.name, scenario_id, n_vehicles, r.seed, 0, 0, 0.0, 0.0, {},
+                           curves[r.index]) for r in runs]
     t0 = time.perf_counter()
     train_time = 0.0
-    result = TrainResult(algo.name, scenario_id, n_vehicles, seed, 0, 0, 0.0, 0.0, {}, curve)
-    best: tuple[float, float] = (-math.inf, -math.inf)
-    select = trainer.config.selection_mode
-    while trainer.steps < total_steps:
+    while todo := [r for r in runs if r.steps < total_steps and r.failed is None]:
         tb = time.perf_counter()
-        _, train_reward = trainer.run_batch()
+        outcome = trainer.run_batch(todo)
         train_time += time.perf_counter() - tb
-        row: dict[str, float] = {
-            "episode": trainer.episodes,
-            "steps": trainer.steps,
-            "train_reward": train_reward,
-            **{f"eval_{k}_{m}": math.nan for m in EVAL_MODES for k in CURVE_EVAL_KEYS},
-        }
-        curve.append(row)
-        last = trainer.steps >= total_steps
-        if trainer.steps >= next_eval or (out_dir is not None and last):
-            assert evaluate is not None
-            for mode in EVAL_MODES:
-                ev = evaluate(trainer.net, mode)
-                for k in CURVE_EVAL_KEYS:
-                    row[f"eval_{k}_{mode}"] = float(ev[k])
-            next_eval = trainer.steps + config.eval_every_steps
-            # fewest collisions first: a colliding episode ends early, so its mean reward over
-            # the steps it ran can look better than a safe one's; a tie keeps the later snapshot
-            score = (-row[f"eval_collisions_{select}"], row[f"eval_reward_{select}"])
-            better = score >= best
-            best = max(best, score)
-            _finish(result, trainer, time.perf_counter() - t0, train_time, out_dir, better)
-            if log is not None:
-                log(
-                    f"steps {trainer.steps} episodes {trainer.episodes} train {train_reward:.2f} "
-                    + " ".join(
-                        f"{m} {row[f'eval_reward_{m}']:.2f} ({row[f'eval_collisions_{m}']:.0f} "
-                        "collisions)" for m in EVAL_MODES
+        for r, (_, train_reward) in zip(todo, outcome, strict=True):
+            if r.failed is not None:
+                continue
+            k, cfg, log = r.index, r.config, log_of[r.index]
+            row: dict[str, float] = {
+                "episode": r.episodes,
+                "steps": r.steps,
+                "train_reward": train_reward,
+                **{f"eval_{key}_{m}": math.nan for m in EVAL_MODES for key in CURVE_EVAL_KEYS},
+            }
+            curves[k].append(row)
+            last = r.steps >= total_steps
+            if r.steps >= next_eval[k] or (out_dir is not None and last):
+                assert evaluate is not None
+                net = trainer.run_net(r)
+                for mode in EVAL_MODES:
+                    ev = evaluate(net, mode)
+                    for key in CURVE_EVAL_KEYS:
+                        row[f"eval_{key}_{mode}"] = float(ev[key])
+                next_eval[k] = r.steps + cfg.eval_every_steps
+                # fewest collisions first: a colliding episode ends early, so its mean reward
+                # over the steps it ran can look better than a safe one's; a tie keeps the
+                # later snapshot
+                select = cfg.selection_mode
+                score = (-row[f"eval_collisions_{select}"], row[f"eval_reward_{select}"])
+                better = score >= best[k]
+                best[k] = max(best[k], score)
+                _finish(results[k], trainer, r, net, time.perf_counter() - t0, train_time,
+                        out_dir, better)
+                if log is not None:
+                    log(
+                        f"steps {r.steps} episodes {r.episodes} train {train_reward:.2f} "
+                        + " ".join(
+                            f"{m} {row[f'eval_reward_{m}']:.2f} "
+                            f"({row[f'eval_collisions_{m}']:.0f} collisions)" for m in EVAL_MODES
+                        )
+                        + (" [kept]" if better else "")
+                        + f" consensus bits/agent {r.bits['consensus']:.0f}"
                     )
-                    + (" [kept]" if better else "")
-                    + f" consensus bits/agent {trainer.bits['consensus']:.0f}"
-                )
-        if progress is not None:
-            progress(trainer.steps, total_steps, row)
-    _finish(result, trainer, time.perf_counter() - t0, train_time, out_dir, False, final=True)
-    if log is not None:
-        log(
-            f"done: {trainer.steps} steps in {result.wall_s:.0f} s "
-            f"({result.env_steps_per_s:.0f} env steps/s training), execution "
-            f"{result.bits['execution_bits_per_vehicle_per_s']:.0f} bit/vehicle/s, training bits "
-            f"sent per agent: {result.bits['training_step_bits_per_agent_step']:.0f} per step "
-            f"(blocks, messages, action for the critics, message gradients) and consensus "
-            f"{result.bits['training_consensus_bits_per_agent']:.0f} in all "
-            f"(QSGD applied locally: {result.bits['local_qsgd_payload_bits_per_agent']:.0f} "
-            f"bits of payload, not sent); checkpoint {result.checkpoint}"
-        )
-    return result
+            if progress is not None:
+                progress(r.steps, total_steps, row)
+    wall = time.perf_counter() - t0
+    for r in runs:
+        if r.failed is not None:
+            continue
+        res = results[r.index]
+        _finish(res, trainer, r, trainer.run_net(r), wall, train_time, out_dir, False, final=True)
+        log = log_of[r.index]
+        if log is not None:
+            log(
+                f"done: {r.steps} steps in {res.wall_s:.0f} s "
+                f"({res.env_steps_per_s:.0f} env steps/s training"
+                + (f", population of {len(runs)}" if len(runs) > 1 else "")
+                + f"), execution "
+                f"{res.bits['execution_bits_per_vehicle_per_s']:.0f} bit/vehicle/s, training "
+                f"bits sent per agent: {res.bits['training_step_bits_per_agent_step']:.0f} per "
+                f"step (blocks, messages, action for the critics, message gradients) and "
+                f"consensus {res.bits['training_consensus_bits_per_agent']:.0f} in all "
+                f"(QSGD applied locally: {res.bits['local_qsgd_payload_bits_per_agent']:.0f} "
+                f"bits of payload, not sent); checkpoint {res.checkpoint}"
+            )
+    failed = [r.failed for r in runs if r.failed is not None]
+    if failed:
+        raise TrainingDivergedError("; ".join(failed))
+    return results
 
 
 #: Validation numbers recorded per mode in the curve (``eval_<key>_<mode>``).
@@ -993,41 +1260,43 @@ CURVE_EVAL_KEYS: tuple[str, ...] = ("reward", "collisions")
 def _finish(
     result: TrainResult,
     trainer: Trainer,
+    run: Run,
+    net: AgentNet,
     wall_s: float,
     train_s: float,
     out_dir: str | Path | None,
     save_weights: bool,
     final: bool = False,
 ) -> None:
-    """Fill the result's numbers and (with an output folder) write the curve, the selected
+    """Fill the run's result numbers and (with an output folder) write the curve, the selected
     checkpoint when ``save_weights`` (a new best on the validation seeds) and, when ``final``,
-    the final weights.
+    the final weights (``net``: the run's acting network).
 
     Called at every evaluation, so an interrupted run leaves its best checkpoint so far.
     """
     from marl.checkpoint import save_checkpoint
 
-    exec_bits = execution_bits_per_agent_step(trainer.net)
-    result.steps, result.episodes = trainer.steps, trainer.episodes
+    exec_bits = execution_bits_per_agent_step(net)
+    result.steps, result.episodes = run.steps, run.episodes
     result.wall_s = wall_s
-    result.env_steps_per_s = trainer.steps / max(train_s, 1e-9)
+    result.env_steps_per_s = run.steps / max(train_s, 1e-9)
     result.bits = {
         "execution_bits_per_agent_step": float(exec_bits),
-        "execution_bits_per_vehicle_per_s": exec_bits / trainer.env.params.dt_s,
-        "training_step_bits_per_agent_step": float(training_step_bits_per_agent(trainer.net)),
-        "training_consensus_bits_per_agent": trainer.bits["consensus"],
-        "local_qsgd_payload_bits_per_agent": trainer.bits["qsgd_local"],
-        "updates": float(trainer.updates),
+        "execution_bits_per_vehicle_per_s": exec_bits / run.env.params.dt_s,
+        "training_step_bits_per_agent_step": float(training_step_bits_per_agent(net)),
+        "training_consensus_bits_per_agent": run.bits["consensus"],
+        "local_qsgd_payload_bits_per_agent": run.bits["qsgd_local"],
+        "updates": float(run.updates),
     }
     if out_dir is None:
         return
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    stem = checkpoint_stem(trainer.algo.name, trainer.scenario_id, trainer.n_vehicles, trainer.seed)
+    stem = checkpoint_stem(trainer.algo.name, trainer.scenario_id, trainer.n_vehicles, run.seed)
     curve = result.curve
     result.curve_csv = out / f"{stem}.curve.csv"
     write_curve(result.curve_csv, curve)
-    mode = trainer.config.selection_mode
+    mode = run.config.selection_mode
     evals = [r for r in curve if not math.isnan(r[f"eval_reward_{mode}"])]
     summary = {
         "final_train_reward": curve[-1]["train_reward"] if curve else math.nan,
@@ -1035,7 +1304,7 @@ def _finish(
         "best_eval_reward": max(r[f"eval_reward_{mode}"] for r in evals) if evals else math.nan,
         "wall_s": wall_s,
         "env_steps_per_s": result.env_steps_per_s,
-        "selected_at_steps": float(trainer.steps),
+        "selected_at_steps": float(run.steps),
         **{f"selected_eval_{k}_{m}": (evals[-1][f"eval_{k}_{m}"] if evals else math.nan)
            for m in EVAL_MODES for k in CURVE_EVAL_KEYS},
         **result.bits,
@@ -1046,13 +1315,13 @@ def _finish(
         save_checkpoint(
             path,
             algo=trainer.algo.name,
-            config=dataclasses.asdict(trainer.config),
+            config=dataclasses.asdict(run.config),
             scenario=trainer.scenario_id,
             n_vehicles=trainer.n_vehicles,
-            seed=trainer.seed,
-            steps=trainer.steps,
-            curve_summary={**summary, "total_steps": float(trainer.steps)},
-            weights=trainer.net.acting_state_dict(),
+            seed=run.seed,
+            steps=run.steps,
+            curve_summary={**summary, "total_steps": float(run.steps)},
+            weights=net.acting_state_dict(),
         )
 
     if final:
@@ -1065,7 +1334,7 @@ def _finish(
         kept = {k: v for k, v in data["curve_summary"].items() if k.startswith("selected_")}
         data["curve_summary"].update(summary)
         data["curve_summary"].update(kept)
-        data["curve_summary"]["total_steps"] = float(trainer.steps)
+        data["curve_summary"]["total_steps"] = float(run.steps)
         torch.save(data, result.checkpoint)
 
 

@@ -22,9 +22,10 @@ from envs.errors import ConfigError
 from marl.common import (
     FLOAT_BITS,
     A2CConfig,
+    AgentNet,
     Algorithm,
+    Run,
     SeparateActorCriticNet,
-    Trainer,
 )
 from marl.consensus import consensus_round, dcea
 
@@ -63,13 +64,12 @@ class DCEA(Algorithm):
     def build_net(self, config, n_agents, with_critic=True, generator=None):
         return SeparateActorCriticNet(n_agents, config.hidden, with_critic, generator)
 
-    def after_step(self, trainer: Trainer) -> None:
-        cfg = trainer.config
-        net = trainer.net
+    def after_step(self, run: Run, net: AgentNet) -> None:
+        cfg = run.config
         assert isinstance(cfg, DCEAConfig) and isinstance(net, SeparateActorCriticNet)
-        shared = net.shared_critic_parameters(cfg.share_whole_critic)
+        shared = [p[run.rows] for p in net.shared_critic_parameters(cfg.share_whole_critic)]
         rule = functools.partial(dcea, eps=cfg.consensus_eps)
-        trainer.bits["consensus"] += consensus_round(shared, rule) * FLOAT_BITS
+        run.bits["consensus"] += consensus_round(shared, rule) * FLOAT_BITS
 
 
 ALGORITHM = DCEA()

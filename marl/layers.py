@@ -123,8 +123,11 @@ class BatchedLSTMCell(nn.Module):
         return out
 
 
-def per_agent_clip_(params: Sequence[torch.Tensor], max_norm: float) -> torch.Tensor:
-    """Clip every agent's gradient to global norm ``max_norm`` (over all its stacked tensors).
+def per_agent_clip_(
+    params: Sequence[torch.Tensor], max_norm: float | torch.Tensor
+) -> torch.Tensor:
+    """Clip every agent's gradient to global norm ``max_norm`` (over all its stacked tensors;
+    a tensor ``(N,)`` gives each agent its own).
 
     Equal to one ``clip_grad_norm_`` per agent network, as with separate optimisers.
     Returns the per-agent norms before clipping, ``(N,)``.

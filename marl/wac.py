@@ -21,9 +21,10 @@ from typing import ClassVar
 from marl.common import (
     FLOAT_BITS,
     A2CConfig,
+    AgentNet,
     Algorithm,
+    Run,
     SeparateActorCriticNet,
-    Trainer,
 )
 from marl.consensus import consensus_round, wac
 
@@ -54,12 +55,11 @@ class WAC(Algorithm):
     def build_net(self, config, n_agents, with_critic=True, generator=None):
         return SeparateActorCriticNet(n_agents, config.hidden, with_critic, generator)
 
-    def after_step(self, trainer: Trainer) -> None:
-        cfg, net = trainer.config, trainer.net
+    def after_step(self, run: Run, net: AgentNet) -> None:
+        cfg = run.config
         assert isinstance(cfg, WACConfig) and isinstance(net, SeparateActorCriticNet)
-        shared = net.shared_critic_parameters(cfg.share_whole_critic)
-        n_weights = consensus_round(shared, wac)
-        trainer.bits["consensus"] += n_weights * FLOAT_BITS
+        shared = [p[run.rows] for p in net.shared_critic_parameters(cfg.share_whole_critic)]
+        run.bits["consensus"] += consensus_round(shared, wac) * FLOAT_BITS
 
 
 ALGORITHM = WAC()

@@ -40,15 +40,14 @@ def test_recompute_equals_rollout(algo, monkeypatch) -> None:
         if len(seen) == 5:
             raise _Stop
         logits, values, actions = orig(seg_state, record)
-        want = torch.stack([r["logits"] for r in record])
+        want = torch.stack([r["logits"] for r in record], 1)  # agent-major (N, T, B, 4)
         seen.append(float((logits.detach() - want).abs().max()))
         return logits, values, actions
 
     monkeypatch.setattr(tr, "_recompute", spy)
-    tr.optimizer.param_groups[0]["lr"] = 0.0  # keep weights fixed: exact comparison
-    tr.optimizer.param_groups[1]["lr"] = 0.0
+    monkeypatch.setattr(tr, "_rmsprop_step", lambda group: None)  # weights fixed: exact
     if algo == "bdc":
-        monkeypatch.setattr(tr.algo, "after_step", lambda trainer: None)
+        monkeypatch.setattr(tr.algo, "after_step", lambda run, net: None)
     with pytest.raises(_Stop):
         tr.run_batch()
     assert len(seen) == 5 and max(seen) < 1e-5
@@ -59,7 +58,7 @@ def _run_updates(tr: Trainer, k: int, monkeypatch) -> None:
     orig = tr._recompute
 
     def limited(seg_state, record):
-        if tr.updates == k:
+        if tr.runs[0].updates == k:
             raise _Stop
         return orig(seg_state, record)
 
@@ -72,13 +71,14 @@ def test_bdc_counts_bits(monkeypatch) -> None:
     a = algorithm("bdc")
     tr = Trainer(a, a.config_cls(episodes_parallel=2, n_step=10), "catchup-v1", 3, 0)
     _run_updates(tr, 3, monkeypatch)
-    assert tr.updates == 3
+    run = tr.runs[0]
+    assert run.updates == 3
     lstm = tr.net.critic_lstm  # type: ignore[union-attr]
     n_shared = sum(p[0].numel() for p in lstm.parameters())
-    assert tr.bits["consensus"] == pytest.approx(tr.updates * ternary_bits(n_shared))
-    bucket = tr.config.qsgd_bucket  # type: ignore[attr-defined]
+    assert run.bits["consensus"] == pytest.approx(run.updates * ternary_bits(n_shared))
+    bucket = run.config.qsgd_bucket  # type: ignore[attr-defined]
     per_update = sum(qsgd_bits(p[0].numel(), 1, bucket=bucket) for p in tr.net.critic_parameters())
-    assert tr.bits["qsgd_local"] == pytest.approx(tr.updates * per_update)
+    assert run.bits["qsgd_local"] == pytest.approx(run.updates * per_update)
 
 
 def test_consensus_pulls_critics_together(monkeypatch) -> None:
@@ -142,7 +142,7 @@ def test_published_reward_alpha_per_scenario() -> None:
     cfg = algorithm("ia2c").config_cls(reward_alpha=0.5)
     assert cfg.resolved("slowdown-v1").reward_alpha == 0.5
     tr = Trainer(algorithm("ia2c"), algorithm("ia2c").config_cls(), "slowdown-v1", 3, 0)
-    assert tr.config.reward_alpha == 0.0  # what the checkpoint records
+    assert tr.runs[0].config.reward_alpha == 0.0  # what the checkpoint records
 
 
 def test_entropy_schedule() -> None:
@@ -177,10 +177,10 @@ def test_absorbing_collision_value() -> None:
     a = algorithm("ia2c")
     tr = Trainer(a, a.config_cls(), "slowdown-v1", 3, 0)
     want = sum(-1000.0 * 0.99**k for k in range(540))
-    assert tr._absorbing_value(540) == pytest.approx(want, rel=1e-9)
-    assert tr._absorbing_value(0) == 0.0
+    assert tr.runs[0].absorbing_value(540) == pytest.approx(want, rel=1e-9)
+    assert tr.runs[0].absorbing_value(0) == 0.0
     pub = Trainer(a, a.config_cls(collision_value="published"), "slowdown-v1", 3, 0)
-    assert pub._absorbing_value(540) == 0.0
+    assert pub.runs[0].absorbing_value(540) == 0.0
 
 
 def test_absorbing_value_enters_only_collision_ends(monkeypatch) -> None:
@@ -193,9 +193,9 @@ def test_absorbing_value_enters_only_collision_ends(monkeypatch) -> None:
     seen = []
     orig = tr._update
 
-    def spy(seg_state, record, rews, masks, terms, bootstrap, absorbed):
-        seen.append((np.stack(terms), np.stack(absorbed)))
-        return orig(seg_state, record, rews, masks, terms, bootstrap, absorbed)
+    def spy(group, seg_state, record, segs):
+        seen.append((np.stack(segs[0].terms), np.stack(segs[0].absorbed)))
+        return orig(group, seg_state, record, segs)
 
     monkeypatch.setattr(tr, "_update", spy)
     tr.run_batch()
@@ -207,7 +207,7 @@ def test_absorbing_value_enters_only_collision_ends(monkeypatch) -> None:
     for t_idx, _ in ends:
         remaining = 600 - (t_idx + 1)
         assert remaining % 60 == 0  # published rule: a collision ends at a 60-step boundary
-    assert np.allclose(absorbed[absorbed != 0], [tr._absorbing_value(600 - t - 1) for t, _ in ends])
+    assert np.allclose(absorbed[absorbed != 0], [tr.runs[0].absorbing_value(600 - t - 1) for t, _ in ends])
 
 
 def test_return_scale_matches_a_loop() -> None:
@@ -218,7 +218,7 @@ def test_return_scale_matches_a_loop() -> None:
     a = algorithm("ia2c")
     tr = Trainer(a, a.config_cls(), "catchup-v1", 3, 0)
     gen = torch.Generator().manual_seed(1)
-    tr._return_acc = torch.zeros(2, 3)
+    tr.runs[0].return_acc = torch.zeros(2, 3)
     all_rets = []
     acc = np.zeros((2, 3))
     for _ in range(3):
@@ -226,7 +226,7 @@ def test_return_scale_matches_a_loop() -> None:
         term = torch.zeros(5, 2, dtype=torch.bool)
         term[2, 0] = True
         mask = torch.ones(5, 2, 1)
-        scale = tr._return_scale(r, term, mask)
+        scale = tr.runs[0].return_scale(r, term, mask)
         for t in range(5):
             acc = acc * 0.99 + r[t].numpy()
             all_rets.append(acc.copy())
@@ -258,18 +258,16 @@ def test_diverged_weights_stop_training_with_a_clear_error(monkeypatch) -> None:
     from envs.errors import TrainingDivergedError
 
     a = algorithm("bdc")
-    tr = Trainer(a, a.config_cls(episodes_parallel=2), "catchup-v1", 3, 0)
-    tr.total_steps = 1000
     orig = a.after_step
 
-    def poison(trainer):
-        orig(trainer)
+    def poison(run, net):
+        orig(run, net)
         with torch.no_grad():
-            trainer.net.critic_lstm.weight_ih[0, 0, 0] = float("nan")
+            net.critic_lstm.weight_ih[run.rows][0, 0, 0] = float("nan")
 
     monkeypatch.setattr(a, "after_step", poison)
     with pytest.raises(TrainingDivergedError, match="critic_lstm.weight_ih"):
-        tr.run_batch()
+        run_training(a, a.config_cls(episodes_parallel=2), "catchup-v1", 3, 1000, 0, None)
 
 
 # ---------------------------------------------------------------- reward as configuration
@@ -283,13 +281,13 @@ def test_reward_override_changes_training_reward_not_the_score() -> None:
     paper = Trainer(a, a.config_cls(), "catchup-v1", 3, 0)
     shaped = Trainer(a, a.config_cls(reward_w_power=0.0, reward_w_gap=-2.0), "catchup-v1", 3, 0)
     cruise = Trainer(a, a.config_cls(power_baseline_kw=None), "catchup-v1", 3, 0)
-    assert paper.env.weights == RewardWeights()
-    assert shaped.env.weights.power == 0.0 and shaped.env.weights.gap == -2.0
+    assert paper.runs[0].env.weights == RewardWeights()
+    assert shaped.runs[0].env.weights.power == 0.0 and shaped.runs[0].env.weights.gap == -2.0
     # P(15 m/s, 0) of the fitted polynomial, resolved and recorded in the config
-    assert cruise.config.power_baseline_kw == pytest.approx(4.5, abs=0.05)
-    _, r_paper = paper.run_batch()
-    _, r_shaped = shaped.run_batch()
-    _, r_cruise = cruise.run_batch()
+    assert cruise.runs[0].config.power_baseline_kw == pytest.approx(4.5, abs=0.05)
+    [(_, r_paper)] = paper.run_batch()
+    [(_, r_shaped)] = shaped.run_batch()
+    [(_, r_cruise)] = cruise.run_batch()
     # same seed, same weights at the start: the first batches differ only by the reward
     assert r_shaped != pytest.approx(r_paper, rel=1e-3)
     assert r_cruise > r_paper + 3 * 4.0  # at least 4 kW x 10 x 3 agents less cost per step
@@ -396,7 +394,7 @@ def test_qsgd_is_counted_as_local_not_sent(tmp_path) -> None:
     tr.run_batch()
     shared = tr.net.shared_critic_parameters()
     per_round = ternary_bits(sum(p[0].numel() for p in shared))
-    assert tr.bits["consensus"] == pytest.approx(per_round * tr.updates)
+    assert tr.runs[0].bits["consensus"] == pytest.approx(per_round * tr.runs[0].updates)
 
 
 def test_training_messages_per_algorithm() -> None:
@@ -424,10 +422,10 @@ def test_a_short_training_learns() -> None:
 
     a = algorithm("ia2c")
     trainer = Trainer(a, a.config_cls(), "catchup-v1", 8, 0)
-    trainer.total_steps = 30_000
+    trainer.runs[0].total_steps = 30_000
     seeds = list(range(1, 17))
     before = evaluate_policy("ia2c", trainer.net, "catchup-v1", 8, seeds, "sampled")
-    while trainer.steps < 30_000:
+    while trainer.runs[0].steps < 30_000:
         trainer.run_batch()
     after = evaluate_policy("ia2c", trainer.net, "catchup-v1", 8, seeds, "sampled")
     assert before["collisions"] == 16
