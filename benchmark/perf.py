@@ -133,6 +133,9 @@ def main(argv: list[str]) -> int:
                         "(mpc:horizon=30,cacc); default: every available non-MARL controller "
                         "and every MARL policy with a shipped checkpoint")
     p.add_argument("--algos", default=None, help="comma list of MARL algorithms to time")
+    p.add_argument("--population", type=int, default=6, metavar="K",
+                   help="seeds trained at once for train_population_env_steps_per_s (default 6; "
+                        "0: do not measure populations)")
     args = p.parse_args(argv)
     parts = {x.strip() for x in args.only.split(",") if x.strip()}
     unknown = parts - {"env", "harness", "controllers", "train"}
@@ -151,6 +154,8 @@ def main(argv: list[str]) -> int:
                 make_controller(name, **opts)  # checks the name and every option
     algos = ([a.strip() for a in args.algos.split(",") if a.strip()] if args.algos
              else list(MARL_ALGORITHMS))
+    if args.population < 0:
+        raise ConfigError(f"--population must be >= 0, got {args.population}")
     if "train" in parts:
         unknown_algos = [a for a in algos if a not in MARL_ALGORITHMS]
         if unknown_algos or not algos:
@@ -199,6 +204,14 @@ def main(argv: list[str]) -> int:
         rates = {algo: float(np.median(r)) for algo, r in runs.items() if r}
         out["train_env_steps_per_s"] = rates
         out["train_env_steps_per_s_runs"] = {algo: r for algo, r in runs.items() if r}
+        if train_throughput is not None and args.population > 0:
+            # the same per-run budget as the one-run figure, K seeds at once, one measurement
+            # (K runs average the spread of one)
+            out["train_population_size"] = args.population
+            out["train_population_env_steps_per_s"] = {
+                algo: float(train_throughput(algo, steps=4_000 if args.quick else 20_000,
+                                             population=args.population))
+                for algo in algos}
     if args.json:
         print(json.dumps(out, indent=2, sort_keys=True))
     else:
@@ -239,3 +252,11 @@ def _print_table(out: dict[str, Any]) -> None:
             spread = f", runs {min(runs):,.0f} to {max(runs):,.0f}" if len(runs) > 1 else ""
             print(f"  {algo:<10} {rate:10,.0f}  ({rate / ref:.1f}x the published {ref:.0f}"
                   f"{spread})")
+        if "train_population_env_steps_per_s" in out:
+            k = out["train_population_size"]
+            print(f"training a population of {k} seeds in one process, one torch thread (total "
+                  "environment steps/s; one run's figure above):")
+            for algo, rate in out["train_population_env_steps_per_s"].items():
+                one = out["train_env_steps_per_s"].get(algo)
+                ratio = f"  ({rate / one:.2f}x one run)" if one else ""
+                print(f"  {algo:<10} {rate:10,.0f}{ratio}")

@@ -127,7 +127,7 @@ def train_stage(jobs: list[dict[str, Any]], args: Any, reuse_shipped: bool) -> N
     ``reuse_shipped``, copy shipped checkpoints of the same config and budget instead."""
     from benchmark.executors import map_jobs
     from benchmark.progress import Progress
-    from benchmark.train_cmd import _train_job
+    from benchmark.train_cmd import _train_job, population_jobs
 
     todo = []
     for job in jobs:
@@ -142,8 +142,11 @@ def train_stage(jobs: list[dict[str, Any]], args: Any, reuse_shipped: bool) -> N
           file=sys.stderr)
     progress = Progress(len(todo), "training runs")
     by_key = {str(Path(j["out"]) / f"{stem(j)}.pt"): j for j in todo}
-    for res in map_jobs(_train_job, todo, args.executor, args.workers, args.ray_address):
-        job = by_key[str(Path(res["checkpoint"]))]
-        record_trained(job)
-        progress.advance(note=f"{job['name']} {job['scenario']} s{job['seed']}")
+    populations = population_jobs(todo, getattr(args, "population", None), args.executor,
+                                  args.workers)
+    for res in map_jobs(_train_job, populations, args.executor, args.workers, args.ray_address):
+        for run in res["runs"]:
+            job = by_key[str(Path(run["checkpoint"]))]
+            record_trained(job)
+            progress.advance(note=f"{job['name']} {job['scenario']} s{job['seed']}")
     progress.close()

@@ -1,9 +1,10 @@
-"""``cacc-bench train``: train one MARL algorithm on one scenario and store the policy.
+"""``cacc-bench train``: train MARL algorithms on scenarios and store the policies.
 
 Writes ``<out>/<algo>__<scenario>__n<N>__s<seed>.pt`` (the snapshot selected on the validation
 seeds), ``.final.pt`` (the final weights), ``.curve.csv`` (episode, steps, training reward,
 validation reward and collisions in both evaluation modes) and ``.log`` (evaluations, bits
-communicated).
+communicated) per run. Several seeds of one algorithm and scenario train in one process as a
+population (``--population``): one stacked network, each run exactly as it would alone.
 Shows a progress bar on a terminal and stays quiet otherwise.
 """
 
@@ -39,7 +40,12 @@ def _parser() -> argparse.ArgumentParser:
                    help="comma list of training seeds, run through the harness executors "
                         "(overrides --seed)")
     p.add_argument("--executor", choices=("serial", "process", "ray"), default="serial",
-                   help="how several seeds run (default serial)")
+                   help="how several populations run (default serial)")
+    p.add_argument("--population", type=int, default=None, metavar="K",
+                   help="train up to K seeds of one algorithm and scenario in one process as one "
+                        "stacked network (each run exactly as alone); default: all seeds with "
+                        "the serial executor, split evenly over the workers otherwise; 1: one "
+                        "run per process")
     p.add_argument("--workers", type=int, default=2, help="processes or Ray CPUs (default 2)")
     p.add_argument("--ray-address", default=None, help="attach to this Ray cluster")
     p.add_argument("--vehicles", type=int, default=8, help="followers N (default 8)")
@@ -99,41 +105,78 @@ class _Bar:
 
 
 def _train_job(job: dict) -> dict:
-    """Train one seed (top level, so process and Ray executors can run it)."""
+    """Train one job's runs, its ``seeds`` (or its one ``seed``), as one population in this
+    process (top level, so process and Ray executors can run it). Returns ``{"runs": [...]}``,
+    one summary per run."""
+    import contextlib
+
     import torch
 
     from benchmark.policy_eval import validation_evaluator
     from envs.naming import checkpoint_stem
     from envs.params import VALIDATION_SEEDS
-    from marl.common import algorithm, run_training
+    from marl.common import algorithm, run_population
 
     torch.set_num_threads(1)
+    seeds = list(job.get("seeds", [job["seed"]]))
     algo = algorithm(job["algo"])
     config = algo.config_cls(**job["options"])
     out = Path(job["out"])
     out.mkdir(parents=True, exist_ok=True)
-    stem = checkpoint_stem(job["algo"], job["scenario"], job["vehicles"], job["seed"])
-    log_path = out / (stem + ".log")
-    with open(log_path, "w") as log_fh:
+    log_paths = [out / (checkpoint_stem(job["algo"], job["scenario"], job["vehicles"], s) + ".log")
+                 for s in seeds]
+    with contextlib.ExitStack() as stack:
+        handles = [stack.enter_context(open(p, "w")) for p in log_paths]
 
-        def log(line: str) -> None:
-            log_fh.write(time.strftime("%H:%M:%S ") + line + "\n")
-            log_fh.flush()
+        def logger(fh: Any) -> Any:
+            def log(line: str) -> None:
+                fh.write(time.strftime("%H:%M:%S ") + line + "\n")
+                fh.flush()
+            return log
 
-        log(
-            f"train {job['algo']} on {job['scenario']}, N = {job['vehicles']}, seed {job['seed']}, "
-            f"{job['steps']} steps, config {config.resolved(job['scenario'])}"
-        )
-        result = run_training(algo, config, job["scenario"], job["vehicles"], job["steps"],
-                              job["seed"], out, progress=_Bar(job["progress"]), log=log,
-                              evaluate=validation_evaluator(
-                                  job["algo"], job["scenario"], job["vehicles"],
-                                  VALIDATION_SEEDS[: job.get("validation_episodes")
-                                                   or len(VALIDATION_SEEDS)]))
-    return {"algo": job["algo"], "scenario": job["scenario"], "seed": job["seed"],
-            "checkpoint": str(result.checkpoint),
-            "curve": str(result.curve_csv), "log": str(log_path),
-            "env_steps_per_s": result.env_steps_per_s}
+        logs = [logger(fh) for fh in handles]
+        together = f", in a population of {len(seeds)} (seeds {seeds})" if len(seeds) > 1 else ""
+        for seed, log in zip(seeds, logs, strict=True):
+            log(
+                f"train {job['algo']} on {job['scenario']}, N = {job['vehicles']}, seed {seed}, "
+                f"{job['steps']} steps{together}, config {config.resolved(job['scenario'])}"
+            )
+        results = run_population(
+            algo, [config] * len(seeds), job["scenario"], job["vehicles"], job["steps"], seeds,
+            out, progress=_Bar(job["progress"] and len(seeds) == 1), logs=logs,
+            evaluate=validation_evaluator(
+                job["algo"], job["scenario"], job["vehicles"],
+                VALIDATION_SEEDS[: job.get("validation_episodes") or len(VALIDATION_SEEDS)]))
+    return {"runs": [
+        {"algo": job["algo"], "scenario": job["scenario"], "seed": res.seed,
+         "checkpoint": str(res.checkpoint), "curve": str(res.curve_csv), "log": str(path),
+         "env_steps_per_s": res.env_steps_per_s, "population": len(seeds)}
+        for res, path in zip(results, log_paths, strict=True)]}
+
+
+def population_jobs(jobs: list[dict], size: int | None, executor: str, workers: int) -> list[dict]:
+    """Group runs that differ only in their seed into population jobs (``seeds``).
+
+    ``size``: most runs per population; None: all runs of a group in one population with the
+    serial executor, else split evenly over the ``workers``. Each population trains in one
+    process (:func:`_train_job`); every run's numbers are the same whatever the grouping.
+    """
+    import json
+    import math
+
+    groups: dict[str, list[dict]] = {}
+    for job in jobs:
+        key = json.dumps({k: v for k, v in job.items() if k not in ("seed", "progress")},
+                         sort_keys=True, default=str)
+        groups.setdefault(key, []).append(job)
+    out = []
+    for members in groups.values():
+        cap = size or (len(members) if executor == "serial"
+                       else math.ceil(len(members) / max(workers, 1)))
+        for i in range(0, len(members), cap):
+            chunk = members[i:i + cap]
+            out.append({**chunk[0], "seeds": [j["seed"] for j in chunk]})
+    return out
 
 
 #: The configs chosen by ``cacc-bench tune`` that ship with the package.
@@ -226,6 +269,8 @@ def main(argv: list[str]) -> int:
     check_vehicles(args.vehicles)
     if args.steps < 1:
         raise ConfigError(f"--steps must be >= 1, got {args.steps}")
+    if args.population is not None and args.population < 1:
+        raise ConfigError(f"--population must be >= 1, got {args.population}")
     if args.seeds is not None:
         try:
             seeds = list(dict.fromkeys(int(x) for x in args.seeds.split(",") if x.strip()))
@@ -271,8 +316,11 @@ def main(argv: list[str]) -> int:
             print(f"resuming: {len(done)} of {len(jobs)} runs already finished in {args.out}",
                   file=sys.stderr)
         jobs = [j for j in jobs if j not in done]
-    for res in map_jobs(_train_job, jobs, args.executor, args.workers, args.ray_address):
-        print(f"{res['algo']} {res['scenario']} seed {res['seed']}: checkpoint {res['checkpoint']}, "
-              f"curve {res['curve']}, "
-              f"log {res['log']}; {res['env_steps_per_s']:.0f} env steps/s")
+    populations = population_jobs(jobs, args.population, args.executor, args.workers)
+    for res in map_jobs(_train_job, populations, args.executor, args.workers, args.ray_address):
+        for run in res["runs"]:
+            together = f" (population of {run['population']})" if run["population"] > 1 else ""
+            print(f"{run['algo']} {run['scenario']} seed {run['seed']}: checkpoint "
+                  f"{run['checkpoint']}, curve {run['curve']}, log {run['log']}; "
+                  f"{run['env_steps_per_s']:.0f} env steps/s{together}")
     return 0

@@ -331,6 +331,46 @@ class AgentNet(nn.Module):
         logits = self.logits(out)
         return logits, out, self.after_policy(new, logits)
 
+    def forward(
+        self,
+        state: State,
+        obs: torch.Tensor,
+        actions: torch.Tensor,
+        messages: tuple[torch.Tensor, torch.Tensor] | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Training's recompute of an n-step segment, with gradient.
+
+        ``state`` at its start, observations ``(A, T, B, 15)`` and the actions taken
+        ``(A, T, B)``; ``messages``: the (front, rear) messages received ``(A, T, B, W)`` where
+        gradients do not flow through them (None: re-derived from the recomputed states, or no
+        messages). Returns logits ``(A, T, B, 4)`` and values ``(A, T, B)``. Non-recurrent layers
+        run once over the whole segment.
+        """
+        a, t_len, b = actions.shape
+        enc = {k: v.reshape(a, t_len, b, -1)
+               for k, v in self.encode(obs.reshape(a, t_len * b, OBS_DIM)).items()}
+        # unbind, not enc[k][:, t]: the backward of T selects would allocate and zero-fill a
+        # full-size gradient per step (measured: 85 % of BDC's training time); unbind's backward
+        # stacks once
+        enc_t = {k: v.unbind(1) for k, v in enc.items()}
+        received = None if messages is None else (messages[0].unbind(1), messages[1].unbind(1))
+        outs = []
+        for t in range(t_len):
+            front: torch.Tensor | None
+            rear: torch.Tensor | None
+            if self.differentiable_messages:
+                front, rear = exchange(self, state)
+            elif received is not None:
+                front, rear = received[0][t], received[1][t]
+            else:
+                front = rear = None
+            out, state = self.recur({k: v[t] for k, v in enc_t.items()}, state, front, rear)
+            outs.append(out)
+        flat = {k: torch.stack([o[k] for o in outs], 1).reshape(a, t_len * b, -1) for k in outs[0]}
+        logits = self.logits(flat).reshape(a, t_len, b, N_ACTIONS)
+        nb = neighbour_action_onehot(actions.reshape(a, t_len * b), self.platoon_size)
+        return logits, self.value(flat, nb).reshape(a, t_len, b)
+
     def actor_parameters(self) -> list[nn.Parameter]:
         """Parameters learning at the actor rate (everything but :meth:`critic_parameters`)."""
         critic = {id(p) for p in self.critic_parameters()}
@@ -633,6 +673,40 @@ class _Segment:
     bootstrap: torch.Tensor | None = None
 
 
+@dataclass
+class _Batch:
+    """A run's batch in progress: which of its B episodes still run, their training reward
+    and length so far, its open segment (started at step ``seg_start`` of the loop) and its
+    env's last step."""
+
+    active: np.ndarray
+    ep_reward: np.ndarray
+    ep_len: np.ndarray
+    seg_start: int = 0
+    seg: _Segment = field(default_factory=_Segment)
+    steps: int = 0
+    t_episode: int = 0
+    done: bool = False
+    observation: np.ndarray | None = None
+
+
+def _merge_rows(base: dict[str, Any], new: dict[str, Any], runs: Sequence[Run]) -> dict[str, Any]:
+    """``base`` (an act's output, nested dicts of ``(A, ...)`` tensors) with the rows of
+    ``runs`` taken from ``new``."""
+
+    def merge(x: Any, y: Any) -> Any:
+        if x is None:
+            return None
+        if isinstance(x, dict):
+            return {k: merge(x[k], y[k]) for k in x}
+        out = x.clone()
+        for r in runs:
+            out[r.rows] = y[r.rows]
+        return out
+
+    return {k: merge(base[k], new[k]) for k in base}
+
+
 #: Structural fields every run of a population shares (they shape the stacked tensors and the
 #: lockstep of segments); the others may differ from run to run.
 POPULATION_SHARED_FIELDS: tuple[str, ...] = ("hidden", "n_step", "episodes_parallel")
@@ -733,136 +807,194 @@ class Trainer:
         return torch.from_numpy(obs_np).transpose(0, 1).contiguous()
 
     def run_batch(self, runs: Sequence[Run] | None = None) -> list[tuple[int, float]]:
-        """Run B episodes of every run in ``runs`` (default all) to the end, with an update of
+        """Run one batch of B episodes of every run in ``runs`` (default all), with an update of
         each run every n steps.
 
         Returns per run the environment steps taken and the mean training reward (the
         learner's own, shaped when the config says so; mean over steps of the sum over agents,
-        as the paper reports).
+        as the paper reports). Raises :class:`TrainingDivergedError` if a run diverged.
         """
         taking = list(self.runs if runs is None else runs)
+        out: dict[int, tuple[int, float]] = {}
+
+        def once(run: Run, steps: int, reward: float) -> bool:
+            out[run.index] = (steps, reward)
+            return False
+
+        self.train(taking, once)
+        failed = [r.failed for r in taking if r.failed is not None]
+        if failed:
+            raise TrainingDivergedError("; ".join(failed))
+        return [out[r.index] for r in taking]
+
+    def train(self, runs: Sequence[Run], on_batch: Callable[[Run, int, float], bool]) -> None:
+        """Train ``runs`` batch after batch until ``on_batch`` says stop for each.
+
+        The runs run free: every step acts for the whole stack at once, and each run steps its
+        own env, ends its own segments (an update of exactly its rows) and batches, and starts
+        its next batch at once. ``on_batch(run, steps, mean_training_reward)`` is called when a
+        run's batch ended (after ``run.steps`` counts it) and returns whether the run goes on.
+        A run that diverged stops there (``run.failed`` says why).
+        """
         net, n = self.net, self.n_vehicles
-        b = self.shape.episodes_parallel
-        obs = [torch.zeros(n, b, OBS_DIM) for _ in self.runs]  # rows of waiting runs: ignored
-        active, ep_reward, ep_len, steps = {}, {}, {}, {}
-        for r in taking:
-            obs_np = r.env.reset(r.training_seeds(b))
-            assert obs_np is not None
-            obs[r.index] = self._observation(obs_np)
-            r.return_acc = torch.zeros(b, n)
-            active[r.index] = np.ones(b, dtype=bool)
-            ep_reward[r.index], ep_len[r.index], steps[r.index] = np.zeros(b), np.zeros(b), 0
+        b, n_step = self.shape.episodes_parallel, self.shape.n_step
+        obs = [torch.zeros(n, b, OBS_DIM) for _ in self.runs]  # rows of idle runs: ignored
         state = net.initial_state(b)
-        cur = self._act(self._stack(obs), state, taking)
-        going = list(taking)  # runs whose batch goes on
-        t_episode = 0  # steps since reset (every batch starts together)
-        while going:
-            seg_state = state
-            record: list[dict[str, Any]] = []
-            seg = {r.index: _Segment() for r in going}
-            stepping = list(going)
-            for _ in range(self.shape.n_step):
-                record.append(cur)
-                state = cur["state"]
-                t_episode += 1
-                ended = set()
-                for r in stepping:
-                    i, sg, act = r.index, seg[r.index], active[r.index]
-                    res = r.env.step_actions(cur["actions"][r.rows].T.numpy())
-                    sg.masks.append(act.copy())
-                    sg.terms.append(res.done & act)
-                    if r.baseline_reward:
-                        running = act & ~res.collided
-                        sg.rews.append(res.reward + r.baseline_reward * running[:, None])
-                    else:
-                        sg.rews.append(res.reward)
-                    crashed = res.done & res.collided & act
-                    sg.absorbed.append(
-                        r.absorbing_value(r.env.n_steps - t_episode) * crashed
-                        if crashed.any() else np.zeros(b)
-                    )
-                    steps[i] += int(act.sum())
-                    ep_reward[i] += np.where(act, sg.rews[-1].sum(1), 0.0)
-                    ep_len[i] += act
-                    active[i] = ~res.done
-                    if res.done.all():
-                        ended.add(i)
-                        sg.bootstrap = torch.zeros(b, n)
-                    else:
-                        assert res.observation is not None
-                        obs[i] = self._observation(res.observation)
-                stepping = [r for r in stepping if r.index not in ended]
-                if not stepping:
-                    break
-                cur = self._act(self._stack(obs), state, stepping)
-            if stepping:
+        initial = net.initial_state(b)
+        batch: dict[int, _Batch] = {}
+        for r in runs:
+            batch[r.index] = self._start_batch(r, obs, 0)
+        live = list(runs)
+        cur = self._act(self._stack(obs), state, live)
+        #: per step since ``base``: the state acted from and what the act gave
+        history: list[tuple[State, dict[str, Any]]] = []
+        base = tick = 0
+        while live:
+            history.append((state, cur))
+            next_state = cur["state"]
+            ending: list[Run] = []  # runs whose segment ends at this step
+            over: set[int] = set()  # runs whose batch ends at this step
+            for r in live:
+                bt = self._step(r, batch[r.index], cur["actions"][r.rows])
+                if bt.done:
+                    over.add(r.index)
+                    bt.seg.bootstrap = torch.zeros(b, n)
+                    ending.append(r)
+                else:
+                    assert bt.observation is not None
+                    obs[r.index] = self._observation(bt.observation)
+                    if len(bt.seg.rews) == n_step:
+                        ending.append(r)
+            going = [r for r in live if r.index not in over]
+            nxt = self._act(self._stack(obs), next_state, going) if going else None
+            boot = [r for r in ending if r.index not in over]
+            if boot:
+                assert nxt is not None
                 with torch.no_grad():
-                    nb = neighbour_action_onehot(cur["actions"], net.platoon_size)
-                    values = net.value(cur["out"], nb)
-                for r in stepping:
-                    seg[r.index].bootstrap = values[r.rows].T
+                    values = net.value(
+                        nxt["out"], neighbour_action_onehot(nxt["actions"], net.platoon_size))
+                for r in boot:
+                    batch[r.index].seg.bootstrap = values[r.rows].T
             by_length: dict[int, list[Run]] = {}
-            for r in going:
-                by_length.setdefault(len(seg[r.index].rews), []).append(r)
+            for r in ending:
+                by_length.setdefault(len(batch[r.index].seg.rews), []).append(r)
             for t_len, group in sorted(by_length.items()):
-                self._update(group, seg_state, record[:t_len], [seg[r.index] for r in group])
-            finished = {r.index for r in going if r.index not in {s.index for s in stepping}}
-            for r in going:
+                start = tick + 1 - t_len - base
+                self._update(group, history[start][0], [h[1] for h in history[start:]],
+                             [batch[r.index].seg for r in group])
+            reacting = []
+            for r in ending:
+                bt = batch[r.index]
                 # most episodes ended (published collision rule): truncate the rest (their last
                 # segment was bootstrapped) instead of stepping finished episodes
-                if r.failed is not None or active[r.index].sum() < r.config.min_active_fraction * b:
-                    finished.add(r.index)
-            going = [r for r in going if r.index not in finished]
-            if going:
+                if (r.failed is not None or r.index in over
+                        or bt.active.sum() < r.config.min_active_fraction * b):
+                    over.add(r.index)
+                    continue
+                bt.seg, bt.seg_start = _Segment(), tick + 1
+                reacting.append(r)
+            if reacting:
                 # act on the next observation with the updated weights (same state, no
-                # re-advance)
-                cur = self._act(cur["obs"], state, going)
-        out = []
-        for r in taking:
-            r.steps += steps[r.index]
-            r.episodes += b
-            out.append((steps[r.index],
-                         float((ep_reward[r.index] / np.maximum(ep_len[r.index], 1)).mean())))
-        return out
+                # re-advance); the other runs keep what they drew
+                assert nxt is not None
+                nxt = _merge_rows(nxt, self._act(nxt["obs"], next_state, reacting), reacting)
+            restarting = []
+            for r in live:
+                if r.index not in over:
+                    continue
+                bt = batch.pop(r.index)
+                if r.failed is not None:
+                    continue
+                r.steps += bt.steps
+                r.episodes += b
+                if on_batch(r, bt.steps, float((bt.ep_reward / np.maximum(bt.ep_len, 1)).mean())):
+                    restarting.append(r)
+            live = [r for r in live if r.index not in over] + restarting
+            if restarting:
+                next_state = {k: v.clone() for k, v in next_state.items()}
+                for r in restarting:
+                    batch[r.index] = self._start_batch(r, obs, tick + 1)
+                    for k, v in next_state.items():
+                        v[r.rows] = initial[k][r.rows]
+                new = self._act(self._stack(obs), next_state, restarting)
+                nxt = new if nxt is None else _merge_rows(nxt, new, restarting)
+            if not live:
+                break
+            assert nxt is not None
+            state, cur = next_state, nxt
+            tick += 1
+            oldest = min(batch[r.index].seg_start for r in live)
+            del history[: oldest - base]  # no open segment needs those steps
+            base = oldest
+
+    def _start_batch(self, run: Run, obs: list[torch.Tensor], tick: int) -> _Batch:
+        b = self.shape.episodes_parallel
+        obs_np = run.env.reset(run.training_seeds(b))
+        assert obs_np is not None
+        obs[run.index] = self._observation(obs_np)
+        run.return_acc = torch.zeros(b, self.n_vehicles)
+        return _Batch(np.ones(b, dtype=bool), np.zeros(b), np.zeros(b), seg_start=tick)
+
+    def _step(self, r: Run, bt: _Batch, actions: torch.Tensor) -> _Batch:
+        """Step the run's env with its agents' actions ``(N, B)``; record the step."""
+        sg, act = bt.seg, bt.active
+        res = r.env.step_actions(actions.T.numpy())
+        bt.t_episode += 1
+        sg.masks.append(act.copy())
+        sg.terms.append(res.done & act)
+        if r.baseline_reward:
+            running = act & ~res.collided
+            sg.rews.append(res.reward + r.baseline_reward * running[:, None])
+        else:
+            sg.rews.append(res.reward)
+        crashed = res.done & res.collided & act
+        sg.absorbed.append(
+            r.absorbing_value(r.env.n_steps - bt.t_episode) * crashed
+            if crashed.any() else np.zeros(len(act))
+        )
+        bt.steps += int(act.sum())
+        bt.ep_reward += np.where(act, sg.rews[-1].sum(1), 0.0)
+        bt.ep_len += act
+        bt.active = ~res.done
+        bt.done = bool(res.done.all())
+        bt.observation = res.observation
+        return bt
 
     def _stack(self, parts: list[torch.Tensor]) -> torch.Tensor:
         return parts[0] if len(parts) == 1 else torch.cat(parts)
 
     # -- learning
     def _recompute(
-        self, seg_state: State, record: list[dict[str, Any]]
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Re-run the segment with gradient, agent-major: logits ``(A, T, B, 4)``, values
-        ``(A, T, B)``, actions ``(A, T, B)`` of all ``A = K N`` agents. Non-recurrent layers run
-        once over the whole segment."""
+        self, group: list[Run], seg_state: State, record: list[dict[str, Any]]
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, list[slice]]:
+        """Re-run the group's segment with gradient on the group's rows only: logits
+        ``(A, T, B, 4)``, values and actions ``(A, T, B)`` of its ``A`` agents, and each run's
+        rows among them."""
         net = self.net
-        t_len = len(record)
-        a, b = net.n_agents, self.shape.episodes_parallel
-        obs = torch.stack([r["obs"] for r in record], 1).reshape(a, t_len * b, OBS_DIM)
-        enc = {k: v.reshape(a, t_len, b, -1) for k, v in net.encode(obs).items()}
-        # unbind, not enc[k][:, t]: the backward of T selects would allocate and zero-fill a
-        # full-size gradient per step (measured: 85 % of BDC's training time); unbind's backward
-        # stacks once
-        enc_t = {k: v.unbind(1) for k, v in enc.items()}
-        state = seg_state
-        outs = []
-        for t in range(t_len):
-            if net.differentiable_messages:
-                front, rear = exchange(net, state)
-            else:
-                front, rear = record[t]["front"], record[t]["rear"]
-            out, state = net.recur({k: v[t] for k, v in enc_t.items()}, state, front, rear)
-            outs.append(out)
-        flat = {k: torch.stack([o[k] for o in outs], 1).reshape(a, t_len * b, -1) for k in outs[0]}
-        actions = torch.stack([r["actions"] for r in record], 1).reshape(a, t_len * b)
-        logits = net.logits(flat).reshape(a, t_len, b, N_ACTIONS)
-        nb = neighbour_action_onehot(actions, net.platoon_size)
-        values = net.value(flat, nb).reshape(a, t_len, b)
-        return logits, values, actions.reshape(a, t_len, b)
+        obs = torch.stack([r["obs"] for r in record], 1)
+        actions = torch.stack([r["actions"] for r in record], 1)
+        msgs = None
+        if not net.differentiable_messages and record[0]["front"] is not None:
+            msgs = (torch.stack([r["front"] for r in record], 1),
+                    torch.stack([r["rear"] for r in record], 1))
+        if len(group) == len(self.runs):
+            logits, values = net(seg_state, obs, actions, msgs)
+            return logits, values, actions, [r.rows for r in group]
+        idx = torch.cat([torch.arange(r.rows.start, r.rows.stop) for r in group])
+
+        def pick(t: torch.Tensor) -> torch.Tensor:
+            return t.index_select(0, idx)
+
+        tensors = {name: pick(t) for name, t in [*net.named_parameters(), *net.named_buffers()]}
+        logits, values = torch.func.functional_call(net, tensors, (
+            {k: pick(v) for k, v in seg_state.items()}, pick(obs), pick(actions),
+            None if msgs is None else (pick(msgs[0]), pick(msgs[1]))))
+        n = self.n_vehicles
+        return logits, values, pick(actions), [slice(j * n, (j + 1) * n) for j in range(len(group))]
 
     def _loss(self, run: Run, seg: _Segment, logits: torch.Tensor, values: torch.Tensor,
-              actions: torch.Tensor) -> torch.Tensor:
-        """The run's A2C loss over its segment from its rows of the recompute."""
+              actions: torch.Tensor, rows: slice) -> torch.Tensor:
+        """The run's A2C loss over its segment from its ``rows`` of the recompute."""
         cfg = run.config
         mask = torch.from_numpy(np.stack(seg.masks)).to(torch.float32).unsqueeze(-1)  # (T, B, 1)
         term = torch.from_numpy(np.stack(seg.terms))
@@ -876,8 +1008,8 @@ class Trainer:
             reward = reward / run.return_scale(reward, term, mask)
         returns = nstep_returns(reward, seg.bootstrap, term, cfg.gamma)  # (T, B, N)
         terms_ = a2c_losses(
-            logits[run.rows].permute(1, 0, 2, 3), actions[run.rows].permute(1, 0, 2),
-            values[run.rows].permute(1, 0, 2), returns, mask, cfg.advantage_norm)
+            logits[rows].permute(1, 0, 2, 3), actions[rows].permute(1, 0, 2),
+            values[rows].permute(1, 0, 2), returns, mask, cfg.advantage_norm)
         ent_coef = cfg.entropy_at(run.steps / run.total_steps if run.total_steps else 0.0)
         return terms_["policy"] + cfg.value_coef * terms_["value"] - ent_coef * terms_["entropy"]
 
@@ -886,9 +1018,9 @@ class Trainer:
         segs: list[_Segment],
     ) -> None:
         """One update of every run in ``group`` (their segments have the same length)."""
-        logits, values, actions = self._recompute(seg_state, record)
-        losses = [self._loss(r, sg, logits, values, actions)
-                  for r, sg in zip(group, segs, strict=True)]
+        logits, values, actions, rows = self._recompute(group, seg_state, record)
+        losses = [self._loss(r, sg, logits, values, actions, rw)
+                  for r, sg, rw in zip(group, segs, rows, strict=True)]
         loss = losses[0]
         for other in losses[1:]:  # each run's gradient is its own loss's (the sum's is 1 each)
             loss = loss + other
@@ -1181,52 +1313,55 @@ def run_population(
     results = [TrainResult(algo.name, scenario_id, n_vehicles, r.seed, 0, 0, 0.0, 0.0, {},
                            curves[r.index]) for r in runs]
     t0 = time.perf_counter()
-    train_time = 0.0
-    while todo := [r for r in runs if r.steps < total_steps and r.failed is None]:
-        tb = time.perf_counter()
-        outcome = trainer.run_batch(todo)
-        train_time += time.perf_counter() - tb
-        for r, (_, train_reward) in zip(todo, outcome, strict=True):
-            if r.failed is not None:
-                continue
-            k, cfg, log = r.index, r.config, log_of[r.index]
-            row: dict[str, float] = {
-                "episode": r.episodes,
-                "steps": r.steps,
-                "train_reward": train_reward,
-                **{f"eval_{key}_{m}": math.nan for m in EVAL_MODES for key in CURVE_EVAL_KEYS},
-            }
-            curves[k].append(row)
-            last = r.steps >= total_steps
-            if r.steps >= next_eval[k] or (out_dir is not None and last):
-                assert evaluate is not None
-                net = trainer.run_net(r)
-                for mode in EVAL_MODES:
-                    ev = evaluate(net, mode)
-                    for key in CURVE_EVAL_KEYS:
-                        row[f"eval_{key}_{mode}"] = float(ev[key])
-                next_eval[k] = r.steps + cfg.eval_every_steps
-                # fewest collisions first: a colliding episode ends early, so its mean reward
-                # over the steps it ran can look better than a safe one's; a tie keeps the
-                # later snapshot
-                select = cfg.selection_mode
-                score = (-row[f"eval_collisions_{select}"], row[f"eval_reward_{select}"])
-                better = score >= best[k]
-                best[k] = max(best[k], score)
-                _finish(results[k], trainer, r, net, time.perf_counter() - t0, train_time,
-                        out_dir, better)
-                if log is not None:
-                    log(
-                        f"steps {r.steps} episodes {r.episodes} train {train_reward:.2f} "
-                        + " ".join(
-                            f"{m} {row[f'eval_reward_{m}']:.2f} "
-                            f"({row[f'eval_collisions_{m}']:.0f} collisions)" for m in EVAL_MODES
-                        )
-                        + (" [kept]" if better else "")
-                        + f" consensus bits/agent {r.bits['consensus']:.0f}"
+    evaluating = 0.0  # seconds spent in validation, not training
+
+    def on_batch(r: Run, steps: int, train_reward: float) -> bool:
+        nonlocal evaluating
+        k, cfg, log = r.index, r.config, log_of[r.index]
+        row: dict[str, float] = {
+            "episode": r.episodes,
+            "steps": r.steps,
+            "train_reward": train_reward,
+            **{f"eval_{key}_{m}": math.nan for m in EVAL_MODES for key in CURVE_EVAL_KEYS},
+        }
+        curves[k].append(row)
+        last = r.steps >= total_steps
+        if r.steps >= next_eval[k] or (out_dir is not None and last):
+            assert evaluate is not None
+            te = time.perf_counter()
+            net = trainer.run_net(r)
+            for mode in EVAL_MODES:
+                ev = evaluate(net, mode)
+                for key in CURVE_EVAL_KEYS:
+                    row[f"eval_{key}_{mode}"] = float(ev[key])
+            next_eval[k] = r.steps + cfg.eval_every_steps
+            # fewest collisions first: a colliding episode ends early, so its mean reward
+            # over the steps it ran can look better than a safe one's; a tie keeps the
+            # later snapshot
+            select = cfg.selection_mode
+            score = (-row[f"eval_collisions_{select}"], row[f"eval_reward_{select}"])
+            better = score >= best[k]
+            best[k] = max(best[k], score)
+            now = time.perf_counter()
+            _finish(results[k], trainer, r, net, now - t0, now - t0 - evaluating - (now - te),
+                    out_dir, better)
+            evaluating += time.perf_counter() - te
+            if log is not None:
+                log(
+                    f"steps {r.steps} episodes {r.episodes} train {train_reward:.2f} "
+                    + " ".join(
+                        f"{m} {row[f'eval_reward_{m}']:.2f} "
+                        f"({row[f'eval_collisions_{m}']:.0f} collisions)" for m in EVAL_MODES
                     )
-            if progress is not None:
-                progress(r.steps, total_steps, row)
+                    + (" [kept]" if better else "")
+                    + f" consensus bits/agent {r.bits['consensus']:.0f}"
+                )
+        if progress is not None:
+            progress(r.steps, total_steps, row)
+        return not last
+
+    trainer.train(runs, on_batch)
+    train_time = time.perf_counter() - t0 - evaluating
     wall = time.perf_counter() - t0
     for r in runs:
         if r.failed is not None:

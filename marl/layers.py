@@ -24,6 +24,13 @@ def _orthogonal_stack(
     return w
 
 
+def _row_major(x: torch.Tensor) -> torch.Tensor:
+    """A copy of ``x`` with row-major strides, also along size-1 axes (``.contiguous()`` keeps
+    a transposed ``(N, in, 1)`` weight's odd strides, and the batched product then takes
+    another kernel, rounding differently, than for a copy of some of its agents)."""
+    return torch.empty(x.shape, dtype=x.dtype).copy_(x)
+
+
 class BatchedLinear(nn.Module):
     """``N`` independent linear layers ``(N, B, in) -> (N, B, out)``.
 
@@ -45,7 +52,7 @@ class BatchedLinear(nn.Module):
     ):
         super().__init__()
         w = _orthogonal_stack(n_agents, out_features, in_features, gain, generator)
-        self.weight = nn.Parameter(w.transpose(1, 2).contiguous())
+        self.weight = nn.Parameter(_row_major(w.transpose(1, 2)))
         self.bias = nn.Parameter(torch.zeros(n_agents, out_features))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
@@ -77,8 +84,8 @@ class BatchedLSTMCell(nn.Module):
         self.hidden_size = hidden_size
         w_ih = _orthogonal_stack(n_agents, 4 * hidden_size, input_size, 1.0, generator)
         w_hh = _orthogonal_stack(n_agents, 4 * hidden_size, hidden_size, 1.0, generator)
-        self.weight_ih = nn.Parameter(w_ih.transpose(1, 2).contiguous())
-        self.weight_hh = nn.Parameter(w_hh.transpose(1, 2).contiguous())
+        self.weight_ih = nn.Parameter(_row_major(w_ih.transpose(1, 2)))
+        self.weight_hh = nn.Parameter(_row_major(w_hh.transpose(1, 2)))
         self.bias = nn.Parameter(torch.zeros(n_agents, 4 * hidden_size))
 
     def forward(

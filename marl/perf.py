@@ -14,6 +14,7 @@ def train_throughput(
     scenario_id: str = "catchup-v1",
     episodes_parallel: int | None = None,
     cpu_time: bool = False,
+    population: int = 1,
 ) -> float:
     """Environment steps per second of training ``algo`` from scratch, one process, one thread.
 
@@ -24,8 +25,11 @@ def train_throughput(
     ----------
     cpu_time : bool
         Divide by this process's CPU time instead of the wall clock (for busy shared machines).
+    population : int
+        Train this many seeds (0, 1, ...) at once as one population, ``steps`` each; the rate
+        is the population's total.
     """
-    from marl.common import algorithm, run_training
+    from marl.common import algorithm, run_population
 
     torch.set_num_threads(1)
     a = algorithm(algo)
@@ -37,5 +41,6 @@ def train_throughput(
     clock = time.process_time if cpu_time else time.perf_counter
     t0 = clock()
     # the first ``steps`` of a run with the paper's budget (the entropy schedule of 6e5 steps)
-    result = run_training(a, cfg, scenario_id, n_vehicles, steps, 0, None, schedule_steps=600_000)
-    return result.steps / max(clock() - t0, 1e-9)
+    results = run_population(a, [cfg] * population, scenario_id, n_vehicles, steps,
+                             list(range(population)), None, schedule_steps=600_000)
+    return sum(r.steps for r in results) / max(clock() - t0, 1e-9)

@@ -144,3 +144,21 @@ def test_a_diverged_run_stops_alone_and_the_others_finish(monkeypatch, tmp_path)
     assert survivor["steps"] == want["steps"]
     for key, tensor in want["weights"].items():
         assert torch.equal(survivor["weights"][key], tensor), key
+
+
+def test_stacked_weights_are_row_major_even_along_size_one_axes() -> None:
+    """A (N, 72, 1) critic head made by ``.contiguous()`` of a transpose kept strides (72, 1, 72)
+    and its batched product rounded differently from a row-major copy of some of its agents
+    (what an update of part of a population computes on): the layers store row-major weights."""
+    from marl.layers import BatchedLinear, BatchedLSTMCell
+
+    head = BatchedLinear(6, 72, 1)
+    assert head.weight.stride() == (72, 1, 1)
+    cell = BatchedLSTMCell(6, 64, 64)
+    assert cell.weight_ih.stride() == (64 * 256, 256, 1)
+    x = torch.randn(6, 14, 72, generator=torch.Generator().manual_seed(0))
+    whole = head(x)
+    idx = torch.tensor([3, 4, 5])
+    part = torch.baddbmm(head.bias.index_select(0, idx).unsqueeze(1), x[3:],
+                         head.weight.index_select(0, idx))
+    assert torch.equal(whole[3:], part)

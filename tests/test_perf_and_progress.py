@@ -31,11 +31,15 @@ def test_perf_takes_run_controller_syntax_and_labels_like_run(
 
 def test_perf_train_key(capsys: pytest.CaptureFixture[str]) -> None:
     """The issue's key: one training rate per requested algorithm, with the runs behind it."""
-    assert main(["perf", "--quick", "--json", "--only", "train", "--algos", "ia2c,bdc"]) == 0
+    assert main(["perf", "--quick", "--json", "--only", "train", "--algos", "ia2c,bdc",
+                 "--population", "2"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert set(out["train_env_steps_per_s"]) == {"ia2c", "bdc"}
     for algo, rate in out["train_env_steps_per_s"].items():
         assert rate > 0 and out["train_env_steps_per_s_runs"][algo] == [rate]
+    assert out["train_population_size"] == 2
+    assert set(out["train_population_env_steps_per_s"]) == {"ia2c", "bdc"}
+    assert all(r > 0 for r in out["train_population_env_steps_per_s"].values())
 
 
 def test_perf_bad_part() -> None:

@@ -136,3 +136,43 @@ def test_tune_tiny_study_resumes(tmp_path: Path, capsys) -> None:
     assert main([*args[:-2], "--steps", "700", "--out", str(tmp_path)]) == 2
     assert main(["tune", "--algos", "nope"]) == 2
     assert "Traceback" not in capsys.readouterr().err
+
+
+def test_a_population_of_seeds_equals_separate_processes(tmp_path: Path, capsys) -> None:
+    """``--seeds 0,1,2`` (serial: one population of three in one process) gives each seed the
+    checkpoint and curve it gets trained alone (``--population 1``, process executor)."""
+    common = ["train", "--algo", "fprint", "--scenario", "catchup-v1", "--vehicles", "3",
+              "--steps", "900", "--episodes-parallel", "2"]
+    assert main([*common, "--seeds", "0,1,2", "--out", str(tmp_path / "pop")]) == 0
+    assert "(population of 3)" in capsys.readouterr().out
+    assert main([*common, "--seeds", "0,2", "--population", "1", "--executor", "process",
+                 "--workers", "2", "--out", str(tmp_path / "one")]) == 0
+    assert "population of" not in capsys.readouterr().out
+    for seed in (0, 2):
+        stem = f"fprint__catchup-v1__n3__s{seed}"
+        pd.testing.assert_frame_equal(pd.read_csv(tmp_path / "pop" / f"{stem}.curve.csv"),
+                                      pd.read_csv(tmp_path / "one" / f"{stem}.curve.csv"))
+        for suffix in (".pt", ".final.pt"):
+            a = _tensors(torch.load(tmp_path / "pop" / f"{stem}{suffix}", weights_only=True))
+            b = _tensors(torch.load(tmp_path / "one" / f"{stem}{suffix}", weights_only=True))
+            assert a.keys() == b.keys() and a
+            for k in a:
+                assert torch.equal(a[k], b[k]), (seed, suffix, k)
+        assert "in a population of 3" in (tmp_path / "pop" / f"{stem}.log").read_text()
+    assert main([*common, "--seeds", "0,1", "--population", "0", "--out", str(tmp_path)]) == 2
+
+
+def test_population_jobs_group_by_everything_but_the_seed() -> None:
+    from benchmark.train_cmd import population_jobs
+
+    def job(algo: str, seed: int) -> dict:
+        return {"algo": algo, "scenario": "catchup-v1", "vehicles": 8, "steps": 100, "seed": seed,
+                "out": "x", "options": {}, "progress": False}
+
+    jobs = [job("ia2c", s) for s in range(5)] + [job("bdc", 0)]
+    serial = population_jobs(jobs, None, "serial", 2)
+    assert [(j["algo"], j["seeds"]) for j in serial] == [("ia2c", [0, 1, 2, 3, 4]), ("bdc", [0])]
+    split = population_jobs(jobs, None, "process", 2)
+    assert [(j["algo"], j["seeds"]) for j in split] == [
+        ("ia2c", [0, 1, 2]), ("ia2c", [3, 4]), ("bdc", [0])]
+    assert [j["seeds"] for j in population_jobs(jobs, 1, "serial", 2)] == [[s] for s in range(5)] + [[0]]
