@@ -103,7 +103,8 @@ def rollout_batch(
     recorded = getattr(controller, "recorded", None)
     if recorded is not None:  # a recorded platoon (real data), scored by the same rules
         return [_score_recorded(env, recorded(scenario, n_vehicles), params) for _ in seeds_arr]
-    ctx = EpisodeContext(scenario, n_vehicles, seeds_arr, params, channel)
+    ctx = EpisodeContext(scenario, n_vehicles, seeds_arr, params, channel,
+                         closed_loop=rollout_batch)
     controller.reset(ctx)
     if sends_v2v(controller) and not ctx.channels:
         raise ControllerContractError(

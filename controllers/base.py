@@ -10,8 +10,9 @@ from __future__ import annotations
 
 import dataclasses
 from abc import ABC, abstractmethod
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -21,6 +22,10 @@ from envs.platoon import PlatoonState
 from envs.scenarios import Scenario
 
 FAMILIES = ("human", "linear", "mpc", "marl", "data")
+
+#: ``(controller, scenario, n_vehicles, seeds, params) -> trajectories`` (one per seed, each with
+#: ``reward (T,)``, ``collided`` and ``steps``): the signature of the benchmark's closed loop.
+ClosedLoop = Callable[["Controller", Scenario, int, Sequence[int], PlatoonParams], list[Any]]
 
 
 @dataclass
@@ -41,6 +46,10 @@ class EpisodeContext:
         V2V delay and loss of the run.
     channels : list of V2VChannel
         Every channel the controller made (the harness sums their bits).
+    closed_loop : callable or None
+        The benchmark's closed loop (:func:`benchmark.rollout.rollout_batch`, which sets it),
+        for a controller that tunes itself by running episodes (``duty`` choosing its k): it
+        runs them through the one loop without importing the benchmark.
     """
 
     scenario: Scenario
@@ -49,6 +58,7 @@ class EpisodeContext:
     params: PlatoonParams = PlatoonParams()
     channel_config: ChannelConfig = ChannelConfig()
     channels: list[V2VChannel] = field(default_factory=list)
+    closed_loop: ClosedLoop | None = None
 
     def __post_init__(self) -> None:
         # the channels count delay in the run's steps: one ChannelConfig, on the run's dt

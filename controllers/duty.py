@@ -15,12 +15,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from controllers.base import Controller, EpisodeContext
+from controllers.base import ClosedLoop, Controller, EpisodeContext
 from controllers.registry import build_config
 from envs.dynamics import action_to_command_mps2
 from envs.errors import ConfigError
 from envs.params import VALIDATION_SEEDS, PlatoonParams
-from envs.platoon import PlatoonEnv, PlatoonState
+from envs.platoon import PlatoonState
 from envs.scenarios import Scenario, make_scenario
 
 
@@ -56,49 +56,38 @@ _SCORES: dict[tuple, tuple[tuple[int, int, float], ...]] = {}
 
 
 def duty_scores(
-    scenario: Scenario | str, n_vehicles: int, k_max: int, params: PlatoonParams = PlatoonParams()
+    scenario: Scenario | str,
+    n_vehicles: int,
+    k_max: int,
+    params: PlatoonParams = PlatoonParams(),
+    closed_loop: ClosedLoop | None = None,
 ) -> tuple[tuple[int, int, float], ...]:
     """``(k, collisions, mean reward)`` of every k in 1..k_max on the validation seeds.
 
     The reward is the benchmark's: per episode the mean over its steps of the sum over agents
     (evaluation form, a collision ends the episode), then the mean over the 32 episodes. All
-    k run as one batch of ``k_max x 32`` episodes; results are cached per process.
+    k run as one batch of ``k_max x 32`` episodes through ``closed_loop``, the benchmark's
+    (:func:`benchmark.rollout.rollout_batch`); results are cached per process.
     """
     sc = make_scenario(scenario) if isinstance(scenario, str) else scenario
     # the length is part of the key: a shortened copy of a scenario (perf timing) has the same id
     key = (sc.id, repr(sorted(sc.options.items())), sc.n_steps, n_vehicles, k_max, params)
     if key not in _SCORES:
-        _SCORES[key] = _duty_scores(sc, n_vehicles, k_max, params)
+        if closed_loop is None:
+            raise ConfigError(
+                "duty: choosing k runs episodes through the benchmark's closed loop; run duty "
+                "through benchmark.rollout (cacc-bench run), pass "
+                "closed_loop=benchmark.rollout.rollout_batch, or give k")
+        seeds = list(VALIDATION_SEEDS)
+        ks = np.repeat(np.arange(1, k_max + 1), len(seeds))
+        trajs = closed_loop(_Schedules(ks), sc, n_vehicles, seeds * k_max, params)
+        out = []
+        for k in range(1, k_max + 1):
+            mine = [t for t, kk in zip(trajs, ks, strict=True) if kk == k]
+            out.append((k, sum(bool(t.collided) for t in mine),
+                        float(np.mean([t.reward.mean() for t in mine]))))
+        _SCORES[key] = tuple(out)
     return _SCORES[key]
-
-
-def _duty_scores(
-    scenario: Scenario, n_vehicles: int, k_max: int, params: PlatoonParams
-) -> tuple[tuple[int, int, float], ...]:
-    seeds = np.array(VALIDATION_SEEDS)
-    ks = np.repeat(np.arange(1, k_max + 1), len(seeds))
-    env = PlatoonEnv(scenario, n_vehicles, params, observe=False)
-    env.reset(np.tile(seeds, k_max))
-    total = np.zeros(len(ks))
-    length = np.zeros(len(ks))
-    step = 0
-    while True:
-        s = env.state
-        assert s is not None
-        running = ~s.done
-        actions = np.where((step % ks == 0)[:, None], 3, 2) * np.ones((1, n_vehicles), np.int64)
-        res = env.step_actions(actions)
-        total += np.where(running, res.reward.sum(axis=1), 0.0)
-        length += running
-        step += 1
-        if res.done.all():
-            break
-    collided = env.state.collided  # type: ignore[union-attr]
-    out = []
-    for k in range(1, k_max + 1):
-        sel = ks == k
-        out.append((k, int(collided[sel].sum()), float((total[sel] / length[sel]).mean())))
-    return tuple(out)
 
 
 def best_k(
@@ -106,10 +95,34 @@ def best_k(
     n_vehicles: int,
     k_max: int = 20,
     params: PlatoonParams = PlatoonParams(),
+    closed_loop: ClosedLoop | None = None,
 ) -> int:
     """The k of :func:`duty_scores` with the fewest collisions, then the best reward."""
-    scores = duty_scores(scenario, n_vehicles, k_max, params)
+    scores = duty_scores(scenario, n_vehicles, k_max, params, closed_loop)
     return min(scores, key=lambda r: (r[1], -r[2], r[0]))[0]
+
+
+class _Schedules(Controller):
+    """Duty schedules with a k per episode (the search's batch; not a registered controller)."""
+
+    name = "duty"
+    family = "human"
+    batch_invariant = True
+
+    def __init__(self, ks: np.ndarray) -> None:
+        super().__init__()
+        self.ks = ks
+
+    def reset(self, ctx: EpisodeContext) -> None:
+        self.params = ctx.params
+        self.t = 0
+
+    def act(self, state: PlatoonState, observation: np.ndarray | None) -> np.ndarray:
+        actions = np.where((self.t % self.ks == 0)[:, None], 3, 2) * np.ones_like(
+            state.gap_m, dtype=np.int64)
+        self.t += 1
+        return action_to_command_mps2(
+            actions, state.gap_m, state.speed_mps, state.pred_speed_mps, self.params)
 
 
 class DutyController(Controller):
@@ -132,7 +145,8 @@ class DutyController(Controller):
     def reset(self, ctx: EpisodeContext) -> None:
         self.params = ctx.params
         if self.config.k is None:
-            self.chosen_k = best_k(ctx.scenario, ctx.n_vehicles, self.config.k_max, ctx.params)
+            self.chosen_k = best_k(ctx.scenario, ctx.n_vehicles, self.config.k_max, ctx.params,
+                                   ctx.closed_loop)
         self.t = 0
 
     def act(self, state: PlatoonState, observation: np.ndarray | None) -> np.ndarray:

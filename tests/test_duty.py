@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from benchmark.rollout import rollout
+from benchmark.rollout import rollout, rollout_batch
 from controllers.duty import DutyController, best_k, duty_scores
 from controllers.ovm import OVMController
 from controllers.registry import make_controller
@@ -33,19 +33,43 @@ def test_duty_schedule_and_choice() -> None:
     ovm = rollout(OVMController(), sc, 4, 2000)
     assert traj.accel_mps2[1, 0] == ovm.accel_mps2[1, 0]  # step 0: action 3, same state
     assert traj.accel_mps2[2, 0] != ovm.accel_mps2[2, 0]
-    scores = duty_scores("catchup-v1", 4, 6)
+    scores = duty_scores("catchup-v1", 4, 6, closed_loop=rollout_batch)
     k3 = next(r for r in scores if r[0] == 3)
     want = np.mean([rollout(make_controller("duty", k="3"), sc, 4, s).reward.mean()
                     for s in VALIDATION_SEEDS])
     assert k3[2] == pytest.approx(want, rel=1e-12)
-    best = best_k("catchup-v1", 4, 6)
+    best = best_k("catchup-v1", 4, 6, closed_loop=rollout_batch)
     safe = [r for r in scores if r[1] == min(x[1] for x in scores)]
     assert best == max(safe, key=lambda r: r[2])[0]
     auto = make_controller("duty")
     rollout(auto, sc, 4, 2000)
-    assert auto.chosen_k == best_k("catchup-v1", 4, 20)
+    assert auto.chosen_k == best_k("catchup-v1", 4, 20)  # cached by the rollout above
     # what the README states for the paper scenarios with 8 followers
-    assert best_k("catchup-v1", 8) == 4 and best_k("slowdown-v1", 8) == 5
+    assert best_k("catchup-v1", 8, closed_loop=rollout_batch) == 4
+    assert best_k("slowdown-v1", 8, closed_loop=rollout_batch) == 5
+
+
+def test_duty_chooses_k_only_through_the_closed_loop() -> None:
+    """The k search runs the benchmark's closed loop (no loop of its own): without it, and
+    with nothing cached for the setting, choosing k is a clear error."""
+    import dataclasses
+
+    from controllers.base import EpisodeContext
+
+    sc = dataclasses.replace(make_scenario("slowdown-v1"), n_steps=61)  # nothing cached
+    with pytest.raises(ConfigError, match="closed loop"):
+        duty_scores(sc, 3, 4)
+    bare = EpisodeContext(sc, 3, np.array([1]))
+    with pytest.raises(ConfigError, match="closed loop"):
+        DutyController().reset(bare)
+    calls = []
+
+    def loop(ctrl, scenario, n, seeds, params):
+        calls.append(len(seeds))
+        return rollout_batch(ctrl, scenario, n, seeds, params)
+
+    assert [r[0] for r in duty_scores(sc, 3, 4, closed_loop=loop)] == [1, 2, 3, 4]
+    assert calls == [4 * 32]  # every k on the 32 validation seeds, one batch
 
 
 def test_duty_bad_options() -> None:
@@ -122,5 +146,5 @@ def test_the_best_k_of_a_shortened_scenario_is_not_the_full_ones() -> None:
     from envs.scenarios import make_scenario
 
     short = dataclasses.replace(make_scenario("catchup-v1"), n_steps=150)
-    best_k(short, 8)
-    assert best_k("catchup-v1", 8) == 4
+    best_k(short, 8, closed_loop=rollout_batch)
+    assert best_k("catchup-v1", 8, closed_loop=rollout_batch) == 4
