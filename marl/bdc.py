@@ -32,6 +32,8 @@ import functools
 from dataclasses import dataclass
 from typing import ClassVar
 
+import torch
+
 from envs.errors import ConfigError
 from marl.common import (
     A2CConfig,
@@ -89,37 +91,42 @@ class BDCConfig(A2CConfig):
             raise ConfigError(f"qsgd_bucket must be >= 1 or None, got {self.qsgd_bucket}")
 
 
-class BDC(Algorithm):
-    """Separate actor and critic; QSGD on critic gradients; ternary differential consensus."""
-
-    name = "bdc"
-    config_cls = BDCConfig
-
-    def build_net(self, config, n_agents, with_critic=True, generator=None):
-        return SeparateActorCriticNet(n_agents, config.hidden, with_critic, generator)
-
-    def setup(self, run: Run) -> None:
-        cfg = run.config
-        assert isinstance(cfg, BDCConfig)
-        run.hook_state["qsgd"] = ErrorFeedbackQSGD(max(cfg.qsgd_levels, 1), run.generator,
-                                                   cfg.qsgd_bucket)
-
-    def before_step(self, run: Run, net: AgentNet) -> None:
-        cfg = run.config
-        assert isinstance(cfg, BDCConfig)
-        if cfg.qsgd_levels == 0:
-            return
-        grads = [p.grad[run.rows] for p in net.critic_parameters() if p.grad is not None]
-        for g, q in zip(grads, run.hook_state["qsgd"].compress(grads), strict=True):
-            g.copy_(q)
-            run.bits["qsgd_local"] += qsgd_bits(g[0].numel(), cfg.qsgd_levels, bucket=cfg.qsgd_bucket)
-
-    def after_step(self, run: Run, net: AgentNet) -> None:
-        cfg = run.config
-        assert isinstance(cfg, BDCConfig) and isinstance(net, SeparateActorCriticNet)
-        shared = [p[run.rows] for p in net.shared_critic_parameters(cfg.share_whole_critic)]
-        n_weights = consensus_round(shared, functools.partial(bdc, eps=cfg.consensus_eps))
-        run.bits["consensus"] += ternary_bits(n_weights, cfg.packed_bits)
+def build_net(config: BDCConfig, n_agents: int, with_critic: bool = True,
+              generator: torch.Generator | None = None) -> SeparateActorCriticNet:
+    """Separate actor and critic per agent."""
+    return SeparateActorCriticNet(n_agents, config.hidden, with_critic, generator)
 
 
-ALGORITHM = BDC()
+def setup_qsgd(run: Run) -> None:
+    """The run's QSGD compressor with error feedback, on the run's own random stream."""
+    cfg = run.config
+    assert isinstance(cfg, BDCConfig)
+    run.hook_state["qsgd"] = ErrorFeedbackQSGD(max(cfg.qsgd_levels, 1), run.generator,
+                                               cfg.qsgd_bucket)
+
+
+def compress_critic_gradients(run: Run, net: AgentNet) -> None:
+    """Before the optimiser step: every critic gradient tensor replaced by its QSGD
+    compression with error feedback (applied locally, its payload tallied)."""
+    cfg = run.config
+    assert isinstance(cfg, BDCConfig)
+    if cfg.qsgd_levels == 0:
+        return
+    grads = [p.grad[run.rows] for p in net.critic_parameters() if p.grad is not None]
+    for g, q in zip(grads, run.hook_state["qsgd"].compress(grads), strict=True):
+        g.copy_(q)
+        run.bits["qsgd_local"] += qsgd_bits(g[0].numel(), cfg.qsgd_levels, bucket=cfg.qsgd_bucket)
+
+
+def binary_consensus(run: Run, net: AgentNet) -> None:
+    """After the optimiser step: one synchronous round of binary differential consensus on
+    the shared critic weights (sign patterns sent)."""
+    cfg = run.config
+    assert isinstance(cfg, BDCConfig) and isinstance(net, SeparateActorCriticNet)
+    shared = [p[run.rows] for p in net.shared_critic_parameters(cfg.share_whole_critic)]
+    n_weights = consensus_round(shared, functools.partial(bdc, eps=cfg.consensus_eps))
+    run.bits["consensus"] += ternary_bits(n_weights, cfg.packed_bits)
+
+
+ALGORITHM = Algorithm("bdc", BDCConfig, build_net, setup=setup_qsgd,
+                      before_step=compress_critic_gradients, after_step=binary_consensus)

@@ -55,14 +55,10 @@ class CommNetNet(SharedTrunkNet):
         return self.lstm.input_gates(self.comm(mean), bias=False)
 
 
-class CommNet(Algorithm):
+def build_net(config: CommNetConfig, n_agents: int, with_critic: bool = True,
+              generator: torch.Generator | None = None) -> CommNetNet:
     """Mean-of-neighbours communication; the learner is plain A2C over the joint graph."""
-
-    name = "commnet"
-    config_cls = CommNetConfig
-
-    def build_net(self, config, n_agents, with_critic=True, generator=None):
-        return CommNetNet(n_agents, config.hidden, with_critic, generator)
+    return CommNetNet(n_agents, config.hidden, with_critic, generator)
 
 
-ALGORITHM = CommNet()
+ALGORITHM = Algorithm("commnet", CommNetConfig, build_net)

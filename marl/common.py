@@ -2,9 +2,10 @@
 
 Every algorithm file (``ia2c.py``, ``fprint.py``, ``dial.py``, ``commnet.py``, ``wac.py``,
 ``dcea.py``, ``bdc.py``) defines its config (a frozen subclass of :class:`A2CConfig`), its
-network (a subclass of :class:`AgentNet`) and its distinctive update hooks (an
-:class:`Algorithm`) as its ``ALGORITHM``; :func:`run_training` (or ``cacc-bench train``) trains
-any of them: ``run_training(algorithm("bdc"), config, "catchup-v1")``.
+network (a subclass of :class:`AgentNet`) and what it does around the update as plain functions,
+gathered in its ``ALGORITHM`` (an :class:`Algorithm`); :func:`run_training` (or ``cacc-bench
+train``) trains any of them: ``run_training(algorithm("bdc"), config, "catchup-v1")``, and
+:func:`run_population` trains several seeds or configs at once (``docs/populations.md``).
 
 Layout: activations are agent-major ``(N, B, F)``; all N agents' networks run as one batched
 tensor op (:mod:`marl.layers`). B episodes run in parallel in one batched
@@ -482,36 +483,39 @@ class SeparateActorCriticNet(AgentNet):
 
 
 # ---------------------------------------------------------------------------- algorithm
-class Algorithm:
-    """An algorithm's distinctive parts: its network and its hooks around the update.
+def _nothing(*_: object) -> None:
+    """No hook."""
 
-    Subclasses set ``name``, ``config_cls`` and implement :meth:`build_net`; the hooks default
-    to nothing.
+
+@dataclass
+class Algorithm:
+    """An algorithm's distinctive parts as plain functions: its network and what it does around
+    the update (each algorithm file builds one as its ``ALGORITHM``).
+
+    Attributes
+    ----------
+    name : str
+        Registered name.
+    config_cls : type
+        Its config, a frozen subclass of :class:`A2CConfig`.
+    build_net : callable(config, n_agents, with_critic=True, generator=None) -> AgentNet
+        The batched network of N agents.
+    setup : callable(run)
+        Once per run after the network exists; the run's own state of the algorithm goes into
+        ``run.hook_state``.
+    before_step : callable(run, net)
+        After backward and per-agent clipping, before the optimiser step (e.g. QSGD), on the
+        run's rows ``run.rows`` of ``net``.
+    after_step : callable(run, net)
+        After the optimiser step (e.g. a consensus round), on the run's rows of ``net``.
     """
 
-    name: str = "a2c"
-    config_cls: type[A2CConfig] = A2CConfig
-
-    def build_net(
-        self,
-        config: Any,
-        n_agents: int,
-        with_critic: bool = True,
-        generator: torch.Generator | None = None,
-    ) -> AgentNet:
-        """The batched network of N agents."""
-        raise NotImplementedError
-
-    def setup(self, run: Run) -> None:
-        """Called once per run after the network exists; the run's own state of the algorithm
-        goes into ``run.hook_state``."""
-
-    def before_step(self, run: Run, net: AgentNet) -> None:
-        """After backward and per-agent clipping, before the optimiser step (e.g. QSGD), on the
-        run's rows ``run.rows`` of ``net``."""
-
-    def after_step(self, run: Run, net: AgentNet) -> None:
-        """After the optimiser step (e.g. a consensus round), on the run's rows of ``net``."""
+    name: str
+    config_cls: type[A2CConfig]
+    build_net: Callable[..., AgentNet]
+    setup: Callable[[Run], None] = _nothing
+    before_step: Callable[[Run, AgentNet], None] = _nothing
+    after_step: Callable[[Run, AgentNet], None] = _nothing
 
 
 def execution_bits_per_agent_step(net: AgentNet) -> int:

@@ -18,6 +18,8 @@ import functools
 from dataclasses import dataclass
 from typing import ClassVar
 
+import torch
+
 from envs.errors import ConfigError
 from marl.common import (
     FLOAT_BITS,
@@ -55,21 +57,19 @@ class DCEAConfig(A2CConfig):
             raise ConfigError(f"consensus_eps must lie in (0, 0.5], got {self.consensus_eps}")
 
 
-class DCEA(Algorithm):
-    """Separate actor and critic; a synchronous differential round after every update."""
-
-    name = "dcea"
-    config_cls = DCEAConfig
-
-    def build_net(self, config, n_agents, with_critic=True, generator=None):
-        return SeparateActorCriticNet(n_agents, config.hidden, with_critic, generator)
-
-    def after_step(self, run: Run, net: AgentNet) -> None:
-        cfg = run.config
-        assert isinstance(cfg, DCEAConfig) and isinstance(net, SeparateActorCriticNet)
-        shared = [p[run.rows] for p in net.shared_critic_parameters(cfg.share_whole_critic)]
-        rule = functools.partial(dcea, eps=cfg.consensus_eps)
-        run.bits["consensus"] += consensus_round(shared, rule) * FLOAT_BITS
+def build_net(config: DCEAConfig, n_agents: int, with_critic: bool = True,
+              generator: torch.Generator | None = None) -> SeparateActorCriticNet:
+    """Separate actor and critic per agent."""
+    return SeparateActorCriticNet(n_agents, config.hidden, with_critic, generator)
 
 
-ALGORITHM = DCEA()
+def differential_consensus(run: Run, net: AgentNet) -> None:
+    """After every update: one synchronous differential round on the shared critic weights."""
+    cfg = run.config
+    assert isinstance(cfg, DCEAConfig) and isinstance(net, SeparateActorCriticNet)
+    shared = [p[run.rows] for p in net.shared_critic_parameters(cfg.share_whole_critic)]
+    rule = functools.partial(dcea, eps=cfg.consensus_eps)
+    run.bits["consensus"] += consensus_round(shared, rule) * FLOAT_BITS
+
+
+ALGORITHM = Algorithm("dcea", DCEAConfig, build_net, after_step=differential_consensus)

@@ -55,14 +55,10 @@ class DIALNet(SharedTrunkNet):
         return self.lstm.input_gates(m, bias=False)
 
 
-class DIAL(Algorithm):
+def build_net(config: DIALConfig, n_agents: int, with_critic: bool = True,
+              generator: torch.Generator | None = None) -> DIALNet:
     """Learned differentiable messages; the learner is plain A2C over the joint graph."""
-
-    name = "dial"
-    config_cls = DIALConfig
-
-    def build_net(self, config, n_agents, with_critic=True, generator=None):
-        return DIALNet(n_agents, config.hidden, with_critic, generator)
+    return DIALNet(n_agents, config.hidden, with_critic, generator)
 
 
-ALGORITHM = DIAL()
+ALGORITHM = Algorithm("dial", DIALConfig, build_net)

@@ -63,14 +63,10 @@ class FPrintNet(SharedTrunkNet):
         return new
 
 
-class FPrint(Algorithm):
-    """IA2C with fingerprints: no hooks beyond plain A2C."""
-
-    name = "fprint"
-    config_cls = FPrintConfig
-
-    def build_net(self, config, n_agents, with_critic=True, generator=None):
-        return FPrintNet(n_agents, config.hidden, with_critic, generator)
+def build_net(config: FPrintConfig, n_agents: int, with_critic: bool = True,
+              generator: torch.Generator | None = None) -> FPrintNet:
+    """IA2C with fingerprints: plain A2C on this network."""
+    return FPrintNet(n_agents, config.hidden, with_critic, generator)
 
 
-ALGORITHM = FPrint()
+ALGORITHM = Algorithm("fprint", FPrintConfig, build_net)

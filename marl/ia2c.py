@@ -17,6 +17,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import torch
+
 from marl.common import (
     A2CConfig,
     Algorithm,
@@ -39,14 +41,10 @@ class IA2CNet(SharedTrunkNet):
     """FC 64 -> LSTM 64 -> actor head and critic head, N agents batched."""
 
 
-class IA2C(Algorithm):
-    """Independent learners: no hooks beyond plain A2C."""
-
-    name = "ia2c"
-    config_cls = IA2CConfig
-
-    def build_net(self, config, n_agents, with_critic=True, generator=None):
-        return IA2CNet(n_agents, config.hidden, with_critic, generator=generator)
+def build_net(config: IA2CConfig, n_agents: int, with_critic: bool = True,
+              generator: torch.Generator | None = None) -> IA2CNet:
+    """Independent learners: the plain A2C of :mod:`marl.common`, nothing else."""
+    return IA2CNet(n_agents, config.hidden, with_critic, generator=generator)
 
 
-ALGORITHM = IA2C()
+ALGORITHM = Algorithm("ia2c", IA2CConfig, build_net)

@@ -18,6 +18,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import ClassVar
 
+import torch
+
 from marl.common import (
     FLOAT_BITS,
     A2CConfig,
@@ -46,20 +48,19 @@ class WACConfig(A2CConfig):
     share_whole_critic: bool = False
 
 
-class WAC(Algorithm):
-    """Separate actor and critic; a synchronous averaging round after every update."""
-
-    name = "wac"
-    config_cls = WACConfig
-
-    def build_net(self, config, n_agents, with_critic=True, generator=None):
-        return SeparateActorCriticNet(n_agents, config.hidden, with_critic, generator)
-
-    def after_step(self, run: Run, net: AgentNet) -> None:
-        cfg = run.config
-        assert isinstance(cfg, WACConfig) and isinstance(net, SeparateActorCriticNet)
-        shared = [p[run.rows] for p in net.shared_critic_parameters(cfg.share_whole_critic)]
-        run.bits["consensus"] += consensus_round(shared, wac) * FLOAT_BITS
+def build_net(config: WACConfig, n_agents: int, with_critic: bool = True,
+              generator: torch.Generator | None = None) -> SeparateActorCriticNet:
+    """Separate actor and critic per agent."""
+    return SeparateActorCriticNet(n_agents, config.hidden, with_critic, generator)
 
 
-ALGORITHM = WAC()
+def average_critics(run: Run, net: AgentNet) -> None:
+    """After every update: one synchronous averaging round of the shared critic weights with
+    the front and rear neighbours (32-bit floats sent)."""
+    cfg = run.config
+    assert isinstance(cfg, WACConfig) and isinstance(net, SeparateActorCriticNet)
+    shared = [p[run.rows] for p in net.shared_critic_parameters(cfg.share_whole_critic)]
+    run.bits["consensus"] += consensus_round(shared, wac) * FLOAT_BITS
+
+
+ALGORITHM = Algorithm("wac", WACConfig, build_net, after_step=average_critics)
