@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import pandas as pd
+import pytest
 import torch
 
 from benchmark.cli import main
@@ -176,3 +177,22 @@ def test_population_jobs_group_by_everything_but_the_seed() -> None:
     assert [(j["algo"], j["seeds"]) for j in split] == [
         ("ia2c", [0, 1, 2]), ("ia2c", [3, 4]), ("bdc", [0])]
     assert [j["seeds"] for j in population_jobs(jobs, 1, "serial", 2)] == [[s] for s in range(5)] + [[0]]
+
+
+@pytest.mark.ray
+def test_populations_on_ray_equal_serial(tmp_path: Path, capsys) -> None:
+    """Two Ray tasks (one run each, split over the workers) give the checkpoints of the serial
+    population of both seeds."""
+    pytest.importorskip("ray")
+    common = ["train", "--algo", "dcea", "--scenario", "catchup-v1", "--vehicles", "3",
+              "--steps", "700", "--episodes-parallel", "2", "--seeds", "3,4"]
+    assert main([*common, "--out", str(tmp_path / "serial")]) == 0
+    assert main([*common, "--executor", "ray", "--workers", "2", "--out", str(tmp_path / "ray")]) == 0
+    for seed in (3, 4):
+        for suffix in (".pt", ".final.pt"):
+            name = f"dcea__catchup-v1__n3__s{seed}{suffix}"
+            a = _tensors(torch.load(tmp_path / "serial" / name, weights_only=True))
+            b = _tensors(torch.load(tmp_path / "ray" / name, weights_only=True))
+            assert a.keys() == b.keys() and a
+            for k in a:
+                assert torch.equal(a[k], b[k]), (name, k)
