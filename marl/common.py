@@ -275,6 +275,9 @@ class AgentNet(nn.Module):
 
     msg_width: int = 0
     differentiable_messages: bool = False
+    #: whether the critic shares nothing with the actor (its state is then advanced by the
+    #: training update only, see :meth:`act_step` and :meth:`critic_features`)
+    separate_critic: bool = False
     actor_head: BatchedLinear
     critic_head: BatchedLinear
 
@@ -326,11 +329,20 @@ class AgentNet(nn.Module):
         state: State,
         front: torch.Tensor | None,
         rear: torch.Tensor | None,
+        critic: bool = True,
     ) -> tuple[torch.Tensor, dict[str, torch.Tensor], State]:
-        """Acting step: ``obs (N, B, 15)`` -> logits ``(N, B, 4)``, features, new state."""
+        """Acting step: ``obs (N, B, 15)`` -> logits ``(N, B, 4)``, features, new state.
+
+        ``critic=False``: a network whose critic is separate (:attr:`separate_critic`) skips it
+        and passes the critic's state through unchanged (training's acting: the update
+        recomputes the critic)."""
         out, new = self.recur(self.encode(obs), state, front, rear)
         logits = self.logits(out)
         return logits, out, self.after_policy(new, logits)
+
+    def critic_features(self, obs: torch.Tensor, state: State) -> tuple[dict[str, torch.Tensor], State]:
+        """One step of a separate critic alone: features ``{"v": ...}`` and its new state."""
+        raise NotImplementedError(f"{type(self).__name__} has no separate critic")
 
     def forward(
         self,
@@ -338,14 +350,14 @@ class AgentNet(nn.Module):
         obs: torch.Tensor,
         actions: torch.Tensor,
         messages: tuple[torch.Tensor, torch.Tensor] | None = None,
-    ) -> tuple[torch.Tensor, torch.Tensor]:
+    ) -> tuple[torch.Tensor, torch.Tensor, State]:
         """Training's recompute of an n-step segment, with gradient.
 
         ``state`` at its start, observations ``(A, T, B, 15)`` and the actions taken
         ``(A, T, B)``; ``messages``: the (front, rear) messages received ``(A, T, B, W)`` where
         gradients do not flow through them (None: re-derived from the recomputed states, or no
-        messages). Returns logits ``(A, T, B, 4)`` and values ``(A, T, B)``. Non-recurrent layers
-        run once over the whole segment.
+        messages). Returns logits ``(A, T, B, 4)``, values ``(A, T, B)`` and the recurrent
+        state after the segment. Non-recurrent layers run once over the whole segment.
         """
         a, t_len, b = actions.shape
         enc = {k: v.reshape(a, t_len, b, -1)
@@ -370,7 +382,7 @@ class AgentNet(nn.Module):
         flat = {k: torch.stack([o[k] for o in outs], 1).reshape(a, t_len * b, -1) for k in outs[0]}
         logits = self.logits(flat).reshape(a, t_len, b, N_ACTIONS)
         nb = neighbour_action_onehot(actions.reshape(a, t_len * b), self.platoon_size)
-        return logits, self.value(flat, nb).reshape(a, t_len, b)
+        return logits, self.value(flat, nb).reshape(a, t_len, b), state
 
     def actor_parameters(self) -> list[nn.Parameter]:
         """Parameters learning at the actor rate (everything but :meth:`critic_parameters`)."""
@@ -474,6 +486,24 @@ class SeparateActorCriticNet(AgentNet):
             new["ch"], new["cc"] = ch, cc
             out["v"] = ch
         return out, new
+
+    separate_critic = True
+
+    def act_step(self, obs, state, front, rear, critic=True):
+        if critic or not self.with_critic:
+            return super().act_step(obs, state, front, rear)
+        h, c = self.lstm.step_from_gates(
+            self.lstm.input_gates(torch.relu(self.fc(obs))), (state["h"], state["c"]))
+        new = dict(state)
+        new["h"], new["c"] = h, c
+        out = {"h": h}
+        logits = self.logits(out)
+        return logits, out, self.after_policy(new, logits)
+
+    def critic_features(self, obs, state):
+        gates = self.critic_lstm.input_gates(torch.relu(self.critic_fc(obs)))
+        ch, cc = self.critic_lstm.step_from_gates(gates, (state["ch"], state["cc"]))
+        return {"v": ch}, {"ch": ch, "cc": cc}
 
     def shared_critic_parameters(self, whole_critic: bool = False) -> list[nn.Parameter]:
         """What neighbours exchange: the critic LSTM (published) or the whole critic."""
@@ -796,7 +826,8 @@ class Trainer:
         (the others' rows are computed and ignored)."""
         net = self.net
         front, rear = exchange(net, state)
-        logits, out, new = net.act_step(obs, state, front, rear)
+        logits, out, new = net.act_step(obs, state, front, rear,
+                                        critic=not net.separate_critic)
         shape = (self.n_vehicles,) + tuple(logits.shape[1:])
         drawing = {r.index for r in sampling}
         parts = [r.uniforms(shape) if r.index in drawing else torch.full(shape, 0.5)
@@ -871,7 +902,8 @@ class Trainer:
                         ending.append(r)
             going = [r for r in live if r.index not in over]
             nxt = self._act(self._stack(obs), next_state, going) if going else None
-            boot = [r for r in ending if r.index not in over]
+            # a separate critic's bootstrap comes from its recompute (the update)
+            boot = [] if net.separate_critic else [r for r in ending if r.index not in over]
             if boot:
                 assert nxt is not None
                 with torch.no_grad():
@@ -882,10 +914,12 @@ class Trainer:
             by_length: dict[int, list[Run]] = {}
             for r in ending:
                 by_length.setdefault(len(batch[r.index].seg.rews), []).append(r)
+            critic_after: dict[int, State] = {}
             for t_len, group in sorted(by_length.items()):
                 start = tick + 1 - t_len - base
-                self._update(group, history[start][0], [h[1] for h in history[start:]],
-                             [batch[r.index].seg for r in group])
+                critic_after |= self._update(
+                    group, history[start][0], [h[1] for h in history[start:]],
+                    [batch[r.index].seg for r in group], nxt)
             reacting = []
             for r in ending:
                 bt = batch[r.index]
@@ -897,6 +931,12 @@ class Trainer:
                     continue
                 bt.seg, bt.seg_start = _Segment(), tick + 1
                 reacting.append(r)
+            if critic_after and reacting:
+                # a separate critic's state at the next segment's start: its recompute's end
+                next_state = {k: v.clone() for k, v in next_state.items()}
+                for r in reacting:
+                    for k, v in critic_after[r.index].items():
+                        next_state[k][r.rows] = v
             if reacting:
                 # act on the next observation with the updated weights (same state, no
                 # re-advance); the other runs keep what they drew
@@ -970,10 +1010,10 @@ class Trainer:
     # -- learning
     def _recompute(
         self, group: list[Run], seg_state: State, record: list[dict[str, Any]]
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, list[slice]]:
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, list[slice], State]:
         """Re-run the group's segment with gradient on the group's rows only: logits
-        ``(A, T, B, 4)``, values and actions ``(A, T, B)`` of its ``A`` agents, and each run's
-        rows among them."""
+        ``(A, T, B, 4)``, values and actions ``(A, T, B)`` of its ``A`` agents, each run's rows
+        among them, and the recurrent state after the segment (those rows)."""
         net = self.net
         obs = torch.stack([r["obs"] for r in record], 1)
         actions = torch.stack([r["actions"] for r in record], 1)
@@ -982,19 +1022,20 @@ class Trainer:
             msgs = (torch.stack([r["front"] for r in record], 1),
                     torch.stack([r["rear"] for r in record], 1))
         if len(group) == len(self.runs):
-            logits, values = net(seg_state, obs, actions, msgs)
-            return logits, values, actions, [r.rows for r in group]
+            logits, values, after = net(seg_state, obs, actions, msgs)
+            return logits, values, actions, [r.rows for r in group], after
         idx = torch.cat([torch.arange(r.rows.start, r.rows.stop) for r in group])
 
         def pick(t: torch.Tensor) -> torch.Tensor:
             return t.index_select(0, idx)
 
         tensors = {name: pick(t) for name, t in [*net.named_parameters(), *net.named_buffers()]}
-        logits, values = torch.func.functional_call(net, tensors, (
+        logits, values, after = torch.func.functional_call(net, tensors, (
             {k: pick(v) for k, v in seg_state.items()}, pick(obs), pick(actions),
             None if msgs is None else (pick(msgs[0]), pick(msgs[1]))))
         n = self.n_vehicles
-        return logits, values, pick(actions), [slice(j * n, (j + 1) * n) for j in range(len(group))]
+        rows = [slice(j * n, (j + 1) * n) for j in range(len(group))]
+        return logits, values, pick(actions), rows, after
 
     def _loss(self, run: Run, seg: _Segment, logits: torch.Tensor, values: torch.Tensor,
               actions: torch.Tensor, rows: slice) -> torch.Tensor:
@@ -1019,10 +1060,15 @@ class Trainer:
 
     def _update(
         self, group: list[Run], seg_state: State, record: list[dict[str, Any]],
-        segs: list[_Segment],
-    ) -> None:
-        """One update of every run in ``group`` (their segments have the same length)."""
-        logits, values, actions, rows = self._recompute(group, seg_state, record)
+        segs: list[_Segment], nxt: dict[str, Any] | None,
+    ) -> dict[int, State]:
+        """One update of every run in ``group`` (their segments have the same length).
+
+        With a separate critic, the bootstrap of a run whose batch goes on is computed here from
+        the recompute's critic state and ``nxt`` (the act on the next observation), with the
+        weights before the update; returns those runs' critic state after the segment."""
+        logits, values, actions, rows, after = self._recompute(group, seg_state, record)
+        critic_after = self._critic_bootstrap(group, segs, rows, after, nxt)
         losses = [self._loss(r, sg, logits, values, actions, rw)
                   for r, sg, rw in zip(group, segs, rows, strict=True)]
         loss = losses[0]
@@ -1046,6 +1092,34 @@ class Trainer:
             self.algo.after_step(r, self.net)
             r.updates += 1
             self._check_finite(r)
+        return critic_after
+
+    @torch.no_grad()
+    def _critic_bootstrap(
+        self, group: list[Run], segs: list[_Segment], rows: list[slice], after: State,
+        nxt: dict[str, Any] | None,
+    ) -> dict[int, State]:
+        """For a separate critic: each continuing run's bootstrap (its critic one step on from
+        the segment's end, on the next observation) and its critic state at the segment's end."""
+        net = self.net
+        if not net.separate_critic:
+            return {}
+        going = [(r, sg, rw) for r, sg, rw in zip(group, segs, rows, strict=True)
+                 if sg.bootstrap is None]
+        if not going:
+            return {}
+        assert nxt is not None
+        b = self.shape.episodes_parallel
+        start = {k: torch.zeros(net.n_agents, b, net.hidden) for k in ("ch", "cc")}
+        for r, _, rw in going:
+            for k in start:
+                start[k][r.rows] = after[k][rw]
+        out, _ = net.critic_features(nxt["obs"], start)
+        values = net.value(out, neighbour_action_onehot(nxt["actions"], net.platoon_size))
+        for r, sg, _ in going:
+            sg.bootstrap = values[r.rows].T
+        return {r.index: {k: after[k][rw].detach().clone() for k in ("ch", "cc")}
+                for r, _, rw in going}
 
     @torch.no_grad()
     def _rmsprop_step(self, group: list[Run]) -> None:

@@ -39,10 +39,10 @@ def test_recompute_equals_rollout(algo, monkeypatch) -> None:
     def spy(group, seg_state, record):
         if len(seen) == 5:
             raise _Stop
-        logits, values, actions, rows = orig(group, seg_state, record)
+        logits, values, actions, rows, after = orig(group, seg_state, record)
         want = torch.stack([r["logits"] for r in record], 1)  # agent-major (N, T, B, 4)
         seen.append(float((logits.detach() - want).abs().max()))
-        return logits, values, actions, rows
+        return logits, values, actions, rows, after
 
     monkeypatch.setattr(tr, "_recompute", spy)
     monkeypatch.setattr(tr, "_rmsprop_step", lambda group: None)  # weights fixed: exact
@@ -193,9 +193,9 @@ def test_absorbing_value_enters_only_collision_ends(monkeypatch) -> None:
     seen = []
     orig = tr._update
 
-    def spy(group, seg_state, record, segs):
+    def spy(group, seg_state, record, segs, nxt):
         seen.append((np.stack(segs[0].terms), np.stack(segs[0].absorbed)))
-        return orig(group, seg_state, record, segs)
+        return orig(group, seg_state, record, segs, nxt)
 
     monkeypatch.setattr(tr, "_update", spy)
     tr.run_batch()
@@ -432,3 +432,23 @@ def test_a_short_training_learns() -> None:
     assert before["collisions"] == 16
     assert after["collisions"] <= 6
     assert after["reward"] > before["reward"] + 400
+
+
+def test_a_separate_critic_is_skipped_while_acting() -> None:
+    """Training acts without a separate critic (WAC, DCEA, BDC): the same logits and actor
+    state, the critic's state passed through untouched; the update recomputes the critic (the
+    pinned BDC training did not change when this was introduced)."""
+    a = algorithm("bdc")
+    net = a.build_net(a.config_cls(), 3, True, torch.Generator().manual_seed(0))
+    assert net.separate_critic and not algorithm("ia2c").build_net(
+        algorithm("ia2c").config_cls(), 3, True).separate_critic
+    state = net.initial_state(2)
+    state = {k: torch.randn(v.shape, generator=torch.Generator().manual_seed(1)) for k, v in state.items()}
+    obs = torch.randn(3, 2, 15, generator=torch.Generator().manual_seed(2))
+    with torch.no_grad():
+        full = net.act_step(obs, state, None, None)
+        lazy = net.act_step(obs, state, None, None, critic=False)
+    assert torch.equal(full[0], lazy[0])
+    assert torch.equal(full[2]["h"], lazy[2]["h"]) and torch.equal(full[2]["c"], lazy[2]["c"])
+    assert lazy[2]["ch"] is state["ch"] and lazy[2]["cc"] is state["cc"]
+    assert "v" not in lazy[1]
