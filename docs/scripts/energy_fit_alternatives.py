@@ -9,7 +9,7 @@ from collections.abc import Callable
 import numpy as np
 
 from envs.energy import map_operating_point
-from envs.energy.fit import REFERENCE_POINTS, _axis, _monomial_to_si, reference_errors
+from envs.energy.fit import REFERENCE_POINTS, _axis, _monomial_to_si
 from envs.energy.power import PowerPolynomial
 
 Weight = Callable[[np.ndarray], np.ndarray]
@@ -44,31 +44,73 @@ def fit(v_range: tuple[float, float] = (0.5, 30.0), u_range: tuple[float, float]
     return PowerPolynomial(_monomial_to_si(5, cv, sv).T @ q.reshape(5, 5) @ _monomial_to_si(5, cu, su))
 
 
-def report(name: str, poly: PowerPolynomial) -> None:
+class LimitedPower:
+    """``max(polynomial(v, u), floor(v))``: the 5x5 polynomial fitted where regeneration is not
+    limited, and the limited (flat) regeneration power as a cubic in v below it."""
+
+    def __init__(self, weight_offset_kw: float = 2.0) -> None:
+        speeds, accels = _axis(0.5, 30.0, 0.1), _axis(-3.0, 2.5, 0.05)
+        vg, ug = np.meshgrid(speeds, accels, indexing="ij")
+        op = map_operating_point(vg, ug)
+        p = op.battery_power_w / 1000
+        floor = p[:, :1]  # the lowest u of each speed lies in the limited region
+        free = op.reachable & ~np.isclose(p, floor, atol=1e-6)
+        self.floor = np.polyfit(speeds, floor[:, 0], 3)
+        y = p[free]
+        w = 1.0 / (np.abs(y) + weight_offset_kw)
+        self.cv, self.sv = speeds.mean(), 0.5 * (speeds[-1] - speeds[0])
+        self.cu, self.su = 0.5 * (accels[0] + accels[-1]), 0.5 * (accels[-1] - accels[0])
+        a = self._design(vg[free], ug[free])
+        self.q = np.linalg.lstsq(a * w[:, None], y * w, rcond=None)[0]
+
+    def _design(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        x = np.vander((a - self.cv) / self.sv, 5, True)
+        z = np.vander((b - self.cu) / self.su, 5, True)
+        return (x[:, :, None] * z[:, None, :]).reshape(a.size, -1)
+
+    def __call__(self, v: np.ndarray, u: np.ndarray) -> np.ndarray:
+        v, u = np.atleast_1d(v).astype(float), np.atleast_1d(u).astype(float)
+        return np.maximum(self._design(v, u) @ self.q, np.polyval(self.floor, v))
+
+
+def report(name: str, poly: Callable[[np.ndarray, np.ndarray], np.ndarray]) -> None:
     speeds, accels = _axis(0.5, 30.0, 0.1), _axis(-3.0, 2.5, 0.05)
     vg, ug = np.meshgrid(speeds, accels, indexing="ij")
     op = map_operating_point(vg, ug)
     v, u = vg[op.reachable], ug[op.reachable]
     err = poly(v, u) - op.battery_power_w[op.reachable] / 1000
     low = v <= 20
+    worst = float(np.abs(err).max())
     ring = [100 * r[4] for r in reference_errors_at(poly, [(s, -2.5) for s in (5, 11, 17)])]
-    refs = " ".join(f"{100 * r[4]:+.1f}" for r in reference_errors(poly))
+    refs = " ".join(f"{100 * r[4]:+.1f}" for r in reference_errors_at(poly, REFERENCE_POINTS))
     print(f"{name:34s} RMSE {np.sqrt(np.mean(err**2)):.2f} kW (v<=20: "
-          f"{np.sqrt(np.mean(err[low] ** 2)):.2f})  refs % {refs}  "
+          f"{np.sqrt(np.mean(err[low] ** 2)):.2f}, max {worst:.2f})  refs % {refs}  "
           f"at u=-2.5, v=5/11/17: {' '.join(f'{r:+.0f}' for r in ring)} %")
 
 
-def reference_errors_at(poly: PowerPolynomial, points: list[tuple[float, float]]) -> list:
+def reference_errors_at(poly: Callable[[np.ndarray, np.ndarray], np.ndarray],
+                        points: list[tuple[float, float]] | tuple) -> list:
     v = np.array([p[0] for p in points])
     u = np.array([p[1] for p in points])
     want = map_operating_point(v, u).battery_power_w / 1000
     return [(a, b, m, g, (g - m) / abs(m)) for a, b, m, g in zip(v, u, want, poly(v, u), strict=True)]
 
 
+def regeneration_limit() -> None:
+    """The map model's battery power in braking (kW), where the regeneration limit flattens it."""
+    accels = np.arange(-3.5, -0.9, 0.25)
+    print("map model battery power (kW) at u = " + " ".join(f"{u:+.2f}" for u in accels))
+    for v in (5.0, 11.0, 17.0, 25.0):
+        p = map_operating_point(np.full_like(accels, v), accels).battery_power_w / 1000
+        print(f"  v = {v:4.1f} m/s: " + " ".join(f"{x:6.1f}" for x in p))
+
+
 if __name__ == "__main__":
+    regeneration_limit()
     relative: Weight = lambda y: 100.0 / (np.abs(y) + 10.0) ** 2  # noqa: E731
     report("shipped (unweighted, v<=30)", fit())
     report("v <= 20 m/s only", fit(v_range=(0.5, 20.0)))
     report("u in [-2.5, 2.5] (the env's bounds)", fit(u_range=(-2.5, 2.5)))
     report("relative weights 1/(|P|+10 kW)^2", fit(weight=relative))
     report("reference points pinned", fit(pin_references=True))
+    report("limit term, weights 1/(|P|+2 kW)^2", LimitedPower())
