@@ -742,7 +742,7 @@ def _merge_rows(base: dict[str, Any], new: dict[str, Any], runs: Sequence[Run]) 
 
 
 #: Structural fields every run of a population shares (they shape the stacked tensors and the
-#: lockstep of segments); the others may differ from run to run.
+#: segment loop); the others may differ from run to run.
 POPULATION_SHARED_FIELDS: tuple[str, ...] = ("hidden", "n_step", "episodes_parallel")
 
 
@@ -752,8 +752,9 @@ class Trainer:
     The K runs' agents are stacked as one network of ``K N`` agents (every layer is per agent,
     :mod:`marl.layers`), so each step acts for all runs in one forward and each update is one
     backward; everything that crosses agents (messages, the critic's neighbour actions,
-    consensus, reward sharing) stays inside a run's platoon. Runs step in lockstep: their
-    batches start together and a run whose batch ended waits for the others. Each run draws
+    consensus, reward sharing) stays inside a run's platoon. Runs run free: each step acts
+    for all of them, a run whose batch ended starts its next at once, and an update computes on
+    the rows of the runs whose segment ended (:meth:`train`). Each run draws
     from its own generator in the order a run alone does, keeps its own environment, statistics
     and optimiser state, and so trains exactly as alone (tested to the last bit).
 

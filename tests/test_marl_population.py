@@ -11,7 +11,7 @@ from envs.errors import ConfigError, TrainingDivergedError
 from marl.common import ALGORITHM_NAMES, Trainer, algorithm, run_population, run_training
 
 #: N = 3 on catchup-v1 with B = 2 and 7-step segments: the untrained policies collide, so runs
-#: end their batches at different steps and mid-segment (the lockstep's hard case)
+#: end their batches at different steps and mid-segment (updates of part of the stack)
 N, SCENARIO = 3, "catchup-v1"
 
 
@@ -55,9 +55,10 @@ def test_each_run_of_a_population_trains_exactly_as_alone(name: str) -> None:
         _assert_run_equals_solo(pop, k, solo)
 
 
-def test_the_lockstep_case_is_exercised() -> None:
-    """The equality above covers runs whose batches end at different steps, mid-segment
-    (otherwise it would only test runs that never wait for each other)."""
+def test_the_unaligned_case_is_exercised() -> None:
+    """The equality above covers runs whose batches end at different steps, mid-segment, so
+    that updates of part of the stack happen (otherwise it would only test whole-stack
+    updates)."""
     a, cfg = _tiny("ia2c")
     pop = Trainer(a, cfg, SCENARIO, N, [0, 1, 2])
     _train(pop, 1)
