@@ -47,9 +47,11 @@ class DutyConfig:
             raise ConfigError(f"duty: k_max must be >= 1, got {self.k_max}")
 
 
-def duty_actions(step: int, k: int, shape: tuple[int, ...]) -> np.ndarray:
-    """Actions of every follower at ``step``: 3 when ``step % k == 0``, else 2."""
-    return np.full(shape, 3 if step % k == 0 else 2, dtype=np.int64)
+def duty_actions(step: int, k: int | np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Actions ``(B, N)`` of every follower at ``step``: 3 when ``step % k == 0``, else 2; ``k``
+    one period, or one per episode ``(B,)``."""
+    hit = np.reshape(step % np.asarray(k) == 0, (-1, 1))
+    return np.broadcast_to(np.where(hit, 3, 2), shape).astype(np.int64)
 
 
 _SCORES: dict[tuple, tuple[tuple[int, int, float], ...]] = {}
@@ -118,8 +120,7 @@ class _Schedules(Controller):
         self.t = 0
 
     def act(self, state: PlatoonState, observation: np.ndarray | None) -> np.ndarray:
-        actions = np.where((self.t % self.ks == 0)[:, None], 3, 2) * np.ones_like(
-            state.gap_m, dtype=np.int64)
+        actions = duty_actions(self.t, self.ks, state.gap_m.shape)
         self.t += 1
         return action_to_command_mps2(
             actions, state.gap_m, state.speed_mps, state.pred_speed_mps, self.params)

@@ -1092,7 +1092,9 @@ class Trainer:
         for r in group:
             self.algo.after_step(r, self.net)
             r.updates += 1
-            self._check_finite(r)
+        if not all(bool(torch.isfinite(p).all()) for p, _ in self.params):
+            for r in group:
+                self._check_finite(r)
         return critic_after
 
     @torch.no_grad()
