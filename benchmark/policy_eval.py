@@ -50,7 +50,7 @@ def evaluate_policy(
 def validation_evaluator(
     algo: str, scenario_id: str, n_vehicles: int, seeds: Sequence[int] = VALIDATION_SEEDS
 ) -> Callable[[Any, str], dict[str, float]]:
-    """The evaluator :func:`marl.common.run_training` takes: ``(net, mode) -> summary``."""
+    """The evaluator :func:`marl.a2c.run_training` takes: ``(net, mode) -> summary``."""
 
     def evaluate(net: Any, mode: str) -> dict[str, float]:
         return evaluate_policy(algo, net, scenario_id, n_vehicles, seeds, mode)

@@ -161,7 +161,7 @@ def eval_stage(jobs: list[dict[str, Any]], scenarios: list[str], budget: Budget,
 def main(argv: list[str]) -> int:
     """Entry point of ``cacc-bench reproduce``."""
     from envs.scenarios import make_scenario
-    from marl.common import ALGORITHM_NAMES
+    from marl.a2c import ALGORITHM_NAMES
 
     t0 = time.perf_counter()
     args = _parser().parse_args(argv)

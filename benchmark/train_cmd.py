@@ -24,7 +24,7 @@ DEFAULT_OUT = str(Path(__file__).resolve().parent.parent / "controllers" / "chec
 
 
 def _parser() -> argparse.ArgumentParser:
-    from marl.common import ALGORITHM_NAMES
+    from marl.a2c import ALGORITHM_NAMES
 
     p = argparse.ArgumentParser(
         prog="cacc-bench train",
@@ -115,7 +115,7 @@ def _train_job(job: dict) -> dict:
     from benchmark.policy_eval import validation_evaluator
     from envs.naming import checkpoint_stem
     from envs.params import VALIDATION_SEEDS
-    from marl.common import algorithm, run_population
+    from marl.a2c import algorithm, run_population
 
     torch.set_num_threads(1)
     seeds = list(job.get("seeds", [job["seed"]]))
@@ -214,7 +214,7 @@ def job_config(job: dict) -> dict:
     """The whole resolved config a training job runs with (as recorded in its checkpoint)."""
     import dataclasses
 
-    from marl.common import algorithm
+    from marl.a2c import algorithm
 
     config = algorithm(job["algo"]).config_cls(**job["options"]).resolved(job["scenario"])
     return dataclasses.asdict(config)
@@ -247,7 +247,7 @@ def main(argv: list[str]) -> int:
     from benchmark.executors import map_jobs
     from controllers.registry import build_config
     from envs.scenarios import SCENARIOS, check_vehicles, make_scenario, parse_scenario_list
-    from marl.common import ALGORITHM_NAMES, algorithm
+    from marl.a2c import ALGORITHM_NAMES, algorithm
 
     args = _parser().parse_args(argv)
     algos = _names(args.algo, "--algo")

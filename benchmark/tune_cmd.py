@@ -67,7 +67,7 @@ def search_space(trial: Any, algo: str) -> dict[str, Any]:
 
 def default_params(algo: str) -> dict[str, Any]:
     """The search-space point of the algorithm's default config (every study's first trial)."""
-    from marl.common import algorithm
+    from marl.a2c import algorithm
 
     cfg = algorithm(algo).config_cls()
     params: dict[str, Any] = {
@@ -89,7 +89,7 @@ def trial_score(summary: dict[str, float]) -> float:
 
 
 def _parser() -> argparse.ArgumentParser:
-    from marl.common import ALGORITHM_NAMES
+    from marl.a2c import ALGORITHM_NAMES
 
     p = argparse.ArgumentParser(
         prog="cacc-bench tune",
@@ -120,8 +120,8 @@ def _study_job(job: dict) -> list[dict]:
 
     from benchmark.policy_eval import validation_evaluator
     from controllers.registry import build_config
+    from marl.a2c import algorithm, run_training
     from marl.checkpoint import load_checkpoint
-    from marl.common import algorithm, run_training
 
     torch.set_num_threads(1)
     optuna.logging.set_verbosity(optuna.logging.WARNING)
@@ -184,7 +184,7 @@ def main(argv: list[str]) -> int:
     from benchmark.executors import map_jobs
     from benchmark.progress import Progress
     from envs.scenarios import check_vehicles, make_scenario
-    from marl.common import ALGORITHM_NAMES
+    from marl.a2c import ALGORITHM_NAMES
 
     args = _parser().parse_args(argv)
     algos = [a.strip() for a in args.algos.split(",") if a.strip()]

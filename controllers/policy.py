@@ -46,7 +46,7 @@ def rows_are_batch_invariant(algo: str, n_agents: int = 8) -> bool:
     harness runs policy episodes one at a time instead of batching them (still exact)."""
     import torch
 
-    from marl.common import algorithm, exchange
+    from marl.a2c import algorithm, exchange
 
     spec = algorithm(algo)
     with torch.no_grad():
@@ -128,7 +128,7 @@ class PolicyController(Controller):
         **options: Any,
     ) -> None:
         super().__init__()
-        from marl.common import ALGORITHM_NAMES
+        from marl.a2c import ALGORITHM_NAMES
 
         if options:
             raise ConfigError(
@@ -208,8 +208,8 @@ class PolicyController(Controller):
     def _load(self, scenario_id: str, n_vehicles: int) -> Any:
         import torch
 
+        from marl.a2c import algorithm, config_from_dict
         from marl.checkpoint import load_checkpoint, train_command
-        from marl.common import algorithm, config_from_dict
 
         torch.set_num_threads(1)
         algo = algorithm(self.algo)
@@ -287,7 +287,7 @@ class PolicyController(Controller):
     def act(self, state: PlatoonState, observation: np.ndarray | None) -> np.ndarray:
         import torch
 
-        from marl.common import policy_actions
+        from marl.a2c import policy_actions
 
         if observation is None:
             raise ConfigError(f"{self.algo} needs the agent observations (needs_observation)")

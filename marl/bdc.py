@@ -35,7 +35,7 @@ from typing import ClassVar
 import torch
 
 from envs.errors import ConfigError
-from marl.common import (
+from marl.a2c import (
     A2CConfig,
     AgentNet,
     Algorithm,
@@ -60,11 +60,8 @@ class BDCConfig(A2CConfig):
         off.
     qsgd_bucket : int or None
         Entries per QSGD bucket, each sent with its own 32-bit norm (QSGD's bucketing; the paper
-        is silent). Default 128 (0.25 extra bits per entry). None: one norm per agent tensor;
-        measured on slowdown-v1 (seed 0, 6e5 steps), BDC then selected a snapshot with 43/50
-        evaluation collisions while DCEA, the same learner without quantisation, had 0/50: with
-        s = 1 a 32,768-entry critic-LSTM tensor gets a variance bound of sqrt(32768) = 181
-        times its squared norm.
+        is silent). Default 128 (0.25 extra bits per entry). None: one norm per agent tensor
+        (measured to fail: ``docs/learner-options.md``).
     packed_bits : bool
         Count 2 bits per ternary weight (bit-packed) instead of ``log2 3``.
     share_whole_critic : bool

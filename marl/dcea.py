@@ -21,7 +21,7 @@ from typing import ClassVar
 import torch
 
 from envs.errors import ConfigError
-from marl.common import (
+from marl.a2c import (
     FLOAT_BITS,
     A2CConfig,
     AgentNet,

@@ -22,7 +22,7 @@ from typing import ClassVar
 
 import torch
 
-from marl.common import A2CConfig, Algorithm, SharedTrunkNet
+from marl.a2c import A2CConfig, Algorithm, SharedTrunkNet
 from marl.layers import BatchedLinear
 
 

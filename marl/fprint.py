@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import torch
 
-from marl.common import (
+from marl.a2c import (
     N_ACTIONS,
     A2CConfig,
     Algorithm,

@@ -4,7 +4,7 @@ Each agent sees its own and its neighbours' vehicle blocks (15 numbers), encodes
 64 (ReLU) layer and an LSTM 64, and reads 4 action logits and (with the neighbours' current
 actions, one-hot) a state value from the LSTM output. No learned communication: at execution an
 agent only sends its 5-float vehicle block to its neighbours. The learner is
-:class:`marl.common.Trainer` (n-step A2C with reward sharing); this file is the whole algorithm.
+:class:`marl.a2c.Trainer` (n-step A2C with reward sharing); this file is the whole algorithm.
 
 Messages (each received by the front and rear neighbours; counted in bits per agent):
 
@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import torch
 
-from marl.common import (
+from marl.a2c import (
     A2CConfig,
     Algorithm,
     SharedTrunkNet,
@@ -28,7 +28,7 @@ from marl.common import (
 
 @dataclass(frozen=True)
 class IA2CConfig(A2CConfig):
-    """IA2C hyper-parameters: those of :class:`marl.common.A2CConfig` (paper values).
+    """IA2C hyper-parameters: those of :class:`marl.a2c.A2CConfig` (paper values).
 
     ``reward_scale`` 1/800 (published IA2C family); ``reward_alpha`` None: the published
     configs' value per scenario (global reward on catchup, own reward on slowdown).
@@ -43,7 +43,7 @@ class IA2CNet(SharedTrunkNet):
 
 def build_net(config: IA2CConfig, n_agents: int, with_critic: bool = True,
               generator: torch.Generator | None = None) -> IA2CNet:
-    """Independent learners: the plain A2C of :mod:`marl.common`, nothing else."""
+    """Independent learners: the plain A2C of :mod:`marl.a2c`, nothing else."""
     return IA2CNet(n_agents, config.hidden, with_critic, generator=generator)
 
 

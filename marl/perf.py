@@ -29,7 +29,7 @@ def train_throughput(
         Train this many seeds (0, 1, ...) at once as one population, ``steps`` each; the rate
         is the population's total.
     """
-    from marl.common import algorithm, run_population
+    from marl.a2c import algorithm, run_population
 
     torch.set_num_threads(1)
     a = algorithm(algo)

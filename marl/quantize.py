@@ -81,10 +81,8 @@ class ErrorFeedbackQSGD:
     s = 1 its error can reach ``omega = sqrt(d)`` times ``||x||^2``, so the residual grows
     geometrically. Scaling an unbiased compressor of variance ``omega`` by ``1 / (1 + omega)``
     makes it contractive with ``delta = 1 / (1 + omega)`` (Stich and Karimireddy 2020;
-    Beznosikov et al. 2020). The receiver knows the factor, so it costs no bits. Measured
-    without it (``contractive=False``): BDC's critic weights became NaN after 265 updates on
-    slowdown-v1 (seed 0, 128-entry buckets), and its greedy policy then read "action 0"
-    everywhere (the argmax of NaN logits).
+    Beznosikov et al. 2020). The receiver knows the factor, so it costs no bits. Without it
+    (``contractive=False``) BDC diverges (measured: ``docs/learner-options.md``).
 
     Parameters
     ----------

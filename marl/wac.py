@@ -20,7 +20,7 @@ from typing import ClassVar
 
 import torch
 
-from marl.common import (
+from marl.a2c import (
     FLOAT_BITS,
     A2CConfig,
     AgentNet,

@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from envs.errors import ConfigError
+from marl.a2c import nstep_returns, share_rewards
 from marl.checkpoint import FORMAT_VERSION, load_checkpoint, save_checkpoint
 from marl.consensus import bdc, consensus_round, dcea, degree, neighbour_sum, wac
 from marl.layers import BatchedLinear, BatchedLSTMCell, per_agent_clip_
@@ -20,7 +21,6 @@ from marl.quantize import (
     ternary,
     ternary_bits,
 )
-from marl.returns import nstep_returns, share_rewards
 
 
 # ----------------------------------------------------------------------------- returns
@@ -336,7 +336,7 @@ def test_checkpoint_mismatches_fail_clearly(tmp_path) -> None:
 
 @pytest.mark.parametrize("alpha", [-0.1, 1.5, 2.0])
 def test_sharing_alpha_outside_the_unit_interval_is_refused(alpha: float) -> None:
-    from marl.returns import sharing_matrix
+    from marl.a2c import sharing_matrix
 
     with pytest.raises(ValueError, match=r"alpha must lie in \[0, 1\]"):
         sharing_matrix(3, alpha)
@@ -344,7 +344,7 @@ def test_sharing_alpha_outside_the_unit_interval_is_refused(alpha: float) -> Non
 
 def test_returns_and_sharing_keep_float64() -> None:
     """Double precision in, double precision out (a learner in float64 stays exact)."""
-    from marl.returns import sharing_matrix
+    from marl.a2c import sharing_matrix
 
     assert sharing_matrix(3, 0.5, torch.float64).dtype == torch.float64
     np.testing.assert_array_equal(sharing_matrix(3, 0.5, torch.float64).numpy(),
@@ -427,7 +427,7 @@ def _draw_by_hand(probs: list[float], u: float) -> int:
 def test_sample_from_logits_draws_the_policy() -> None:
     """Inverse-CDF draws follow softmax(logits): 40,000 draws within 1 % of each probability,
     and u just below / at a cumulative boundary picks the action on each side."""
-    from marl.common import sample_from_logits
+    from marl.a2c import sample_from_logits
 
     logits = torch.log(torch.tensor([0.1, 0.2, 0.3, 0.4])).reshape(1, 1, 4).expand(1, 40_000, 4)
     u = (np.arange(40_000) + 0.5).reshape(40_000, 1) / 40_000
@@ -443,7 +443,7 @@ def test_sample_from_logits_per_agent_and_episode_by_hand() -> None:
     """Logits ``(N, B, A)`` with a different policy for every agent and episode, uniforms
     ``(B, N)``: each action is the hand-drawn one of its own agent and episode; a uniform
     exactly on a cumulative boundary takes the next action."""
-    from marl.common import sample_from_logits
+    from marl.a2c import sample_from_logits
 
     n, b = 3, 2
     logits = torch.tensor([[[0.1 * (i + 1) * (k - 1.5) + 0.3 * j for k in range(4)]
@@ -465,7 +465,7 @@ def test_sample_from_logits_uses_double_precision_probabilities() -> None:
     """The cumulative probabilities are computed in float64: for these logits float32's
     softmax puts the first boundary 7e-9 higher, and a uniform on the float64 boundary takes
     action 1 (float32 would take action 0)."""
-    from marl.common import sample_from_logits
+    from marl.a2c import sample_from_logits
 
     logits = torch.tensor([3 / 37.0, 0.0, -0.5, 0.3], dtype=torch.float32)
     p64 = torch.softmax(logits.double(), -1)
@@ -480,7 +480,7 @@ def test_two_runs_stacked_as_one_agent_stack_act_and_learn_as_alone() -> None:
     run, to the last bit, the actor's logits, next state and gradients it has alone. (What
     would mix runs is everything that shifts along the agent axis: the critic's neighbour
     actions, messages, consensus; those need the run axis kept apart.)"""
-    from marl.common import algorithm
+    from marl.a2c import algorithm
 
     spec = algorithm("ia2c")
     cfg = spec.config_cls()

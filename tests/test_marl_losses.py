@@ -7,7 +7,7 @@ import hashlib
 import pytest
 import torch
 
-from marl.common import Trainer, a2c_losses, algorithm
+from marl.a2c import Trainer, a2c_losses, algorithm
 
 
 def _one_step(z: list[float], a: int, v: float, r: float, mask: float = 1.0):
@@ -102,7 +102,7 @@ def test_short_training_is_pinned(name: str) -> None:
 def test_an_agent_with_one_running_step_gets_a_zero_advantage() -> None:
     """One valid entry is its own mean: its standardised advantage is 0 (the running count is
     1, not a floor above it); masked entries do not count."""
-    from marl.common import normalise_advantages
+    from marl.a2c import normalise_advantages
 
     adv = torch.tensor([[[3.0, -2.0]], [[5.0, 4.0]]])  # (T=2, B=1, N=2)
     mask = torch.tensor([[[1.0]], [[0.0]]])  # only t = 0 runs

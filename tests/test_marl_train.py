@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from marl.common import ALGORITHM_NAMES, Trainer, algorithm, run_training
+from marl.a2c import ALGORITHM_NAMES, Trainer, algorithm, run_training
 from marl.quantize import qsgd_bits, ternary_bits
 
 
@@ -239,7 +239,7 @@ def test_normalise_advantages_per_agent_over_running_entries() -> None:
     computed here by a plain loop; masked-out entries do not enter the statistics."""
     import numpy as np
 
-    from marl.common import normalise_advantages
+    from marl.a2c import normalise_advantages
 
     gen = torch.Generator().manual_seed(0)
     adv = torch.randn(5, 3, 4, generator=gen, dtype=torch.float64) * 7 + 2
@@ -400,7 +400,7 @@ def test_qsgd_is_counted_as_local_not_sent(tmp_path) -> None:
 def test_training_messages_per_algorithm() -> None:
     """Per agent and step in training: the execution messages, the 2-bit action for the
     neighbours' critics, and for DIAL/CommNet the message gradients back to both neighbours."""
-    from marl.common import training_step_bits_per_agent
+    from marl.a2c import training_step_bits_per_agent
 
     want = {"ia2c": 160 + 2, "fprint": 288 + 2, "dial": 2208 + 2 + 4096,
             "commnet": 2208 + 2 + 4096, "wac": 162, "dcea": 162, "bdc": 162}

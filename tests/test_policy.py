@@ -15,8 +15,8 @@ from controllers.base import EpisodeContext
 from controllers.policy import PolicyController
 from envs.errors import ConfigError, UnknownNameError
 from envs.platoon import PlatoonEnv
+from marl.a2c import ALGORITHM_NAMES, algorithm
 from marl.checkpoint import save_checkpoint
-from marl.common import ALGORITHM_NAMES, algorithm
 
 
 def _ckpt(tmp_path, algo="ia2c", n=4, scenario="catchup-v1"):
@@ -172,17 +172,17 @@ def test_policies_run_one_at_a_time_where_the_probe_fails(monkeypatch) -> None:
 
 
 def test_a_lone_episode_gives_the_network_two_rows(monkeypatch) -> None:
-    import marl.common
+    import marl.a2c
     from controllers.policy import MIN_LANES
 
     rows = []
-    real = marl.common.policy_actions
+    real = marl.a2c.policy_actions
 
     def spy(net, obs, *args):
         rows.append(obs.shape[0])
         return real(net, obs, *args)
 
-    monkeypatch.setattr(marl.common, "policy_actions", spy)
+    monkeypatch.setattr(marl.a2c, "policy_actions", spy)
     from envs.scenarios import make_scenario
 
     rollout(PolicyController("ia2c", untrained="true"), make_scenario("catchup-v1"), 3, 2000)
@@ -309,8 +309,8 @@ def pooled_evaluation(algo: str, scenario: str, mode: str = "sampled") -> dict[s
     mean over all episodes (what ``cacc-bench run --pool-seeds`` reports)."""
     from controllers.policy import checkpoint_path
     from envs.params import EVAL_SEEDS
+    from marl.a2c import config_from_dict
     from marl.checkpoint import load_checkpoint
-    from marl.common import config_from_dict
 
     a = algorithm(algo)
     out = []

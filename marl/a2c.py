@@ -1,4 +1,12 @@
-"""Shared machinery of the MARL learners: the A2C config, network interface, rollout, update.
+"""The MARL learner: on-policy A2C of N agents per platoon, K runs at once, in the order it runs.
+
+Contents, top to bottom: **config** (:class:`A2CConfig`), **networks** (:class:`AgentNet` and its
+two trunks, message exchange, bit counts, acting helpers for the benchmark), **algorithms** (the
+:class:`Algorithm` record each algorithm file fills), **returns and losses** (pure functions),
+**runs** (each run's own state, :class:`Run`), **the trainer** (:class:`Trainer`: rollout
+collection, then the update: recompute, losses, per-agent clipping, RMSprop, the algorithm's
+gradient compression and consensus), and **the driver** (:func:`run_population`, evaluation on the
+validation seeds, checkpoint selection and writing).
 
 Every algorithm file (``ia2c.py``, ``fprint.py``, ``dial.py``, ``commnet.py``, ``wac.py``,
 ``dcea.py``, ``bdc.py``) defines its config (a frozen subclass of :class:`A2CConfig`), its
@@ -45,7 +53,6 @@ from envs.params import EVAL_MODES, MARL_ALGORITHMS, OVM_ACTIONS, RewardWeights
 from envs.platoon import PlatoonEnv
 from envs.scenarios import make_scenario
 from marl.layers import BatchedLinear, BatchedLSTMCell, per_agent_clip_
-from marl.returns import nstep_returns, share_rewards
 
 N_ACTIONS = len(OVM_ACTIONS)
 BLOCK_FLOATS = BLOCK_DIM
@@ -57,6 +64,7 @@ State = dict[str, torch.Tensor]
 ProgressFn = Callable[[int, int, dict[str, float]], None]
 
 
+# ---------------------------------------------------------------------------- config
 @dataclass(frozen=True)
 class A2CConfig:
     """Hyper-parameters shared by every learner (paper values; published code's where silent).
@@ -512,7 +520,71 @@ class SeparateActorCriticNet(AgentNet):
         return list(self.critic_lstm.parameters())
 
 
-# ---------------------------------------------------------------------------- algorithm
+def execution_bits_per_agent_step(net: AgentNet) -> int:
+    """V2V bits one agent sends per step at execution: its vehicle block plus its message."""
+    return (BLOCK_FLOATS + net.msg_width) * FLOAT_BITS
+
+
+#: Bits of one action index (4 actions) sent to the neighbours for their critics in training.
+ACTION_BITS = 2
+
+
+def training_step_bits_per_agent(net: AgentNet) -> int:
+    """Bits one agent sends per environment step **in training**, beyond the consensus rounds.
+
+    Received by its front and rear neighbours: everything it sends at execution
+    (:func:`execution_bits_per_agent_step`), its action index for their critics (2 bits, one
+    broadcast), and, where gradients flow through messages (DIAL, CommNet), the gradient of its
+    own loss with respect to each neighbour's message (``msg_width`` floats to each of the two,
+    one at the ends of the chain: counted as two).
+    """
+    grad = 2 * net.msg_width * FLOAT_BITS if net.differentiable_messages else 0
+    return execution_bits_per_agent_step(net) + ACTION_BITS + grad
+
+
+def exchange(net: AgentNet, state: State) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+    """Training-time message passing (instant, lossless): front and rear neighbours' messages."""
+    msg = net.message(state)
+    if msg is None:
+        return None, None
+    return shift_front(msg, net.platoon_size), shift_rear(msg, net.platoon_size)
+
+
+def sample_from_logits(logits: torch.Tensor, uniforms: np.ndarray) -> np.ndarray:
+    """Inverse-CDF draws from ``softmax(logits)``: logits ``(N, B, A)``, uniforms ``(B, N)`` in
+    [0, 1) -> actions ``(B, N)`` (the first action whose cumulative probability exceeds u)."""
+    probs = torch.softmax(logits.to(torch.float64), -1).permute(1, 0, 2).numpy()  # (B, N, A)
+    cdf = np.cumsum(probs, axis=-1)
+    actions = (uniforms[..., None] >= cdf[..., :-1]).sum(-1)
+    return actions.astype(np.int64)
+
+
+@torch.no_grad()
+def policy_actions(
+    net: AgentNet,
+    obs_np: np.ndarray,
+    state: State,
+    messages: tuple | None = None,
+    uniforms: np.ndarray | None = None,
+) -> tuple[np.ndarray, State]:
+    """Actions ``(B, N)`` for observations ``(B, N, 15)``: greedy (argmax) when ``uniforms`` is
+    None, else drawn from the policy with one uniform ``(B, N)`` per agent
+    (:func:`sample_from_logits`). Messages default to instant, lossless exchange."""
+    obs = torch.from_numpy(np.ascontiguousarray(obs_np, dtype=np.float32)).transpose(0, 1)
+    front, rear = exchange(net, state) if messages is None else messages
+    logits, _, state = net.act_step(obs.contiguous(), state, front, rear)
+    if uniforms is None:
+        return logits.argmax(-1).T.numpy(), state
+    return sample_from_logits(logits, uniforms), state
+
+
+#: Signature of the validation evaluator :func:`run_training` takes: ``(net, mode)`` -> mean over
+#: the validation episodes of ``reward`` and ``tracking_reward``, and ``collisions`` (a count).
+#: The benchmark's own closed loop provides it (:func:`benchmark.policy_eval.validation_evaluator`).
+Evaluator = Callable[["AgentNet", str], dict[str, float]]
+
+
+# ---------------------------------------------------------------------------- algorithms
 def _nothing(*_: object) -> None:
     """No hook."""
 
@@ -548,56 +620,165 @@ class Algorithm:
     after_step: Callable[[Run, AgentNet], None] = _nothing
 
 
-def execution_bits_per_agent_step(net: AgentNet) -> int:
-    """V2V bits one agent sends per step at execution: its vehicle block plus its message."""
-    return (BLOCK_FLOATS + net.msg_width) * FLOAT_BITS
+def algorithm(name: str) -> Algorithm:
+    """The :class:`Algorithm` of a registered name (module ``marl.<name>``)."""
+    if name not in ALGORITHM_NAMES:
+        raise UnknownNameError("algorithm", name, ALGORITHM_NAMES)
+    module = importlib.import_module(f"marl.{name}")
+    return module.ALGORITHM
 
 
-#: Bits of one action index (4 actions) sent to the neighbours for their critics in training.
-ACTION_BITS = 2
+def config_from_dict(algo: Algorithm, values: dict[str, Any]) -> A2CConfig:
+    """Rebuild an algorithm's config from a checkpoint's dict (unknown keys are an error)."""
+    names = {f.name for f in dataclasses.fields(algo.config_cls)}
+    extra = set(values) - names
+    if extra:
+        raise ConfigError(f"{algo.name} config has no fields {sorted(extra)}")
+    return algo.config_cls(**values)
 
 
-def training_step_bits_per_agent(net: AgentNet) -> int:
-    """Bits one agent sends per environment step **in training**, beyond the consensus rounds.
+def stack_nets(algo: Algorithm, config: A2CConfig, nets: Sequence[AgentNet]) -> AgentNet:
+    """One network of ``K N`` agents holding the K runs' networks' weights (and buffers) in
+    order; its ``platoon_size`` is N."""
+    n = nets[0].n_agents
+    big = algo.build_net(config, n * len(nets), True, torch.Generator().manual_seed(0))
+    parts = [dict(net.named_parameters()) | dict(net.named_buffers()) for net in nets]
+    with torch.no_grad():
+        for name, t in list(big.named_parameters()) + list(big.named_buffers()):
+            t.copy_(torch.cat([part[name] for part in parts]))
+    big.platoon_size = n
+    return big
 
-    Received by its front and rear neighbours: everything it sends at execution
-    (:func:`execution_bits_per_agent_step`), its action index for their critics (2 bits, one
-    broadcast), and, where gradients flow through messages (DIAL, CommNet), the gradient of its
-    own loss with respect to each neighbour's message (``msg_width`` floats to each of the two,
-    one at the ends of the chain: counted as two).
+
+# ---------------------------------------------------------------------------- returns and losses
+def sharing_matrix(n_agents: int, alpha: float, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+    """``(N, N)`` weights ``alpha^|i-j|`` (alpha = 0: own reward only, alpha = 1: global sum)."""
+    if not 0.0 <= alpha <= 1.0:
+        raise ValueError(f"reward-sharing alpha must lie in [0, 1], got {alpha}")
+    idx = torch.arange(n_agents)
+    dist = (idx[:, None] - idx[None, :]).abs().to(dtype)
+    if alpha == 0.0:
+        return torch.eye(n_agents, dtype=dtype)
+    return torch.pow(torch.tensor(alpha, dtype=dtype), dist)
+
+
+def share_rewards(reward: torch.Tensor, alpha: float) -> torch.Tensor:
+    """Shared rewards ``r'_i = sum_j alpha^|i-j| r_j`` over the last (agent) axis.
+
+    Parameters
+    ----------
+    reward : (..., N)
+        Per-agent rewards.
+    alpha : float
+        Spatial discount in [0, 1].
     """
-    grad = 2 * net.msg_width * FLOAT_BITS if net.differentiable_messages else 0
-    return execution_bits_per_agent_step(net) + ACTION_BITS + grad
+    w = sharing_matrix(reward.shape[-1], alpha, reward.dtype)
+    return reward @ w.T
 
 
-def exchange(net: AgentNet, state: State) -> tuple[torch.Tensor | None, torch.Tensor | None]:
-    """Training-time message passing (instant, lossless): front and rear neighbours' messages."""
-    msg = net.message(state)
-    if msg is None:
-        return None, None
-    return shift_front(msg, net.platoon_size), shift_rear(msg, net.platoon_size)
+def nstep_returns(
+    reward: torch.Tensor,
+    bootstrap: torch.Tensor,
+    terminal: torch.Tensor,
+    gamma: float,
+) -> torch.Tensor:
+    """Discounted n-step returns of a segment, bootstrapped from the value after its last step.
+
+    ``R_t = r_t + gamma (1 - terminal_t) R_{t+1}`` with ``R_T = bootstrap``: a terminal step
+    (the episode ended after it) cuts both the later rewards and the bootstrap.
+
+    Parameters
+    ----------
+    reward : (T, B, N)
+        Rewards (already shared and scaled).
+    bootstrap : (B, N)
+        Value estimate of the observation after the last step (anything where terminal).
+    terminal : (T, B) or (T, B, N) bool/float
+        1 where the episode ended after step t.
+    gamma : float
+        Discount.
+
+    Returns
+    -------
+    (T, B, N)
+    """
+    t_len = reward.shape[0]
+    term = terminal.to(reward.dtype)
+    if term.dim() == reward.dim() - 1:
+        term = term.unsqueeze(-1)
+    term = term.expand_as(reward)
+    # D_k = number of terminals strictly before step k, k = 0..T
+    d = torch.cat([torch.zeros_like(term[:1]), torch.cumsum(term, 0)], 0)  # (T+1, B, N)
+    steps = torch.arange(t_len + 1, dtype=reward.dtype)
+    lag = steps[None, :] - steps[:t_len, None]  # (T, T+1): k - t
+    disc = torch.where(
+        lag >= 0, torch.pow(torch.tensor(gamma, dtype=reward.dtype), lag.clamp(min=0)), 0.0
+    )
+    # k contributes to R_t iff k >= t and no terminal in t..k-1, i.e. D_k == D_t
+    same = (d[None, :, ...] == d[:t_len, None, ...]).to(reward.dtype)  # (T, T+1, B, N)
+    weights = disc[:, :, None, None] * same
+    values = torch.cat([reward, bootstrap.unsqueeze(0)], 0)  # (T+1, B, N)
+    return (weights * values.unsqueeze(0)).sum(1)
 
 
-# ---------------------------------------------------------------------------- trainer
-@dataclass
-class TrainResult:
-    """What :func:`run_training` returns."""
+def a2c_losses(
+    logits: torch.Tensor,
+    actions: torch.Tensor,
+    values: torch.Tensor,
+    returns: torch.Tensor,
+    mask: torch.Tensor,
+    advantage_norm: bool = False,
+) -> dict[str, torch.Tensor]:
+    """The three terms of the A2C loss over one segment.
 
-    algo: str
-    scenario: str
-    n_vehicles: int
-    seed: int
-    steps: int
-    episodes: int
-    wall_s: float
-    env_steps_per_s: float
-    bits: dict[str, float]
-    curve: list[dict[str, float]] = field(default_factory=list)
-    checkpoint: Path | None = None
-    final_checkpoint: Path | None = None
-    curve_csv: Path | None = None
+    Parameters
+    ----------
+    logits : (T, N, B, 4)
+        Action logits of every agent, step and episode, with gradient.
+    actions : (T, N, B) int64
+        Actions taken.
+    values : (T, N, B)
+        Critic values, with gradient.
+    returns : (T, B, N)
+        n-step returns (targets, no gradient).
+    mask : (T, B, 1)
+        1 where the episode was running at that step, else 0.
+    advantage_norm : bool
+        Normalise the advantages over the valid steps (:func:`normalise_advantages`).
+
+    Returns
+    -------
+    dict with ``policy`` = -sum log pi(a) A, ``value`` = sum (R - V)^2 / 2 and ``entropy`` =
+    sum H(pi), each summed over agents and valid steps and divided by the number of valid
+    (step, episode) pairs; ``A = R - V``, detached. The learner minimises
+    ``policy + value_coef * value - entropy_coef * entropy``.
+    """
+    logp_all = torch.log_softmax(logits, -1)  # (T, N, B, 4)
+    logp = logp_all.gather(-1, actions.unsqueeze(-1)).squeeze(-1).transpose(1, 2)
+    ent = -(logp_all.exp() * logp_all).sum(-1).transpose(1, 2)  # (T, B, N)
+    values = values.transpose(1, 2)
+    count = mask.sum().clamp(min=1.0)
+    adv = (returns - values).detach()
+    if advantage_norm:
+        adv = normalise_advantages(adv, mask)
+    return {
+        "policy": -(logp * adv * mask).sum() / count,
+        "value": 0.5 * ((returns - values).square() * mask).sum() / count,
+        "entropy": (ent * mask).sum() / count,
+    }
 
 
+def normalise_advantages(adv: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Advantages ``(T, B, N)`` standardised per agent over the running entries of the segment
+    (``mask (T, B, 1)``): zero mean, unit standard deviation (population), each agent alone."""
+    m = mask.expand_as(adv)
+    count = m.sum((0, 1)).clamp(min=1.0)
+    mean = (adv * m).sum((0, 1)) / count
+    var = ((adv - mean).square() * m).sum((0, 1)) / count
+    return (adv - mean) / (var.sqrt() + 1e-8)
+
+
+# ---------------------------------------------------------------------------- runs
 @dataclass
 class Run:
     """One training run of a :class:`Trainer`: everything of its own.
@@ -746,6 +927,7 @@ def _merge_rows(base: dict[str, Any], new: dict[str, Any], runs: Sequence[Run]) 
 POPULATION_SHARED_FIELDS: tuple[str, ...] = ("hidden", "n_step", "episodes_parallel")
 
 
+# ---------------------------------------------------------------------------- the trainer
 class Trainer:
     """On-policy A2C of K runs (a population; K = 1: one run) over batched envs.
 
@@ -1190,127 +1372,24 @@ def _rmsprop_(
     param.addcdiv_(grad, avg, value=-lr)
 
 
-def stack_nets(algo: Algorithm, config: A2CConfig, nets: Sequence[AgentNet]) -> AgentNet:
-    """One network of ``K N`` agents holding the K runs' networks' weights (and buffers) in
-    order; its ``platoon_size`` is N."""
-    n = nets[0].n_agents
-    big = algo.build_net(config, n * len(nets), True, torch.Generator().manual_seed(0))
-    parts = [dict(net.named_parameters()) | dict(net.named_buffers()) for net in nets]
-    with torch.no_grad():
-        for name, t in list(big.named_parameters()) + list(big.named_buffers()):
-            t.copy_(torch.cat([part[name] for part in parts]))
-    big.platoon_size = n
-    return big
+# ---------------------------------------------------------------------------- the driver
+@dataclass
+class TrainResult:
+    """What :func:`run_training` returns."""
 
-
-def a2c_losses(
-    logits: torch.Tensor,
-    actions: torch.Tensor,
-    values: torch.Tensor,
-    returns: torch.Tensor,
-    mask: torch.Tensor,
-    advantage_norm: bool = False,
-) -> dict[str, torch.Tensor]:
-    """The three terms of the A2C loss over one segment.
-
-    Parameters
-    ----------
-    logits : (T, N, B, 4)
-        Action logits of every agent, step and episode, with gradient.
-    actions : (T, N, B) int64
-        Actions taken.
-    values : (T, N, B)
-        Critic values, with gradient.
-    returns : (T, B, N)
-        n-step returns (targets, no gradient).
-    mask : (T, B, 1)
-        1 where the episode was running at that step, else 0.
-    advantage_norm : bool
-        Normalise the advantages over the valid steps (:func:`normalise_advantages`).
-
-    Returns
-    -------
-    dict with ``policy`` = -sum log pi(a) A, ``value`` = sum (R - V)^2 / 2 and ``entropy`` =
-    sum H(pi), each summed over agents and valid steps and divided by the number of valid
-    (step, episode) pairs; ``A = R - V``, detached. The learner minimises
-    ``policy + value_coef * value - entropy_coef * entropy``.
-    """
-    logp_all = torch.log_softmax(logits, -1)  # (T, N, B, 4)
-    logp = logp_all.gather(-1, actions.unsqueeze(-1)).squeeze(-1).transpose(1, 2)
-    ent = -(logp_all.exp() * logp_all).sum(-1).transpose(1, 2)  # (T, B, N)
-    values = values.transpose(1, 2)
-    count = mask.sum().clamp(min=1.0)
-    adv = (returns - values).detach()
-    if advantage_norm:
-        adv = normalise_advantages(adv, mask)
-    return {
-        "policy": -(logp * adv * mask).sum() / count,
-        "value": 0.5 * ((returns - values).square() * mask).sum() / count,
-        "entropy": (ent * mask).sum() / count,
-    }
-
-
-def normalise_advantages(adv: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """Advantages ``(T, B, N)`` standardised per agent over the running entries of the segment
-    (``mask (T, B, 1)``): zero mean, unit standard deviation (population), each agent alone."""
-    m = mask.expand_as(adv)
-    count = m.sum((0, 1)).clamp(min=1.0)
-    mean = (adv * m).sum((0, 1)) / count
-    var = ((adv - mean).square() * m).sum((0, 1)) / count
-    return (adv - mean) / (var.sqrt() + 1e-8)
-
-
-# ---------------------------------------------------------------------------- acting
-def sample_from_logits(logits: torch.Tensor, uniforms: np.ndarray) -> np.ndarray:
-    """Inverse-CDF draws from ``softmax(logits)``: logits ``(N, B, A)``, uniforms ``(B, N)`` in
-    [0, 1) -> actions ``(B, N)`` (the first action whose cumulative probability exceeds u)."""
-    probs = torch.softmax(logits.to(torch.float64), -1).permute(1, 0, 2).numpy()  # (B, N, A)
-    cdf = np.cumsum(probs, axis=-1)
-    actions = (uniforms[..., None] >= cdf[..., :-1]).sum(-1)
-    return actions.astype(np.int64)
-
-
-@torch.no_grad()
-def policy_actions(
-    net: AgentNet,
-    obs_np: np.ndarray,
-    state: State,
-    messages: tuple | None = None,
-    uniforms: np.ndarray | None = None,
-) -> tuple[np.ndarray, State]:
-    """Actions ``(B, N)`` for observations ``(B, N, 15)``: greedy (argmax) when ``uniforms`` is
-    None, else drawn from the policy with one uniform ``(B, N)`` per agent
-    (:func:`sample_from_logits`). Messages default to instant, lossless exchange."""
-    obs = torch.from_numpy(np.ascontiguousarray(obs_np, dtype=np.float32)).transpose(0, 1)
-    front, rear = exchange(net, state) if messages is None else messages
-    logits, _, state = net.act_step(obs.contiguous(), state, front, rear)
-    if uniforms is None:
-        return logits.argmax(-1).T.numpy(), state
-    return sample_from_logits(logits, uniforms), state
-
-
-#: Signature of the validation evaluator :func:`run_training` takes: ``(net, mode)`` -> mean over
-#: the validation episodes of ``reward`` and ``tracking_reward``, and ``collisions`` (a count).
-#: The benchmark's own closed loop provides it (:func:`benchmark.policy_eval.validation_evaluator`).
-Evaluator = Callable[["AgentNet", str], dict[str, float]]
-
-
-# ---------------------------------------------------------------------------- driver
-def algorithm(name: str) -> Algorithm:
-    """The :class:`Algorithm` of a registered name (module ``marl.<name>``)."""
-    if name not in ALGORITHM_NAMES:
-        raise UnknownNameError("algorithm", name, ALGORITHM_NAMES)
-    module = importlib.import_module(f"marl.{name}")
-    return module.ALGORITHM
-
-
-def config_from_dict(algo: Algorithm, values: dict[str, Any]) -> A2CConfig:
-    """Rebuild an algorithm's config from a checkpoint's dict (unknown keys are an error)."""
-    names = {f.name for f in dataclasses.fields(algo.config_cls)}
-    extra = set(values) - names
-    if extra:
-        raise ConfigError(f"{algo.name} config has no fields {sorted(extra)}")
-    return algo.config_cls(**values)
+    algo: str
+    scenario: str
+    n_vehicles: int
+    seed: int
+    steps: int
+    episodes: int
+    wall_s: float
+    env_steps_per_s: float
+    bits: dict[str, float]
+    curve: list[dict[str, float]] = field(default_factory=list)
+    checkpoint: Path | None = None
+    final_checkpoint: Path | None = None
+    curve_csv: Path | None = None
 
 
 def run_training(
