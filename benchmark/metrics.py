@@ -29,8 +29,11 @@ TIMING_COLUMNS: tuple[str, ...] = (
 STRING_GAIN_SKIP_STEPS = 1
 
 
-def _q(x: np.ndarray, q: float) -> float:
-    return float(np.percentile(x, q)) if x.size else math.nan
+def _percentiles(x: np.ndarray, qs: tuple[float, ...]) -> list[float]:
+    """Percentiles ``qs`` of ``x`` (one sort; NaN for an empty ``x``)."""
+    if not x.size:
+        return [math.nan] * len(qs)
+    return [float(v) for v in np.percentile(x, qs)]
 
 
 def run_metrics(
@@ -77,9 +80,8 @@ def run_metrics(
         "string_gain": gain,
         "string_stable": bool(gain <= 1.0 + STRING_GAIN_TOL) if math.isfinite(gain) else False,
         "spacing_string_gain": spacing_gain,
-        "compute_ms_p50": _q(rest, 50),
-        "compute_ms_p95": _q(rest, 95),
-        "compute_ms_p99": _q(rest, 99),
+        **dict(zip(("compute_ms_p50", "compute_ms_p95", "compute_ms_p99"),
+                   _percentiles(rest, (50, 95, 99)), strict=True)),
         "compute_ms_first": float(per_step_ms[0]) if steps else math.nan,
         "solver_failures": int(traj.solver_failures),
         "comm_bits_per_s": float(traj.bits_sent / (n * steps * dt)) if steps else 0.0,

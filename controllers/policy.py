@@ -32,6 +32,8 @@ from envs.platoon import PlatoonState
 CHECKPOINT_DIR = Path(__file__).resolve().parent / "checkpoints"
 #: Name of the per-episode uniform stream sampled actions are drawn from.
 ACTION_STREAM = "policy-actions"
+#: Steps of action uniforms drawn at once (the draws do not depend on it; memory B N 8 bytes each)
+UNIFORM_BLOCK_STEPS = 64
 #: Shipped policies trained with another config than the leaderboard's (one folder each).
 VARIANT_DIR = CHECKPOINT_DIR / "variants"
 #: Fewest rows the policy network is evaluated on (see :meth:`PolicyController.reset`).
@@ -266,6 +268,8 @@ class PolicyController(Controller):
         self.state = self.net.initial_state(self._lanes)
         self.seeds = ctx.seeds
         self.t = 0
+        self._u_block: np.ndarray | None = None
+        self._u_start = 0
         self.block_channel = ctx.make_channel(5, f"{self.algo}-blocks", links="neighbours")
         self.msg_channel = None
         if self.net.msg_width:
@@ -274,6 +278,16 @@ class PolicyController(Controller):
             )
         # link order of "neighbours": (i-1 -> i) for i = 2..N, then (i+1 -> i) for i = 1..N-1
         self._n_front = n - 1
+
+    def _uniforms(self, n: int) -> np.ndarray:
+        """This step's action uniforms ``(B, N)``, drawn :data:`UNIFORM_BLOCK_STEPS` steps at a
+        time (the same numbers as one draw per step, in one vectorised pass)."""
+        k = self.t - self._u_start
+        if self._u_block is None or k >= len(self._u_block):
+            self._u_block = episode_uniforms(self.seeds, ACTION_STREAM, self.t, n,
+                                             steps=UNIFORM_BLOCK_STEPS)
+            self._u_start, k = self.t, 0
+        return self._u_block[k]
 
     def _split(self, held: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
         """Received per-link messages ``(B, L, W)`` -> front and rear ``(B, N, W)`` (0 if none)."""
@@ -314,7 +328,7 @@ class PolicyController(Controller):
             messages = (t(f), t(r))
         uniforms = None
         if self.mode == "sampled":
-            uniforms = lanes(episode_uniforms(self.seeds, ACTION_STREAM, self.t, n))
+            uniforms = lanes(self._uniforms(n))
         self.t += 1
         actions, self.state = policy_actions(self.net, obs, self.state, messages, uniforms)
         return action_to_command_mps2(

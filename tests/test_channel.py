@@ -50,6 +50,14 @@ def test_losses_depend_only_on_the_episode_seed() -> None:
     assert np.all((batch >= 0) & (batch < 1))
 
 
+def test_a_block_of_steps_equals_one_call_per_step() -> None:
+    seeds = np.array([3, 2000, 41])
+    block = episode_uniforms(seeds, "ACTION", 57, 5, steps=9)
+    assert block.shape == (9, 3, 5)
+    for k in range(9):
+        np.testing.assert_array_equal(block[k], episode_uniforms(seeds, "ACTION", 57 + k, 5))
+
+
 @pytest.mark.parametrize(("delay", "loss", "message"), [
     (-0.1, 0.0, r"delay must be >= 0 s, got -0.1"),
     (float("nan"), 0.0, r"delay must be >= 0 s, got nan"),
