@@ -1054,14 +1054,10 @@ class Trainer:
         run's batch ended (after ``run.steps`` counts it) and returns whether the run goes on.
         A run that diverged stops there (``run.failed`` says why).
         """
-        net, n = self.net, self.n_vehicles
-        b, n_step = self.shape.episodes_parallel, self.shape.n_step
-        obs = [torch.zeros(n, b, OBS_DIM) for _ in self.runs]  # rows of idle runs: ignored
-        state = net.initial_state(b)
-        initial = net.initial_state(b)
-        batch: dict[int, _Batch] = {}
-        for r in runs:
-            batch[r.index] = self._start_batch(r, obs, 0)
+        b = self.shape.episodes_parallel
+        obs = [torch.zeros(self.n_vehicles, b, OBS_DIM) for _ in self.runs]  # idle runs: ignored
+        state = self.net.initial_state(b)
+        batch = {r.index: self._start_batch(r, obs, 0) for r in runs}
         live = list(runs)
         cur = self._act(self._stack(obs), state, live)
         #: per step since ``base``: the state acted from and what the act gave
@@ -1070,81 +1066,23 @@ class Trainer:
         while live:
             history.append((state, cur))
             next_state = cur["state"]
-            ending: list[Run] = []  # runs whose segment ends at this step
-            over: set[int] = set()  # runs whose batch ends at this step
-            for r in live:
-                bt = self._step(r, batch[r.index], cur["actions"][r.rows])
-                if bt.done:
-                    over.add(r.index)
-                    bt.seg.bootstrap = torch.zeros(b, n)
-                    ending.append(r)
-                else:
-                    assert bt.observation is not None
-                    obs[r.index] = self._observation(bt.observation)
-                    if len(bt.seg.rews) == n_step:
-                        ending.append(r)
+            # 1. every live run steps its env: some segments (``ending``) and batches (``over``)
+            # end at this step
+            ending, over = self._step_envs(live, batch, cur["actions"], obs)
+            # 2. act on the next observations, with the weights before any update
             going = [r for r in live if r.index not in over]
             nxt = self._act(self._stack(obs), next_state, going) if going else None
-            # a separate critic's bootstrap comes from its recompute (the update)
-            boot = [] if net.separate_critic else [r for r in ending if r.index not in over]
-            if boot:
-                assert nxt is not None
-                with torch.no_grad():
-                    values = net.value(
-                        nxt["out"], neighbour_action_onehot(nxt["actions"], net.platoon_size))
-                for r in boot:
-                    batch[r.index].seg.bootstrap = values[r.rows].T
-            by_length: dict[int, list[Run]] = {}
-            for r in ending:
-                by_length.setdefault(len(batch[r.index].seg.rews), []).append(r)
-            critic_after: dict[int, State] = {}
-            for t_len, group in sorted(by_length.items()):
-                start = tick + 1 - t_len - base
-                critic_after |= self._update(
-                    group, history[start][0], [h[1] for h in history[start:]],
-                    [batch[r.index].seg for r in group], nxt)
-            reacting = []
-            for r in ending:
-                bt = batch[r.index]
-                # most episodes ended (published collision rule): truncate the rest (their last
-                # segment was bootstrapped) instead of stepping finished episodes
-                if (r.failed is not None or r.index in over
-                        or bt.active.sum() < r.config.min_active_fraction * b):
-                    over.add(r.index)
-                    continue
-                bt.seg, bt.seg_start = _Segment(), tick + 1
-                reacting.append(r)
-            if critic_after and reacting:
-                # a separate critic's state at the next segment's start: its recompute's end
-                next_state = {k: v.clone() for k, v in next_state.items()}
-                for r in reacting:
-                    for k, v in critic_after[r.index].items():
-                        next_state[k][r.rows] = v
-            if reacting:
-                # act on the next observation with the updated weights (same state, no
-                # re-advance); the other runs keep what they drew
-                assert nxt is not None
-                nxt = _merge_rows(nxt, self._act(nxt["obs"], next_state, reacting), reacting)
-            restarting = []
-            for r in live:
-                if r.index not in over:
-                    continue
-                bt = batch.pop(r.index)
-                if r.failed is not None:
-                    continue
-                r.steps += bt.steps
-                r.episodes += b
-                if on_batch(r, bt.steps, float((bt.ep_reward / np.maximum(bt.ep_len, 1)).mean())):
-                    restarting.append(r)
+            self._bootstrap_shared_critic(ending, over, batch, nxt)
+            # 3. one update per segment length of the runs whose segment ended
+            critic_after = self._update_ending(ending, batch, history, nxt)
+            # 4. their next segments start from the same state, acting with the new weights
+            reacting = self._next_segments(ending, over, batch, tick + 1)
+            next_state, nxt = self._react(reacting, critic_after, next_state, nxt)
+            # 5. runs whose batch ended report it; those that go on start their next batch
+            restarting = self._end_batches(live, over, batch, on_batch)
             live = [r for r in live if r.index not in over] + restarting
             if restarting:
-                next_state = {k: v.clone() for k, v in next_state.items()}
-                for r in restarting:
-                    batch[r.index] = self._start_batch(r, obs, tick + 1)
-                    for k, v in next_state.items():
-                        v[r.rows] = initial[k][r.rows]
-                new = self._act(self._stack(obs), next_state, restarting)
-                nxt = new if nxt is None else _merge_rows(nxt, new, restarting)
+                next_state, nxt = self._restart(restarting, batch, obs, next_state, nxt, tick + 1)
             if not live:
                 break
             assert nxt is not None
@@ -1153,6 +1091,131 @@ class Trainer:
             oldest = min(batch[r.index].seg_start for r in live)
             del history[: oldest - base]  # no open segment needs those steps
             base = oldest
+
+    def _step_envs(
+        self, live: list[Run], batch: dict[int, _Batch], actions: torch.Tensor,
+        obs: list[torch.Tensor],
+    ) -> tuple[list[Run], set[int]]:
+        """Step every live run's env with its rows of ``actions`` and store its next
+        observation in ``obs``; returns the runs whose segment ends at this step and the indices
+        of those whose batch ends (a finished batch's segment bootstraps from 0)."""
+        ending: list[Run] = []
+        over: set[int] = set()
+        for r in live:
+            bt = self._step(r, batch[r.index], actions[r.rows])
+            if bt.done:
+                over.add(r.index)
+                bt.seg.bootstrap = torch.zeros(self.shape.episodes_parallel, self.n_vehicles)
+                ending.append(r)
+            else:
+                assert bt.observation is not None
+                obs[r.index] = self._observation(bt.observation)
+                if len(bt.seg.rews) == self.shape.n_step:
+                    ending.append(r)
+        return ending, over
+
+    @torch.no_grad()
+    def _bootstrap_shared_critic(
+        self, ending: list[Run], over: set[int], batch: dict[int, _Batch],
+        nxt: dict[str, Any] | None,
+    ) -> None:
+        """A critic that shares the actor's trunk bootstraps a segment that ended mid-batch from
+        the act on the next observation (a separate critic's bootstrap comes from its recompute,
+        in the update)."""
+        net = self.net
+        boot = [] if net.separate_critic else [r for r in ending if r.index not in over]
+        if not boot:
+            return
+        assert nxt is not None
+        values = net.value(nxt["out"], neighbour_action_onehot(nxt["actions"], net.platoon_size))
+        for r in boot:
+            batch[r.index].seg.bootstrap = values[r.rows].T
+
+    def _update_ending(
+        self, ending: list[Run], batch: dict[int, _Batch],
+        record: list[tuple[State, dict[str, Any]]], nxt: dict[str, Any] | None,
+    ) -> dict[int, State]:
+        """Update the runs whose segment ended, one update per segment length (``record``: the
+        steps kept, a segment of T steps being the last T); returns a separate critic's state
+        after the segment per run."""
+        by_length: dict[int, list[Run]] = {}
+        for r in ending:
+            by_length.setdefault(len(batch[r.index].seg.rews), []).append(r)
+        critic_after: dict[int, State] = {}
+        for t_len, group in sorted(by_length.items()):
+            seg = record[-t_len:]
+            critic_after |= self._update(group, seg[0][0], [h[1] for h in seg],
+                                         [batch[r.index].seg for r in group], nxt)
+        return critic_after
+
+    def _next_segments(
+        self, ending: list[Run], over: set[int], batch: dict[int, _Batch], tick: int
+    ) -> list[Run]:
+        """Open the next segment (from step ``tick``) of each run whose segment ended and whose
+        batch goes on; a run that failed, or whose running episodes fell below
+        ``min_active_fraction``, ends its batch instead (added to ``over``)."""
+        reacting = []
+        for r in ending:
+            bt = batch[r.index]
+            # most episodes ended (published collision rule): truncate the rest (their last
+            # segment was bootstrapped) instead of stepping finished episodes
+            if (r.failed is not None or r.index in over
+                    or bt.active.sum() < r.config.min_active_fraction * self.shape.episodes_parallel):
+                over.add(r.index)
+                continue
+            bt.seg, bt.seg_start = _Segment(), tick
+            reacting.append(r)
+        return reacting
+
+    def _react(
+        self, reacting: list[Run], critic_after: dict[int, State], next_state: State,
+        nxt: dict[str, Any] | None,
+    ) -> tuple[State, dict[str, Any] | None]:
+        """Act again for the runs that start a new segment, on the same observation and state,
+        with their updated weights (the other runs keep what they drew); a separate critic's
+        state at the segment start is its recompute's end."""
+        if not reacting:
+            return next_state, nxt
+        if critic_after:
+            next_state = {k: v.clone() for k, v in next_state.items()}
+            for r in reacting:
+                for k, v in critic_after[r.index].items():
+                    next_state[k][r.rows] = v
+        assert nxt is not None
+        return next_state, _merge_rows(nxt, self._act(nxt["obs"], next_state, reacting), reacting)
+
+    def _end_batches(
+        self, live: list[Run], over: set[int], batch: dict[int, _Batch],
+        on_batch: Callable[[Run, int, float], bool],
+    ) -> list[Run]:
+        """Count and report each ended batch (``on_batch``); returns the runs that go on."""
+        restarting = []
+        for r in live:
+            if r.index not in over:
+                continue
+            bt = batch.pop(r.index)
+            if r.failed is not None:
+                continue
+            r.steps += bt.steps
+            r.episodes += self.shape.episodes_parallel
+            if on_batch(r, bt.steps, float((bt.ep_reward / np.maximum(bt.ep_len, 1)).mean())):
+                restarting.append(r)
+        return restarting
+
+    def _restart(
+        self, restarting: list[Run], batch: dict[int, _Batch], obs: list[torch.Tensor],
+        next_state: State, nxt: dict[str, Any] | None, tick: int,
+    ) -> tuple[State, dict[str, Any]]:
+        """Start the next batch of each run in ``restarting`` at step ``tick``: new episodes,
+        the initial recurrent state on its rows, and its first act."""
+        initial = self.net.initial_state(self.shape.episodes_parallel)
+        next_state = {k: v.clone() for k, v in next_state.items()}
+        for r in restarting:
+            batch[r.index] = self._start_batch(r, obs, tick)
+            for k, v in next_state.items():
+                v[r.rows] = initial[k][r.rows]
+        new = self._act(self._stack(obs), next_state, restarting)
+        return next_state, new if nxt is None else _merge_rows(nxt, new, restarting)
 
     def _start_batch(self, run: Run, obs: list[torch.Tensor], tick: int) -> _Batch:
         b = self.shape.episodes_parallel
