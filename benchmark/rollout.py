@@ -136,6 +136,7 @@ def rollout_batch(
         # SIGINTs during CasADi MPC sweeps) still ends the run here, unstored
         raise_if_interrupted()
         _check_command(controller, command, b, n_vehicles)
+        _check_sent(controller, ctx, t + 1)
         bits[t] = (ctx.bits_sent - bits_before) // b
         was_done = s.done.copy()
         commands[t] = command
@@ -188,6 +189,16 @@ def _check_command(controller: Controller, command: np.ndarray, b: int, n: int) 
             f"{controller.name}: act returned shape {shape}, expected (B, N) = ({b}, {n})")
     if not np.all(np.isfinite(command)):
         raise ControllerContractError(f"{controller.name}: act returned a non-finite command")
+
+
+def _check_sent(controller: Controller, ctx: EpisodeContext, steps: int) -> None:
+    """The channel contract: every channel a controller opened sends once per step, so what it
+    uses at a step went through the run's delay and loss and was counted."""
+    for ch in ctx.channels:
+        if ch.transmissions != steps:
+            raise ControllerContractError(
+                f"{controller.name}: its channel {ch.name!r} sent {ch.transmissions} times in "
+                f"{steps} steps; a controller transmits on every channel it opened once per act")
 
 
 def _score_recorded(env: PlatoonEnv, rec: dict[str, np.ndarray], params: PlatoonParams) -> Trajectory:

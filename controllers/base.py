@@ -3,7 +3,9 @@
 A controller is reset once per batch of episodes with an :class:`EpisodeContext`, then asked once
 per step for the acceleration commands of all followers, ``(B, N)``. Whatever it sends to other
 vehicles goes through channels made by :meth:`EpisodeContext.make_channel`, so delay and packet
-loss act on it and its bits are counted. The harness never needs to know a controller's family.
+loss act on it and its bits are counted; the closed loop checks that a controller declaring V2V
+opened its channels and that each channel sends once per step. The harness never needs to know a
+controller's family.
 """
 
 from __future__ import annotations

@@ -189,6 +189,11 @@ class V2VChannel:
         self._step += 1
         return self._held
 
+    @property
+    def transmissions(self) -> int:
+        """Steps sent so far (calls of :meth:`transmit`)."""
+        return self._step
+
     def bits_per_vehicle_per_s(self, n_vehicles: int, n_steps: int, dt_s: float) -> float:
         """Mean V2V load: bits sent per vehicle (followers) per second, per episode."""
         if n_steps == 0:

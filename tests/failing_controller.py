@@ -30,7 +30,8 @@ class DefectiveController(Controller):
     """Breaks the loop's contract at step 3: a command of the wrong shape (``defect="shape"``)
     or a NaN (``defect="nan"``); or declares V2V and opens no channel (``defect="silent_v2v"``:
     what it would exchange would escape delay, loss and the bit count); or swallows the
-    exception of a SIGINT it receives at step 3 (``defect="swallow_sigint"``)."""
+    exception of a SIGINT it receives at step 3 (``defect="swallow_sigint"``); or opens a
+    channel and skips sending at step 3 (``defect="skip_send"``)."""
 
     name = "defective"
     family = "linear"
@@ -38,14 +39,20 @@ class DefectiveController(Controller):
     def __init__(self, defect: str = "shape") -> None:
         super().__init__()
         self.defect = defect
-        if defect == "silent_v2v":
+        if defect in ("silent_v2v", "skip_send"):
             self.v2v = "the predecessor's speed (1 float), read from the state"
 
     def reset(self, ctx: EpisodeContext) -> None:
         self.b, self.n = ctx.batch_size, ctx.n_vehicles
+        if self.defect == "skip_send":
+            self.channel = ctx.make_channel(1, "speed")
 
     def act(self, state: PlatoonState, observation: np.ndarray | None) -> np.ndarray:
         u = np.zeros((self.b, self.n))
+        if self.defect == "skip_send" and state.step != 3:
+            payload = np.zeros((self.b, self.n + 1))
+            payload[:, 1:] = state.speed_mps
+            self.channel.transmit(payload)
         if self.defect == "swallow_sigint" and state.step == 3:
             import os
             import signal
