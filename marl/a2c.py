@@ -370,13 +370,29 @@ class AgentNet(nn.Module):
         a, t_len, b = actions.shape
         enc = {k: v.reshape(a, t_len, b, -1)
                for k, v in self.encode(obs.reshape(a, t_len * b, OBS_DIM)).items()}
+        out, state = self.recur_segment(enc, state, messages)
+        flat = {k: v.reshape(a, t_len * b, -1) for k, v in out.items()}
+        logits = self.logits(flat).reshape(a, t_len, b, N_ACTIONS)
+        nb = neighbour_action_onehot(actions.reshape(a, t_len * b), self.platoon_size)
+        return logits, self.value(flat, nb).reshape(a, t_len, b), state
+
+    def recur_segment(
+        self,
+        enc: dict[str, torch.Tensor],
+        state: State,
+        messages: tuple[torch.Tensor, torch.Tensor] | None,
+    ) -> tuple[dict[str, torch.Tensor], State]:
+        """The recurrent part of :meth:`forward` over a segment: encodings ``(A, T, B, F)`` ->
+        features ``(A, T, B, H)`` and the state after. Here :meth:`recur` step by step (messages
+        re-derived from the states where gradients flow through them); a network whose
+        recurrence is a plain LSTM on precomputed gates runs it as one
+        :meth:`marl.layers.BatchedLSTMCell.segment`."""
         # unbind, not enc[k][:, t]: the backward of T selects would allocate and zero-fill a
-        # full-size gradient per step (measured: 85 % of BDC's training time); unbind's backward
-        # stacks once
+        # full-size gradient per step; unbind's backward stacks once
         enc_t = {k: v.unbind(1) for k, v in enc.items()}
         received = None if messages is None else (messages[0].unbind(1), messages[1].unbind(1))
         outs = []
-        for t in range(t_len):
+        for t in range(len(next(iter(enc_t.values())))):
             front: torch.Tensor | None
             rear: torch.Tensor | None
             if self.differentiable_messages:
@@ -387,10 +403,7 @@ class AgentNet(nn.Module):
                 front = rear = None
             out, state = self.recur({k: v[t] for k, v in enc_t.items()}, state, front, rear)
             outs.append(out)
-        flat = {k: torch.stack([o[k] for o in outs], 1).reshape(a, t_len * b, -1) for k in outs[0]}
-        logits = self.logits(flat).reshape(a, t_len, b, N_ACTIONS)
-        nb = neighbour_action_onehot(actions.reshape(a, t_len * b), self.platoon_size)
-        return logits, self.value(flat, nb).reshape(a, t_len, b), state
+        return {k: torch.stack([o[k] for o in outs], 1) for k in outs[0]}, state
 
     def actor_parameters(self) -> list[nn.Parameter]:
         """Parameters learning at the actor rate (everything but :meth:`critic_parameters`)."""
@@ -448,6 +461,21 @@ class SharedTrunkNet(AgentNet):
         new["h"], new["c"] = h, c
         return {"h": h, "v": h}, new
 
+    def recur_segment(self, enc, state, messages):
+        if self.differentiable_messages:
+            return super().recur_segment(enc, state, messages)
+        gates = enc["gx"]
+        if messages is not None:  # received inputs (FPrint): their gates for all steps at once
+            a, t_len, b, _ = gates.shape
+            extra = self.message_gates(state, messages[0].reshape(a, t_len * b, -1),
+                                       messages[1].reshape(a, t_len * b, -1))
+            if extra is not None:
+                gates = gates + extra.reshape(a, t_len, b, -1)
+        hs, (h, c) = self.lstm.segment(gates, (state["h"], state["c"]))
+        new = dict(state)
+        new["h"], new["c"] = h, c
+        return {"h": hs, "v": hs}, new
+
 
 class SeparateActorCriticNet(AgentNet):
     """Separate actor (FC -> LSTM -> logits) and critic (FC -> LSTM -> value) per agent.
@@ -496,6 +524,16 @@ class SeparateActorCriticNet(AgentNet):
         return out, new
 
     separate_critic = True
+
+    def recur_segment(self, enc, state, messages):
+        hs, (h, c) = self.lstm.segment(enc["gx"], (state["h"], state["c"]))
+        new = {"h": h, "c": c}
+        out = {"h": hs}
+        if self.with_critic:
+            chs, (ch, cc) = self.critic_lstm.segment(enc["cgx"], (state["ch"], state["cc"]))
+            new["ch"], new["cc"] = ch, cc
+            out["v"] = chs
+        return out, new
 
     def act_step(self, obs, state, front, rear, critic=True):
         if critic or not self.with_critic:

@@ -118,6 +118,19 @@ class BatchedLSTMCell(nn.Module):
         h_new = torch.sigmoid(o) * torch.tanh(c_new)
         return h_new, c_new
 
+    def segment(
+        self, input_gates: torch.Tensor, state: tuple[torch.Tensor, torch.Tensor]
+    ) -> tuple[torch.Tensor, tuple[torch.Tensor, torch.Tensor]]:
+        """T steps at once: input gates ``(N, T, B, 4H)`` (precomputed, bias included) and the
+        state at the start -> hidden states ``(N, T, B, H)`` and the state after the last step.
+
+        The forward is :meth:`step_from_gates` step by step (the same numbers); the backward is
+        written out (:class:`_LSTMSegment`): back through time one step at a time for the
+        state, and the gradient of ``W_hh`` as one product over all ``T B`` rows instead of T
+        small ones."""
+        hs, c_last = _LSTMSegment.apply(input_gates, state[0], state[1], self.weight_hh)
+        return hs, (hs[:, -1], c_last)
+
     @classmethod
     def from_cells(cls, cells: Sequence[nn.LSTMCell]) -> BatchedLSTMCell:
         """Stack separate ``nn.LSTMCell`` agents (biases ``b_ih + b_hh`` combined)."""
@@ -128,6 +141,57 @@ class BatchedLSTMCell(nn.Module):
             out.weight_hh.copy_(torch.stack([c.weight_hh.T for c in cells]))
             out.bias.copy_(torch.stack([c.bias_ih + c.bias_hh for c in cells]))
         return out
+
+
+class _LSTMSegment(torch.autograd.Function):
+    """Autograd of :meth:`BatchedLSTMCell.segment` (gate order i, f, g, o)."""
+
+    @staticmethod
+    def forward(  # type: ignore[override]
+        ctx: torch.autograd.function.FunctionCtx, input_gates: torch.Tensor, h0: torch.Tensor,
+        c0: torch.Tensor, weight_hh: torch.Tensor,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        n, t_len, b, h4 = input_gates.shape
+        hs = input_gates.new_empty(n, t_len, b, h4 // 4)
+        cs = torch.empty_like(hs)
+        acts = torch.empty_like(input_gates)  # sigmoid(i), sigmoid(f), tanh(g), sigmoid(o)
+        h, c = h0, c0
+        for t in range(t_len):
+            i, f, g, o = torch.baddbmm(input_gates[:, t], h, weight_hh).chunk(4, dim=-1)
+            si, sf, tg, so = torch.sigmoid(i), torch.sigmoid(f), torch.tanh(g), torch.sigmoid(o)
+            c = sf * c + si * tg  # as step_from_gates, operation by operation
+            h = so * torch.tanh(c)
+            torch.cat([si, sf, tg, so], dim=-1, out=acts[:, t])
+            hs[:, t], cs[:, t] = h, c
+        ctx.save_for_backward(h0, c0, weight_hh, hs, cs, acts)
+        return hs, cs[:, -1]
+
+    @staticmethod
+    def backward(  # type: ignore[override]
+        ctx: torch.autograd.function.FunctionCtx, d_hs: torch.Tensor | None,
+        d_c_last: torch.Tensor | None,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        h0, c0, weight_hh, hs, cs, acts = ctx.saved_tensors  # type: ignore[attr-defined]
+        n, t_len, b, hidden = hs.shape
+        d_gates = torch.empty_like(acts)
+        dh = torch.zeros_like(h0)  # from the step after
+        dc = torch.zeros_like(c0) if d_c_last is None else d_c_last.clone()
+        w_t = weight_hh.transpose(1, 2)
+        for t in range(t_len - 1, -1, -1):
+            si, sf, tg, so = acts[:, t].chunk(4, dim=-1)
+            if d_hs is not None:
+                dh = dh + d_hs[:, t]
+            tc = torch.tanh(cs[:, t])
+            dc = dc + dh * so * (1 - tc * tc)
+            c_prev = cs[:, t - 1] if t > 0 else c0
+            torch.cat([dc * tg * si * (1 - si), dc * c_prev * sf * (1 - sf),
+                       dc * si * (1 - tg * tg), dh * tc * so * (1 - so)], dim=-1,
+                      out=d_gates[:, t])
+            dh = torch.bmm(d_gates[:, t], w_t)
+            dc = dc * sf
+        h_prev = torch.cat([h0.unsqueeze(1), hs[:, :-1]], 1).reshape(n, t_len * b, hidden)
+        d_w = torch.bmm(h_prev.transpose(1, 2), d_gates.reshape(n, t_len * b, 4 * hidden))
+        return d_gates, dh, dc, d_w
 
 
 def per_agent_clip_(

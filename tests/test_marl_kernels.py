@@ -264,6 +264,90 @@ def test_batched_lstm_equals_separate_cells_and_gradients() -> None:
     torch.testing.assert_close(bc.weight_hh.grad, want, atol=1e-5, rtol=1e-4)
 
 
+def test_lstm_segment_gradients_pass_gradcheck() -> None:
+    """The written-out backward of :meth:`BatchedLSTMCell.segment` against finite differences
+    (float64), for the gradients of the gates, the initial state and ``W_hh``."""
+    from marl.layers import _LSTMSegment
+
+    g = torch.Generator().manual_seed(3)
+    n, t_len, b, hidden = 2, 4, 3, 5
+    args = (torch.randn(n, t_len, b, 4 * hidden, generator=g, dtype=torch.float64),
+            torch.randn(n, b, hidden, generator=g, dtype=torch.float64),
+            torch.randn(n, b, hidden, generator=g, dtype=torch.float64),
+            0.5 * torch.randn(n, hidden, 4 * hidden, generator=g, dtype=torch.float64))
+    for x in args:
+        x.requires_grad_(True)
+    assert torch.autograd.gradcheck(_LSTMSegment.apply, args)
+
+
+def test_lstm_segment_equals_torch_lstm() -> None:
+    """A segment of separate agents equals ``torch.nn.LSTM`` run on each agent's sequence:
+    outputs, final state and every gradient (a reference we did not write)."""
+    torch.manual_seed(4)
+    n, t_len, b, d_in, hidden = 3, 6, 2, 5, 7
+    refs = [torch.nn.LSTM(d_in, hidden) for _ in range(n)]
+    cell = BatchedLSTMCell.from_cells(
+        [torch.nn.LSTMCell(d_in, hidden) for _ in range(n)])
+    with torch.no_grad():
+        for i, lstm in enumerate(refs):
+            cell.weight_ih[i] = lstm.weight_ih_l0.T
+            cell.weight_hh[i] = lstm.weight_hh_l0.T
+            cell.bias[i] = lstm.bias_ih_l0 + lstm.bias_hh_l0
+    x = torch.randn(n, t_len, b, d_in)
+    h0, c0 = torch.randn(n, b, hidden), torch.randn(n, b, hidden)
+    weights = torch.randn(t_len, b, hidden)
+    hs, (h_t, c_t) = cell.segment(
+        cell.input_gates(x.reshape(n, t_len * b, d_in)).reshape(n, t_len, b, -1), (h0, c0))
+    ((hs * weights).sum() + c_t.square().sum()).backward()
+    for i, lstm in enumerate(refs):
+        out, (hn, cn) = lstm(x[i], (h0[i : i + 1], c0[i : i + 1]))
+        torch.testing.assert_close(hs[i], out, atol=1e-6, rtol=1e-5)
+        torch.testing.assert_close(c_t[i], cn[0], atol=1e-6, rtol=1e-5)
+        torch.testing.assert_close(h_t[i], hn[0], atol=1e-6, rtol=1e-5)
+        ((out * weights).sum() + cn.square().sum()).backward()
+        torch.testing.assert_close(cell.weight_hh.grad[i], lstm.weight_hh_l0.grad.T,
+                                   atol=1e-5, rtol=1e-4)
+        torch.testing.assert_close(cell.weight_ih.grad[i], lstm.weight_ih_l0.grad.T,
+                                   atol=1e-5, rtol=1e-4)
+        torch.testing.assert_close(cell.bias.grad[i], lstm.bias_ih_l0.grad, atol=1e-5, rtol=1e-4)
+
+
+@pytest.mark.parametrize("name", ["ia2c", "fprint", "bdc"])
+def test_segment_recompute_equals_step_by_step(name: str) -> None:
+    """The networks that run their recurrence as one LSTM segment give the step-by-step
+    recompute's logits, values and final state to the last bit, and its gradients to float
+    rounding."""
+    from marl.a2c import AgentNet, algorithm
+
+    algo = algorithm(name)
+    net = algo.build_net(algo.config_cls(), 4, True, torch.Generator().manual_seed(0))
+    g = torch.Generator().manual_seed(1)
+    a, t_len, b = 4, 5, 3
+    state = {k: 0.3 * torch.randn(v.shape, generator=g)
+             for k, v in net.initial_state(b).items()}
+    obs = torch.randn(a, t_len, b, 15, generator=g)
+    actions = torch.randint(0, 4, (a, t_len, b), generator=g)
+    msgs = None
+    if net.msg_width:
+        msgs = (torch.rand(a, t_len, b, net.msg_width, generator=g),
+                torch.rand(a, t_len, b, net.msg_width, generator=g))
+
+    def grads(step_by_step: bool):
+        net.zero_grad()
+        with pytest.MonkeyPatch.context() as mp:
+            if step_by_step:  # the base class's loop
+                mp.setattr(type(net), "recur_segment", AgentNet.recur_segment)
+            logits, values, after = net(state, obs, actions, msgs)
+        (logits.square().sum() + values.sum()).backward()
+        return logits.detach(), values.detach(), after, [p.grad.clone() for p in net.parameters()]
+
+    fused, steps = grads(False), grads(True)
+    assert torch.equal(fused[0], steps[0]) and torch.equal(fused[1], steps[1])
+    assert all(torch.equal(fused[2][k], steps[2][k]) for k in steps[2])
+    for got, want in zip(fused[3], steps[3], strict=True):
+        torch.testing.assert_close(got, want, atol=1e-5, rtol=1e-4)
+
+
 def test_input_gates_split_equals_full_cell() -> None:
     torch.manual_seed(1)
     bc = BatchedLSTMCell(2, 6, 4)

@@ -92,32 +92,41 @@ def test_consensus_pulls_critics_together(monkeypatch) -> None:
 
 @pytest.mark.slow
 def test_ia2c_learns_catchup(tmp_path) -> None:
-    """70k steps of IA2C (seed 0, default config): the training reward rises (measured: -1,472
-    over the first three batches, -1,090 over the last five; the same before and after the
-    sampled-evaluation change), and the kept snapshot, chosen on sampled validation, collides in
-    far fewer validation episodes than the untrained policy and scores better (measured: 6 of 32
-    at -1,059 after 4.3e4 steps, against 32 of 32 at -1,315). 70k steps is early: the shipped
-    6e5-step IA2C is collision-free on catchup-v1."""
+    """70k steps of IA2C on catchup-v1 (default config), seeds 0, 1 and 2 as one population: in
+    the median run the training reward rises by more than 250 (mean of the last five batches
+    against the first three) and the kept snapshot, chosen on sampled validation, collides in
+    at most a third of the 32 validation episodes, where the untrained policy collides in
+    nearly all, and scores better by more than 200 (measured: kept snapshots with 13, 0 and 6
+    collisions, -706, -565 and -755, against 32 of 32 at -1,315 untrained). The median of three
+    seeds, because one seed's run changes with the last bit of the gradients (12 seeds of this
+    test: 0 to 13 collisions, median 0). 70k steps is early: the shipped 6e5-step IA2C is
+    collision-free on catchup-v1."""
     from benchmark.policy_eval import evaluate_policy, validation_evaluator
     from envs.params import VALIDATION_SEEDS
+    from marl.a2c import run_population
+    from marl.checkpoint import load_checkpoint
 
     a = algorithm("ia2c")
-    res = run_training(a, a.config_cls(), "catchup-v1", 8, 70_000, 0, tmp_path,
-                       evaluate=validation_evaluator("ia2c", "catchup-v1", 8))
-    train = [r["train_reward"] for r in res.curve]
-    assert sum(train[-5:]) / 5 > sum(train[:3]) / 3 + 250
+    results = run_population(a, [a.config_cls()] * 3, "catchup-v1", 8, 70_000, [0, 1, 2],
+                             tmp_path, evaluate=validation_evaluator("ia2c", "catchup-v1", 8))
     untrained = a.build_net(a.config_cls(), 8, False, torch.Generator().manual_seed(0))
     base = evaluate_policy("ia2c", untrained, "catchup-v1", 8, VALIDATION_SEEDS)
     assert base["collisions"] >= 30
-    from marl.checkpoint import load_checkpoint
-
-    assert res.checkpoint is not None
-    best = load_checkpoint(res.checkpoint)
-    net = a.build_net(a.config_cls(), 8, False)
-    net.load_state_dict(best["weights"])
-    ev = evaluate_policy("ia2c", net, "catchup-v1", 8, VALIDATION_SEEDS)
-    assert ev["collisions"] <= base["collisions"] / 3 and ev["reward"] > base["reward"] + 200
-    assert best["curve_summary"]["selected_eval_reward_sampled"] == pytest.approx(ev["reward"])
+    rises, collisions, rewards = [], [], []
+    for res in results:
+        train = [r["train_reward"] for r in res.curve]
+        rises.append(sum(train[-5:]) / 5 - sum(train[:3]) / 3)
+        assert res.checkpoint is not None
+        best = load_checkpoint(res.checkpoint)
+        net = a.build_net(a.config_cls(), 8, False)
+        net.load_state_dict(best["weights"])
+        ev = evaluate_policy("ia2c", net, "catchup-v1", 8, VALIDATION_SEEDS)
+        assert best["curve_summary"]["selected_eval_reward_sampled"] == pytest.approx(ev["reward"])
+        collisions.append(ev["collisions"])
+        rewards.append(ev["reward"])
+    assert sorted(rises)[1] > 250
+    assert sorted(collisions)[1] <= base["collisions"] / 3
+    assert sorted(rewards)[1] > base["reward"] + 200
 
 
 # ---------------------------------------------------------------- learner departures
@@ -416,8 +425,8 @@ def test_training_messages_per_algorithm() -> None:
 def test_a_short_training_learns() -> None:
     """3e4 steps of IA2C on catchup-v1 (N = 8) take the untrained policy, which collides in every
     one of 16 validation episodes (sampled, -1,351), to at most 6 collisions and a reward better
-    by more than 400 (measured: 5 collisions, -699; 4 and -597 before the population learner's
-    last-bit changes). A learner whose update does nothing, or pushes the wrong way, fails this
+    by more than 400 (measured: 3 collisions, -615; 5 and -699 before the LSTM segment's
+    written-out backward changed the gradients' rounding). A learner whose update does nothing, or pushes the wrong way, fails this
     in about 10 s."""
     from benchmark.policy_eval import evaluate_policy
 
