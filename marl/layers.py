@@ -10,6 +10,7 @@ separate ``torch.nn.Linear`` / ``torch.nn.LSTMCell`` agents (tested).
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import torch
 from torch import nn
@@ -147,9 +148,9 @@ class _LSTMSegment(torch.autograd.Function):
     """Autograd of :meth:`BatchedLSTMCell.segment` (gate order i, f, g, o)."""
 
     @staticmethod
-    def forward(  # type: ignore[override]
-        ctx: torch.autograd.function.FunctionCtx, input_gates: torch.Tensor, h0: torch.Tensor,
-        c0: torch.Tensor, weight_hh: torch.Tensor,
+    def forward(
+        ctx: Any, input_gates: torch.Tensor, h0: torch.Tensor, c0: torch.Tensor,
+        weight_hh: torch.Tensor,
     ) -> tuple[torch.Tensor, torch.Tensor]:
         n, t_len, b, h4 = input_gates.shape
         hs = input_gates.new_empty(n, t_len, b, h4 // 4)
@@ -167,11 +168,10 @@ class _LSTMSegment(torch.autograd.Function):
         return hs, cs[:, -1]
 
     @staticmethod
-    def backward(  # type: ignore[override]
-        ctx: torch.autograd.function.FunctionCtx, d_hs: torch.Tensor | None,
-        d_c_last: torch.Tensor | None,
+    def backward(
+        ctx: Any, d_hs: torch.Tensor | None, d_c_last: torch.Tensor | None,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-        h0, c0, weight_hh, hs, cs, acts = ctx.saved_tensors  # type: ignore[attr-defined]
+        h0, c0, weight_hh, hs, cs, acts = ctx.saved_tensors
         n, t_len, b, hidden = hs.shape
         d_gates = torch.empty_like(acts)
         dh = torch.zeros_like(h0)  # from the step after
