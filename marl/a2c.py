@@ -50,7 +50,7 @@ from envs.dynamics import BLOCK_DIM, OBS_DIM
 from envs.errors import ConfigError, TrainingDivergedError, UnknownNameError
 from envs.naming import checkpoint_stem
 from envs.params import EVAL_MODES, MARL_ALGORITHMS, OVM_ACTIONS, RewardWeights
-from envs.platoon import PlatoonEnv
+from envs.platoon import PlatoonEnv, StepResult
 from envs.scenarios import make_scenario
 from marl.layers import BatchedLinear, BatchedLSTMCell, per_agent_clip_
 
@@ -832,6 +832,8 @@ class Run:
     #: the resolved config (``reward_alpha`` and ``power_baseline_kw`` filled in)
     config: A2CConfig
     generator: torch.Generator
+    #: its environment's settings (reward weights, length, physics); its episodes run in
+    #: batched envs shared with the runs whose batch starts at the same step
     env: PlatoonEnv
     #: its agents' rows in the stacked network, ``slice(index N, (index + 1) N)``
     rows: slice
@@ -928,10 +930,13 @@ class _Segment:
 
 @dataclass
 class _Batch:
-    """A run's batch in progress: which of its B episodes still run, their training reward
-    and length so far, its open segment (started at step ``seg_start`` of the loop) and its
-    env's last step."""
+    """A run's batch in progress: the batched env its B episodes run in (rows ``rows``, shared
+    with the runs whose batch started at the same step), which of them still run, their
+    training reward and length so far, its open segment (started at step ``seg_start`` of the
+    loop) and whether it is over."""
 
+    env: PlatoonEnv
+    rows: slice
     active: np.ndarray
     ep_reward: np.ndarray
     ep_len: np.ndarray
@@ -940,7 +945,6 @@ class _Batch:
     steps: int = 0
     t_episode: int = 0
     done: bool = False
-    observation: np.ndarray | None = None
 
 
 def _merge_rows(base: dict[str, Any], new: dict[str, Any], runs: Sequence[Run]) -> dict[str, Any]:
@@ -1095,7 +1099,7 @@ class Trainer:
         b = self.shape.episodes_parallel
         obs = [torch.zeros(self.n_vehicles, b, OBS_DIM) for _ in self.runs]  # idle runs: ignored
         state = self.net.initial_state(b)
-        batch = {r.index: self._start_batch(r, obs, 0) for r in runs}
+        batch = self._start_batches(list(runs), obs, 0)
         live = list(runs)
         cur = self._act(self._stack(obs), state, live)
         #: per step since ``base``: the state acted from and what the act gave
@@ -1139,17 +1143,27 @@ class Trainer:
         of those whose batch ends (a finished batch's segment bootstraps from 0)."""
         ending: list[Run] = []
         over: set[int] = set()
+        sharing: dict[int, list[Run]] = {}  # env -> its live runs
         for r in live:
-            bt = self._step(r, batch[r.index], actions[r.rows])
-            if bt.done:
-                over.add(r.index)
-                bt.seg.bootstrap = torch.zeros(self.shape.episodes_parallel, self.n_vehicles)
-                ending.append(r)
-            else:
-                assert bt.observation is not None
-                obs[r.index] = self._observation(bt.observation)
-                if len(bt.seg.rews) == self.shape.n_step:
+            sharing.setdefault(id(batch[r.index].env), []).append(r)
+        for group in sharing.values():
+            env = batch[group[0].index].env
+            # rows of runs that left this env (their batch ended) step on with action 0, ignored
+            acts = np.zeros((env.batch_size, self.n_vehicles), dtype=np.int64)
+            for r in group:
+                acts[batch[r.index].rows] = actions[r.rows].T.numpy()
+            res = env.step_actions(acts)
+            for r in group:
+                bt = self._record(r, batch[r.index], res)
+                if bt.done:
+                    over.add(r.index)
+                    bt.seg.bootstrap = torch.zeros(self.shape.episodes_parallel, self.n_vehicles)
                     ending.append(r)
+                else:
+                    assert res.observation is not None
+                    obs[r.index] = self._observation(res.observation[bt.rows])
+                    if len(bt.seg.rews) == self.shape.n_step:
+                        ending.append(r)
         return ending, over
 
     @torch.no_grad()
@@ -1248,34 +1262,50 @@ class Trainer:
         the initial recurrent state on its rows, and its first act."""
         initial = self.net.initial_state(self.shape.episodes_parallel)
         next_state = {k: v.clone() for k, v in next_state.items()}
+        batch |= self._start_batches(restarting, obs, tick)
         for r in restarting:
-            batch[r.index] = self._start_batch(r, obs, tick)
             for k, v in next_state.items():
                 v[r.rows] = initial[k][r.rows]
         new = self._act(self._stack(obs), next_state, restarting)
         return next_state, new if nxt is None else _merge_rows(nxt, new, restarting)
 
-    def _start_batch(self, run: Run, obs: list[torch.Tensor], tick: int) -> _Batch:
-        b = self.shape.episodes_parallel
-        obs_np = run.env.reset(run.training_seeds(b))
-        assert obs_np is not None
-        obs[run.index] = self._observation(obs_np)
-        run.return_acc = torch.zeros(b, self.n_vehicles)
-        return _Batch(np.ones(b, dtype=bool), np.zeros(b), np.zeros(b), seg_start=tick)
+    def _start_batches(self, runs: list[Run], obs: list[torch.Tensor], tick: int
+                       ) -> dict[int, _Batch]:
+        """Start the next batch of each run in ``runs`` at step ``tick``: the runs with the same
+        reward weights share one batched env of their K B episodes (each episode depends on its
+        own seed only, so a run's rows equal its env alone; one step of a shared env costs about
+        what one run's costs)."""
+        b, n = self.shape.episodes_parallel, self.n_vehicles
+        by_weights: dict[RewardWeights, list[Run]] = {}
+        for r in runs:
+            by_weights.setdefault(r.env.weights, []).append(r)
+        out = {}
+        for weights, group in by_weights.items():
+            env = PlatoonEnv(make_scenario(self.scenario_id), n, training=True,
+                             collision_mode="published", weights=weights)
+            obs_np = env.reset(np.concatenate([r.training_seeds(b) for r in group]))
+            assert obs_np is not None
+            for j, r in enumerate(group):
+                rows = slice(j * b, (j + 1) * b)
+                obs[r.index] = self._observation(obs_np[rows])
+                r.return_acc = torch.zeros(b, n)
+                out[r.index] = _Batch(env, rows, np.ones(b, dtype=bool), np.zeros(b),
+                                      np.zeros(b), seg_start=tick)
+        return out
 
-    def _step(self, r: Run, bt: _Batch, actions: torch.Tensor) -> _Batch:
-        """Step the run's env with its agents' actions ``(N, B)``; record the step."""
-        sg, act = bt.seg, bt.active
-        res = r.env.step_actions(actions.T.numpy())
+    def _record(self, r: Run, bt: _Batch, res: StepResult) -> _Batch:
+        """Record the run's rows of its env's step ``res`` in its batch and open segment."""
+        sg, act, rows = bt.seg, bt.active, bt.rows
+        done, collided, reward = res.done[rows], res.collided[rows], res.reward[rows]
         bt.t_episode += 1
         sg.masks.append(act.copy())
-        sg.terms.append(res.done & act)
+        sg.terms.append(done & act)
         if r.baseline_reward:
-            running = act & ~res.collided
-            sg.rews.append(res.reward + r.baseline_reward * running[:, None])
+            running = act & ~collided
+            sg.rews.append(reward + r.baseline_reward * running[:, None])
         else:
-            sg.rews.append(res.reward)
-        crashed = res.done & res.collided & act
+            sg.rews.append(reward)
+        crashed = done & collided & act
         sg.absorbed.append(
             r.absorbing_value(r.env.n_steps - bt.t_episode) * crashed
             if crashed.any() else np.zeros(len(act))
@@ -1283,9 +1313,8 @@ class Trainer:
         bt.steps += int(act.sum())
         bt.ep_reward += np.where(act, sg.rews[-1].sum(1), 0.0)
         bt.ep_len += act
-        bt.active = ~res.done
-        bt.done = bool(res.done.all())
-        bt.observation = res.observation
+        bt.active = ~done
+        bt.done = bool(done.all())
         return bt
 
     def _stack(self, parts: list[torch.Tensor]) -> torch.Tensor:
