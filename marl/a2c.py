@@ -1025,10 +1025,7 @@ class Trainer:
         nets = []
         for k, (s, cfg) in enumerate(zip(seeds, resolved, strict=True)):
             generator = torch.Generator().manual_seed(s)
-            env = PlatoonEnv(
-                make_scenario(scenario_id), n, training=True, collision_mode="published",
-                weights=cfg.reward_weights(),
-            )
+            env = self._make_env(cfg.reward_weights())
             assert cfg.power_baseline_kw is not None  # resolved above
             run = Run(k, s, cfg, generator, env, slice(k * n, (k + 1) * n),
                       -cfg.reward_w_power * cfg.power_baseline_kw)
@@ -1269,6 +1266,11 @@ class Trainer:
         new = self._act(self._stack(obs), next_state, restarting)
         return next_state, new if nxt is None else _merge_rows(nxt, new, restarting)
 
+    def _make_env(self, weights: RewardWeights) -> PlatoonEnv:
+        """A batched training env of the scenario (published collision rule, ``weights``)."""
+        return PlatoonEnv(make_scenario(self.scenario_id), self.n_vehicles, training=True,
+                          collision_mode="published", weights=weights)
+
     def _start_batches(self, runs: list[Run], obs: list[torch.Tensor], tick: int
                        ) -> dict[int, _Batch]:
         """Start the next batch of each run in ``runs`` at step ``tick``: the runs with the same
@@ -1281,8 +1283,7 @@ class Trainer:
             by_weights.setdefault(r.env.weights, []).append(r)
         out = {}
         for weights, group in by_weights.items():
-            env = PlatoonEnv(make_scenario(self.scenario_id), n, training=True,
-                             collision_mode="published", weights=weights)
+            env = self._make_env(weights)
             obs_np = env.reset(np.concatenate([r.training_seeds(b) for r in group]))
             assert obs_np is not None
             for j, r in enumerate(group):
