@@ -38,8 +38,9 @@ def check_controller(name: str, scenario_id: str = "catchup-v1", n_vehicles: int
 
     Checks: class attributes (family, flags); ``reset``/``act`` give ``(B, N)`` finite commands;
     every controller gives identical commands on a rerun of the same episode (a stochastic one
-    draws from streams of the episode seed), and different episodes are allowed to differ; the V2V bits it reports come from its channels
-    and are zero when it declares no V2V; ``solver_failures`` is a non-negative integer.
+    draws from streams of the episode seed), and different episodes are allowed to differ; the
+    V2V bits it reports come from the channels of its declared messages and are zero when the
+    registry says it sends nothing; ``solver_failures`` is a non-negative integer.
     """
     spec = resolve(name)
     ctrl = make_controller(name, **options)

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from controllers.base import Controller, EpisodeContext, sends_v2v
+from controllers.base import Controller, EpisodeContext, reset_controller
 from envs.channel import ChannelConfig
 from envs.errors import ControllerContractError
 from envs.interrupt import raise_if_interrupted
@@ -105,11 +105,7 @@ def rollout_batch(
         return [_score_recorded(env, recorded(scenario, n_vehicles), params) for _ in seeds_arr]
     ctx = EpisodeContext(scenario, n_vehicles, seeds_arr, params, channel,
                          closed_loop=rollout_batch)
-    controller.reset(ctx)
-    if sends_v2v(controller) and not ctx.channels:
-        raise ControllerContractError(
-            f"{controller.name}: declares V2V ({controller.v2v}) but opened no channel at reset; "
-            "open it with ctx.make_channel so the run's delay, loss and bit count apply")
+    reset_controller(controller, ctx)
     obs = env.reset(seeds_arr)
     s = env.state
     assert s is not None
@@ -192,13 +188,13 @@ def _check_command(controller: Controller, command: np.ndarray, b: int, n: int) 
 
 
 def _check_sent(controller: Controller, ctx: EpisodeContext, steps: int) -> None:
-    """The channel contract: every channel a controller opened sends once per step, so what it
-    uses at a step went through the run's delay and loss and was counted."""
-    for ch in ctx.channels:
+    """The channel contract: the channel of every declared message sends once per step, so what
+    the controller uses at a step went through the run's delay and loss and was counted."""
+    for ch in ctx.channels.values():
         if ch.transmissions != steps:
             raise ControllerContractError(
                 f"{controller.name}: its channel {ch.name!r} sent {ch.transmissions} times in "
-                f"{steps} steps; a controller transmits on every channel it opened once per act")
+                f"{steps} steps; every declared message is sent once per act")
 
 
 def _score_recorded(env: PlatoonEnv, rec: dict[str, np.ndarray], params: PlatoonParams) -> Trajectory:

@@ -1,11 +1,12 @@
 """The one controller interface the harness knows, and the episode context it hands over.
 
 A controller is reset once per batch of episodes with an :class:`EpisodeContext`, then asked once
-per step for the acceleration commands of all followers, ``(B, N)``. Whatever it sends to other
-vehicles goes through channels made by :meth:`EpisodeContext.make_channel`, so delay and packet
-loss act on it and its bits are counted; the closed loop checks that a controller declaring V2V
-opened its channels and that each channel sends once per step. The harness never needs to know a
-controller's family.
+per step for the acceleration commands of all followers, ``(B, N)``. It declares what it sends to
+other vehicles as :class:`Message` records (:meth:`Controller.messages`); the closed loop opens one
+channel per message with the run's delay and loss before the reset (:func:`reset_controller`), the
+controller sends through ``ctx.channel(name)``, and the loop checks that every channel sends once
+per step, so delay, loss and the bit count act on everything it exchanges. The harness never
+needs to know a controller's family.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from envs.channel import ChannelConfig, V2VChannel
+from envs.errors import ControllerContractError
 from envs.params import PlatoonParams
 from envs.platoon import PlatoonState
 from envs.scenarios import Scenario
@@ -28,6 +30,48 @@ FAMILIES = ("human", "linear", "mpc", "marl", "data")
 #: ``(controller, scenario, n_vehicles, seeds, params) -> trajectories`` (one per seed, each with
 #: ``reward (T,)``, ``collided`` and ``steps``): the signature of the benchmark's closed loop.
 ClosedLoop = Callable[["Controller", Scenario, int, Sequence[int], PlatoonParams], list[Any]]
+
+
+@dataclass(frozen=True)
+class Message:
+    """One message a controller sends every step, as it declares it; the closed loop opens its
+    channel (:class:`envs.channel.V2VChannel`) with the run's delay and loss.
+
+    Attributes
+    ----------
+    name : str
+        Channel name (distinct per controller; also the name of its loss stream).
+    width : int
+        Numbers per message.
+    links : "predecessor", "neighbours", "to_leader" or tuple of (src, dst)
+        ``predecessor``: ``i-1 -> i`` for followers ``i = 1..N`` (the leader to follower 1);
+        ``neighbours``: both directions between adjacent followers, ``(i-1 -> i)`` for
+        ``i = 2..N`` then ``(i+1 -> i)`` for ``i = 1..N-1``; ``to_leader``: ``i -> 0``.
+    bits_per_value : int
+        Bits per transmitted number (32: float32).
+    initial : float
+        What a receiver holds before its first message.
+    """
+
+    name: str
+    width: int
+    links: str | tuple[tuple[int, int], ...] = "predecessor"
+    bits_per_value: int = 32
+    initial: float = 0.0
+
+    def link_list(self, n_vehicles: int) -> list[tuple[int, int]]:
+        """The directed links ``(src, dst)`` for N followers (vehicle 0 is the leader)."""
+        n, links = n_vehicles, self.links
+        if links == "predecessor":
+            return [(i - 1, i) for i in range(1, n + 1)]
+        if links == "neighbours":
+            return [(i - 1, i) for i in range(2, n + 1)] + [(i + 1, i) for i in range(1, n)]
+        if links == "to_leader":
+            return [(i, 0) for i in range(1, n + 1)]
+        if isinstance(links, str):
+            raise ValueError(f"unknown link pattern {links!r}: predecessor, neighbours or "
+                             "to_leader, or a tuple of (src, dst)")
+        return list(links)
 
 
 @dataclass
@@ -46,8 +90,9 @@ class EpisodeContext:
         Physics (dt, bounds, lag).
     channel_config : ChannelConfig
         V2V delay and loss of the run.
-    channels : list of V2VChannel
-        Every channel the controller made (the harness sums their bits).
+    channels : dict of str to V2VChannel
+        The channels of the controller's declared messages, by name, opened by
+        :func:`reset_controller` (the harness sums their bits).
     closed_loop : callable or None
         The benchmark's closed loop (:func:`benchmark.rollout.rollout_batch`, which sets it),
         for a controller that tunes itself by running episodes (``duty`` choosing its k): it
@@ -59,7 +104,7 @@ class EpisodeContext:
     seeds: np.ndarray
     params: PlatoonParams = PlatoonParams()
     channel_config: ChannelConfig = ChannelConfig()
-    channels: list[V2VChannel] = field(default_factory=list)
+    channels: dict[str, V2VChannel] = field(default_factory=dict)
     closed_loop: ClosedLoop | None = None
 
     def __post_init__(self) -> None:
@@ -82,53 +127,29 @@ class EpisodeContext:
         """Scenario target speed v* (m/s)."""
         return self.scenario.target_speed_mps
 
-    def make_channel(
-        self,
-        width: int,
-        name: str,
-        links: Sequence[tuple[int, int]] | str = "predecessor",
-        bits_per_value: int = 32,
-        initial: float | np.ndarray = 0.0,
-    ) -> V2VChannel:
-        """Create a V2V channel with this run's delay and loss; its bits are counted.
+    def open_channels(self, messages: Sequence[Message]) -> None:
+        """Open one channel per declared message, with this run's delay and loss."""
+        for m in messages:
+            if m.name in self.channels:
+                raise ControllerContractError(f"two messages are named {m.name!r}")
+            self.channels[m.name] = V2VChannel(
+                m.link_list(self.n_vehicles), m.width, self.seeds, self.channel_config,
+                m.bits_per_value, name=m.name, initial=m.initial)
 
-        Parameters
-        ----------
-        width : int
-            Numbers per message.
-        name : str
-            Stream name (distinct per channel of one controller).
-        links : "predecessor", "neighbours" or a list of (src, dst)
-            ``predecessor``: ``i-1 -> i`` for followers (leader to follower 1);
-            ``neighbours``: both directions between adjacent followers.
-        """
-        n = self.n_vehicles
-        if links == "predecessor":
-            link_list = [(i - 1, i) for i in range(1, n + 1)]
-        elif links == "neighbours":
-            link_list = [(i - 1, i) for i in range(2, n + 1)] + [
-                (i + 1, i) for i in range(1, n)
-            ]
-        elif isinstance(links, str):
-            raise ValueError(f"unknown link pattern {links!r}")
-        else:
-            link_list = list(links)
-        ch = V2VChannel(link_list, width, self.seeds, self.channel_config, bits_per_value,
-                        name=name, initial=initial)
-        self.channels.append(ch)
-        return ch
+    def channel(self, name: str) -> V2VChannel:
+        """The channel of the declared message ``name``."""
+        try:
+            return self.channels[name]
+        except KeyError:
+            raise ControllerContractError(
+                f"no channel {name!r} is open: declare it in the controller's messages() (the "
+                "closed loop opens the declared channels before reset, see reset_controller)"
+            ) from None
 
     @property
     def bits_sent(self) -> int:
         """V2V bits sent so far by all channels, over all episodes of the batch."""
-        return sum(ch.bits_sent for ch in self.channels)
-
-
-def sends_v2v(controller: object) -> bool:
-    """Whether a controller declares V2V messages (its ``v2v`` is not ``none...``): such a
-    controller must open its channels with :meth:`EpisodeContext.make_channel` at reset, so
-    that delay, loss and bit counting act on what it exchanges (the closed loop checks it)."""
-    return not str(getattr(controller, "v2v", "none")).startswith("none")
+        return sum(ch.bits_sent for ch in self.channels.values())
 
 
 class Controller(ABC):
@@ -142,8 +163,6 @@ class Controller(ABC):
         One of ``human``, ``linear``, ``mpc``, ``marl``.
     deterministic : bool
         Whether the same episode always gives the same commands.
-    v2v : str
-        What it receives over V2V, in words (``none`` for none).
     needs_observation : bool
         Whether :meth:`act` needs the agent observations ``(B, N, 15)``.
     batch_invariant : bool
@@ -159,7 +178,6 @@ class Controller(ABC):
     name: str = "controller"
     family: str = "linear"
     deterministic: bool = True
-    v2v: str = "none"
     needs_observation: bool = False
     batch_invariant: bool = False
 
@@ -174,9 +192,16 @@ class Controller(ABC):
         before its first run. Default: nothing to check."""
         return None
 
+    def messages(self, ctx: EpisodeContext) -> tuple[Message, ...]:
+        """What this controller sends over V2V each step in the episodes of ``ctx`` (default:
+        nothing). The closed loop opens their channels, then calls :meth:`reset`, which takes
+        them with ``ctx.channel(name)``."""
+        return ()
+
     @abstractmethod
     def reset(self, ctx: EpisodeContext) -> None:
-        """Prepare for a batch of episodes (build problems, make channels)."""
+        """Prepare for a batch of episodes (build problems, take the channels of its messages
+        with ``ctx.channel(name)``)."""
 
     @abstractmethod
     def act(self, state: PlatoonState, observation: np.ndarray | None) -> np.ndarray:
@@ -194,3 +219,10 @@ class Controller(ABC):
     def describe(self) -> str:
         """Options as a stable string (recorded in the run's provenance)."""
         return ",".join(f"{k}={v}" for k, v in sorted(self.options.items()))
+
+
+def reset_controller(controller: Controller, ctx: EpisodeContext) -> None:
+    """Open the channels of the messages ``controller`` declares, then reset it: the start of
+    every batch of episodes in the closed loop (and in tests that step a controller by hand)."""
+    ctx.open_channels(controller.messages(ctx))
+    controller.reset(ctx)

@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from controllers.base import Controller, EpisodeContext
+from controllers.base import Controller, EpisodeContext, Message
 from controllers.mpc_common import (
     MPCConfig,
     VehicleModel,
@@ -162,7 +162,6 @@ class CentralisedMPCController(Controller):
     name = "cmpc"
     family = "mpc"
     deterministic = True
-    v2v = "full state of the platoon (centralised; 3 floats per follower per step)"
     needs_observation = False
 
     config_cls = CMPCConfig
@@ -172,6 +171,10 @@ class CentralisedMPCController(Controller):
         self.config: CMPCConfig = build_config(self.config_cls, options, "cmpc")
         self.options = dict(options)
         self._problems: dict[tuple[Any, ...], CentralisedProblem] = {}
+
+    def messages(self, ctx: EpisodeContext) -> tuple[Message, ...]:
+        """Every follower's gap, speed and acceleration to the leader, where the plan is made."""
+        return (Message("cmpc_state", 3, "to_leader"),)
 
     def reset(self, ctx: EpisodeContext) -> None:
         self.params = ctx.params
@@ -183,9 +186,7 @@ class CentralisedMPCController(Controller):
         self.target_gap_m = ctx.target_gap_m
         self.target_speed_mps = ctx.target_speed_mps
         n = ctx.n_vehicles
-        self.channel = ctx.make_channel(
-            3, name="cmpc_state", links=[(i, 0) for i in range(1, n + 1)]
-        )
+        self.channel = ctx.channel("cmpc_state")
         b, h = ctx.batch_size, self.config.horizon
         self._plan_u = np.full((b, n, h), np.nan)
         self._u_last = np.zeros((b, n))

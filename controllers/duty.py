@@ -133,7 +133,6 @@ class DutyController(Controller):
     family = "human"
     deterministic = True
     batch_invariant = True
-    v2v = "none"
 
     config_cls = DutyConfig
 

@@ -21,7 +21,7 @@ the filter never integrates a command the actuator does not get). With ``h = 0``
 algebraic (``alpha = 0``).
 
 V2V timing: every vehicle broadcasts the command it applies over step ``k`` (the leader its planned
-acceleration ``(v0[k+1] - v0[k]) / dt``) through ``ctx.make_channel(width=1, name="cacc_u")``,
+acceleration ``(v0[k+1] - v0[k]) / dt``) through its declared message ``cacc_u`` (width 1),
 after computing it; a message that arrives after ``d = round(theta / dt)`` steps is used from the
 next control update on (one step of computation latency), so ``m_i[k] = c_{i-1}[k - 1 - d]`` and
 losses hold the last message. This timing is the same for the leader-follower pair and every
@@ -39,7 +39,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from controllers.base import Controller, EpisodeContext
+from controllers.base import Controller, EpisodeContext, Message
 from controllers.registry import build_config
 from envs.channel import V2VChannel
 from envs.errors import ConfigError
@@ -142,7 +142,6 @@ class PloegController(Controller):
     family = "linear"
     deterministic = True
     batch_invariant = True
-    v2v = "predecessor's commanded acceleration (1 float)"
     needs_observation = False
     config_cls: type[PloegConfig] = PloegConfig
 
@@ -150,8 +149,6 @@ class PloegController(Controller):
         super().__init__()
         self.config: PloegConfig = build_config(self.config_cls, options, self.name)
         self.options = dict(options)
-        if not self.config.feedforward:
-            self.v2v = "none"
         self._channel: V2VChannel | None = None
         self._alpha = 0.0
         self._standstill_m = 0.0
@@ -169,6 +166,10 @@ class PloegController(Controller):
         if params is not None:
             self.config.check_lag(params.lag_s)
 
+    def messages(self, ctx: EpisodeContext) -> tuple[Message, ...]:
+        """The command applied over the step (1 float to the follower behind), with feedforward."""
+        return (Message("cacc_u", 1, "predecessor"),) if self.config.feedforward else ()
+
     def reset(self, ctx: EpisodeContext) -> None:
         cfg = self.config
         cfg.check_lag(ctx.params.lag_s)
@@ -179,11 +180,7 @@ class PloegController(Controller):
         b, n = ctx.batch_size, ctx.n_vehicles
         self._command = np.zeros((b, n))
         self._received = np.zeros((b, n))
-        self._channel = (
-            ctx.make_channel(width=1, name="cacc_u", links="predecessor")
-            if cfg.feedforward
-            else None
-        )
+        self._channel = ctx.channel("cacc_u") if cfg.feedforward else None
 
     def act(self, state: PlatoonState, observation: np.ndarray | None) -> np.ndarray:
         cfg, p = self.config, self.params
@@ -213,7 +210,6 @@ class CACCController(PloegController):
     """``cacc``: Ploeg's CACC, the predecessor's commanded acceleration as feedforward over V2V."""
 
     name = "cacc"
-    v2v = "predecessor's commanded acceleration (1 float)"
     config_cls = PloegConfig
 
 
@@ -221,5 +217,4 @@ class ACCController(PloegController):
     """``acc``: the same constant time-gap law with the feedforward off and no V2V."""
 
     name = "acc"
-    v2v = "none"
     config_cls = ACCConfig

@@ -85,7 +85,7 @@ from typing import Any
 
 import numpy as np
 
-from controllers.base import Controller, EpisodeContext
+from controllers.base import Controller, EpisodeContext, Message
 from controllers.registry import build_config
 from envs.channel import V2VChannel
 from envs.errors import ConfigError
@@ -743,7 +743,6 @@ class DistributedMPCBase(Controller):
 
     family = "mpc"
     deterministic = True
-    v2v = "predecessor's assumed trajectory (H+2 floats: stamp and H+1 speeds)"
     needs_observation = False
     config_cls: type = MPCConfig
 
@@ -774,15 +773,18 @@ class DistributedMPCBase(Controller):
             self._build()
             self._built_for = key
 
+    def messages(self, ctx: EpisodeContext) -> tuple[Message, ...]:
+        """The assumed speed plan to the follower behind: its stamp and H+1 speeds (none held
+        before the first one: NaN)."""
+        return (Message("mpc_plan", self.config.horizon + 2, "predecessor", initial=math.nan),)
+
     def reset(self, ctx: EpisodeContext) -> None:
         self.prepare(ctx.params)
         h = self.config.horizon
         self.target_gap_m = ctx.target_gap_m
         self.target_speed_mps = ctx.target_speed_mps
         b, n = ctx.batch_size, ctx.n_vehicles
-        self.channel: V2VChannel = ctx.make_channel(
-            h + 2, name="mpc_plan", links="predecessor", initial=np.nan
-        )
+        self.channel: V2VChannel = ctx.channel("mpc_plan")
         self._received = np.full((b, n, h + 2), np.nan)
         self._plan_v: np.ndarray | None = None  # (B, N, H+1) own plans, made at _plan_step
         self._plan_u = np.zeros((b, n, h))

@@ -32,7 +32,6 @@ class OVMController(Controller):
     family = "human"
     deterministic = True
     batch_invariant = True
-    v2v = "none"
 
     config_cls = OVMConfig
 

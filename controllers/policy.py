@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from controllers.base import Controller, EpisodeContext
+from controllers.base import Controller, EpisodeContext, Message
 from envs.channel import episode_uniforms
 from envs.dynamics import OBS_DIM, action_to_command_mps2
 from envs.errors import ConfigError
@@ -36,8 +36,10 @@ ACTION_STREAM = "policy-actions"
 UNIFORM_BLOCK_STEPS = 64
 #: Shipped policies trained with another config than the leaderboard's (one folder each).
 VARIANT_DIR = CHECKPOINT_DIR / "variants"
-#: Fewest rows the policy network is evaluated on (see :meth:`PolicyController.reset`).
-MIN_LANES = 2
+#: Fewest rows the policy network is evaluated on (see :meth:`PolicyController.reset`): float32
+#: products of 1 row (gemv), and of 2 or 3 rows on AMD EPYC with this torch build's AVX-512
+#: kernels, round otherwise than the rows of a larger batch; from 4 rows on, measured equal.
+MIN_LANES = 4
 
 
 @functools.cache
@@ -114,7 +116,6 @@ class PolicyController(Controller):
     family = "marl"
     deterministic = False
     batch_invariant = True
-    v2v = "neighbours' vehicle blocks (5 floats), plus learned messages for fprint/dial/commnet"
     needs_observation = True
 
     def __init__(
@@ -257,25 +258,30 @@ class PolicyController(Controller):
             self._key = key
 
     # ---------------------------------------------------------------- interface
+    def messages(self, ctx: EpisodeContext) -> tuple[Message, ...]:
+        """Every follower's vehicle block (5 floats) to both neighbours, and the learned message
+        of FPrint, DIAL or CommNet (the network's ``msg_width`` floats) on its own channel."""
+        self.preflight(ctx.scenario, ctx.n_vehicles)
+        blocks = Message(f"{self.algo}-blocks", 5, "neighbours")
+        if not self.net.msg_width:
+            return (blocks,)
+        return blocks, Message(f"{self.algo}-messages", self.net.msg_width, "neighbours")
+
     def reset(self, ctx: EpisodeContext) -> None:
         self.preflight(ctx.scenario, ctx.n_vehicles)
         self.params = ctx.params
         n = ctx.n_vehicles
-        # at least two lanes: a one-row matrix product takes another kernel (gemv) whose
-        # rounding differs from the rows of a batch; with >= 2 rows each row's numbers do not
-        # depend on the batch, so an episode acts the same alone or batched (tested)
+        # at least MIN_LANES lanes: a matrix product of fewer rows takes other kernels whose
+        # rounding differs from the rows of a batch; with >= MIN_LANES rows each row's numbers
+        # do not depend on the batch, so an episode acts the same alone or batched (tested)
         self._lanes = max(ctx.batch_size, MIN_LANES)
         self.state = self.net.initial_state(self._lanes)
         self.seeds = ctx.seeds
         self.t = 0
         self._u_block: np.ndarray | None = None
         self._u_start = 0
-        self.block_channel = ctx.make_channel(5, f"{self.algo}-blocks", links="neighbours")
-        self.msg_channel = None
-        if self.net.msg_width:
-            self.msg_channel = ctx.make_channel(
-                self.net.msg_width, f"{self.algo}-messages", links="neighbours"
-            )
+        self.block_channel = ctx.channel(f"{self.algo}-blocks")
+        self.msg_channel = ctx.channel(f"{self.algo}-messages") if self.net.msg_width else None
         # link order of "neighbours": (i-1 -> i) for i = 2..N, then (i+1 -> i) for i = 1..N-1
         self._n_front = n - 1
 

@@ -32,7 +32,6 @@ class RealACCRecord(Controller):
     name = "openacc-real"
     family = "data"
     deterministic = True
-    v2v = "none (real ACC cars)"
 
     config_cls = RealACCConfig
 

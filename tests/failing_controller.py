@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from controllers.base import Controller, EpisodeContext
+from controllers.base import Controller, EpisodeContext, Message
 from envs.platoon import PlatoonState
 
 
@@ -28,10 +28,11 @@ class FailingController(Controller):
 
 class DefectiveController(Controller):
     """Breaks the loop's contract at step 3: a command of the wrong shape (``defect="shape"``)
-    or a NaN (``defect="nan"``); or declares V2V and opens no channel (``defect="silent_v2v"``:
-    what it would exchange would escape delay, loss and the bit count); or swallows the
-    exception of a SIGINT it receives at step 3 (``defect="swallow_sigint"``); or opens a
-    channel and skips sending at step 3 (``defect="skip_send"``)."""
+    or a NaN (``defect="nan"``); or declares a message and never sends it, reading the
+    predecessor's speed from the state instead (``defect="silent_v2v"``: it would escape delay,
+    loss and the bit count); or swallows the exception of a SIGINT it receives at step 3
+    (``defect="swallow_sigint"``); or skips sending its declared message at step 3
+    (``defect="skip_send"``)."""
 
     name = "defective"
     family = "linear"
@@ -39,13 +40,15 @@ class DefectiveController(Controller):
     def __init__(self, defect: str = "shape") -> None:
         super().__init__()
         self.defect = defect
-        if defect in ("silent_v2v", "skip_send"):
-            self.v2v = "the predecessor's speed (1 float), read from the state"
+
+    def messages(self, ctx: EpisodeContext) -> tuple[Message, ...]:
+        sends = self.defect in ("silent_v2v", "skip_send")
+        return (Message("speed", 1, "predecessor"),) if sends else ()
 
     def reset(self, ctx: EpisodeContext) -> None:
         self.b, self.n = ctx.batch_size, ctx.n_vehicles
         if self.defect == "skip_send":
-            self.channel = ctx.make_channel(1, "speed")
+            self.channel = ctx.channel("speed")
 
     def act(self, state: PlatoonState, observation: np.ndarray | None) -> np.ndarray:
         u = np.zeros((self.b, self.n))

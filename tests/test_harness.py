@@ -19,6 +19,7 @@ from benchmark.cli import main
 from benchmark.metrics import TIMING_COLUMNS
 from benchmark.rollout import rollout
 from benchmark.suite import build_sweep, execute_run
+from controllers.base import Controller
 from controllers.registry import (
     ControllerSpec,
     make_controller,
@@ -317,7 +318,7 @@ def test_openacc_real_needs_an_openacc_scenario(capsys: pytest.CaptureFixture[st
                  "--vehicles", "5", "--episodes", "1", "--out", "/tmp/never-written"]) == 2
 
 
-class _RamController:
+class _RamController(Controller):
     """Follower 1 accelerates at the bound towards the leader, the others follow by OVM: it
     hits the leader after a time set by the seed's initial gap (catchup-v1: 30-50 m)."""
 

@@ -139,13 +139,15 @@ def test_the_lag_message_names_the_numbers_and_the_remedy() -> None:
 
 
 def test_cacc_without_feedforward_declares_no_v2v_and_sends_nothing() -> None:
-    """``cacc:feedforward=false`` opens no channel, so it must not declare V2V (the closed loop
-    refuses a controller that declares V2V and opens no channel)."""
+    """``cacc:feedforward=false`` declares no message, so no channel is opened and nothing is
+    sent; ``cacc`` declares its command, one float to the follower behind."""
     from benchmark.suite import build_sweep, execute_run
-    from controllers.base import sends_v2v
+    from controllers.base import EpisodeContext, Message
 
-    assert sends_v2v(make_controller("cacc")) and not sends_v2v(make_controller("acc"))
-    assert not sends_v2v(make_controller("cacc", feedforward="false"))
+    ctx = EpisodeContext(make_scenario("catchup-v1"), 3, np.array([2000]))
+    assert make_controller("cacc").messages(ctx) == (Message("cacc_u", 1, "predecessor"),)
+    assert make_controller("acc").messages(ctx) == ()
+    assert make_controller("cacc", feedforward="false").messages(ctx) == ()
     rec = execute_run(build_sweep([("cacc", {"feedforward": "false"})], ["catchup-v1"], [3],
                                   [2000])[0])
     assert rec["status"] == "ok" and rec["comm_bits_per_s"] == 0

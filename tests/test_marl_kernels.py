@@ -322,7 +322,7 @@ def test_segment_recompute_equals_step_by_step(name: str) -> None:
     algo = algorithm(name)
     net = algo.build_net(algo.config_cls(), 4, True, torch.Generator().manual_seed(0))
     g = torch.Generator().manual_seed(1)
-    a, t_len, b = 4, 5, 3
+    a, t_len, b = 4, 5, 4
     state = {k: 0.3 * torch.randn(v.shape, generator=g)
              for k, v in net.initial_state(b).items()}
     obs = torch.randn(a, t_len, b, 15, generator=g)

@@ -83,20 +83,33 @@ def test_advantage_normalisation_changes_only_the_policy_term() -> None:
 
 
 #: Weights after three batches of 4 followers on slowdown-v1, seed 3, advantage_norm (torch
-#: 2.13 CPU, one thread). A change in the learner's arithmetic shows here first; if it is
-#: intended, say why in the commit and update the pins.
-PINNED = {"ia2c": "384da562dd730d8d", "bdc": "bcd03b0e73cd3e07", "dial": "619d32d41f26366e"}
+#: 2.13 CPU, one thread), one hash per family of CPU kernels measured: float32 products round
+#: differently between CPUs, and sampled training turns the last bit into other weights. First
+#: the machines of the first eight sessions, then an AMD EPYC with AVX-512 (a probe there: its
+#: products of 2 or 3 rows round otherwise than larger ones, see controllers.policy.MIN_LANES).
+#: A change in the learner's arithmetic changes every hash: if it is intended, say why in the
+#: commit and update the pins; on a new kind of CPU, add its hash after checking the rest of
+#: the suite passes there.
+PINNED = {
+    "ia2c": ("384da562dd730d8d", "49a2a831ea5d36e4"),
+    "bdc": ("bcd03b0e73cd3e07", "68cb6bf92bf49e4a"),
+    "dial": ("619d32d41f26366e", "37adb1332db30734"),
+}
 
 
 @pytest.mark.parametrize("name", sorted(PINNED))
 def test_short_training_is_pinned(name: str) -> None:
+    import platform
+
     a = algorithm(name)
     trainer = Trainer(a, a.config_cls(advantage_norm=True), "slowdown-v1", 4, 3)
     trainer.runs[0].total_steps = 3000
     for _ in range(3):
         trainer.run_batch()
     blob = b"".join(p.detach().numpy().tobytes() for p in trainer.net.parameters())
-    assert hashlib.sha256(blob).hexdigest()[:16] == PINNED[name]
+    digest = hashlib.sha256(blob).hexdigest()[:16]
+    cpu = f"{platform.processor() or platform.machine()}, {torch.backends.cpu.get_cpu_capability()}"
+    assert digest in PINNED[name], f"{name}: weights hash {digest} on this CPU ({cpu})"
 
 
 def test_an_agent_with_one_running_step_gets_a_zero_advantage() -> None:

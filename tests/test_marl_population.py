@@ -17,7 +17,7 @@ N, SCENARIO = 3, "catchup-v1"
 
 def _tiny(name: str, **changes: object):
     a = algorithm(name)
-    return a, dataclasses.replace(a.config_cls(episodes_parallel=2, n_step=7), **changes)
+    return a, dataclasses.replace(a.config_cls(episodes_parallel=4, n_step=7), **changes)
 
 
 def _train(tr: Trainer, batches: int) -> None:

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from benchmark.rollout import rollout_batch
-from controllers.base import EpisodeContext
+from controllers.base import EpisodeContext, reset_controller
 from controllers.mpc_common import (
     DistributedMPCBase,
     ParamLayout,
@@ -331,7 +331,7 @@ def test_solver_exception_falls_back(name: str, monkeypatch: pytest.MonkeyPatch)
     ctrl = make_controller(name, horizon=10)
     env = PlatoonEnv("brake-v1", 3, observe=False)
     ctx = EpisodeContext(env.scenario, 3, np.array([2000]), env.params)
-    ctrl.reset(ctx)
+    reset_controller(ctrl, ctx)
     env.reset([2000])
     real = ctrl._solve
     calls = {"n": 0}
@@ -355,7 +355,7 @@ def test_cmpc_failure_falls_back(monkeypatch: pytest.MonkeyPatch) -> None:
     ctrl = make_controller("cmpc", horizon=10)
     env = PlatoonEnv("catchup-v1", 3, observe=False)
     ctx = EpisodeContext(env.scenario, 3, np.array([2000]), env.params)
-    ctrl.reset(ctx)
+    reset_controller(ctrl, ctx)
     env.reset([2000])
     env.step(ctrl.act(env.state, None))
     monkeypatch.setattr(ctrl.problem, "solve", lambda *a: (False, np.full((3, 10), np.nan)))
@@ -536,7 +536,7 @@ class _ScriptedMPC(DistributedMPCBase):
 def _scripted_env(ctrl: _ScriptedMPC, batch: int = 1, lag_s: float = 0.0):
     env = PlatoonEnv("catchup-v1", 2, PlatoonParams(lag_s=lag_s), observe=False)
     seeds = np.arange(2000, 2000 + 10 * batch, 10)
-    ctrl.reset(EpisodeContext(env.scenario, 2, seeds, env.params))
+    reset_controller(ctrl, EpisodeContext(env.scenario, 2, seeds, env.params))
     env.reset(seeds)
     return env
 

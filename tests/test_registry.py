@@ -20,7 +20,7 @@ def test_check_controller(name: str) -> None:
 @pytest.mark.parametrize(("defect", "needle"), [
     ("shape", r"act returned shape \(1, 1\), expected \(B, N\) = \(1, 3\)"),
     ("nan", "act returned a non-finite command"),
-    ("silent_v2v", r"declares V2V \(the predecessor's speed .*\) but opened no channel at reset"),
+    ("silent_v2v", r"its channel 'speed' sent 0 times in 1 steps"),
     ("skip_send", r"its channel 'speed' sent 3 times in 4 steps"),
 ])
 def test_the_loop_refuses_a_broken_command_in_check_and_in_the_harness(

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from analysis import stability as st
-from controllers.base import EpisodeContext
+from controllers.base import EpisodeContext, reset_controller
 from controllers.registry import make_controller
 from envs.channel import ChannelConfig
 from envs.errors import ConfigError
@@ -36,7 +36,7 @@ def run_batch(name, scenario, seeds, n=8, params=PlatoonParams(), channel=Channe
     env = PlatoonEnv(scenario, n, params, observe=False)
     ctrl = make_controller(name, **opt)
     ctx = EpisodeContext(env.scenario, n, np.asarray(seeds), params, channel)
-    ctrl.reset(ctx)
+    reset_controller(ctrl, ctx)
     env.reset(seeds)
     commands = []
     for _ in range(env.n_steps):
@@ -263,7 +263,7 @@ def test_unstable_lag_raises_at_reset():
     ctrl = make_controller("cacc")  # kd = 0.7 <= 5 * 0.2
     ctx = EpisodeContext(make_scenario("catchup-v1"), 4, np.array([2000]), PlatoonParams(lag_s=5.0))
     with pytest.raises(ConfigError, match="unstable"):
-        ctrl.reset(ctx)
+        reset_controller(ctrl, ctx)
     with pytest.raises(ConfigError):
         st.PloegLoop(kd=-1.0)
 
