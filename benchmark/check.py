@@ -11,7 +11,7 @@ import dataclasses
 import numpy as np
 
 from benchmark.rollout import rollout
-from controllers.base import FAMILIES, Controller
+from controllers.base import FAMILIES, Controller, EpisodeContext
 from controllers.registry import make_controller, resolve
 from envs.channel import ChannelConfig
 from envs.errors import ControllerContractError
@@ -40,7 +40,8 @@ def check_controller(name: str, scenario_id: str = "catchup-v1", n_vehicles: int
     every controller gives identical commands on a rerun of the same episode (a stochastic one
     draws from streams of the episode seed), and different episodes are allowed to differ; the
     V2V bits it reports come from the channels of its declared messages and are zero when the
-    registry says it sends nothing; ``solver_failures`` is a non-negative integer.
+    registry says it sends nothing; with its default options it declares messages exactly when
+    the registry's words say it sends some; ``solver_failures`` is a non-negative integer.
     """
     spec = resolve(name)
     ctrl = make_controller(name, **options)
@@ -60,6 +61,11 @@ def check_controller(name: str, scenario_id: str = "catchup-v1", n_vehicles: int
         raise AssertionError(f"{name}: V2V bits differ between identical episodes")
     if spec.v2v.startswith("none") and bits1 != 0:
         raise AssertionError(f"{name}: declares no V2V but sent {bits1} bits")
+    ctx = EpisodeContext(make_scenario(scenario_id), n_vehicles, np.array([2000]))
+    declared = ctrl.messages(ctx)
+    if not options and bool(declared) == spec.v2v.startswith("none"):
+        raise AssertionError(f"{name}: the registry says its V2V is {spec.v2v!r}, but it "
+                             f"declares {[m.name for m in declared] or 'no messages'}")
     failures = getattr(ctrl, "solver_failures", 0)
     if not isinstance(failures, int) or failures < 0:
         raise AssertionError(f"{name}: solver_failures must be a non-negative int")

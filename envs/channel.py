@@ -142,14 +142,6 @@ class V2VChannel:
         self.bits_sent = 0  # over all episodes of the batch
         self.messages_sent = 0
 
-    @classmethod
-    def predecessor(
-        cls, n_vehicles: int, width: int, seeds: Sequence[int] | np.ndarray, **kwargs: object
-    ) -> V2VChannel:
-        """Links ``i-1 -> i`` for followers ``i = 1..N`` (the leader sends to follower 1)."""
-        links = [(i - 1, i) for i in range(1, n_vehicles + 1)]
-        return cls(links, width, seeds, **kwargs)  # type: ignore[arg-type]
-
     def transmit(self, payload: np.ndarray) -> np.ndarray:
         """Send this step's messages and return what the receivers hold now.
 

@@ -9,14 +9,19 @@ from envs.channel import ChannelConfig, V2VChannel, episode_uniforms
 from envs.errors import ConfigError
 
 
+def _chain(n_vehicles: int, width: int, seeds, **kwargs) -> V2VChannel:
+    """A channel on the links ``i-1 -> i`` for followers ``i = 1..N``."""
+    return V2VChannel([(i - 1, i) for i in range(1, n_vehicles + 1)], width, seeds, **kwargs)
+
+
 def test_delay_in_whole_steps() -> None:
-    ch = V2VChannel.predecessor(2, 1, [0], config=ChannelConfig(delay_s=0.2), initial=-1.0)
+    ch = _chain(2, 1, [0], config=ChannelConfig(delay_s=0.2), initial=-1.0)
     got = [ch.transmit(np.array([[float(t), 10.0 + t, 0.0]]))[0, :, 0].tolist() for t in range(4)]
     assert got == [[-1.0, -1.0], [-1.0, -1.0], [0.0, 10.0], [1.0, 11.0]]
 
 
 def test_no_delay_is_instant_and_bits_are_counted() -> None:
-    ch = V2VChannel.predecessor(3, 2, [0, 1], bits_per_value=32)
+    ch = _chain(3, 2, [0, 1], bits_per_value=32)
     out = ch.transmit(np.arange(2 * 4 * 2, dtype=float).reshape(2, 4, 2))
     np.testing.assert_array_equal(out[0, 0], [0, 1])  # leader -> follower 1
     np.testing.assert_array_equal(out[1, 2], [12, 13])  # follower 2 -> follower 3, episode 2
@@ -26,7 +31,7 @@ def test_no_delay_is_instant_and_bits_are_counted() -> None:
 
 
 def test_loss_holds_last_message_and_rate() -> None:
-    ch = V2VChannel.predecessor(4, 1, np.arange(50), config=ChannelConfig(packet_loss=0.3))
+    ch = _chain(4, 1, np.arange(50), config=ChannelConfig(packet_loss=0.3))
     lost = 0
     total = 0
     prev = np.zeros((50, 4))
@@ -111,7 +116,7 @@ def _expected(seed: int, n_steps: int, delay: int, loss: float, n_links: int) ->
 def test_delay_and_loss_together_follow_the_rule(delay_s: float, loss: float) -> None:
     seeds = [2000, 2010]
     cfg = ChannelConfig(delay_s=delay_s, packet_loss=loss)
-    ch = V2VChannel.predecessor(3, 1, seeds, config=cfg)
+    ch = _chain(3, 1, seeds, config=cfg)
     got = np.array([ch.transmit(np.full((2, 4), float(t + 1)))[:, :, 0] for t in range(40)])
     for b, seed in enumerate(seeds):
         want = _expected(seed, 40, cfg.delay_steps, loss, 3)
@@ -137,7 +142,7 @@ def test_a_broadcast_is_lost_per_link_and_counted_once_per_sender() -> None:
 def test_payload_shape_counts_and_rates() -> None:
     """A payload of the wrong width is refused (the batch size right); messages count once per
     sender and episode; the per-vehicle rate divides by episodes, vehicles and time."""
-    ch = V2VChannel.predecessor(3, 2, [0, 1])  # senders: leader, followers 1 and 2
+    ch = _chain(3, 2, [0, 1])  # senders: leader, followers 1 and 2
     with pytest.raises(ValueError, match=r"does not fit \(B=2, V, width=2\)"):
         ch.transmit(np.zeros((2, 4, 3)))
     for _ in range(10):
@@ -146,3 +151,30 @@ def test_payload_shape_counts_and_rates() -> None:
     assert ch.bits_sent == 10 * 2 * 3 * 2 * 32
     assert ch.bits_per_vehicle_per_s(3, 10, 0.1) == pytest.approx(10 * 2 * 3 * 2 * 32 / (2 * 3 * 10 * 0.1))
     assert ch.bits_per_vehicle_per_s(3, 0, 0.1) == 0.0
+
+
+def test_declared_messages_get_channels_with_the_runs_settings() -> None:
+    """The closed loop opens one channel per declared message, with the run's delay and loss (on
+    the run's dt) and the declared links; a controller takes it by name and nothing else."""
+    from controllers.base import EpisodeContext, Message
+    from envs.errors import ControllerContractError
+    from envs.params import PlatoonParams
+    from envs.scenarios import make_scenario
+
+    ctx = EpisodeContext(make_scenario("catchup-v1"), 3, np.array([5, 6]),
+                         PlatoonParams(dt_s=0.2), ChannelConfig(delay_s=0.4, packet_loss=0.1))
+    ctx.open_channels([Message("a", 2, "predecessor", initial=np.nan),
+                       Message("b", 1, "neighbours", bits_per_value=8),
+                       Message("c", 3, "to_leader"), Message("d", 1, ((2, 1),))])
+    a, b, c, d = (ctx.channel(k) for k in "abcd")
+    assert a.delay == 2 and a.config.packet_loss == 0.1 and a.width == 2
+    assert a.links.tolist() == [[0, 1], [1, 2], [2, 3]] and np.isnan(a._held).all()
+    assert b.links.tolist() == [[1, 2], [2, 3], [2, 1], [3, 2]] and b.bits_per_value == 8
+    assert c.links.tolist() == [[1, 0], [2, 0], [3, 0]] and d.links.tolist() == [[2, 1]]
+    assert a.seeds.tolist() == [5, 6]
+    with pytest.raises(ControllerContractError, match="no channel 'e' is open: declare it"):
+        ctx.channel("e")
+    with pytest.raises(ControllerContractError, match="two messages are named 'a'"):
+        ctx.open_channels([Message("a", 1)])
+    with pytest.raises(ValueError, match="unknown link pattern 'ring'"):
+        Message("r", 1, "ring").link_list(3)
