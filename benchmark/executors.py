@@ -30,17 +30,23 @@ def add_executor_options(parser: Any, default: str = "serial") -> None:
 AUTO = "auto"
 
 
+#: Learned-policy episodes from which ``auto`` runs a sweep's policies on a process pool: they
+#: run batched, so fewer cost less than the workers' start (see :func:`resolve_executor`).
+POOL_POLICY_EPISODES = 400
+
+
 def resolve_executor(keys: Sequence[RunKey], executor: str, workers: int) -> str:
     """The executor ``auto`` stands for: ``process`` when more than one worker is allowed, the
-    sweep holds more than one batch and some run is an optimiser or a learned policy (family
-    ``mpc`` or ``marl``, each worth a worker's start-up of a few seconds); else ``serial``.
-    Any other executor is returned as given. The choice never changes a number, only the wall
-    time (every executor gives identical records)."""
+    sweep holds more than one batch, and it holds an optimiser run (family ``mpc``, worth a
+    worker's start-up of a few seconds) or at least :data:`POOL_POLICY_EPISODES` learned-policy
+    episodes; else ``serial``. Any other executor is returned as given. The choice never
+    changes a number, only the wall time (every executor gives identical records)."""
     if executor != AUTO:
         return executor
     from controllers.registry import resolve
 
-    heavy = any(resolve(k.name).family in ("mpc", "marl") for k in keys)
+    families = [resolve(k.name).family for k in keys]
+    heavy = "mpc" in families or families.count("marl") >= POOL_POLICY_EPISODES
     if workers > 1 and heavy and len(batch_keys(keys, workers)) > 1:
         return "process"
     return "serial"

@@ -8,7 +8,13 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from benchmark.executors import AUTO, EXECUTORS, resolve_executor, run_batches
+from benchmark.executors import (
+    AUTO,
+    EXECUTORS,
+    POOL_POLICY_EPISODES,
+    resolve_executor,
+    run_batches,
+)
 from benchmark.progress import Progress
 from benchmark.suite import MAX_SEED, RunKey, build_sweep, seeds_from_episodes, unique
 from controllers.registry import default_controllers, parse_controller_list
@@ -77,8 +83,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--trajectories", action="store_true",
                    help="also write one trajectory CSV per run into OUT/trajectories/")
     p.add_argument("--executor", choices=(AUTO, *EXECUTORS), default=AUTO,
-                   help="auto (default: the process pool when a sweep has several batches of "
-                        "MPC or policy runs, else serial), serial, process or ray")
+                   help="auto (default: the process pool when a sweep has several batches and "
+                        f"MPC runs or at least {POOL_POLICY_EPISODES} policy episodes, else serial), "
+                        "serial, "
+                        "process or ray")
     p.add_argument("--workers", type=int, default=2, help="processes or Ray CPUs (default 2)")
     p.add_argument("--ray-address", default=None,
                    help="attach to this Ray cluster (default: RAY_ADDRESS, else a local instance)")

@@ -434,7 +434,7 @@ def test_a_batch_of_policy_runs_gives_each_run_its_record_alone(
 
 
 def test_the_auto_executor_uses_the_pool_only_for_several_batches_of_heavy_runs() -> None:
-    from benchmark.executors import resolve_executor
+    from benchmark.executors import POOL_POLICY_EPISODES, resolve_executor
 
     cheap = build_sweep([("ovm", {}), ("cacc", {})], ["catchup-v1"], [4], [2000, 2010, 2020])
     mpc = build_sweep([("mpc-qp", {})], ["catchup-v1"], [4], [2000, 2010])
@@ -443,8 +443,13 @@ def test_the_auto_executor_uses_the_pool_only_for_several_batches_of_heavy_runs(
     assert resolve_executor(mpc, "auto", 2) == "process"
     assert resolve_executor(mpc[:1], "auto", 2) == "serial"  # one batch: nothing to share
     assert resolve_executor(mpc, "auto", 1) == "serial"
-    assert resolve_executor(policy, "auto", 2) == "process"
-    assert resolve_executor(policy[:1] + cheap, "auto", 2) == "process"
+    # policies run batched: a pool pays off only for many episodes
+    assert resolve_executor(policy, "auto", 2) == "serial"
+    many = build_sweep([("bdc", {}), ("ia2c", {})], ["catchup-v1", "slowdown-v1"], [8],
+                       list(range(2000, 2000 + 100)))
+    assert len(many) == POOL_POLICY_EPISODES
+    assert resolve_executor(many, "auto", 2) == "process"
+    assert resolve_executor(many[1:] + cheap, "auto", 2) == "serial"
     for name in ("serial", "process", "ray"):
         assert resolve_executor(mpc, name, 2) == name
 
