@@ -58,3 +58,16 @@ def test_tour_commands_in_small_form(tmp_path: Path) -> None:
         res = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=600)
         assert res.returncode == 0, (cmd, res.stderr)
     assert any((out / "figures").glob("leaderboard.png"))
+
+
+def test_the_example_controller_runs_as_the_readme_says(tmp_path: Path) -> None:
+    """The README's example controller file: saved and run, it passes the contract check and
+    prints what the README says it prints."""
+    text = (ROOT / "README.md").read_text()
+    (code,) = re.findall(r"```python\n(.*?)```", text, re.S)
+    (claim,) = re.findall(r"It prints `([^`]*)`", text)
+    (tmp_path / "my_controller.py").write_text(code)
+    res = subprocess.run([sys.executable, "my_controller.py"], cwd=tmp_path, capture_output=True,
+                         text=True, timeout=600, env={"PYTHONPATH": str(ROOT), "PATH": ""})
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.strip() == claim
