@@ -384,9 +384,9 @@ class AgentNet(nn.Module):
     ) -> tuple[dict[str, torch.Tensor], State]:
         """The recurrent part of :meth:`forward` over a segment: encodings ``(A, T, B, F)`` ->
         features ``(A, T, B, H)`` and the state after. Here :meth:`recur` step by step (messages
-        re-derived from the states where gradients flow through them); a network whose
-        recurrence is a plain LSTM on precomputed gates runs it as one
-        :meth:`marl.layers.BatchedLSTMCell.segment`."""
+        re-derived from the states where gradients flow through them); FPrint, WAC, DCEA and BDC,
+        whose recurrence is a plain LSTM on precomputed gates, run it as one
+        :meth:`marl.layers.BatchedLSTMCell.segment` (IA2C does not: slower, docs/populations.md)."""
         # unbind, not enc[k][:, t]: the backward of T selects would allocate and zero-fill a
         # full-size gradient per step; unbind's backward stacks once
         enc_t = {k: v.unbind(1) for k, v in enc.items()}
@@ -462,7 +462,8 @@ class SharedTrunkNet(AgentNet):
         return {"h": h, "v": h}, new
 
     def recur_segment(self, enc, state, messages):
-        if self.differentiable_messages:
+        if self.differentiable_messages or messages is None:
+            # IA2C, DIAL, CommNet: step by step (IA2C: measured faster than as a segment)
             return super().recur_segment(enc, state, messages)
         gates = enc["gx"]
         if messages is not None:  # received inputs (FPrint): their gates for all steps at once

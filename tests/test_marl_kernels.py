@@ -312,7 +312,7 @@ def test_lstm_segment_equals_torch_lstm() -> None:
         torch.testing.assert_close(cell.bias.grad[i], lstm.bias_ih_l0.grad, atol=1e-5, rtol=1e-4)
 
 
-@pytest.mark.parametrize("name", ["ia2c", "fprint", "bdc"])
+@pytest.mark.parametrize("name", ["fprint", "wac", "bdc"])
 def test_segment_recompute_equals_step_by_step(name: str) -> None:
     """The networks that run their recurrence as one LSTM segment give the step-by-step
     recompute's logits, values and final state to the last bit, and its gradients to float
