@@ -84,9 +84,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="also write one trajectory CSV per run into OUT/trajectories/")
     p.add_argument("--executor", choices=(AUTO, *EXECUTORS), default=AUTO,
                    help="auto (default: the process pool when a sweep has several batches and "
-                        f"MPC runs or at least {POOL_POLICY_EPISODES} policy episodes, else serial), "
-                        "serial, "
-                        "process or ray")
+                        f"MPC runs or at least {POOL_POLICY_EPISODES} policy episodes, else "
+                        "serial), serial, process or ray")
     p.add_argument("--workers", type=int, default=2, help="processes or Ray CPUs (default 2)")
     p.add_argument("--ray-address", default=None,
                    help="attach to this Ray cluster (default: RAY_ADDRESS, else a local instance)")

@@ -69,8 +69,9 @@ class Message:
         if links == "to_leader":
             return [(i, 0) for i in range(1, n + 1)]
         if isinstance(links, str):
-            raise ValueError(f"unknown link pattern {links!r}: predecessor, neighbours or "
-                             "to_leader, or a tuple of (src, dst)")
+            raise ControllerContractError(
+                f"message {self.name!r}: unknown link pattern {links!r}; use predecessor, "
+                "neighbours, to_leader or a tuple of (src, dst)")
         return list(links)
 
 

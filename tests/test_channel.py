@@ -176,5 +176,5 @@ def test_declared_messages_get_channels_with_the_runs_settings() -> None:
         ctx.channel("e")
     with pytest.raises(ControllerContractError, match="two messages are named 'a'"):
         ctx.open_channels([Message("a", 1)])
-    with pytest.raises(ValueError, match="unknown link pattern 'ring'"):
+    with pytest.raises(ControllerContractError, match="message 'r': unknown link pattern 'ring'"):
         Message("r", 1, "ring").link_list(3)
