@@ -419,7 +419,7 @@ def test_a_batch_gives_each_run_its_record_alone(name, scenario, delay, loss, la
 def test_a_batch_of_policy_runs_gives_each_run_its_record_alone(
     name, options, scenario, n, delay, loss, mixed
 ) -> None:
-    """Policies are batched too (their network sees at least two rows, so no row's rounding
+    """Policies are batched too (their network sees at least MIN_LANES rows, so no row's rounding
     depends on the batch): each record equals the run alone to the last bit, sampled and greedy,
     with messages under delay and loss, and where some episodes of the batch collide and others
     do not (``mixed``)."""
