@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from analysis.paper import ENERGY_SAVING_CLAIM_PCT, TABLE_I_REWARD, TABLE_II
-from analysis.statistics import bootstrap_ci
+from analysis.statistics import paired_saving_ci
 
 #: Fraction of the last training episodes averaged for the "final" training reward.
 FINAL_FRACTION = 0.1
@@ -204,22 +204,27 @@ class Verdict:
 def energy_claim(runs: Any, labels: Mapping[str, str], scenario: str,
                  others: Sequence[str] = ("ia2c", "fprint", "commnet", "dial")) -> Verdict:
     """"BDC has the highest energy saving, up to 5.8 %": BDC's platoon power against each other
-    MARL algorithm's on the same episodes (paired by episode, seeds averaged per episode)."""
+    MARL algorithm's on the same episodes (paired by episode, training seeds averaged per
+    episode), with a two-stage interval over training seeds and episodes
+    (:func:`analysis.statistics.paired_saving_ci`): each controller label is one training
+    seed, so a verdict covers the variation between trainings, not only between episodes."""
     claim = (f"BDC-MARL saves the most energy among the five MARL algorithms, up to "
              f"{ENERGY_SAVING_CLAIM_PCT} % (Table II, platoon power)")
     sub = runs[(runs["scenario"] == scenario) & runs["controller"].isin(list(labels))].copy()
     sub["name"] = sub["controller"].map(labels)
-    per_ep = sub.groupby(["name", "seed"])["power_mean_kw"].mean().unstack("name")
-    if "bdc" not in per_ep or not any(o in per_ep for o in others):
+    # (seeds, episodes) per algorithm: one row per controller label (training seed)
+    table = sub.pivot_table(index=["name", "controller"], columns="seed",
+                            values="power_mean_kw", aggfunc="mean")
+    names = set(table.index.get_level_values("name"))
+    if "bdc" not in names or not any(o in names for o in others):
         return Verdict(claim, "BDC or the other algorithms were not run", "not testable here",
                        "no runs")
     parts, lower_all, savings = [], True, []
     for o in others:
-        if o not in per_ep:
+        if o not in names:
             continue
-        pair = per_ep[["bdc", o]].dropna()
-        saving = 100.0 * (pair[o] - pair["bdc"]) / pair[o]
-        m, lo, hi = bootstrap_ci(saving.to_numpy())
+        pair = table.loc[["bdc", o]].dropna(axis=1)
+        m, lo, hi = paired_saving_ci(pair.loc["bdc"].to_numpy(), pair.loc[o].to_numpy())
         savings.append((m, lo, hi, o))
         lower_all &= lo > 0
         parts.append(f"vs {o} {m:+.2f} % [{lo:+.2f}, {hi:+.2f}]")

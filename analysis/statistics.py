@@ -97,3 +97,43 @@ def hierarchical_bootstrap_ci(
     alpha = (1.0 - confidence) / 2.0
     lo, hi = np.quantile(means, [alpha, 1.0 - alpha])
     return mean, float(lo), float(hi)
+
+
+def paired_saving_ci(
+    ours: np.ndarray,
+    other: np.ndarray,
+    confidence: float = 0.95,
+    n_resamples: int = 2000,
+    seed: int = 0,
+) -> tuple[float, float, float]:
+    """Mean saving ``100 (other - ours) / other`` (%) over episodes paired by episode seed, and
+    its two-stage percentile-bootstrap interval: each resample draws each side's training
+    seeds with replacement, averages them per episode, then draws the episodes with
+    replacement (the same episodes for both sides, which keeps the pairing).
+
+    Parameters
+    ----------
+    ours, other : (seeds, episodes) arrays
+        One row per training seed (any number on each side), one column per episode seed, in
+        the same episode order on both sides; no NaN.
+
+    Returns
+    -------
+    mean, low, high : float
+        ``mean`` uses all seeds and episodes (seeds averaged per episode). With one seed on
+        each side the interval is the paired bootstrap over episodes alone.
+    """
+    a, b = np.atleast_2d(np.asarray(ours, float)), np.atleast_2d(np.asarray(other, float))
+    if a.shape[1] != b.shape[1] or a.shape[1] == 0:
+        raise ValueError(f"the two sides need the same episodes, got {a.shape} and {b.shape}")
+    pa, pb = a.mean(0), b.mean(0)
+    mean = float(np.mean(100.0 * (pb - pa) / pb))
+    rng = np.random.Generator(np.random.PCG64(seed))
+    ra = a[rng.integers(0, a.shape[0], (n_resamples, a.shape[0]))].mean(1)  # (R, episodes)
+    rb = b[rng.integers(0, b.shape[0], (n_resamples, b.shape[0]))].mean(1)
+    saving = 100.0 * (rb - ra) / rb
+    episodes = rng.integers(0, a.shape[1], (n_resamples, a.shape[1]))
+    means = np.take_along_axis(saving, episodes, axis=1).mean(1)
+    alpha = (1.0 - confidence) / 2.0
+    lo, hi = np.quantile(means, [alpha, 1.0 - alpha])
+    return mean, float(lo), float(hi)

@@ -78,6 +78,19 @@ def test_energy_claim_verdicts_follow_the_paired_intervals() -> None:
     assert missing.verdict == "not testable here"
 
 
+def test_energy_claim_counts_the_variation_between_training_seeds() -> None:
+    """Three BDC training seeds, one costlier than IA2C: pooled per episode BDC saves about 5 %
+    on every episode, but the training seeds' spread makes the verdict inconclusive."""
+    rng = np.random.default_rng(0)
+    base = 18.0 + rng.normal(0, 0.2, 20)
+    power = {f"bdc-s{k}": base * f for k, f in enumerate((0.85, 0.95, 1.05))}
+    power.update({f"ia2c-s{k}": base * f for k, f in enumerate((1.0, 1.005, 0.995))})
+    labels = {name: name.split("-")[0] for name in power}
+    verdict = rp.energy_claim(_runs(power), labels, "catchup-v1")
+    assert "vs ia2c +5.0" in verdict.measured
+    assert verdict.verdict == "inconclusive"
+
+
 def test_table_two_puts_the_paper_values_beside_ours() -> None:
     runs = _runs({"lab-bdc-0": [17.0, 19.0], "lab-bdc-1": [18.0, 18.0], "ovm": [30.0, 30.0]})
     t2 = rp.table_two(runs, {"lab-bdc-0": "bdc", "lab-bdc-1": "bdc", "ovm": "ovm"})
