@@ -172,7 +172,7 @@ def write_report(jobs: list[dict[str, Any]], names: dict[str, str], scenarios: l
     sc0 = TABLE_II_SCENARIO if TABLE_II_SCENARIO in scenarios else scenarios[0]
     verdicts = []
     for sc in scenarios:
-        verdicts += [rp.energy_claim(runs, names, sc), rp.reward_claim(t2, sc),
+        verdicts += [rp.energy_claim(runs, names, sc), rp.reward_claim(runs, names, t2, sc),
                      rp.convergence_claim(curves, sc), rp.qsgd_claim(t2, sc)]
     lines += _size_section(jobs, all_runs, names, fig_dir, out, verdicts)
     lines += _openacc_section(jobs, all_runs, names, out, verdicts)

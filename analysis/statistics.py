@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 
@@ -99,6 +100,27 @@ def hierarchical_bootstrap_ci(
     return mean, float(lo), float(hi)
 
 
+def _two_stage_paired(
+    ours: np.ndarray, other: np.ndarray, stat: Any, confidence: float, n_resamples: int,
+    seed: int,
+) -> tuple[float, float, float]:
+    """Mean over episodes of ``stat(ours_e, other_e)`` (each side's training seeds averaged per
+    episode) and its two-stage interval: each resample draws each side's seeds with
+    replacement, then the episodes (the same for both sides, keeping the pairing)."""
+    a, b = np.atleast_2d(np.asarray(ours, float)), np.atleast_2d(np.asarray(other, float))
+    if a.shape[1] != b.shape[1] or a.shape[1] == 0:
+        raise ValueError(f"the two sides need the same episodes, got {a.shape} and {b.shape}")
+    mean = float(np.mean(stat(a.mean(0), b.mean(0))))
+    rng = np.random.Generator(np.random.PCG64(seed))
+    ra = a[rng.integers(0, a.shape[0], (n_resamples, a.shape[0]))].mean(1)  # (R, episodes)
+    rb = b[rng.integers(0, b.shape[0], (n_resamples, b.shape[0]))].mean(1)
+    episodes = rng.integers(0, a.shape[1], (n_resamples, a.shape[1]))
+    means = np.take_along_axis(stat(ra, rb), episodes, axis=1).mean(1)
+    alpha = (1.0 - confidence) / 2.0
+    lo, hi = np.quantile(means, [alpha, 1.0 - alpha])
+    return mean, float(lo), float(hi)
+
+
 def paired_saving_ci(
     ours: np.ndarray,
     other: np.ndarray,
@@ -123,17 +145,17 @@ def paired_saving_ci(
         ``mean`` uses all seeds and episodes (seeds averaged per episode). With one seed on
         each side the interval is the paired bootstrap over episodes alone.
     """
-    a, b = np.atleast_2d(np.asarray(ours, float)), np.atleast_2d(np.asarray(other, float))
-    if a.shape[1] != b.shape[1] or a.shape[1] == 0:
-        raise ValueError(f"the two sides need the same episodes, got {a.shape} and {b.shape}")
-    pa, pb = a.mean(0), b.mean(0)
-    mean = float(np.mean(100.0 * (pb - pa) / pb))
-    rng = np.random.Generator(np.random.PCG64(seed))
-    ra = a[rng.integers(0, a.shape[0], (n_resamples, a.shape[0]))].mean(1)  # (R, episodes)
-    rb = b[rng.integers(0, b.shape[0], (n_resamples, b.shape[0]))].mean(1)
-    saving = 100.0 * (rb - ra) / rb
-    episodes = rng.integers(0, a.shape[1], (n_resamples, a.shape[1]))
-    means = np.take_along_axis(saving, episodes, axis=1).mean(1)
-    alpha = (1.0 - confidence) / 2.0
-    lo, hi = np.quantile(means, [alpha, 1.0 - alpha])
-    return mean, float(lo), float(hi)
+    return _two_stage_paired(ours, other, lambda x, y: 100.0 * (y - x) / y, confidence,
+                             n_resamples, seed)
+
+
+def paired_difference_ci(
+    ours: np.ndarray,
+    other: np.ndarray,
+    confidence: float = 0.95,
+    n_resamples: int = 2000,
+    seed: int = 0,
+) -> tuple[float, float, float]:
+    """Mean difference ``ours - other`` over episodes paired by episode seed, with the same
+    two-stage interval (training seeds, then episodes) as :func:`paired_saving_ci`."""
+    return _two_stage_paired(ours, other, lambda x, y: x - y, confidence, n_resamples, seed)

@@ -91,6 +91,26 @@ def test_energy_claim_counts_the_variation_between_training_seeds() -> None:
     assert verdict.verdict == "inconclusive"
 
 
+def test_reward_claim_verdicts_follow_the_two_stage_intervals() -> None:
+    """BDC above both rivals on every training seed: holds; one BDC seed far below: the margin's
+    interval covers 0, inconclusive; a rival above on every seed: does not hold."""
+    rng = np.random.default_rng(1)
+    base = 18.0 + rng.normal(0, 0.5, 20)
+
+    def claim(power: dict[str, np.ndarray]) -> rp.Verdict:
+        runs = _runs(power)  # reward = -power
+        labels = {name: name.split("-")[0] for name in power}
+        return rp.reward_claim(runs, labels, rp.table_two(runs, labels), "catchup-v1")
+
+    rivals = {f"{a}-s{k}": base + 1.0 for a in ("ia2c", "dial") for k in range(3)}
+    steady = claim({**{f"bdc-s{k}": base for k in range(3)}, **rivals})
+    assert steady.verdict == "holds" and "BDC minus ia2c +1.0 [+1.0, +1.0]" in steady.measured
+    spread = claim({**{f"bdc-s{k}": base + d for k, d in enumerate((-2.0, -2.0, 4.0))}, **rivals})
+    assert spread.verdict == "inconclusive"
+    worse = claim({**{f"bdc-s{k}": base + 2.0 for k in range(3)}, **rivals})
+    assert worse.verdict == "does not hold" and worse.reason == "ia2c, dial scores higher"
+
+
 def test_table_two_puts_the_paper_values_beside_ours() -> None:
     runs = _runs({"lab-bdc-0": [17.0, 19.0], "lab-bdc-1": [18.0, 18.0], "ovm": [30.0, 30.0]})
     t2 = rp.table_two(runs, {"lab-bdc-0": "bdc", "lab-bdc-1": "bdc", "ovm": "ovm"})

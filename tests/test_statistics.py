@@ -5,7 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from analysis.statistics import bootstrap_ci, hierarchical_bootstrap_ci, paired_saving_ci
+from analysis.statistics import (
+    bootstrap_ci,
+    hierarchical_bootstrap_ci,
+    paired_difference_ci,
+    paired_saving_ci,
+)
 
 
 def test_bootstrap_interval_matches_the_normal_approximation() -> None:
@@ -105,3 +110,15 @@ def test_paired_saving_covers_the_spread_between_training_seeds() -> None:
     assert elo > 7.0 and lo < 0 < hi
     with pytest.raises(ValueError, match="same episodes"):
         paired_saving_ci(ours, other[:, :10])
+
+
+def test_paired_difference_is_the_mean_difference_with_the_same_two_stages() -> None:
+    rng = np.random.default_rng(5)
+    episode = rng.normal(-500, 30, 50)
+    ours = np.stack([episode + d for d in (40.0, 50.0, 60.0)])
+    other = np.stack([episode + d for d in (0.0, -5.0, 5.0)])
+    m, lo, hi = paired_difference_ci(ours, other)
+    assert m == pytest.approx(50.0) and 38.0 < lo < 50.0 < hi < 62.0
+    spread = np.stack([episode + d for d in (-40.0, 50.0, 140.0)])  # one seed below the other
+    _, lo2, hi2 = paired_difference_ci(spread, other)
+    assert lo2 < 0 < hi2
