@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from analysis.paper import ENERGY_SAVING_CLAIM_PCT, TABLE_I_REWARD, TABLE_II
-from analysis.statistics import paired_difference_ci, paired_saving_ci
+from analysis.statistics import paired_ci
 
 #: Fraction of the last training episodes averaged for the "final" training reward.
 FINAL_FRACTION = 0.1
@@ -206,7 +206,7 @@ def energy_claim(runs: Any, labels: Mapping[str, str], scenario: str,
     """"BDC has the highest energy saving, up to 5.8 %": BDC's platoon power against each other
     MARL algorithm's on the same episodes (paired by episode, training seeds averaged per
     episode), with a two-stage interval over training seeds and episodes
-    (:func:`analysis.statistics.paired_saving_ci`): each controller label is one training
+    (:func:`analysis.statistics.paired_ci`): each controller label is one training
     seed, so a verdict covers the variation between trainings, not only between episodes."""
     claim = (f"BDC-MARL saves the most energy among the five MARL algorithms, up to "
              f"{ENERGY_SAVING_CLAIM_PCT} % (Table II, platoon power)")
@@ -220,7 +220,7 @@ def energy_claim(runs: Any, labels: Mapping[str, str], scenario: str,
         if o not in names:
             continue
         pair = table.loc[["bdc", o]].dropna(axis=1)
-        m, lo, hi = paired_saving_ci(pair.loc["bdc"].to_numpy(), pair.loc[o].to_numpy())
+        m, lo, hi = paired_ci(pair.loc["bdc"].to_numpy(), pair.loc[o].to_numpy(), "saving")
         savings.append((m, lo, hi, o))
         lower_all &= lo > 0
         parts.append(f"vs {o} {m:+.2f} % [{lo:+.2f}, {hi:+.2f}]")
@@ -275,7 +275,7 @@ def _seeds_by_episodes(runs: Any, labels: Mapping[str, str], scenario: str, colu
 def reward_claim(runs: Any, labels: Mapping[str, str], t2: Any, scenario: str) -> Verdict:
     """"BDC reaches the highest reward" (Tables I and II) on the evaluation episodes: BDC's
     reward against each rival's on the same episodes, with a two-stage interval over training
-    seeds and episodes (:func:`analysis.statistics.paired_difference_ci`)."""
+    seeds and episodes (:func:`analysis.statistics.paired_ci`)."""
     claim = "BDC-MARL reaches a higher test reward than IA2C, FPrint, CommNet and DIAL (Table II)"
     sub = t2[t2["scenario"] == scenario].set_index("name")
     rivals = [a for a in ("ia2c", "fprint", "commnet", "dial") if a in sub.index]
@@ -285,7 +285,7 @@ def reward_claim(runs: Any, labels: Mapping[str, str], t2: Any, scenario: str) -
     diffs = {}
     for a in rivals:
         pair = table.loc[["bdc", a]].dropna(axis=1)
-        diffs[a] = paired_difference_ci(pair.loc["bdc"].to_numpy(), pair.loc[a].to_numpy())
+        diffs[a] = paired_ci(pair.loc["bdc"].to_numpy(), pair.loc[a].to_numpy())
     measured = f"{scenario}: mean reward " + "; ".join(
         f"{a} {sub.loc[a, 'reward_mean']:.1f} ({int(sub.loc[a, 'collisions'])} coll.)"
         for a in ["bdc", *rivals]) + "; BDC minus " + "; ".join(

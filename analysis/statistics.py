@@ -100,13 +100,44 @@ def hierarchical_bootstrap_ci(
     return mean, float(lo), float(hi)
 
 
-def _two_stage_paired(
-    ours: np.ndarray, other: np.ndarray, stat: Any, confidence: float, n_resamples: int,
-    seed: int,
+#: Statistics of :func:`paired_ci`, per episode, from ``ours`` and ``other`` (seeds averaged).
+PAIRED_STATISTICS: dict[str, Any] = {
+    "difference": lambda ours, other: ours - other,
+    "saving": lambda ours, other: 100.0 * (other - ours) / other,
+}
+
+
+def paired_ci(
+    ours: np.ndarray,
+    other: np.ndarray,
+    statistic: str = "difference",
+    confidence: float = 0.95,
+    n_resamples: int = 2000,
+    seed: int = 0,
 ) -> tuple[float, float, float]:
-    """Mean over episodes of ``stat(ours_e, other_e)`` (each side's training seeds averaged per
-    episode) and its two-stage interval: each resample draws each side's seeds with
-    replacement, then the episodes (the same for both sides, keeping the pairing)."""
+    """Mean over episodes of a paired statistic and its two-stage percentile-bootstrap
+    interval: each resample draws each side's training seeds with replacement, averages them
+    per episode, then draws the episodes with replacement (the same episodes for both sides,
+    which keeps the pairing).
+
+    Parameters
+    ----------
+    ours, other : (seeds, episodes) arrays
+        One row per training seed (any number on each side), one column per episode seed, in
+        the same episode order on both sides; no NaN.
+    statistic : {"difference", "saving"}
+        ``ours - other``, or the saving ``100 (other - ours) / other`` in %.
+
+    Returns
+    -------
+    mean, low, high : float
+        ``mean`` uses all seeds and episodes (seeds averaged per episode). With one seed on
+        each side the interval is the paired bootstrap over episodes alone.
+    """
+    stat = PAIRED_STATISTICS.get(statistic)
+    if stat is None:
+        raise ValueError(f"unknown paired statistic {statistic!r}; valid: "
+                         f"{', '.join(PAIRED_STATISTICS)}")
     a, b = np.atleast_2d(np.asarray(ours, float)), np.atleast_2d(np.asarray(other, float))
     if a.shape[1] != b.shape[1] or a.shape[1] == 0:
         raise ValueError(f"the two sides need the same episodes, got {a.shape} and {b.shape}")
@@ -119,43 +150,3 @@ def _two_stage_paired(
     alpha = (1.0 - confidence) / 2.0
     lo, hi = np.quantile(means, [alpha, 1.0 - alpha])
     return mean, float(lo), float(hi)
-
-
-def paired_saving_ci(
-    ours: np.ndarray,
-    other: np.ndarray,
-    confidence: float = 0.95,
-    n_resamples: int = 2000,
-    seed: int = 0,
-) -> tuple[float, float, float]:
-    """Mean saving ``100 (other - ours) / other`` (%) over episodes paired by episode seed, and
-    its two-stage percentile-bootstrap interval: each resample draws each side's training
-    seeds with replacement, averages them per episode, then draws the episodes with
-    replacement (the same episodes for both sides, which keeps the pairing).
-
-    Parameters
-    ----------
-    ours, other : (seeds, episodes) arrays
-        One row per training seed (any number on each side), one column per episode seed, in
-        the same episode order on both sides; no NaN.
-
-    Returns
-    -------
-    mean, low, high : float
-        ``mean`` uses all seeds and episodes (seeds averaged per episode). With one seed on
-        each side the interval is the paired bootstrap over episodes alone.
-    """
-    return _two_stage_paired(ours, other, lambda x, y: 100.0 * (y - x) / y, confidence,
-                             n_resamples, seed)
-
-
-def paired_difference_ci(
-    ours: np.ndarray,
-    other: np.ndarray,
-    confidence: float = 0.95,
-    n_resamples: int = 2000,
-    seed: int = 0,
-) -> tuple[float, float, float]:
-    """Mean difference ``ours - other`` over episodes paired by episode seed, with the same
-    two-stage interval (training seeds, then episodes) as :func:`paired_saving_ci`."""
-    return _two_stage_paired(ours, other, lambda x, y: x - y, confidence, n_resamples, seed)

@@ -8,8 +8,7 @@ import pytest
 from analysis.statistics import (
     bootstrap_ci,
     hierarchical_bootstrap_ci,
-    paired_difference_ci,
-    paired_saving_ci,
+    paired_ci,
 )
 
 
@@ -89,7 +88,7 @@ def test_paired_saving_with_one_seed_each_is_the_paired_episode_bootstrap() -> N
     rng = np.random.default_rng(3)
     other = 20.0 + rng.normal(0, 1, 50)
     ours = other * 0.9 + rng.normal(0, 0.1, 50)
-    m, lo, hi = paired_saving_ci(ours[None], other[None])
+    m, lo, hi = paired_ci(ours[None], other[None], "saving")
     per_episode = 100.0 * (other - ours) / other
     assert m == pytest.approx(per_episode.mean())
     em, elo, ehi = bootstrap_ci(per_episode)
@@ -104,12 +103,14 @@ def test_paired_saving_covers_the_spread_between_training_seeds() -> None:
     episode = 20.0 + rng.normal(0, 1, 50)
     other = np.stack([episode * f for f in (1.0, 1.01, 0.99)])
     ours = np.stack([episode * f for f in (0.75, 0.95, 1.05)])
-    m, lo, hi = paired_saving_ci(ours, other)
+    m, lo, hi = paired_ci(ours, other, "saving")
     _, elo, _ = bootstrap_ci(100.0 * (other.mean(0) - ours.mean(0)) / other.mean(0))
     assert m == pytest.approx(100.0 * (1.0 - (0.75 + 0.95 + 1.05) / 3), abs=0.1)
     assert elo > 7.0 and lo < 0 < hi
+    with pytest.raises(ValueError, match="unknown paired statistic .ratio."):
+        paired_ci(ours, other, "ratio")
     with pytest.raises(ValueError, match="same episodes"):
-        paired_saving_ci(ours, other[:, :10])
+        paired_ci(ours, other[:, :10], "saving")
 
 
 def test_paired_difference_is_the_mean_difference_with_the_same_two_stages() -> None:
@@ -117,8 +118,8 @@ def test_paired_difference_is_the_mean_difference_with_the_same_two_stages() -> 
     episode = rng.normal(-500, 30, 50)
     ours = np.stack([episode + d for d in (40.0, 50.0, 60.0)])
     other = np.stack([episode + d for d in (0.0, -5.0, 5.0)])
-    m, lo, hi = paired_difference_ci(ours, other)
+    m, lo, hi = paired_ci(ours, other)
     assert m == pytest.approx(50.0) and 38.0 < lo < 50.0 < hi < 62.0
     spread = np.stack([episode + d for d in (-40.0, 50.0, 140.0)])  # one seed below the other
-    _, lo2, hi2 = paired_difference_ci(spread, other)
+    _, lo2, hi2 = paired_ci(spread, other)
     assert lo2 < 0 < hi2
