@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from typing import Any
+from collections.abc import Callable
 
 import numpy as np
 
@@ -101,7 +101,7 @@ def hierarchical_bootstrap_ci(
 
 
 #: Statistics of :func:`paired_ci`, per episode, from ``ours`` and ``other`` (seeds averaged).
-PAIRED_STATISTICS: dict[str, Any] = {
+PAIRED_STATISTICS: dict[str, Callable[[np.ndarray, np.ndarray], np.ndarray]] = {
     "difference": lambda ours, other: ours - other,
     "saving": lambda ours, other: 100.0 * (other - ours) / other,
 }

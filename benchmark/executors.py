@@ -45,8 +45,9 @@ def resolve_executor(keys: Sequence[RunKey], executor: str, workers: int) -> str
         return executor
     from controllers.registry import resolve
 
-    families = [resolve(k.name).family for k in keys]
-    heavy = "mpc" in families or families.count("marl") >= POOL_POLICY_EPISODES
+    family = {name: resolve(name).family for name in {k.name for k in keys}}
+    policy_runs = sum(family[k.name] == "marl" for k in keys)
+    heavy = "mpc" in family.values() or policy_runs >= POOL_POLICY_EPISODES
     if workers > 1 and heavy and len(batch_keys(keys, workers)) > 1:
         return "process"
     return "serial"
