@@ -66,8 +66,8 @@ def plot_energy_map(
     fig, axes = plt.subplots(1, 3, figsize=(15.0, 4.6), sharey=True, layout="constrained")
     panels = (
         (p_map, levels, "viridis", "Map model (BMW i3, SUMO MMPEVEM)", "battery power P (kW)"),
-        (p_poly, levels, "viridis", "5x5 polynomial fit", "battery power P (kW)"),
-        (err, elevels, "RdBu_r", "Error: polynomial - map", "error (kW)"),
+        (p_poly, levels, "viridis", "fit: max(5x5 polynomial, floor)", "battery power P (kW)"),
+        (err, elevels, "RdBu_r", "Error: fit - map", "error (kW)"),
     )
     unreachable = (~op.reachable).astype(float)
     for ax, (z, lev, cmap, title, clabel) in zip(axes, panels):

@@ -1,4 +1,5 @@
-"""``cacc-bench fit-power``: refit the energy polynomial from the shipped BMW i3 map data.
+"""``cacc-bench fit-power``: refit the energy model (polynomial and regeneration floor) from the
+shipped BMW i3 map data.
 
 Prints the fit quality (R^2, RMSE, max error over the full grid and over v in [0.5, 20] m/s,
 and the error at the spec's reference points),
@@ -23,8 +24,9 @@ def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="cacc-bench fit-power",
         description=(
-            "Refit the 5x5 battery-power polynomial P(v, u) (kW) to the BMW i3 efficiency-map "
-            "model, print its quality and compare it with the shipped coefficients."
+            "Refit the battery-power model P(v, u) = max(5x5 polynomial, regeneration floor) (kW) "
+            "to the BMW i3 efficiency-map model, print its quality and compare it with the "
+            "shipped coefficients."
         ),
     )
     parser.add_argument(
@@ -47,7 +49,8 @@ def _quality_lines(fit: energy.PowerFit) -> list[str]:
     u0, u1 = g["accel_range_mps2"]
     lv0, lv1 = g["low_speed_range_mps"]
     return [
-        "Battery-power polynomial P(v, u) = sum_k sum_j p[k, j] v^k u^j  (kW; BMW i3 map model)",
+        "Battery power P(v, u) = max(sum_k sum_j p[k, j] v^k u^j, floor(v))  (kW; BMW i3 map "
+        "model; floor: regeneration-limited power, cubic in v)",
         f"grid: v in [{v0:g}, {v1:g}] m/s step {g['speed_step_mps']:g}, u in [{u0:g}, {u1:g}] m/s^2 "
         f"step {g['accel_step_mps2']:g}; {fit.n_points} of {g['n_grid']} points reachable",
         f"  v in [{v0:g}, {v1:g}] m/s: R^2 = {fit.r2:.5f}  RMSE = {fit.rmse_kw:.3f} kW  "
@@ -61,7 +64,7 @@ def _reference_lines(fit: energy.PowerFit) -> list[str]:
     """The refit against the map model at the reference points of docs/spec/energy.md."""
     from envs.energy.fit import reference_errors
 
-    lines = ["at the reference points of docs/spec/energy.md (map model, polynomial, error):"]
+    lines = ["at the reference points of docs/spec/energy.md (map model, fitted model, error):"]
     for v, u, want, got, rel in reference_errors(fit.polynomial()):
         lines.append(f"  v = {v:4.1f} m/s, u = {u:+.0f} m/s^2: {want:7.2f} kW  {got:7.2f} kW  "
                      f"{100 * rel:+5.1f} %")
@@ -80,7 +83,13 @@ def _compare(fit: energy.PowerFit, path: Path) -> tuple[bool, list[str]]:
             f"shipped coefficients ({path}): shape {shipped.coefficients_kw.shape} differs from the "
             f"refit's {ref.shape}"
         ]
-    coef_diff = float(np.max(np.abs(shipped.coefficients_kw - ref)))
+    old_floor = np.array([]) if shipped.floor_kw is None else shipped.floor_kw
+    new_floor = np.array([]) if fit.floor_kw is None else fit.floor_kw
+    if old_floor.shape != new_floor.shape:
+        return True, [f"shipped coefficients ({path}): the regeneration floor differs in form "
+                      "from the refit's (remake with `cacc-bench fit-power --write`)"]
+    coef_diff = float(np.max(np.abs(np.concatenate(
+        [(shipped.coefficients_kw - ref).ravel(), old_floor - new_floor]))))
     v0, v1 = fit.grid["speed_range_mps"]
     u0, u1 = fit.grid["accel_range_mps2"]
     nv = int(round((v1 - v0) / fit.grid["speed_step_mps"])) + 1

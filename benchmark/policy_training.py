@@ -54,21 +54,24 @@ def source_file(job: dict[str, Any]) -> Path:
 def is_done(job: dict[str, Any]) -> bool:
     """Finished in the output folder (trained there, or a shipped copy with the same config)."""
     from benchmark.train_cmd import _finished, job_config
+    from marl.checkpoint import energy_model_id
 
     src = source_file(job)
     if src.exists():
         info = json.loads(src.read_text())
-        if info.get("config") == job_config(job) and info.get("steps", 0) >= job["steps"]:
+        if (info.get("config") == job_config(job) and info.get("steps", 0) >= job["steps"]
+                and info.get("energy_model") == energy_model_id()):
             return (Path(job["out"]) / f"{stem(job)}.pt").exists()
     return _finished(job)
 
 
 def shipped_checkpoint(job: dict[str, Any]) -> Path | None:
-    """The shipped checkpoint of ``job`` if it has the same config and budget."""
+    """The shipped checkpoint of ``job`` if it has the same config, budget and energy model."""
     import torch
 
     from benchmark.train_cmd import job_config
     from controllers.policy import CHECKPOINT_DIR
+    from marl.checkpoint import energy_model_id
 
     path = CHECKPOINT_DIR / f"{stem(job)}.pt"
     curve = path.with_suffix("").with_suffix(".curve.csv")
@@ -76,7 +79,7 @@ def shipped_checkpoint(job: dict[str, Any]) -> Path | None:
         return None
     data = torch.load(path, map_location="cpu", weights_only=True)
     total = data.get("curve_summary", {}).get("total_steps", data.get("steps", 0))
-    if data.get("config") != job_config(job) or not (
+    if data.get("config") != job_config(job) or data.get("energy_model") != energy_model_id() or not (
             job["steps"] <= total <= job["steps"] * (1 + BUDGET_OVERSHOOT)):
         return None
     return path
@@ -104,7 +107,8 @@ def copy_shipped(job: dict[str, Any], path: Path) -> None:
     data = torch.load(path, map_location="cpu", weights_only=True)
     source_file(job).write_text(json.dumps({
         "source": "shipped", "path": str(path), "commit": _last_commit(path),
-        "config": data["config"], "steps": int(data["curve_summary"].get("total_steps", 0)),
+        "config": data["config"], "energy_model": data.get("energy_model"),
+        "steps": int(data["curve_summary"].get("total_steps", 0)),
         "wall_s": data["curve_summary"].get("wall_s"),
     }, indent=1, sort_keys=True))
 
@@ -118,6 +122,7 @@ def record_trained(job: dict[str, Any]) -> None:
                       weights_only=True)
     source_file(job).write_text(json.dumps({
         "source": "trained", "commit": git_sha(), "config": data["config"],
+        "energy_model": data.get("energy_model"),
         "steps": int(data["steps"]), "wall_s": data["curve_summary"].get("wall_s"),
     }, indent=1, sort_keys=True))
 

@@ -35,6 +35,7 @@ from analysis.paper import (
 from benchmark.cli import plain
 from benchmark.executors import EXECUTORS
 from benchmark.policy_training import make_job, source_file, train_stage, tuned_config
+from benchmark.train_cmd import add_population_argument, check_population
 from envs.errors import ConfigError, UnknownNameError
 
 MANIFEST = "reproduce.json"
@@ -55,6 +56,7 @@ def _parser() -> argparse.ArgumentParser:
                         + " (BDC without QSGD; BDC and IA2C at N = 2, 4, 6; BDC on OpenACC)")
     p.add_argument("--executor", choices=EXECUTORS, default="serial")
     p.add_argument("--workers", type=int, default=2, help="processes or Ray CPUs (default 2)")
+    add_population_argument(p)
     p.add_argument("--ray-address", default=None, help="attach to this Ray cluster")
     p.add_argument("--resume", action="store_true",
                    help="complete a reproduction in --out (finished training and runs are kept)")
@@ -181,6 +183,7 @@ def main(argv: list[str]) -> int:
         make_scenario(sc)
     if args.workers < 1:
         raise ConfigError(f"--workers must be >= 1, got {args.workers}")
+    check_population(args.population)
     from benchmark.paths import writable_dir
 
     out = writable_dir(args.out)

@@ -41,11 +41,7 @@ def _parser() -> argparse.ArgumentParser:
                         "(overrides --seed)")
     p.add_argument("--executor", choices=("serial", "process", "ray"), default="serial",
                    help="how several populations run (default serial)")
-    p.add_argument("--population", type=int, default=None, metavar="K",
-                   help="train up to K seeds of one algorithm and scenario in one process as one "
-                        "stacked network (each run exactly as alone); default: all seeds with "
-                        "the serial executor, split evenly over the workers otherwise; 1: one "
-                        "run per process")
+    add_population_argument(p)
     p.add_argument("--workers", type=int, default=2, help="processes or Ray CPUs (default 2)")
     p.add_argument("--ray-address", default=None, help="attach to this Ray cluster")
     p.add_argument("--vehicles", type=int, default=8, help="followers N (default 8)")
@@ -154,6 +150,21 @@ def _train_job(job: dict) -> dict:
         for res, path in zip(results, log_paths, strict=True)]}
 
 
+def add_population_argument(p: argparse.ArgumentParser) -> None:
+    """The ``--population K`` option (checked by :func:`check_population`)."""
+    p.add_argument("--population", type=int, default=None, metavar="K",
+                   help="train up to K seeds of one algorithm and scenario in one process as one "
+                        "stacked network (each run exactly as alone); default: all seeds with "
+                        "the serial executor, split evenly over the workers otherwise; 1: one "
+                        "run per process")
+
+
+def check_population(population: int | None) -> None:
+    """Refuse a ``--population`` below 1 (ConfigError)."""
+    if population is not None and population < 1:
+        raise ConfigError(f"--population must be >= 1, got {population}")
+
+
 def population_jobs(jobs: list[dict], size: int | None, executor: str, workers: int) -> list[dict]:
     """Group runs that differ only in their seed into population jobs (``seeds``).
 
@@ -227,6 +238,7 @@ def _finished(job: dict) -> bool:
     import torch
 
     from envs.naming import checkpoint_stem
+    from marl.checkpoint import energy_model_id
 
     stem = checkpoint_stem(job["algo"], job["scenario"], job["vehicles"], job["seed"])
     final = Path(job["out"]) / f"{stem}.final.pt"
@@ -238,6 +250,12 @@ def _finished(job: dict) -> bool:
             f"{final} holds a finished run with another config or fewer steps than asked "
             f"({data['steps']} < {job['steps']} or config differs); use another --out, or "
             "remove it to train again"
+        )
+    if data.get("energy_model") != energy_model_id():
+        raise ConfigError(
+            f"{final} holds a run trained with another energy model (fingerprint "
+            f"{data.get('energy_model')}, this cacc-bench's is {energy_model_id()}: its reward "
+            "differs); use another --out, or remove it to train again"
         )
     return True
 
@@ -269,8 +287,7 @@ def main(argv: list[str]) -> int:
     check_vehicles(args.vehicles)
     if args.steps < 1:
         raise ConfigError(f"--steps must be >= 1, got {args.steps}")
-    if args.population is not None and args.population < 1:
-        raise ConfigError(f"--population must be >= 1, got {args.population}")
+    check_population(args.population)
     if args.seeds is not None:
         try:
             seeds = list(dict.fromkeys(int(x) for x in args.seeds.split(",") if x.strip()))

@@ -133,9 +133,9 @@ class DMPCController(DistributedMPCBase):
         from envs.energy import load_power_polynomial
 
         cfg: DMPCConfig = self.config
-        coef = load_power_polynomial().coefficients_kw
         self.ocp = build_ocp(
-            cfg, self.model, self.params, coef, cfg.energy_weight, cfg.kinetic_credit
+            cfg, self.model, self.params, load_power_polynomial(), cfg.energy_weight,
+            cfg.kinetic_credit,
         )
         self.solver = make_nlp_solver(self.ocp, cfg.solver, cfg.max_iter, cfg.tol)
         import casadi as ca

@@ -48,13 +48,15 @@ next step anyway) and, with an actuator lag, so is the realised acceleration's r
 ``u = 0`` keeps the speed within the bounds. (Softened speed bounds sharing the slack made the
 interior-point solvers stall when the bound was active.)
 
-Energy term (``mpc``): ``P(v, u)`` is the fitted battery-power polynomial (kW) of
+Energy term (``mpc``): ``P(v, u)`` is the fitted battery-power model (kW) of
 :func:`envs.energy.load_power_polynomial`, the one the reward and the metrics use, evaluated at
-the next speed and the applied acceleration as the env does. A finite-horizon MPC that minimises
+the next speed and the applied acceleration as the env does; its maximum of polynomial and
+regeneration floor is smoothed (``max(a, b) ~ (a + b + sqrt((a - b)^2 + e^2)) / 2``,
+``e`` = :data:`SMOOTH_MAX_KW`) so that the problem stays twice differentiable. A finite-horizon MPC that minimises
 battery energy alone would "earn" energy by braking inside the horizon (regeneration) and leave
 the kinetic energy it lost to the next horizon. So the horizon's energy is charged net of the
 change of kinetic energy valued at the drive's reversible rate ``c`` (kJ per (m/s)^2, fitted
-from the polynomial, :func:`kinetic_energy_rate`); summed over the horizon,
+from the model, :func:`kinetic_energy_rate`); summed over the horizon,
 ``sum_k [P - c v' a' + c dt a'^2/2] dt = E_battery - c (v_H^2 - v_0^2)/2`` exactly. What remains
 is the drive's loss (motor, regeneration limits, drag, rolling, auxiliaries), which is what the
 controller can actually save.
@@ -80,8 +82,9 @@ from __future__ import annotations
 
 import math
 from abc import abstractmethod
+from collections.abc import Callable
 from dataclasses import dataclass, fields
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -92,6 +95,9 @@ from envs.errors import ConfigError
 from envs.interrupt import raise_if_interrupted
 from envs.params import PlatoonParams
 from envs.platoon import PlatoonState
+
+if TYPE_CHECKING:
+    from envs.energy import PowerPolynomial
 
 TERMINAL_CHOICES = ("lqr", "stage")
 
@@ -289,20 +295,25 @@ def lqr_terminal_matrix(config: MPCConfig, model: VehicleModel) -> np.ndarray:
     return 0.5 * (P + P.T)
 
 
-def kinetic_energy_rate(coefficients_kw: np.ndarray) -> float:
+#: Smoothing ``e`` (kW) of the maximum of polynomial and regeneration floor in the MPC's
+#: energy term (the env evaluates the exact maximum).
+SMOOTH_MAX_KW = 1.0
+
+
+def smooth_max(a: Any, b: Any) -> Any:
+    """``(a + b + sqrt((a - b)^2 + e^2)) / 2``: within ``e / 2`` of ``max(a, b)``, smooth."""
+    return 0.5 * (a + b + ((a - b) ** 2 + SMOOTH_MAX_KW**2) ** 0.5)
+
+
+def kinetic_energy_rate(power: Callable[[np.ndarray, np.ndarray], np.ndarray]) -> float:
     """Reversible rate ``c`` (kJ per (m/s)^2) of the drive: ``P(v,u) - P(v,0) ~ c v u``.
 
-    Least squares over ``v`` in [5, 25] m/s, ``u`` in [-1.5, 1.5] m/s^2 (``c`` is close to the
-    equivalent mass in tonnes, 1.52 for the BMW i3).
+    Least squares over ``v`` in [5, 25] m/s, ``u`` in [-1.5, 1.5] m/s^2 of the power model
+    ``power(v, u)`` (kW) (``c`` is close to the equivalent mass in tonnes, 1.52 for the BMW i3).
     """
-    coef = np.asarray(coefficients_kw, dtype=np.float64)
     v, u = np.meshgrid(np.linspace(5.0, 25.0, 41), np.linspace(-1.5, 1.5, 31))
-    k = np.arange(coef.shape[0])[:, None, None, None]
-    j = np.arange(coef.shape[1])[None, :, None, None]
-    vk = v[None, None] ** k
-    uj = u[None, None] ** j
-    p = (coef[:, :, None, None] * vk * uj).sum(axis=(0, 1))
-    p0 = (coef[:, :1, None, None] * vk[:, :1]).sum(axis=(0, 1))
+    p = np.asarray(power(v, u), dtype=np.float64)
+    p0 = np.asarray(power(v, np.zeros_like(u)), dtype=np.float64)
     x = v * u
     return float(((p - p0) * x).sum() / (x * x).sum())
 
@@ -578,7 +589,7 @@ def build_ocp(
     config: MPCConfig,
     model: VehicleModel,
     params: PlatoonParams,
-    energy_coefficients_kw: np.ndarray | None = None,
+    energy_model: PowerPolynomial | None = None,
     energy_weight: float = 0.0,
     kinetic_credit: bool = True,
 ) -> OCP:
@@ -592,17 +603,15 @@ def build_ocp(
         The env's model (lag or not).
     params : PlatoonParams
         Bounds.
-    energy_coefficients_kw : (K, J) array, optional
-        Fitted power polynomial ``p[k, j]`` (kW) for the energy term; None for no energy term
-        (the quadratic problem of ``mpc-qp``).
+    energy_model : PowerPolynomial, optional
+        Fitted power model (kW) for the energy term; None for no energy term (the quadratic
+        problem of ``mpc-qp``).
     energy_weight : float
         Weight of the power (per kW per step).
     kinetic_credit : bool
         Charge the horizon's energy net of the change of kinetic energy (module docstring).
     """
     import casadi as ca
-
-    from envs.energy import PowerPolynomial
 
     h = config.horizon
     nx = model.nx
@@ -623,9 +632,9 @@ def build_ocp(
     p_term = lqr_terminal_matrix(config, model) if config.terminal == "lqr" else None
     poly = None
     c_ke = 0.0
-    if energy_coefficients_kw is not None and energy_weight > 0:
-        poly = PowerPolynomial(energy_coefficients_kw)
-        c_ke = kinetic_energy_rate(energy_coefficients_kw) if kinetic_credit else 0.0
+    if energy_model is not None and energy_weight > 0:
+        poly = energy_model
+        c_ke = kinetic_energy_rate(energy_model) if kinetic_credit else 0.0
     dt = model.dt_s
     z_parts: list[Any] = []
     g_parts: list[Any] = []
@@ -662,7 +671,7 @@ def build_ocp(
         f += config.w_accel * u**2 + config.w_jerk * (u - x[nx - 1]) ** 2
         f += config.w_slack * s**2 + config.w_slack_l1 * s
         if poly is not None:
-            e = poly.expression(v_n, a_n)
+            e = poly.expression(v_n, a_n, smooth_max)
             if c_ke:
                 e = e - c_ke * v_n * a_n + c_ke * dt * a_n**2 / 2
             f += energy_weight * e

@@ -4,7 +4,8 @@ A checkpoint is one ``torch.save`` file holding only tensors, strings, numbers, 
 loaded with ``torch.load(weights_only=True)`` (no pickled code). It stores the acting weights of
 every agent (stacked ``(N, ...)`` tensors, float16: the policy controller evaluates exactly these
 weights, cast back to float32), the algorithm, its config, the scenario, N, the seed, the number of
-training steps, the training curve summary and a format version. Loading a checkpoint of another
+training steps, the training curve summary, the fingerprint of the energy model its reward used
+(:func:`energy_model_id`) and a format version. Loading a checkpoint of another
 format version, algorithm or N fails with a :class:`envs.errors.ConfigError` naming the file and
 the command that makes the right one.
 """
@@ -26,6 +27,14 @@ def train_command(algo: str, scenario: str, n_vehicles: int, seed: int = 0, out:
     """The ``cacc-bench train`` command that makes a checkpoint."""
     cmd = f"cacc-bench train --algo {algo} --scenario {scenario} --vehicles {n_vehicles} --seed {seed}"
     return cmd + (f" --out {out}" if out else "")
+
+
+def energy_model_id() -> str:
+    """Fingerprint of the shipped energy model (the reward's power term): a checkpoint records
+    it, and a shipped or finished run counts as the same run only under the same model."""
+    from envs.energy.power import _default_polynomial
+
+    return _default_polynomial().fingerprint
 
 
 def save_checkpoint(
@@ -51,6 +60,7 @@ def save_checkpoint(
         "seed": int(seed),
         "steps": int(steps),
         "curve_summary": {k: float(v) for k, v in curve_summary.items()},
+        "energy_model": energy_model_id(),
         "weights": {k: v.detach().to(WEIGHT_DTYPE).contiguous() for k, v in weights.items()},
     }
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -180,7 +180,7 @@ def test_assumed_predecessor_trajectory_from_stale_messages() -> None:
 def test_kinetic_energy_rate_is_about_the_equivalent_mass() -> None:
     from envs.energy import VehicleParams, load_power_polynomial
 
-    c = kinetic_energy_rate(load_power_polynomial().coefficients_kw)
+    c = kinetic_energy_rate(load_power_polynomial())
     m_t = VehicleParams().equivalent_mass_kg / 1000
     assert 0.95 * m_t < c < 1.15 * m_t
 

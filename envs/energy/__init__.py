@@ -10,10 +10,11 @@ at speed ``v`` (m/s) with acceleration ``u`` (m/s^2):
     ``P_batt = T_m omega_m + P_loss(n, T_m) + P_aux`` with the motor + inverter loss from the loss
     map. See :func:`map_operating_point`.
 ``"poly"``
-    The 5 x 5 polynomial ``P(v, u) = sum_k sum_j p[k, j] v^k u^j`` fitted to the map model by
-    :func:`fit_power_polynomial` and shipped in ``data/energy/power_poly.json``. This is the one
-    model that the reward, the MPC cost and the energy metric use. :class:`PowerPolynomial` is
-    its fast evaluator.
+    The fitted model ``P(v, u) = max(sum_k sum_j p[k, j] v^k u^j, floor(v))``: a 5 x 5 polynomial
+    where regeneration is not limited and the regeneration-limited power as a cubic ``floor(v)``,
+    fitted to the map model by :func:`fit_power_polynomial` and shipped in
+    ``data/energy/power_poly.json``. This is the one model that the reward, the MPC cost and the
+    energy metric use. :class:`PowerPolynomial` is its fast evaluator.
 ``"vtcpem"``
     The VT-CPEM model of a Nissan Leaf (Fiori, Ahn, Rakha, Applied Energy 168, 2016), for
     sensitivity studies. See :func:`vtcpem_battery_power_kw`.
@@ -22,7 +23,8 @@ Sign convention: positive power is drawn from the battery, negative power (regen
 into it. Only numpy is imported; nothing here reads files outside the package's data folder.
 
 The modules: :mod:`envs.energy.vehicle` (data), :mod:`envs.energy.map_model` (physical
-models), :mod:`envs.energy.power` (runtime polynomial), :mod:`envs.energy.fit` (offline fit).
+models), :mod:`envs.energy.power` (runtime model) with its kernel :mod:`envs.energy.horner`,
+:mod:`envs.energy.fit` (offline fit).
 """
 
 from __future__ import annotations

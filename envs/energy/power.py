@@ -1,124 +1,42 @@
-"""Runtime battery power: the fitted polynomial ``P(v, u)`` that the reward, the MPC cost and the
-energy metric use (its fast evaluator and loader), the model dispatch and energy integration.
+"""Runtime battery power: the fitted model ``P(v, u) = max(polynomial(v, u), floor(v))`` that the
+reward, the MPC cost and the energy metric use (its fast evaluator and loader), the model dispatch
+and energy integration.
 """
 
 
 from __future__ import annotations
 
 import functools
+import hashlib
 import json
 import math
-import threading
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from envs.energy.horner import FloatArray, Horner2D, evaluate
 from envs.energy.vehicle import DEFAULT_POLYNOMIAL_FILE, EnergyDataError, _as_path
 from envs.errors import ConfigError
 
-FloatArray = NDArray[np.floating[Any]]
-
 #: Model names accepted by :func:`battery_power_kw`.
 MODELS: tuple[str, ...] = ("poly", "map", "vtcpem")
-#: Format tag of ``power_poly.json``.
-POLYNOMIAL_FORMAT = "cacc-bench power polynomial 1"
-
-# ---------------------------------------------------------------------------------------------
-# The polynomial
-# ---------------------------------------------------------------------------------------------
-
-
-_HORNER_BLOCK = 8192  # elements per block: the (K * block) scratch stays in cache
-
-
-class _Horner2D:
-    """Evaluation of ``sum_{k,j} c[k, j] v^k u^j`` with few numpy calls on flat arrays.
-
-    Per block of at most ``_HORNER_BLOCK`` elements: the powers ``u^0..u^(J-1)`` are formed as
-    the rows of a ``(J, n)`` scratch array, one matrix product ``c @ U`` gives the K polynomials
-    in ``u`` at once (BLAS), and Horner's scheme in ``v`` combines them into the output. About
-    ``J + 2 K`` ufunc calls and one small GEMM per block, all on contiguous rows (several times
-    faster than a Horner scheme of ufunc calls in both variables).
-    """
-
-    __slots__ = ("coef", "rows", "_typed", "_local")
-
-    def __init__(self, coef: NDArray[np.float64]) -> None:
-        self.coef = coef
-        self.rows = tuple(tuple(float(c) for c in row) for row in coef)
-        self._typed: dict[np.dtype[Any], FloatArray] = {}
-        # scratch per thread and dtype: fresh large arrays every call would page-fault
-        self._local = threading.local()
-
-    def _scratch(self, dtype: np.dtype[Any], block: int) -> tuple[FloatArray, FloatArray]:
-        cache = getattr(self._local, "cache", None)
-        if cache is None:
-            cache = self._local.cache = {}
-        bufs = cache.get(dtype)
-        if bufs is None or bufs[0].shape[1] < block:
-            n_v, n_u = self.coef.shape
-            bufs = cache[dtype] = (
-                np.empty((n_u, block), dtype=dtype),
-                np.empty((n_v, block), dtype=dtype),
-            )
-        return bufs
-
-    def __call__(self, v: FloatArray, u: FloatArray, out: FloatArray) -> None:
-        """Evaluate into ``out`` (1-D contiguous); ``v``, ``u``: 1-D of its size, or 0-d."""
-        size = out.size
-        if size == 0:
-            return
-        n_v, n_u = self.coef.shape
-        dtype = out.dtype
-        coef = self._typed.get(dtype)
-        if coef is None:
-            coef = self._typed[dtype] = np.ascontiguousarray(self.coef, dtype=dtype)
-        block = min(size, _HORNER_BLOCK)
-        upow_buf, inner_buf = self._scratch(dtype, block)
-        mul, add = np.multiply, np.add
-        for start in range(0, size, block):
-            stop = min(start + block, size)
-            n = stop - start
-            upow = upow_buf[:, :n] if n == upow_buf.shape[1] else np.empty((n_u, n), dtype=dtype)
-            inner = inner_buf[:, :n] if n == inner_buf.shape[1] else np.empty((n_v, n), dtype=dtype)
-            ub = u if u.ndim == 0 else u[start:stop]
-            upow[0] = 1.0
-            if n_u > 1:
-                upow[1] = ub
-            for j in range(2, n_u):
-                mul(upow[j - 1], ub, out=upow[j])
-            np.matmul(coef, upow, out=inner)
-            vb = v if v.ndim == 0 else v[start:stop]
-            ob = out[start:stop]
-            if n_v == 1:
-                ob[...] = inner[0]
-                continue
-            mul(inner[n_v - 1], vb, out=ob)
-            for k in range(n_v - 2, 0, -1):
-                add(ob, inner[k], out=ob)
-                mul(ob, vb, out=ob)
-            add(ob, inner[0], out=ob)
-
-
-def _flat(a: NDArray[Any], shape: tuple[int, ...]) -> NDArray[Any]:
-    """``a`` as a 1-D array of the broadcast shape's size (a 0-d array stays 0-d)."""
-    if a.ndim == 0:
-        return a
-    if a.shape != shape:
-        a = np.broadcast_to(a, shape)
-    return a.reshape(-1)
-
+#: Format tag of ``power_poly.json`` (version 2 adds the regeneration floor ``floor_kw``).
+POLYNOMIAL_FORMAT = "cacc-bench power polynomial 2"
+#: Format tags :func:`load_power_polynomial` reads.
+READABLE_FORMATS: tuple[str, ...] = ("cacc-bench power polynomial 1", POLYNOMIAL_FORMAT)
 
 class PowerPolynomial:
-    """Fast evaluator of ``P(v, u) = sum_{k,j} p[k, j] v^k u^j`` (kW, SI arguments).
+    """Fast evaluator of ``P(v, u) = max(sum_{k,j} p[k, j] v^k u^j, floor(v))`` (kW, SI arguments).
 
-    Evaluation forms the powers of ``u``, multiplies by the coefficient matrix (one small GEMM per
-    block of 8192 elements) and applies Horner's scheme in ``v``; no Python loop over elements. float32 inputs give
-    float32 results (computed in float32); anything else gives float64. Safe to share between
-    threads (no shared scratch).
+    The polynomial models the drive where regeneration is not limited; ``floor(v) = sum_i f[i] v^i``
+    (optional) is the battery power when the regeneration limit holds it flat (hard braking, the
+    friction brakes take the rest). Evaluation forms the powers of ``u``, multiplies by the
+    coefficient matrix (one small GEMM per block of 8192 elements) and applies Horner's scheme in
+    ``v``; no Python loop over elements. float32 inputs give float32 results (computed in
+    float32); anything else gives float64. Safe to share between threads (no shared scratch).
 
     Parameters
     ----------
@@ -126,12 +44,18 @@ class PowerPolynomial:
         ``p[k, j]``, the coefficient of ``v^k u^j`` (kW / (m/s)^k / (m/s^2)^j); K, J >= 2.
     metadata : mapping, optional
         Provenance and fit quality (what ``power_poly.json`` holds besides the coefficients).
+    floor_kw : array_like, shape (I,), optional
+        ``f[i]``, the coefficient of ``v^i`` of the regeneration floor (kW / (m/s)^i); none when
+        omitted (a plain polynomial).
     """
 
-    __slots__ = ("_coef", "_p", "_p_dv", "_p_du", "metadata")
+    __slots__ = ("_coef", "_floor", "_p", "_p_dv", "_p_du", "metadata")
 
     def __init__(
-        self, coefficients_kw: ArrayLike, metadata: Mapping[str, Any] | None = None
+        self,
+        coefficients_kw: ArrayLike,
+        metadata: Mapping[str, Any] | None = None,
+        floor_kw: ArrayLike | None = None,
     ) -> None:
         coef = np.array(coefficients_kw, dtype=np.float64, copy=True)
         if coef.ndim != 2 or coef.shape[0] < 2 or coef.shape[1] < 2:
@@ -142,13 +66,22 @@ class PowerPolynomial:
             raise ConfigError("power polynomial coefficients must be finite")
         coef.setflags(write=False)
         self._coef = coef
+        self._floor: NDArray[np.float64] | None = None
+        if floor_kw is not None:
+            floor = np.array(floor_kw, dtype=np.float64, copy=True)
+            if floor.ndim != 1 or floor.size < 1 or not np.all(np.isfinite(floor)):
+                raise ConfigError(
+                    f"the regeneration floor must be a finite 1-D coefficient array, got {floor!r}"
+                )
+            floor.setflags(write=False)
+            self._floor = floor
         k = np.arange(coef.shape[0], dtype=np.float64)[:, None]
         j = np.arange(coef.shape[1], dtype=np.float64)[None, :]
         dv = (coef * k)[1:]
         du = (coef * j)[:, 1:]
-        self._p = _Horner2D(coef)
-        self._p_dv = _Horner2D(dv)
-        self._p_du = _Horner2D(du)
+        self._p = Horner2D(coef)
+        self._p_dv = Horner2D(dv)
+        self._p_du = Horner2D(du)
         self.metadata: dict[str, Any] = dict(metadata or {})
 
     @property
@@ -157,12 +90,28 @@ class PowerPolynomial:
         return self._coef
 
     @property
+    def floor_kw(self) -> NDArray[np.float64] | None:
+        """``f[i]`` (read-only), the coefficient of ``v^i`` of the regeneration floor; or None."""
+        return self._floor
+
+    @property
     def degree(self) -> tuple[int, int]:
         """Highest powers of speed and acceleration."""
         return self._coef.shape[0] - 1, self._coef.shape[1] - 1
 
+    @property
+    def fingerprint(self) -> str:
+        """12 hex digits identifying the coefficients (and floor): the energy model a policy was
+        trained with, recorded in its checkpoint."""
+        h = hashlib.sha256(self._coef.astype("<f8").tobytes())
+        if self._floor is not None:
+            h.update(b"floor")
+            h.update(self._floor.astype("<f8").tobytes())
+        return h.hexdigest()[:12]
+
     def __repr__(self) -> str:
-        return f"PowerPolynomial(degree={self.degree})"
+        floor = "" if self._floor is None else f", floor degree {self._floor.size - 1}"
+        return f"PowerPolynomial(degree={self.degree}{floor})"
 
     def __call__(
         self, speed_mps: ArrayLike, accel_mps2: ArrayLike, out: FloatArray | None = None
@@ -181,24 +130,65 @@ class PowerPolynomial:
         ndarray
             ``out`` if given; a 0-d array for scalar arguments.
         """
-        return self._evaluate(self._p, speed_mps, accel_mps2, out)
+        if self._floor is None:
+            return evaluate(self._p, speed_mps, accel_mps2, out)
+        v = np.asarray(speed_mps)
+        floor = self.floor_at(v)
+        result = evaluate(self._p, v, accel_mps2, out)
+        return np.maximum(result, floor.astype(result.dtype, copy=False), out=result)
+
+    def floor_at(self, speed_mps: ArrayLike) -> FloatArray:
+        """The regeneration floor (kW) at speed (m/s); ``-inf`` without a floor."""
+        v = np.asarray(speed_mps)
+        dtype = np.float32 if v.dtype == np.float32 else np.float64
+        if self._floor is None:
+            return np.full(v.shape, -np.inf, dtype=dtype)
+        f = self._floor.astype(dtype)
+        out = np.full(v.shape, f[-1], dtype=dtype)
+        for c in f[-2::-1]:
+            out *= v
+            out += c
+        return out
+
+    def _floor_binds(self, speed_mps: ArrayLike, accel_mps2: ArrayLike) -> NDArray[np.bool_]:
+        v = np.asarray(speed_mps)
+        return np.asarray(evaluate(self._p, v, accel_mps2, None) < self.floor_at(v))
 
     def dP_dv(
         self, speed_mps: ArrayLike, accel_mps2: ArrayLike, out: FloatArray | None = None
     ) -> FloatArray:
-        """Partial derivative ``dP/dv`` (kW per m/s); arguments as :meth:`__call__`."""
-        return self._evaluate(self._p_dv, speed_mps, accel_mps2, out)
+        """Partial derivative ``dP/dv`` (kW per m/s); arguments as :meth:`__call__` (the floor's
+        slope where the floor binds)."""
+        if self._floor is None:
+            return evaluate(self._p_dv, speed_mps, accel_mps2, out)
+        binds = self._floor_binds(speed_mps, accel_mps2)
+        slope = np.polynomial.polynomial.polyval(np.asarray(speed_mps, dtype=np.float64),
+                                                 np.polynomial.polynomial.polyder(self._floor))
+        result = evaluate(self._p_dv, speed_mps, accel_mps2, out)
+        result[...] = np.where(binds, slope, result)
+        return result
 
     def dP_du(
         self, speed_mps: ArrayLike, accel_mps2: ArrayLike, out: FloatArray | None = None
     ) -> FloatArray:
-        """Partial derivative ``dP/du`` (kW per m/s^2); arguments as :meth:`__call__`."""
-        return self._evaluate(self._p_du, speed_mps, accel_mps2, out)
+        """Partial derivative ``dP/du`` (kW per m/s^2); arguments as :meth:`__call__` (0 where
+        the floor binds)."""
+        if self._floor is None:
+            return evaluate(self._p_du, speed_mps, accel_mps2, out)
+        binds = self._floor_binds(speed_mps, accel_mps2)
+        result = evaluate(self._p_du, speed_mps, accel_mps2, out)
+        result[...] = np.where(binds, 0.0, result)
+        return result
 
-    def expression(self, speed: Any, accel: Any) -> Any:
+    def expression(
+        self, speed: Any, accel: Any, maximum: Callable[[Any, Any], Any] = max
+    ) -> Any:
         """Evaluate with plain ``*`` and ``+`` (Horner): for Python floats or symbolic types.
 
         Works with CasADi ``SX``/``MX``, sympy symbols, Python floats (fast for one point).
+        ``maximum(polynomial, floor)`` combines the two parts when there is a floor: the
+        built-in ``max`` suits floats; pass ``casadi.fmax``, ``sympy.Max`` or a smooth maximum
+        for symbolic arguments.
         """
         result: Any = None
         for row in self._p.rows[::-1]:
@@ -206,55 +196,12 @@ class PowerPolynomial:
             for c in row[-2::-1]:
                 inner = inner * accel + c
             result = inner if result is None else result * speed + inner
-        return result
-
-    @staticmethod
-    def _evaluate(
-        plan: _Horner2D,
-        speed_mps: ArrayLike,
-        accel_mps2: ArrayLike,
-        out: FloatArray | None,
-    ) -> FloatArray:
-        v = speed_mps if isinstance(speed_mps, np.ndarray) else np.asarray(speed_mps)
-        u = accel_mps2 if isinstance(accel_mps2, np.ndarray) else np.asarray(accel_mps2)
-        if v.dtype == np.float32 and u.dtype == np.float32:
-            dtype: type[np.floating[Any]] = np.float32
-        else:
-            dtype = np.float64
-        shape = v.shape if v.shape == u.shape else np.broadcast_shapes(v.shape, u.shape)
-        if (
-            out is None
-            and v.ndim > 1
-            and v.shape == u.shape
-            and v.strides == u.strides
-            and v.flags.f_contiguous
-            and not v.flags.c_contiguous
-        ):
-            # Fortran-ordered inputs (the env's (B, N) state): flatten in memory order, no copy
-            result = np.empty(shape, dtype=dtype, order="F")
-            plan(v.ravel(order="F"), u.ravel(order="F"), result.ravel(order="F"))
+        if self._floor is None:
             return result
-        vf, uf = _flat(v, shape), _flat(u, shape)
-        if out is None:
-            result = np.empty(shape, dtype=dtype)
-            plan(vf, uf, result.reshape(-1))
-            return result
-        if not isinstance(out, np.ndarray) or out.dtype.kind != "f":
-            raise TypeError("out must be a floating-point numpy array")
-        if out.shape != shape:
-            raise ValueError(f"out has shape {out.shape}, the arguments broadcast to {shape}")
-        if (
-            out.flags.c_contiguous
-            and not np.may_share_memory(out, v)
-            and not np.may_share_memory(out, u)
-        ):
-            plan(vf, uf, out.reshape(-1))
-            return out
-        result = np.empty(shape, dtype=out.dtype)
-        plan(vf, uf, result.reshape(-1))
-        out[...] = result
-        return out
-
+        floor: Any = float(self._floor[-1])
+        for c in self._floor[-2::-1]:
+            floor = floor * speed + float(c)
+        return maximum(result, floor)
 
 def load_power_polynomial(path: str | Path | None = None) -> PowerPolynomial:
     """Load a fitted polynomial (``power_poly.json`` format).
@@ -299,8 +246,25 @@ def load_power_polynomial(path: str | Path | None = None) -> PowerPolynomial:
             f"power polynomial file {p}: 'coefficients_kw' must be a finite matrix of at least "
             f"2x2, got shape {coef.shape}"
         )
-    metadata = {k: v for k, v in data.items() if k != "coefficients_kw"}
-    return PowerPolynomial(coef, metadata)
+    fmt = data.get("format", READABLE_FORMATS[0])
+    if fmt not in READABLE_FORMATS:
+        raise EnergyDataError(
+            f"power polynomial file {p}: format {fmt!r}, this cacc-bench reads "
+            f"{' or '.join(repr(f) for f in READABLE_FORMATS)}; remake it with "
+            "`cacc-bench fit-power --write`"
+        )
+    floor = data.get("floor_kw")
+    if floor is not None:
+        try:
+            floor = np.array(floor, dtype=np.float64)
+        except (TypeError, ValueError):
+            floor = np.array([np.nan])
+        if floor.ndim != 1 or floor.size < 1 or not np.all(np.isfinite(floor)):
+            raise EnergyDataError(
+                f"power polynomial file {p}: 'floor_kw' must be a finite list of coefficients"
+            )
+    metadata = {k: v for k, v in data.items() if k not in ("coefficients_kw", "floor_kw")}
+    return PowerPolynomial(coef, metadata, floor)
 
 
 @functools.lru_cache(maxsize=1)
