@@ -372,6 +372,32 @@ def test_per_agent_clip_equals_separate_clipping() -> None:
     assert w.grad[1].tolist() == pytest.approx([0.1, 0, 0])  # below the limit: untouched
 
 
+def test_per_agent_clip_norms_do_not_depend_on_the_stack() -> None:
+    """An agent's norm is the same bits whether 3 or 6 agents are stacked (a population of two
+    runs of 3 agents, or one run): a sum over the stacked per-tensor sums rounded otherwise for
+    3 and 6 columns on an AVX-512 CPU, and a population of WAC runs then clipped differently
+    from its runs alone."""
+    from marl.a2c import SeparateActorCriticNet
+
+    gen = torch.Generator().manual_seed(0)
+    for _ in range(20):
+        params = [torch.nn.Parameter(p.detach().clone())
+                  for p in SeparateActorCriticNet(6, 64, True, gen).parameters()]
+        for p in params:
+            p.grad = torch.randn(p.shape, generator=gen) * 0.1
+        halves = [[torch.nn.Parameter(p[sl].detach().clone()) for p in params]
+                  for sl in (slice(0, 3), slice(3, 6))]
+        for half in halves:
+            for p, q in zip(half, params, strict=True):
+                p.grad = q.grad[: 3].clone() if half is halves[0] else q.grad[3:].clone()
+        whole = per_agent_clip_(params, 1.0)
+        parts = torch.cat([per_agent_clip_(h, 1.0) for h in halves])
+        assert torch.equal(whole, parts)
+        for h, sl in zip(halves, (slice(0, 3), slice(3, 6)), strict=True):
+            for p, q in zip(h, params, strict=True):
+                assert torch.equal(p.grad, q.grad[sl])
+
+
 # ----------------------------------------------------------------------------- checkpoints
 def _save(path, **over):
     kw = dict(
