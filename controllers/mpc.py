@@ -65,7 +65,7 @@ class DMPCConfig(MPCConfig):
     energy_weight: float = 0.25
     kinetic_credit: bool = True
     solver: str = "sqp"
-    max_iter: int = 100
+    max_iter: int = 200
     tol: float = 1e-6
 
     def __post_init__(self) -> None:
