@@ -292,8 +292,13 @@ def test_reward_override_changes_training_reward_not_the_score() -> None:
     cruise = Trainer(a, a.config_cls(power_baseline_kw=None), "catchup-v1", 3, 0)
     assert paper.runs[0].env.weights == RewardWeights()
     assert shaped.runs[0].env.weights.power == 0.0 and shaped.runs[0].env.weights.gap == -2.0
-    # P(15 m/s, 0) of the fitted polynomial, resolved and recorded in the config
-    assert cruise.runs[0].config.power_baseline_kw == pytest.approx(4.5, abs=0.05)
+    # P(15 m/s, 0) of the fitted model, resolved and recorded in the config: within 3 % of the
+    # map model's cruise power there
+    from envs.energy import battery_power_kw, map_battery_power_kw
+
+    p0 = cruise.runs[0].config.power_baseline_kw
+    assert p0 == round(float(battery_power_kw(15.0, 0.0)), 6)
+    assert p0 == pytest.approx(float(map_battery_power_kw(15.0, 0.0)), rel=0.03)
     [(_, r_paper)] = paper.run_batch()
     [(_, r_shaped)] = shaped.run_batch()
     [(_, r_cruise)] = cruise.run_batch()
@@ -423,24 +428,33 @@ def test_training_messages_per_algorithm() -> None:
 
 
 def test_a_short_training_learns() -> None:
-    """3e4 steps of IA2C on catchup-v1 (N = 8) take the untrained policy, which collides in every
-    one of 16 validation episodes (sampled, -1,351), to at most 6 collisions and a reward better
-    by more than 400 (measured: 3 collisions, -615; 5 and -699 before the LSTM segment's
-    written-out backward changed the gradients' rounding). A learner whose update does nothing, or pushes the wrong way, fails this
-    in about 10 s."""
+    """3e4 steps of IA2C on catchup-v1 (N = 8), seeds 0, 1 and 2 as one population: the untrained
+    policies collide in every one of 16 validation episodes (sampled); trained, together they
+    collide in at most half of the 48 and score better by more than 300 on average (measured:
+    15, 0 and 6 collisions, rewards -1,177, -753 and -625 from about -1,360: a mean gain of 510;
+    with the policy-gradient sign flipped 0, 13 and 16 collisions and a mean gain of 99). One
+    seed alone is too noisy to judge a learner by at this budget: seed 0 collided 3 times under
+    the plain power polynomial, 7 times after a 1-ulp change in gradient clipping, 15 under the
+    limited-regeneration fit, and 0 with the sign flipped. A learner whose update does nothing,
+    or pushes the wrong way, fails this in about 20 s."""
     from benchmark.policy_eval import evaluate_policy
 
     a = algorithm("ia2c")
-    trainer = Trainer(a, a.config_cls(), "catchup-v1", 8, 0)
-    trainer.runs[0].total_steps = 30_000
-    seeds = list(range(1, 17))
-    before = evaluate_policy("ia2c", trainer.net, "catchup-v1", 8, seeds, "sampled")
-    while trainer.runs[0].steps < 30_000:
+    seeds = [0, 1, 2]
+    trainer = Trainer(a, a.config_cls(), "catchup-v1", 8, seeds)
+    for run in trainer.runs:
+        run.total_steps = 30_000
+    episodes = list(range(1, 17))
+    before = [evaluate_policy("ia2c", trainer.run_net(r), "catchup-v1", 8, episodes, "sampled")
+              for r in trainer.runs]
+    while any(r.steps < 30_000 for r in trainer.runs):
         trainer.run_batch()
-    after = evaluate_policy("ia2c", trainer.net, "catchup-v1", 8, seeds, "sampled")
-    assert before["collisions"] == 16
-    assert after["collisions"] <= 6
-    assert after["reward"] > before["reward"] + 400
+    after = [evaluate_policy("ia2c", trainer.run_net(r), "catchup-v1", 8, episodes, "sampled")
+             for r in trainer.runs]
+    assert all(b["collisions"] == 16 for b in before)
+    assert sum(x["collisions"] for x in after) <= 24
+    gain = sum(x["reward"] - b["reward"] for x, b in zip(after, before, strict=True)) / 3
+    assert gain > 300
 
 
 def test_a_separate_critic_is_skipped_while_acting() -> None:

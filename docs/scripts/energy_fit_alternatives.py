@@ -1,5 +1,6 @@
-"""Fits of the 5x5 power polynomial other than the shipped one, scored at the reference points of
-docs/spec/energy.md (the evidence of docs/energy-fit.md). Run: python docs/scripts/energy_fit_alternatives.py
+"""Fits of the power model, the shipped one (polynomial with a regeneration floor) and plain 5x5
+polynomials, scored at the reference points of docs/spec/energy.md (the evidence of
+docs/energy-fit.md). Run: python docs/scripts/energy_fit_alternatives.py
 """
 
 from __future__ import annotations
@@ -8,7 +9,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from envs.energy import map_operating_point
+from envs.energy import fit_power_polynomial, map_operating_point
 from envs.energy.fit import REFERENCE_POINTS, _axis, _monomial_to_si
 from envs.energy.power import PowerPolynomial
 
@@ -42,35 +43,6 @@ def fit(v_range: tuple[float, float] = (0.5, 30.0), u_range: tuple[float, float]
     else:
         q = np.linalg.lstsq(a, rhs, rcond=None)[0]
     return PowerPolynomial(_monomial_to_si(5, cv, sv).T @ q.reshape(5, 5) @ _monomial_to_si(5, cu, su))
-
-
-class LimitedPower:
-    """``max(polynomial(v, u), floor(v))``: the 5x5 polynomial fitted where regeneration is not
-    limited, and the limited (flat) regeneration power as a cubic in v below it."""
-
-    def __init__(self, weight_offset_kw: float = 2.0) -> None:
-        speeds, accels = _axis(0.5, 30.0, 0.1), _axis(-3.0, 2.5, 0.05)
-        vg, ug = np.meshgrid(speeds, accels, indexing="ij")
-        op = map_operating_point(vg, ug)
-        p = op.battery_power_w / 1000
-        floor = p[:, :1]  # the lowest u of each speed lies in the limited region
-        free = op.reachable & ~np.isclose(p, floor, atol=1e-6)
-        self.floor = np.polyfit(speeds, floor[:, 0], 3)
-        y = p[free]
-        w = 1.0 / (np.abs(y) + weight_offset_kw)
-        self.cv, self.sv = speeds.mean(), 0.5 * (speeds[-1] - speeds[0])
-        self.cu, self.su = 0.5 * (accels[0] + accels[-1]), 0.5 * (accels[-1] - accels[0])
-        a = self._design(vg[free], ug[free])
-        self.q = np.linalg.lstsq(a * w[:, None], y * w, rcond=None)[0]
-
-    def _design(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-        x = np.vander((a - self.cv) / self.sv, 5, True)
-        z = np.vander((b - self.cu) / self.su, 5, True)
-        return (x[:, :, None] * z[:, None, :]).reshape(a.size, -1)
-
-    def __call__(self, v: np.ndarray, u: np.ndarray) -> np.ndarray:
-        v, u = np.atleast_1d(v).astype(float), np.atleast_1d(u).astype(float)
-        return np.maximum(self._design(v, u) @ self.q, np.polyval(self.floor, v))
 
 
 def report(name: str, poly: Callable[[np.ndarray, np.ndarray], np.ndarray]) -> None:
@@ -108,9 +80,9 @@ def regeneration_limit() -> None:
 if __name__ == "__main__":
     regeneration_limit()
     relative: Weight = lambda y: 100.0 / (np.abs(y) + 10.0) ** 2  # noqa: E731
-    report("shipped (unweighted, v<=30)", fit())
+    report("plain, unweighted (shipped before)", fit())
     report("v <= 20 m/s only", fit(v_range=(0.5, 20.0)))
     report("u in [-2.5, 2.5] (the env's bounds)", fit(u_range=(-2.5, 2.5)))
     report("relative weights 1/(|P|+10 kW)^2", fit(weight=relative))
     report("reference points pinned", fit(pin_references=True))
-    report("limit term, weights 1/(|P|+2 kW)^2", LimitedPower())
+    report("shipped: floor, weights 1/(|P|+2 kW)^2", fit_power_polynomial().polynomial())
