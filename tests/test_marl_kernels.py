@@ -422,6 +422,11 @@ def test_checkpoint_round_trip_float16(tmp_path) -> None:
     assert d["weights"]["fc.weight"].dtype == torch.float32
     torch.testing.assert_close(d["weights"]["fc.weight"], w.half().float())
     assert d["curve_summary"]["final_eval_reward"] == -80.0
+    from envs.energy import load_power_polynomial
+
+    # the energy model the reward used: the shipped model's fingerprint
+    assert d["energy_model"] == load_power_polynomial().fingerprint
+    assert len(d["energy_model"]) == 12
 
 
 def test_checkpoint_mismatches_fail_clearly(tmp_path) -> None:

@@ -16,12 +16,16 @@ from benchmark.policy_training import (
     source_file,
 )
 from benchmark.train_cmd import job_config
+from envs.errors import ConfigError
+from marl.checkpoint import energy_model_id
 
 
-def _ship(folder: Path, job: dict, total_steps: int, **config_changes: object) -> Path:
+def _ship(folder: Path, job: dict, total_steps: int, energy_model: str | None = None,
+          **config_changes: object) -> Path:
     config = {**job_config(job), **config_changes}
     path = folder / "bdc__catchup-v1__n8__s0.pt"
     torch.save({"config": config, "steps": total_steps // 2,
+                "energy_model": energy_model or energy_model_id(),
                 "curve_summary": {"total_steps": total_steps, "wall_s": 12.5}}, path)
     path.with_suffix("").with_suffix(".curve.csv").write_text("episode,steps\n1,720\n")
     return path
@@ -47,6 +51,28 @@ def test_a_shipped_run_stands_in_only_with_the_same_config_and_budget(
     assert shipped_checkpoint(job) is None
     _ship(shipped, job, 600_000, gamma=0.99)
     assert shipped_checkpoint(job) is None
+    _ship(shipped, job, 600_000, energy_model="0123456789ab")  # trained under another reward
+    assert shipped_checkpoint(job) is None
+
+
+def test_a_run_trained_under_another_energy_model_is_not_done(tmp_path: Path, job: dict) -> None:
+    """A copied or finished run made under another energy model (its reward differed) is not
+    this job: the copy is redone, a finished run in the folder is refused, naming the model."""
+    import json
+
+    path = _ship(tmp_path / "shipped", job, 600_720)
+    copy_shipped(job, path)
+    assert is_done(job)
+    info = json.loads(source_file(job).read_text())
+    assert info["energy_model"] == energy_model_id()
+    source_file(job).write_text(json.dumps({**info, "energy_model": "0123456789ab"}))
+    assert not is_done(job)
+    source_file(job).unlink()
+    final = Path(job["out"]) / "bdc__catchup-v1__n8__s0.final.pt"
+    torch.save({"config": job_config(job), "steps": 600_720, "energy_model": "0123456789ab"},
+               final)
+    with pytest.raises(ConfigError, match="another energy model"):
+        is_done(job)
 
 
 def test_a_copied_run_is_done_and_records_where_it_came_from(tmp_path: Path, job: dict) -> None:
