@@ -52,8 +52,8 @@ Energy term (``mpc``): ``P(v, u)`` is the fitted battery-power model (kW) of
 :func:`envs.energy.load_power_polynomial`, the one the reward and the metrics use, evaluated at
 the next speed and the applied acceleration as the env does; its maximum of polynomial and
 regeneration floor is smoothed (``max(a, b) ~ (a + b + sqrt((a - b)^2 + e^2)) / 2``,
-``e`` = :data:`SMOOTH_MAX_KW`) so that the problem stays twice differentiable. A finite-horizon MPC that minimises
-battery energy alone would "earn" energy by braking inside the horizon (regeneration) and leave
+``e`` = the option ``smooth_max_kw``, 3 kW) so that the problem stays twice differentiable.
+A finite-horizon MPC that minimises battery energy alone would "earn" energy by braking inside the horizon (regeneration) and leave
 the kinetic energy it lost to the next horizon. So the horizon's energy is charged net of the
 change of kinetic energy valued at the drive's reversible rate ``c`` (kJ per (m/s)^2, fitted
 from the model, :func:`kinetic_energy_rate`); summed over the horizon,
@@ -295,16 +295,9 @@ def lqr_terminal_matrix(config: MPCConfig, model: VehicleModel) -> np.ndarray:
     return 0.5 * (P + P.T)
 
 
-#: Smoothing ``e`` (kW) of the maximum of polynomial and regeneration floor in the MPC's
-#: energy term (the env evaluates the exact maximum). Braking at the regeneration limit is often
-#: optimal, so the optimum sits at the kink: with e = 2 kW the sqp solver hit 100 iterations in
-#: 41 of 800 solves (catchup-v1, N = 4, 200 steps, one seed), with 3 kW in 1 (0 with 200).
-SMOOTH_MAX_KW = 3.0
-
-
-def smooth_max(a: Any, b: Any) -> Any:
+def smooth_max(a: Any, b: Any, e_kw: float) -> Any:
     """``(a + b + sqrt((a - b)^2 + e^2)) / 2``: within ``e / 2`` of ``max(a, b)``, smooth."""
-    return 0.5 * (a + b + ((a - b) ** 2 + SMOOTH_MAX_KW**2) ** 0.5)
+    return 0.5 * (a + b + ((a - b) ** 2 + e_kw**2) ** 0.5)
 
 
 def kinetic_energy_rate(power: Callable[[np.ndarray, np.ndarray], np.ndarray]) -> float:
@@ -594,6 +587,7 @@ def build_ocp(
     energy_model: PowerPolynomial | None = None,
     energy_weight: float = 0.0,
     kinetic_credit: bool = True,
+    smooth_max_kw: float = 3.0,
 ) -> OCP:
     """Build the symbolic problem of one follower (see the module docstring).
 
@@ -612,6 +606,8 @@ def build_ocp(
         Weight of the power (per kW per step).
     kinetic_credit : bool
         Charge the horizon's energy net of the change of kinetic energy (module docstring).
+    smooth_max_kw : float
+        Smoothing of the power model's maximum (:func:`smooth_max`).
     """
     import casadi as ca
 
@@ -673,7 +669,7 @@ def build_ocp(
         f += config.w_accel * u**2 + config.w_jerk * (u - x[nx - 1]) ** 2
         f += config.w_slack * s**2 + config.w_slack_l1 * s
         if poly is not None:
-            e = poly.expression(v_n, a_n, smooth_max)
+            e = poly.expression(v_n, a_n, lambda a, b: smooth_max(a, b, smooth_max_kw))
             if c_ke:
                 e = e - c_ke * v_n * a_n + c_ke * dt * a_n**2 / 2
             f += energy_weight * e

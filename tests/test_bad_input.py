@@ -24,6 +24,7 @@ CASES: dict[str, list[list[str]]] = {
         ["--controllers", "mpc:horizon=0"],
         ["--controllers", "mpc:horizon=-3"],
         ["--controllers", "mpc:horizon=99999999999999999999999"],
+        ["--controllers", "mpc:smooth_max_kw=0"],
         ["--controllers", "cacc:feedforward=maybe"],
         ["--controllers", "cacc:feedforward=2"],
         ["--controllers", "cacc:time_gap_s=-1"],

@@ -23,6 +23,7 @@ from controllers.mpc_common import (
     lqr_weights,
     make_parameters,
     shift_and_hold,
+    smooth_max,
 )
 from controllers.registry import make_controller, parse_controller_list
 from envs.channel import ChannelConfig
@@ -634,3 +635,14 @@ def test_feasible_lag_accel_keeps_the_coasting_speed_in_bounds(lag_s: float) -> 
     free = VehicleModel.from_params(PlatoonParams())
     out = feasible_lag_accel(v, a, free, PlatoonParams())
     assert out.dtype == np.float64 and out.tolist() == a.tolist()
+
+
+def test_the_smoothed_maximum_is_within_half_its_width_of_the_maximum() -> None:
+    """The MPC's energy term smooths max(polynomial, floor): within e / 2 at the kink, closer
+    away from it, never below the maximum; the env keeps the exact maximum."""
+    a = np.linspace(-10.0, 10.0, 201)
+    for e in (1.0, 3.0):
+        s = smooth_max(a, 0.0, e)
+        assert np.all(s >= np.maximum(a, 0.0))
+        assert np.max(s - np.maximum(a, 0.0)) == pytest.approx(e / 2)
+        assert s[-1] - 10.0 < e**2 / 40 + 1e-9  # (sqrt(d^2 + e^2) - d) / 2 <= e^2 / (4 d)
