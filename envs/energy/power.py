@@ -28,6 +28,7 @@ POLYNOMIAL_FORMAT = "cacc-bench power polynomial 2"
 #: Format tags :func:`load_power_polynomial` reads.
 READABLE_FORMATS: tuple[str, ...] = ("cacc-bench power polynomial 1", POLYNOMIAL_FORMAT)
 
+
 class PowerPolynomial:
     """Fast evaluator of ``P(v, u) = max(sum_{k,j} p[k, j] v^k u^j, floor(v))`` (kW, SI arguments).
 
