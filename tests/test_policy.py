@@ -347,21 +347,26 @@ CRAWLING: frozenset[tuple[str, str]] = frozenset()
 
 #: What the README's table reads, three training seeds pooled (150 episodes): (collisions, mean
 #: reward) per algorithm and scenario (catchup-v1 trained 6e5 steps, slowdown-v1 2e6 steps, the
-#: same for all seven); ``ovm`` -641 on catchup-v1 and -731 on slowdown-v1.
+#: same for all seven; retrained under the limited-regeneration energy fit); ``ovm`` -652 on
+#: catchup-v1 and -756 on slowdown-v1.
 MEASURED: dict[tuple[str, str], tuple[int, float]] = {
-    ("bdc", "catchup-v1"): (0, -445.88), ("dcea", "catchup-v1"): (0, -447.41),
-    ("wac", "catchup-v1"): (0, -458.78), ("dial", "catchup-v1"): (0, -499.14),
-    ("commnet", "catchup-v1"): (0, -506.19), ("fprint", "catchup-v1"): (2, -552.78),
-    ("ia2c", "catchup-v1"): (0, -602.57),
-    ("bdc", "slowdown-v1"): (0, -652.45), ("dcea", "slowdown-v1"): (0, -658.35),
-    ("wac", "slowdown-v1"): (1, -641.70), ("dial", "slowdown-v1"): (7, -752.28),
-    ("commnet", "slowdown-v1"): (4, -728.06), ("fprint", "slowdown-v1"): (0, -556.79),
-    ("ia2c", "slowdown-v1"): (1, -631.24),
+    ("bdc", "catchup-v1"): (0, -451.89), ("dcea", "catchup-v1"): (0, -455.88),
+    ("wac", "catchup-v1"): (0, -462.61), ("dial", "catchup-v1"): (0, -511.28),
+    ("commnet", "catchup-v1"): (0, -515.18), ("fprint", "catchup-v1"): (0, -609.28),
+    ("ia2c", "catchup-v1"): (0, -705.54),
+    ("bdc", "slowdown-v1"): (0, -671.44), ("dcea", "slowdown-v1"): (0, -653.80),
+    ("wac", "slowdown-v1"): (0, -667.54), ("dial", "slowdown-v1"): (17, -906.49),
+    ("commnet", "slowdown-v1"): (0, -790.05), ("fprint", "slowdown-v1"): (0, -573.31),
+    ("ia2c", "slowdown-v1"): (0, -651.48),
 }
 
 #: Algorithms that, pooled, are collision-free and better than ``ovm`` on slowdown-v1 (the
 #: README's reading; BDC among them is the MARL-credibility issue's bar).
-SAFE_AND_AHEAD_ON_SLOWDOWN = frozenset({"bdc", "fprint", "dcea"})
+SAFE_AND_AHEAD_ON_SLOWDOWN = frozenset({"bdc", "fprint", "dcea", "ia2c", "wac"})
+
+#: Algorithms whose pooled reward does not beat ``ovm`` on catchup-v1 (the README's reading:
+#: IA2C's three seeds at -693, -774 and -649 against -652).
+BEHIND_OVM_ON_CATCHUP = frozenset({"ia2c"})
 
 
 @pytest.mark.parametrize("scenario", ["catchup-v1", "slowdown-v1"])
@@ -382,9 +387,9 @@ def test_shipped_policies_on_the_evaluation_seeds(name, scenario) -> None:
     - every algorithm ships seeds 0, 1 and 2 and reads the README's numbers (:data:`MEASURED`);
     - every policy collides in a smaller fraction of episodes than its untrained policy (45 to
       48 of 50) and, except those in :data:`CRAWLING`, scores a better reward;
-    - catchup-v1: every algorithm beats ``ovm``; slowdown-v1: exactly the algorithms of
-      :data:`SAFE_AND_AHEAD_ON_SLOWDOWN`, BDC among them, are collision-free and better than
-      ``ovm``.
+    - catchup-v1: every algorithm but those of :data:`BEHIND_OVM_ON_CATCHUP` beats ``ovm``;
+      slowdown-v1: exactly the algorithms of :data:`SAFE_AND_AHEAD_ON_SLOWDOWN`, BDC among
+      them, are collision-free and better than ``ovm``.
     """
     from envs.params import EVAL_SEEDS
 
@@ -404,7 +409,7 @@ def test_shipped_policies_on_the_evaluation_seeds(name, scenario) -> None:
     if (name, scenario) not in CRAWLING:
         assert pooled["reward"] > untrained["reward"] + 50
     if scenario == "catchup-v1":
-        assert pooled["reward"] > ovm["reward"] + 30
+        assert (pooled["reward"] > ovm["reward"] + 30) == (name not in BEHIND_OVM_ON_CATCHUP)
     else:
         safe_and_ahead = pooled["collisions"] == 0 and pooled["reward"] > ovm["reward"]
         assert safe_and_ahead == (name in SAFE_AND_AHEAD_ON_SLOWDOWN)
@@ -412,15 +417,16 @@ def test_shipped_policies_on_the_evaluation_seeds(name, scenario) -> None:
 
 def test_bdc_greedy_is_worse_than_sampled_on_catchup() -> None:
     """The greedy version of BDC's shipped catchup-v1 weights is worse than the sampled one
-    (the README's -663 against -446)."""
+    (the README's -674 against -452)."""
     greedy = pooled_evaluation("bdc", "catchup-v1", "greedy")
     assert greedy["reward"] < MEASURED[("bdc", "catchup-v1")][1] - 100
 
 
 def test_bdc_slowdown_curves_at_2e6_steps() -> None:
-    """``docs/bdc-slowdown-study.md``: the three shipped BDC seeds on slowdown-v1 (2e6 steps)
-    keep collision-free validation snapshots scoring -667.2, -691.4 and -693.3 (at 1e6 steps:
-    -728.0, -914.7, -838.9; ``ovm`` -764.9 on the same validation seeds)."""
+    """The README: the three shipped BDC seeds on slowdown-v1 (2e6 steps, retrained under the
+    limited-regeneration fit) keep collision-free validation snapshots scoring -705.9, -710.8
+    and -693.3 (under the plain polynomial: -667.2, -691.4, -693.3; at 1e6 steps -728.0,
+    -914.7, -838.9, ``docs/bdc-slowdown-study.md``)."""
     import pandas as pd
 
     from controllers.policy import CHECKPOINT_DIR
@@ -431,7 +437,7 @@ def test_bdc_slowdown_curves_at_2e6_steps() -> None:
         ev = curve.dropna(subset=["eval_reward_sampled"])
         assert ev["steps"].max() >= 2_000_000
         best.append(ev.loc[ev["eval_collisions_sampled"] == 0, "eval_reward_sampled"].max())
-    assert np.round(best, 1).tolist() == [-667.2, -691.4, -693.3]
+    assert np.round(best, 1).tolist() == [-705.9, -710.8, -693.3]
 
 
 @pytest.mark.parametrize(("controller", "scenario", "n"), [
