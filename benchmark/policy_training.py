@@ -54,13 +54,13 @@ def source_file(job: dict[str, Any]) -> Path:
 def is_done(job: dict[str, Any]) -> bool:
     """Finished in the output folder (trained there, or a shipped copy with the same config)."""
     from benchmark.train_cmd import _finished, job_config
-    from marl.checkpoint import energy_model_id
+    from marl.checkpoint import same_energy_model
 
     src = source_file(job)
     if src.exists():
         info = json.loads(src.read_text())
         if (info.get("config") == job_config(job) and info.get("steps", 0) >= job["steps"]
-                and info.get("energy_model") == energy_model_id()):
+                and same_energy_model(info)):
             return (Path(job["out"]) / f"{stem(job)}.pt").exists()
     return _finished(job)
 
@@ -71,7 +71,7 @@ def shipped_checkpoint(job: dict[str, Any]) -> Path | None:
 
     from benchmark.train_cmd import job_config
     from controllers.policy import CHECKPOINT_DIR
-    from marl.checkpoint import energy_model_id
+    from marl.checkpoint import same_energy_model
 
     path = CHECKPOINT_DIR / f"{stem(job)}.pt"
     curve = path.with_suffix("").with_suffix(".curve.csv")
@@ -79,7 +79,7 @@ def shipped_checkpoint(job: dict[str, Any]) -> Path | None:
         return None
     data = torch.load(path, map_location="cpu", weights_only=True)
     total = data.get("curve_summary", {}).get("total_steps", data.get("steps", 0))
-    if data.get("config") != job_config(job) or data.get("energy_model") != energy_model_id() or not (
+    if data.get("config") != job_config(job) or not same_energy_model(data) or not (
             job["steps"] <= total <= job["steps"] * (1 + BUDGET_OVERSHOOT)):
         return None
     return path

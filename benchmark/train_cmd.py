@@ -238,7 +238,7 @@ def _finished(job: dict) -> bool:
     import torch
 
     from envs.naming import checkpoint_stem
-    from marl.checkpoint import energy_model_id
+    from marl.checkpoint import energy_model_id, same_energy_model
 
     stem = checkpoint_stem(job["algo"], job["scenario"], job["vehicles"], job["seed"])
     final = Path(job["out"]) / f"{stem}.final.pt"
@@ -251,7 +251,7 @@ def _finished(job: dict) -> bool:
             f"({data['steps']} < {job['steps']} or config differs); use another --out, or "
             "remove it to train again"
         )
-    if data.get("energy_model") != energy_model_id():
+    if not same_energy_model(data):
         raise ConfigError(
             f"{final} holds a run trained with another energy model (fingerprint "
             f"{data.get('energy_model')}, this cacc-bench's is {energy_model_id()}: its reward "

@@ -37,6 +37,11 @@ def energy_model_id() -> str:
     return _default_polynomial().fingerprint
 
 
+def same_energy_model(record: dict[str, Any]) -> bool:
+    """Whether a checkpoint (or a record copied from one) was trained under the shipped model."""
+    return record.get("energy_model") == energy_model_id()
+
+
 def save_checkpoint(
     path: str | Path,
     *,
