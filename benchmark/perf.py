@@ -136,6 +136,8 @@ def main(argv: list[str]) -> int:
     p.add_argument("--population", type=int, default=6, metavar="K",
                    help="seeds trained at once for train_population_env_steps_per_s (default 6; "
                         "0: do not measure populations)")
+    p.add_argument("--device", default="cpu",
+                   help="where the training part trains: cpu (default) or cuda[:K]")
     args = p.parse_args(argv)
     parts = {x.strip() for x in args.only.split(",") if x.strip()}
     unknown = parts - {"env", "harness", "controllers", "train"}
@@ -157,6 +159,9 @@ def main(argv: list[str]) -> int:
     if args.population < 0:
         raise ConfigError(f"--population must be >= 0, got {args.population}")
     if "train" in parts:
+        from marl.a2c import training_device
+
+        training_device(args.device)  # ConfigError for an unknown device or a missing GPU
         unknown_algos = [a for a in algos if a not in MARL_ALGORITHMS]
         if unknown_algos or not algos:
             raise ConfigError(f"--algos: unknown algorithm(s) {unknown_algos or '(none named)'}; "
@@ -196,13 +201,15 @@ def main(argv: list[str]) -> int:
         runs: dict[str, list[float]] = {algo: [] for algo in algos}
         if train_throughput is not None:
             if algos:  # warm-up, not counted: the process's first training pays one-time costs
-                train_throughput(algos[0], steps=500)
+                train_throughput(algos[0], steps=500, device=args.device)
             for _ in range(repeats):
                 for algo in algos:
-                    rate = train_throughput(algo, steps=4_000 if args.quick else 20_000)
+                    rate = train_throughput(algo, steps=4_000 if args.quick else 20_000,
+                                            device=args.device)
                     runs[algo].append(float(rate))
         rates = {algo: float(np.median(r)) for algo, r in runs.items() if r}
         out["train_env_steps_per_s"] = rates
+        out["train_device"] = args.device
         out["train_env_steps_per_s_runs"] = {algo: r for algo, r in runs.items() if r}
         if train_throughput is not None and args.population > 0:
             # the same per-run budget as the one-run figure, K seeds at once, one measurement
@@ -210,7 +217,7 @@ def main(argv: list[str]) -> int:
             out["train_population_size"] = args.population
             out["train_population_env_steps_per_s"] = {
                 algo: float(train_throughput(algo, steps=4_000 if args.quick else 20_000,
-                                             population=args.population))
+                                             population=args.population, device=args.device))
                 for algo in algos}
     if args.json:
         print(json.dumps(out, indent=2, sort_keys=True))
@@ -243,7 +250,8 @@ def _print_table(out: dict[str, Any]) -> None:
             else:
                 print(f"  {name:<{w}} {t}")
     if "train_env_steps_per_s" in out:
-        print("training (environment steps/s, one process, one torch thread; median of the runs):")
+        print(f"training on {out['train_device']} (environment steps/s, one process, one torch "
+              "thread; median of the runs):")
         if not out["train_env_steps_per_s"]:
             print("  (no MARL trainer available)")
         for algo, rate in out["train_env_steps_per_s"].items():

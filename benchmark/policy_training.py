@@ -147,8 +147,9 @@ def train_stage(jobs: list[dict[str, Any]], args: Any, reuse_shipped: bool) -> N
           file=sys.stderr)
     progress = Progress(len(todo), "training runs")
     by_key = {str(Path(j["out"]) / f"{stem(j)}.pt"): j for j in todo}
-    populations = population_jobs(todo, getattr(args, "population", None), args.executor,
-                                  args.workers)
+    device = getattr(args, "device", "cpu")  # where to train; the jobs' results do not say
+    populations = population_jobs([{**j, "device": device} for j in todo],
+                                  getattr(args, "population", None), args.executor, args.workers)
     for res in map_jobs(_train_job, populations, args.executor, args.workers, args.ray_address):
         for run in res["runs"]:
             job = by_key[str(Path(run["checkpoint"]))]

@@ -35,7 +35,7 @@ from analysis.paper import (
 from benchmark.cli import plain
 from benchmark.executors import EXECUTORS
 from benchmark.policy_training import make_job, source_file, train_stage, tuned_config
-from benchmark.train_cmd import add_population_argument, check_population
+from benchmark.train_cmd import add_device_argument, add_population_argument, check_population
 from envs.errors import ConfigError, UnknownNameError
 
 MANIFEST = "reproduce.json"
@@ -57,6 +57,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--executor", choices=EXECUTORS, default="serial")
     p.add_argument("--workers", type=int, default=2, help="processes or Ray CPUs (default 2)")
     add_population_argument(p)
+    add_device_argument(p)
     p.add_argument("--ray-address", default=None, help="attach to this Ray cluster")
     p.add_argument("--resume", action="store_true",
                    help="complete a reproduction in --out (finished training and runs are kept)")
@@ -163,7 +164,7 @@ def eval_stage(jobs: list[dict[str, Any]], scenarios: list[str], budget: Budget,
 def main(argv: list[str]) -> int:
     """Entry point of ``cacc-bench reproduce``."""
     from envs.scenarios import make_scenario
-    from marl.a2c import ALGORITHM_NAMES
+    from marl.a2c import ALGORITHM_NAMES, training_device
 
     t0 = time.perf_counter()
     args = _parser().parse_args(argv)
@@ -184,6 +185,7 @@ def main(argv: list[str]) -> int:
     if args.workers < 1:
         raise ConfigError(f"--workers must be >= 1, got {args.workers}")
     check_population(args.population)
+    training_device(args.device)  # ConfigError for an unknown device or a missing GPU
     from benchmark.paths import writable_dir
 
     out = writable_dir(args.out)

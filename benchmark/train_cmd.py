@@ -44,6 +44,7 @@ def _parser() -> argparse.ArgumentParser:
     add_population_argument(p)
     p.add_argument("--workers", type=int, default=2, help="processes or Ray CPUs (default 2)")
     p.add_argument("--ray-address", default=None, help="attach to this Ray cluster")
+    add_device_argument(p)
     p.add_argument("--vehicles", type=int, default=8, help="followers N (default 8)")
     p.add_argument("--out", default=DEFAULT_OUT,
                    help="output folder (default: the package's controllers/checkpoints, where "
@@ -142,7 +143,8 @@ def _train_job(job: dict) -> dict:
             out, progress=_Bar(job["progress"] and len(seeds) == 1), logs=logs,
             evaluate=validation_evaluator(
                 job["algo"], job["scenario"], job["vehicles"],
-                VALIDATION_SEEDS[: job.get("validation_episodes") or len(VALIDATION_SEEDS)]))
+                VALIDATION_SEEDS[: job.get("validation_episodes") or len(VALIDATION_SEEDS)]),
+            device=job.get("device", "cpu"))
     return {"runs": [
         {"algo": job["algo"], "scenario": job["scenario"], "seed": res.seed,
          "checkpoint": str(res.checkpoint), "curve": str(res.curve_csv), "log": str(path),
@@ -157,6 +159,13 @@ def add_population_argument(p: argparse.ArgumentParser) -> None:
                         "stacked network (each run exactly as alone); default: all seeds with "
                         "the serial executor, split evenly over the workers otherwise; 1: one "
                         "run per process")
+
+
+def add_device_argument(p: argparse.ArgumentParser) -> None:
+    """The ``--device`` option (checked by :func:`marl.a2c.training_device`)."""
+    p.add_argument("--device", default="cpu",
+                   help="where the networks train: cpu (default) or cuda[:K]; environments, "
+                        "validation and checkpoints stay on the CPU")
 
 
 def check_population(population: int | None) -> None:
@@ -265,7 +274,7 @@ def main(argv: list[str]) -> int:
     from benchmark.executors import map_jobs
     from controllers.registry import build_config
     from envs.scenarios import SCENARIOS, check_vehicles, make_scenario, parse_scenario_list
-    from marl.a2c import ALGORITHM_NAMES, algorithm
+    from marl.a2c import ALGORITHM_NAMES, algorithm, training_device
 
     args = _parser().parse_args(argv)
     algos = _names(args.algo, "--algo")
@@ -288,6 +297,7 @@ def main(argv: list[str]) -> int:
     if args.steps < 1:
         raise ConfigError(f"--steps must be >= 1, got {args.steps}")
     check_population(args.population)
+    training_device(args.device)  # ConfigError for an unknown device or a missing GPU
     if args.seeds is not None:
         try:
             seeds = list(dict.fromkeys(int(x) for x in args.seeds.split(",") if x.strip()))
@@ -324,7 +334,7 @@ def main(argv: list[str]) -> int:
     jobs = [
         {"algo": a, "scenario": sc, "vehicles": args.vehicles, "steps": args.steps,
          "seed": seed, "out": args.out, "options": configs[(a, sc)],
-         "progress": tty and single}
+         "progress": tty and single, "device": args.device}
         for seed in seeds for sc in scenarios for a in algos
     ]
     if args.resume:

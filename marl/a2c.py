@@ -298,8 +298,13 @@ class AgentNet(nn.Module):
 
     def initial_state(self, batch: int) -> State:
         """Recurrent state at episode start."""
-        z = torch.zeros(self.n_agents, batch, self.hidden)
+        z = torch.zeros(self.n_agents, batch, self.hidden, device=self.device)
         return {"h": z, "c": z.clone()}
+
+    @property
+    def device(self) -> torch.device:
+        """Where the network's weights are."""
+        return next(self.parameters()).device
 
     def message(self, state: State) -> torch.Tensor | None:
         """What every agent broadcasts this step, ``(N, B, msg_width)`` (None: nothing)."""
@@ -690,15 +695,16 @@ def stack_nets(algo: Algorithm, config: A2CConfig, nets: Sequence[AgentNet]) -> 
 
 
 # ---------------------------------------------------------------------------- returns and losses
-def sharing_matrix(n_agents: int, alpha: float, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+def sharing_matrix(n_agents: int, alpha: float, dtype: torch.dtype = torch.float32,
+                   device: torch.device | str = "cpu") -> torch.Tensor:
     """``(N, N)`` weights ``alpha^|i-j|`` (alpha = 0: own reward only, alpha = 1: global sum)."""
     if not 0.0 <= alpha <= 1.0:
         raise ValueError(f"reward-sharing alpha must lie in [0, 1], got {alpha}")
-    idx = torch.arange(n_agents)
+    idx = torch.arange(n_agents, device=device)
     dist = (idx[:, None] - idx[None, :]).abs().to(dtype)
     if alpha == 0.0:
-        return torch.eye(n_agents, dtype=dtype)
-    return torch.pow(torch.tensor(alpha, dtype=dtype), dist)
+        return torch.eye(n_agents, dtype=dtype, device=device)
+    return torch.pow(torch.tensor(alpha, dtype=dtype, device=device), dist)
 
 
 def share_rewards(reward: torch.Tensor, alpha: float) -> torch.Tensor:
@@ -711,7 +717,7 @@ def share_rewards(reward: torch.Tensor, alpha: float) -> torch.Tensor:
     alpha : float
         Spatial discount in [0, 1].
     """
-    w = sharing_matrix(reward.shape[-1], alpha, reward.dtype)
+    w = sharing_matrix(reward.shape[-1], alpha, reward.dtype, reward.device)
     return reward @ w.T
 
 
@@ -748,11 +754,10 @@ def nstep_returns(
     term = term.expand_as(reward)
     # D_k = number of terminals strictly before step k, k = 0..T
     d = torch.cat([torch.zeros_like(term[:1]), torch.cumsum(term, 0)], 0)  # (T+1, B, N)
-    steps = torch.arange(t_len + 1, dtype=reward.dtype)
+    steps = torch.arange(t_len + 1, dtype=reward.dtype, device=reward.device)
     lag = steps[None, :] - steps[:t_len, None]  # (T, T+1): k - t
-    disc = torch.where(
-        lag >= 0, torch.pow(torch.tensor(gamma, dtype=reward.dtype), lag.clamp(min=0)), 0.0
-    )
+    disc = torch.where(lag >= 0, torch.pow(
+        torch.tensor(gamma, dtype=reward.dtype, device=reward.device), lag.clamp(min=0)), 0.0)
     # k contributes to R_t iff k >= t and no terminal in t..k-1, i.e. D_k == D_t
     same = (d[None, :, ...] == d[:t_len, None, ...]).to(reward.dtype)  # (T, T+1, B, N)
     weights = disc[:, :, None, None] * same
@@ -866,7 +871,8 @@ class Run:
 
     def uniforms(self, shape: tuple[int, ...]) -> torch.Tensor:
         """The run's uniforms for one sampling step (Gumbel-max over the last axis)."""
-        return torch.rand(shape, generator=self.generator).clamp_(1e-12, 1.0)
+        g = self.generator  # on the CPU whatever the training device
+        return torch.rand(shape, generator=g, device=g.device).clamp_(1e-12, 1.0)
 
     def learning_rates(self) -> tuple[float, float]:
         """RMSprop rates of actor and critic parameters."""
@@ -901,7 +907,7 @@ class Run:
             self.return_stats = (n, mean_a + delta * n_b / n, m2)
         n, _, m2 = self.return_stats
         std = math.sqrt(m2 / n) if n > 0 else 1.0
-        return torch.tensor(max(std, 1e-6), dtype=reward.dtype)
+        return torch.tensor(max(std, 1e-6), dtype=reward.dtype, device=reward.device)
 
     def absorbing_value(self, remaining_steps: int) -> float:
         """Per-agent value (unscaled, unshared) of a collided state with ``remaining_steps``
@@ -965,6 +971,28 @@ def _merge_rows(base: dict[str, Any], new: dict[str, Any], runs: Sequence[Run]) 
     return {k: merge(base[k], new[k]) for k in base}
 
 
+def training_device(name: str | torch.device) -> torch.device:
+    """The torch device a :class:`Trainer` trains on: ``cpu`` (default), ``cuda`` or
+    ``cuda:K``. Raises :class:`ConfigError` for another name or a GPU this machine lacks."""
+    try:
+        device = torch.device(name)
+    except (RuntimeError, TypeError):
+        raise ConfigError(f"--device {name!r}: expected cpu, cuda or cuda:K") from None
+    if device.type == "cpu":
+        return device
+    if device.type != "cuda":
+        raise ConfigError(f"--device {name}: training runs on cpu or cuda, not {device.type}")
+    if not torch.cuda.is_available():
+        raise ConfigError(f"--device {name}: this torch ({torch.__version__}) sees no CUDA GPU; "
+                          "train on the CPU (--device cpu, the default) or install a CUDA build "
+                          "of torch on a GPU machine")
+    index = 0 if device.index is None else device.index
+    if index >= torch.cuda.device_count():
+        raise ConfigError(f"--device {name}: this machine has {torch.cuda.device_count()} CUDA "
+                          f"device(s), numbered from 0")
+    return torch.device("cuda", index)
+
+
 #: Structural fields every run of a population shares (they shape the stacked tensors and the
 #: segment loop); the others may differ from run to run.
 POPULATION_SHARED_FIELDS: tuple[str, ...] = ("hidden", "n_step", "episodes_parallel")
@@ -992,6 +1020,10 @@ class Trainer:
     n_vehicles : int
     seed : int or sequence of int
         The runs' seeds (one int: one run).
+    device : str or torch.device
+        Where the network, its gradients and optimiser state live (:func:`training_device`);
+        the environments, the random streams and the checkpoints stay on the CPU, so the
+        same seed draws the same actions' uniforms on every device.
     """
 
     def __init__(
@@ -1001,8 +1033,10 @@ class Trainer:
         scenario_id: str,
         n_vehicles: int,
         seed: int | Sequence[int],
+        device: str | torch.device = "cpu",
     ) -> None:
         torch.set_num_threads(1)
+        self.device = training_device(device)
         seeds = [int(seed)] if isinstance(seed, int | np.integer) else [int(s) for s in seed]
         configs = (
             [config] * len(seeds) if isinstance(config, A2CConfig) else list(config)
@@ -1030,9 +1064,13 @@ class Trainer:
             assert cfg.power_baseline_kw is not None  # resolved above
             run = Run(k, s, cfg, generator, env, slice(k * n, (k + 1) * n),
                       -cfg.reward_w_power * cfg.power_baseline_kw)
-            nets.append(algo.build_net(cfg, n, True, generator))
+            with torch.device("cpu"):
+                nets.append(algo.build_net(cfg, n, True, generator))
             self.runs.append(run)
-        self.net = nets[0] if len(nets) == 1 else stack_nets(algo, resolved[0], nets)
+        # built on the CPU from the CPU generators (the same initial weights on every device)
+        with torch.device("cpu"):
+            net = nets[0] if len(nets) == 1 else stack_nets(algo, resolved[0], nets)
+        self.net = net.to(self.device)
         #: (parameter, is_critic): actor parameters, then the critic's
         self.params = [(p, False) for p in self.net.actor_parameters()] + [
             (p, True) for p in self.net.critic_parameters()]
@@ -1053,16 +1091,16 @@ class Trainer:
                                         critic=not net.separate_critic)
         shape = (self.n_vehicles,) + tuple(logits.shape[1:])
         drawing = {r.index for r in sampling}
-        parts = [r.uniforms(shape) if r.index in drawing else torch.full(shape, 0.5)
+        parts = [r.uniforms(shape) if r.index in drawing else torch.full(shape, 0.5, device="cpu")
                  for r in self.runs]
-        u = parts[0] if len(parts) == 1 else torch.cat(parts)
+        u = (parts[0] if len(parts) == 1 else torch.cat(parts)).to(self.device)
         actions = (logits - torch.log(-torch.log(u))).argmax(-1)
         return {"obs": obs, "front": front, "rear": rear, "out": out, "logits": logits,
                 "actions": actions, "state": new}
 
     def _observation(self, obs_np: np.ndarray) -> torch.Tensor:
         """Env observations ``(B, N, 15)`` -> agent-major ``(N, B, 15)``."""
-        return torch.from_numpy(obs_np).transpose(0, 1).contiguous()
+        return torch.from_numpy(obs_np).transpose(0, 1).contiguous().to(self.device)
 
     def run_batch(self, runs: Sequence[Run] | None = None) -> list[tuple[int, float]]:
         """Run one batch of B episodes of every run in ``runs`` (default all), with an update of
@@ -1095,7 +1133,8 @@ class Trainer:
         A run that diverged stops there (``run.failed`` says why).
         """
         b = self.shape.episodes_parallel
-        obs = [torch.zeros(self.n_vehicles, b, OBS_DIM) for _ in self.runs]  # idle runs: ignored
+        obs = [torch.zeros(self.n_vehicles, b, OBS_DIM, device=self.device)
+               for _ in self.runs]  # idle runs: ignored
         state = self.net.initial_state(b)
         batch = self._start_batches(list(runs), obs, 0)
         live = list(runs)
@@ -1142,6 +1181,7 @@ class Trainer:
         ending: list[Run] = []
         over: set[int] = set()
         sharing: dict[int, list[Run]] = {}  # env -> its live runs
+        actions = actions.cpu()
         for r in live:
             sharing.setdefault(id(batch[r.index].env), []).append(r)
         for group in sharing.values():
@@ -1155,7 +1195,8 @@ class Trainer:
                 bt = self._record(r, batch[r.index], res)
                 if bt.done:
                     over.add(r.index)
-                    bt.seg.bootstrap = torch.zeros(self.shape.episodes_parallel, self.n_vehicles)
+                    bt.seg.bootstrap = torch.zeros(self.shape.episodes_parallel, self.n_vehicles,
+                                                   device=self.device)
                     ending.append(r)
                 else:
                     assert res.observation is not None
@@ -1290,7 +1331,7 @@ class Trainer:
             for j, r in enumerate(group):
                 rows = slice(j * b, (j + 1) * b)
                 obs[r.index] = self._observation(obs_np[rows])
-                r.return_acc = torch.zeros(b, n)
+                r.return_acc = torch.zeros(b, n, device=self.device)
                 out[r.index] = _Batch(env, rows, np.ones(b, dtype=bool), np.zeros(b),
                                       np.zeros(b), seg_start=tick)
         return out
@@ -1339,7 +1380,8 @@ class Trainer:
         if len(group) == len(self.runs):
             logits, values, after = net(seg_state, obs, actions, msgs)
             return logits, values, actions, [r.rows for r in group], after
-        idx = torch.cat([torch.arange(r.rows.start, r.rows.stop) for r in group])
+        idx = torch.cat([torch.arange(r.rows.start, r.rows.stop, device=self.device)
+                         for r in group])
 
         def pick(t: torch.Tensor) -> torch.Tensor:
             return t.index_select(0, idx)
@@ -1356,11 +1398,15 @@ class Trainer:
               actions: torch.Tensor, rows: slice) -> torch.Tensor:
         """The run's A2C loss over its segment from its ``rows`` of the recompute."""
         cfg = run.config
-        mask = torch.from_numpy(np.stack(seg.masks)).to(torch.float32).unsqueeze(-1)  # (T, B, 1)
-        term = torch.from_numpy(np.stack(seg.terms))
-        reward = torch.from_numpy(np.stack(seg.rews)).to(torch.float32)
+        def tensor(parts: list[np.ndarray], dtype: torch.dtype | None = torch.float32
+                   ) -> torch.Tensor:
+            return torch.from_numpy(np.stack(parts)).to(self.device, dtype)
+
+        mask = tensor(seg.masks).unsqueeze(-1)  # (T, B, 1)
+        term = tensor(seg.terms, None)
+        reward = tensor(seg.rews)
         # R_t = r_t + gamma V_absorbing at a step that ended the episode by collision
-        extra = torch.from_numpy(np.stack(seg.absorbed)).to(torch.float32)  # (T, B)
+        extra = tensor(seg.absorbed)  # (T, B)
         reward = reward + cfg.gamma * extra.unsqueeze(-1)
         assert cfg.reward_alpha is not None and seg.bootstrap is not None
         reward = share_rewards(reward * cfg.reward_scale, cfg.reward_alpha)
@@ -1399,7 +1445,8 @@ class Trainer:
             per_agent_clip_(params, clips.pop())
         else:  # a config population: each run clips at its own norm (other rows have no grad)
             per_agent_clip_(params, torch.tensor(
-                [r.config.grad_clip for r in self.runs]).repeat_interleave(self.n_vehicles))
+                [r.config.grad_clip for r in self.runs], device=self.device
+            ).repeat_interleave(self.n_vehicles))
         for r in group:
             self.algo.before_step(r, self.net)
         self._rmsprop_step(group)
@@ -1427,7 +1474,8 @@ class Trainer:
             return {}
         assert nxt is not None
         b = self.shape.episodes_parallel
-        start = {k: torch.zeros(net.n_agents, b, net.hidden) for k in ("ch", "cc")}
+        start = {k: torch.zeros(net.n_agents, b, net.hidden, device=self.device)
+                 for k in ("ch", "cc")}
         for r, _, rw in going:
             for k in start:
                 start[k][r.rows] = after[k][rw]
@@ -1483,8 +1531,9 @@ class Trainer:
 
         view = self._views.get(run.index)
         if view is None:
-            view = self.algo.build_net(run.config, self.n_vehicles, False,
-                                       torch.Generator().manual_seed(0))
+            with torch.device("cpu"):  # validation and checkpoints on the CPU
+                view = self.algo.build_net(run.config, self.n_vehicles, False,
+                                           torch.Generator().manual_seed(0))
             view.requires_grad_(False)
             self._views[run.index] = view
         whole = dict(self.net.named_parameters())
@@ -1536,6 +1585,7 @@ def run_training(
     log: Callable[[str], None] | None = None,
     schedule_steps: int | None = None,
     evaluate: Evaluator | None = None,
+    device: str | torch.device = "cpu",
 ) -> TrainResult:
     """Train ``algo`` for ``total_steps`` environment steps; write checkpoints and curve CSV.
 
@@ -1560,9 +1610,11 @@ def run_training(
     evaluate : callable(net, mode) -> dict, optional
         Validation evaluator (required with ``out_dir``): the benchmark's closed loop on the
         validation seeds, :func:`benchmark.policy_eval.validation_evaluator`.
+    device : str or torch.device
+        Where to train (:func:`training_device`); validation and checkpoints stay on the CPU.
     """
     return run_population(algo, [config], scenario_id, n_vehicles, total_steps, [seed], out_dir,
-                          progress, [log], schedule_steps, evaluate)[0]
+                          progress, [log], schedule_steps, evaluate, device)[0]
 
 
 def run_population(
@@ -1577,6 +1629,7 @@ def run_population(
     logs: Sequence[Callable[[str], None] | None] | None = None,
     schedule_steps: int | None = None,
     evaluate: Evaluator | None = None,
+    device: str | torch.device = "cpu",
 ) -> list[TrainResult]:
     """Train K runs of ``algo`` at once (one :class:`Trainer`): run ``k`` with ``configs[k]`` and
     ``seeds[k]``, each evaluated, selected and saved exactly as :func:`run_training` alone.
@@ -1594,7 +1647,7 @@ def run_population(
         )
     if len({int(s) for s in seeds}) != len(seeds):
         raise ConfigError(f"the runs of a population need distinct seeds, got {list(seeds)}")
-    trainer = Trainer(algo, list(configs), scenario_id, n_vehicles, list(seeds))
+    trainer = Trainer(algo, list(configs), scenario_id, n_vehicles, list(seeds), device)
     runs = trainer.runs
     log_of = list(logs) if logs is not None else [None] * len(runs)
     for r in runs:

@@ -25,7 +25,7 @@ def neighbour_sum(w: torch.Tensor) -> torch.Tensor:
 
 def degree(n_agents: int, like: torch.Tensor) -> torch.Tensor:
     """Number of chain neighbours of each agent, shaped to broadcast against ``like`` (N, ...)."""
-    deg = torch.full((n_agents,), 2.0, dtype=like.dtype)
+    deg = torch.full((n_agents,), 2.0, dtype=like.dtype, device=like.device)
     if n_agents >= 1:
         deg[0] -= 1
         deg[-1] -= 1

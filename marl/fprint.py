@@ -46,7 +46,7 @@ class FPrintNet(SharedTrunkNet):
 
     def initial_state(self, batch: int) -> State:
         state = super().initial_state(batch)
-        state["pi"] = torch.zeros(self.n_agents, batch, N_ACTIONS)
+        state["pi"] = torch.zeros(self.n_agents, batch, N_ACTIONS, device=self.device)
         return state
 
     def message(self, state):

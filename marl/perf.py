@@ -15,6 +15,7 @@ def train_throughput(
     episodes_parallel: int | None = None,
     cpu_time: bool = False,
     population: int = 1,
+    device: str = "cpu",
 ) -> float:
     """Environment steps per second of training ``algo`` from scratch, one process, one thread.
 
@@ -28,6 +29,8 @@ def train_throughput(
     population : int
         Train this many seeds (0, 1, ...) at once as one population, ``steps`` each; the rate
         is the population's total.
+    device : str
+        Where the networks train (``cpu`` or ``cuda[:K]``; the environments stay on the CPU).
     """
     from marl.a2c import algorithm, run_population
 
@@ -42,5 +45,6 @@ def train_throughput(
     t0 = clock()
     # the first ``steps`` of a run with the paper's budget (the entropy schedule of 6e5 steps)
     results = run_population(a, [cfg] * population, scenario_id, n_vehicles, steps,
-                             list(range(population)), None, schedule_steps=600_000)
+                             list(range(population)), None, schedule_steps=600_000,
+                             device=device)
     return sum(r.steps for r in results) / max(clock() - t0, 1e-9)

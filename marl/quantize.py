@@ -57,7 +57,9 @@ def qsgd(
     safe = torch.where(norm > 0, norm, torch.ones_like(norm))
     level = s * blocks.abs() / safe
     low = torch.floor(level)
-    u = torch.rand(blocks.shape, generator=generator, dtype=blocks.dtype)
+    # drawn where the generator is (a run's CPU stream, the same draws on every device)
+    u = torch.rand(blocks.shape, generator=generator, dtype=blocks.dtype,
+                   device=None if generator is None else generator.device).to(blocks.device)
     xi = (low + (u < (level - low)).to(blocks.dtype)) / s
     out = (norm * torch.sign(blocks) * xi).reshape(flat.shape[0], -1)[:, :d]
     return out.reshape(g.shape)

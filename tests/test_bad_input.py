@@ -107,6 +107,9 @@ CASES: dict[str, list[list[str]]] = {
     ],
     "train": [
         [],
+        ["--algo", "ia2c", "--scenario", "catchup-v1", "--device", "tpu"],
+        ["--algo", "ia2c", "--scenario", "catchup-v1", "--device", "cuda:x"],
+        ["--algo", "ia2c", "--scenario", "catchup-v1", "--device", "mps"],
         ["--algo", "nope", "--scenario", "catchup-v1"],
         ["--algo", "bdc", "--scenario", "nope"],
         ["--algo", "bdc", "--scenario", "sine-v1:amplitude_mps=2"],
@@ -143,6 +146,7 @@ CASES: dict[str, list[list[str]]] = {
     ],
     "reproduce": [
         ["--budget", "huge"],
+        ["--device", "gpu"],
         ["--algos", "nope"],
         ["--scenarios", "nope"],
         ["--skip", "nope"],
@@ -171,6 +175,7 @@ CASES: dict[str, list[list[str]]] = {
     "fit-power": [["--write", "--figure"], ["--figure", "/proc/x.png"]],
     "perf": [
         ["--only", "nope"],
+        ["--only", "train", "--device", "tpu"],
         ["--controllers", "nope"],
         ["--algos", "nope"],
         ["--controllers", "ovm:alpha=x"],
