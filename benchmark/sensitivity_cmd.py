@@ -20,6 +20,7 @@ from typing import Any
 from benchmark.cli import plain
 from benchmark.executors import add_executor_options
 from benchmark.export import write_csv
+from benchmark.train_cmd import add_device_argument
 from envs.errors import ConfigError, UnknownNameError
 
 #: Multiples of the tuned consensus eps tried (two decades and more around it).
@@ -54,6 +55,7 @@ def _parser() -> argparse.ArgumentParser:
                    help="output folder (default: %(default)s)")
     p.add_argument("--resume", action="store_true", help="complete a study in --out")
     add_executor_options(p)
+    add_device_argument(p)
     return p
 
 
@@ -192,6 +194,7 @@ def main(argv: list[str]) -> int:
     from benchmark.run_cmd import execute_sweep
     from benchmark.suite import seeds_from_episodes
     from envs.scenarios import make_scenario
+    from marl.a2c import training_device
 
     args = _parser().parse_args(argv)
     scenarios = _names(args.scenarios, "--scenarios")
@@ -209,6 +212,7 @@ def main(argv: list[str]) -> int:
             raise ConfigError(f"{flag} must be >= {low}, got {value}")
     if min(seeds) < 0:
         raise ConfigError(f"--seeds must be >= 0, got {min(seeds)}")
+    training_device(args.device)  # ConfigError for an unknown device or a missing GPU
     from benchmark.paths import writable_dir
 
     out = writable_dir(args.out)

@@ -164,6 +164,7 @@ CASES: dict[str, list[list[str]]] = {
         ["--workers", "0"],
     ],
     "sensitivity": [
+        ["--device", "tpu"],
         ["--knobs", "x"],
         ["--seeds", "-1"],
         ["--steps", "0"],
