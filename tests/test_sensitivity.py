@@ -97,3 +97,33 @@ def test_bad_input_exits_2(argv: list[str], message: str, tmp_path: Path,
     assert cli(["sensitivity", *argv, "--out", str(tmp_path / "x")]) == 2
     assert message in capsys.readouterr().err
     assert not (tmp_path / "x").exists()
+
+
+def test_the_readme_quotes_the_committed_study() -> None:
+    """The README's and the report's reading of the committed study (docs/sensitivity) use the
+    numbers its sensitivity.csv holds."""
+    root = Path(__file__).resolve().parent.parent
+    table = pd.read_csv(root / "docs" / "sensitivity" / "sensitivity.csv")
+    readme = " ".join((root / "README.md").read_text().split())
+    report = " ".join((root / "docs" / "sensitivity" / "report.md").read_text().split())
+
+    def reward(scenario: str, knob: str, value: str) -> float:
+        row = table[(table["scenario"] == scenario) & (table["knob"] == knob)
+                    & (table["knob_value"].astype(str) == value)]
+        assert len(row) == 1
+        return float(row["reward_mean"].iloc[0])
+
+    whole, base = reward("catchup-v1", "shared", "whole critic"), reward("catchup-v1", "gamma", "0.99")
+    quote = f"{whole:.1f} against {base:.1f}"
+    assert quote in readme and quote in report
+    slow_base = reward("slowdown-v1", "gamma", "0.99")
+    assert f"crawls, {slow_base:,.0f}" in readme and f"crawls ({slow_base:,.0f}" in report
+    retrained = table[(table["scenario"] == "slowdown-v1") & ~table["is_base"]
+                      & table["knob"].isin(["consensus_eps", "qsgd_levels", "shared", "gamma"])]
+    assert (retrained["reward_mean"] > slow_base).all()  # "every retrained variant beats it"
+    faults = table[(table["scenario"] == "catchup-v1")
+                   & table["knob"].isin(["v2v_delay_s", "v2v_packet_loss"])]
+    assert (faults["reward_mean"] - base).abs().max() <= 1.0  # "at most 1 point on catchup-v1"
+    slow_faults = table[(table["scenario"] == "slowdown-v1")
+                        & table["knob"].isin(["v2v_delay_s", "v2v_packet_loss"])]
+    assert ((slow_faults["reward_mean"] - slow_base).abs() / abs(slow_base)).max() <= 0.05
