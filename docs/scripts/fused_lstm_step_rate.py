@@ -4,7 +4,7 @@ Times one acting step of a population of six (A = 48 agents, B = 8 episodes, H =
 torch thread, without gradients: the recurrent product (``torch.baddbmm``), the elementwise
 gate update as the learner computes it (``BatchedLSTMCell.step_from_gates``: four sigmoids,
 two tanh, products, each its own kernel), and the same update fused by ``torch.compile``
-(inductor, which needs a C++ compiler). Prints microseconds per call and the largest
+(inductor, which needs a C++ compiler). Prints the median microseconds per call and the largest
 difference between the fused and the eager results.
 
     .venv/bin/python docs/scripts/fused_lstm_step_rate.py
@@ -16,6 +16,7 @@ import time
 from collections.abc import Callable
 
 import torch
+import torch.utils.benchmark as benchmark
 
 AGENTS, BATCH, HIDDEN = 48, 8, 64
 
@@ -27,15 +28,11 @@ def gate_update(gates: torch.Tensor, c: torch.Tensor) -> tuple[torch.Tensor, tor
     return torch.sigmoid(o) * torch.tanh(c_new), c_new
 
 
-def us_per_call(fn: Callable[[], object], reps: int = 2000) -> float:
-    """Microseconds per call (after 50 warm-up calls)."""
+def us_per_call(fn: Callable[[], object]) -> float:
+    """Median microseconds per call, one thread, without gradients (``torch.utils.benchmark``)."""
     with torch.no_grad():
-        for _ in range(50):
-            fn()
-        t0 = time.perf_counter()
-        for _ in range(reps):
-            fn()
-    return (time.perf_counter() - t0) / reps * 1e6
+        timer = benchmark.Timer(stmt="fn()", globals={"fn": fn}, num_threads=1)
+        return timer.blocked_autorange(min_run_time=1.0).median * 1e6
 
 
 def main() -> None:
