@@ -6,13 +6,14 @@ import argparse
 
 from benchmark.cli import plain
 from controllers.registry import CONTROLLERS, controller_options
+from envs.params import PlatoonParams
 from envs.scenarios import list_scenarios
 
 
 def main(argv: list[str]) -> int:
     """Print the registered scenarios and controllers."""
-    p = argparse.ArgumentParser(prog="cacc-bench list", description=plain(__doc__))
-    p.parse_args(argv)
+    parser = argparse.ArgumentParser(prog="cacc-bench list", description=plain(__doc__))
+    parser.parse_args(argv)
     print("scenarios (id: targets d*, v*; length; description):")
     for s in list_scenarios():
         opts = ", ".join(f"{k}={v}" for k, v in s.defaults.items())
@@ -20,6 +21,14 @@ def main(argv: list[str]) -> int:
         pub = " (published)" if s.published else ""
         print(f"  {s.id:<14} d*={s.target_gap_m:g} m, v*={s.target_speed_mps:g} m/s, "
               f"{s.n_steps} steps, N={s.default_vehicles} by default{pub}: {s.description}{extra}")
+    print("\naction modes of the learning interface (envs.accel_mode; Gymnasium ids "
+          "cacc_bench/<scenario> and cacc_bench_accel/<scenario>):")
+    print("  ovm-gain   Discrete(4) per follower: the published OVM gains (alpha, beta); "
+          "15 observed numbers (own, front, rear blocks)")
+    p = PlatoonParams()
+    print(f"  accel      Box({p.accel_min_mps2:g}, {p.accel_max_mps2:g}) m/s^2 per follower, the MPC's input bounds; 12 observed "
+          "numbers: own sensed state, actuator state, V2V (predecessor's command, leader's "
+          "acceleration and speed) through the run's delay and loss, position")
     print("\ncontrollers (name [family]: description; V2V; options with their defaults, set as "
           "name:key=value):")
     for c in CONTROLLERS.values():

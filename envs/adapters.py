@@ -1,9 +1,12 @@
 """Thin adapters for outside libraries: a PettingZoo ``ParallelEnv`` and a Gymnasium view.
 
-Both wrap one episode (B = 1) of :class:`envs.platoon.PlatoonEnv` with the MARL interface of the
-published benchmark: 4 discrete actions per follower (OVM gains), 15-number observations (own,
-front and rear vehicle blocks, zero-padded), the paper's reward. Training inside cacc-bench uses
-the batched arrays directly; these are for outside MARL libraries.
+Both wrap one episode (B = 1) of :class:`envs.platoon.PlatoonEnv`, in either action mode
+(:data:`envs.accel_mode.ACTION_MODES`): ``ovm-gain``, the MARL interface of the published
+benchmark (4 discrete actions per follower choosing OVM gains, 15-number observations: own, front
+and rear vehicle blocks, zero-padded), or ``accel`` (a Box acceleration command per follower in
+the MPC's bounds, 12-number observations with what V2V delivers through the channel's delay and
+loss). The reward is the paper's. Training inside cacc-bench uses the batched arrays directly;
+these are for outside MARL libraries.
 """
 
 from __future__ import annotations
@@ -15,7 +18,7 @@ import numpy as np
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
-from envs.dynamics import OBS_DIM
+from envs.channel import ChannelConfig
 from envs.params import OVM_ACTIONS, PlatoonParams
 from envs.platoon import PlatoonEnv
 
@@ -26,6 +29,21 @@ _SEED_LIMIT = 2**31 - 1
 
 def _draw_seed(rng: np.random.Generator) -> int:
     return int(rng.integers(0, _SEED_LIMIT))
+
+
+def _make_env(scenario: str, n_vehicles: int, params: PlatoonParams, training: bool,
+              collision_mode: str, action_mode: str, comm_delay_s: float, packet_loss: float
+              ) -> PlatoonEnv:
+    channel = ChannelConfig(comm_delay_s, packet_loss, params.dt_s)
+    return PlatoonEnv(scenario, n_vehicles, params, training=training,
+                      collision_mode=collision_mode, observe=True, action_mode=action_mode,
+                      channel=channel)
+
+
+def _accel_space(params: PlatoonParams, shape: tuple[int, ...]) -> spaces.Box:
+    """The acceleration command's Box: the MPC's input bounds."""
+    return spaces.Box(np.float32(params.accel_min_mps2), np.float32(params.accel_max_mps2),
+                      shape, np.float32)
 
 
 class PlatoonParallelEnv(ParallelEnv):
@@ -43,6 +61,11 @@ class PlatoonParallelEnv(ParallelEnv):
         Reward in training form (with the safety term).
     collision_mode : str
         ``terminate`` (default) or ``published``.
+    action_mode : str
+        ``ovm-gain`` (default, published: ``Discrete(4)``) or ``accel`` (``Box(accel_min,
+        accel_max, (1,))`` m/s^2).
+    comm_delay_s, packet_loss : float
+        V2V delay and loss of the ``accel`` mode's messages.
 
     Notes
     -----
@@ -61,25 +84,30 @@ class PlatoonParallelEnv(ParallelEnv):
         params: PlatoonParams = PlatoonParams(),
         training: bool = False,
         collision_mode: str = "terminate",
+        action_mode: str = "ovm-gain",
+        comm_delay_s: float = 0.0,
+        packet_loss: float = 0.0,
     ) -> None:
-        self.env = PlatoonEnv(
-            scenario, n_vehicles, params, training=training, collision_mode=collision_mode,
-            observe=True,
-        )
+        self.env = _make_env(scenario, n_vehicles, params, training, collision_mode,
+                             action_mode, comm_delay_s, packet_loss)
+        self.action_mode = action_mode
         self.possible_agents = [f"follower_{i}" for i in range(1, n_vehicles + 1)]
         self.agents: list[str] = []
         self.render_mode = None
-        self._obs_space = spaces.Box(-OBS_BOUND, OBS_BOUND, (OBS_DIM,), np.float32)
-        self._act_space = spaces.Discrete(len(OVM_ACTIONS))
+        self._obs_space = spaces.Box(-OBS_BOUND, OBS_BOUND, (self.env.obs_dim,), np.float32)
+        self._act_space: spaces.Space = (
+            _accel_space(params, (1,)) if action_mode == "accel"
+            else spaces.Discrete(len(OVM_ACTIONS)))
         self._rng = np.random.Generator(np.random.PCG64())
         self.episode_seed: int | None = None
 
     def observation_space(self, agent: str) -> spaces.Space:
-        """Box of 15 floats (own, front, rear blocks; missing neighbours are zeros)."""
+        """Box of 15 floats (own, front, rear blocks; missing neighbours are zeros), or of 12 in
+        the ``accel`` mode (:data:`envs.accel_mode.ACCEL_OBS_NAMES`)."""
         return self._obs_space
 
     def action_space(self, agent: str) -> spaces.Space:
-        """Discrete(4): index -> (alpha, beta) of the OVM law."""
+        """Discrete(4): index -> (alpha, beta) of the OVM law; or the acceleration's Box."""
         return self._act_space
 
     def _obs_dict(self, obs: np.ndarray) -> dict[str, np.ndarray]:
@@ -104,8 +132,13 @@ class PlatoonParallelEnv(ParallelEnv):
     ]:
         if not self.agents:
             raise RuntimeError("episode over: call reset()")
-        a = np.array([[int(actions[ag]) for ag in self.possible_agents]])
-        res = self.env.step_actions(a)
+        if self.action_mode == "accel":
+            u = np.array([[float(np.asarray(actions[ag]).reshape(-1)[0])
+                           for ag in self.possible_agents]])
+            res = self.env.step(u)
+        else:
+            a = np.array([[int(actions[ag]) for ag in self.possible_agents]])
+            res = self.env.step_actions(a)
         assert res.observation is not None
         collided = bool(res.collided[0])
         over = bool(res.done[0])
@@ -131,7 +164,9 @@ class PlatoonParallelEnv(ParallelEnv):
 class PlatoonGymEnv(gymnasium.Env):
     """Gymnasium single-agent (centralised) view: one agent chooses every follower's action.
 
-    Observation ``(N, 15)`` floats; action ``MultiDiscrete([4] * N)``; reward = sum over agents.
+    Observation ``(N, 15)`` floats and action ``MultiDiscrete([4] * N)`` (``ovm-gain``), or
+    ``(N, 12)`` floats and ``Box(accel_min, accel_max, (N,))`` m/s^2 (``accel``); reward = sum
+    over agents. Parameters as :class:`PlatoonParallelEnv`.
     """
 
     metadata = {"render_modes": []}
@@ -143,14 +178,19 @@ class PlatoonGymEnv(gymnasium.Env):
         params: PlatoonParams = PlatoonParams(),
         training: bool = False,
         collision_mode: str = "terminate",
+        action_mode: str = "ovm-gain",
+        comm_delay_s: float = 0.0,
+        packet_loss: float = 0.0,
     ) -> None:
-        self.env = PlatoonEnv(
-            scenario, n_vehicles, params, training=training, collision_mode=collision_mode,
-            observe=True,
-        )
+        self.env = _make_env(scenario, n_vehicles, params, training, collision_mode,
+                             action_mode, comm_delay_s, packet_loss)
+        self.action_mode = action_mode
         self.n_vehicles = n_vehicles
-        self.observation_space = spaces.Box(-OBS_BOUND, OBS_BOUND, (n_vehicles, OBS_DIM), np.float32)
-        self.action_space = spaces.MultiDiscrete([len(OVM_ACTIONS)] * n_vehicles)
+        self.observation_space = spaces.Box(-OBS_BOUND, OBS_BOUND,
+                                            (n_vehicles, self.env.obs_dim), np.float32)
+        self.action_space: spaces.Space = (
+            _accel_space(params, (n_vehicles,)) if action_mode == "accel"
+            else spaces.MultiDiscrete([len(OVM_ACTIONS)] * n_vehicles))
 
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
@@ -162,7 +202,10 @@ class PlatoonGymEnv(gymnasium.Env):
         return obs[0].copy(), {"episode_seed": episode_seed}
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
-        res = self.env.step_actions(np.asarray(action, dtype=np.int64).reshape(1, -1))
+        if self.action_mode == "accel":
+            res = self.env.step(np.asarray(action, dtype=np.float64).reshape(1, -1))
+        else:
+            res = self.env.step_actions(np.asarray(action, dtype=np.int64).reshape(1, -1))
         assert res.observation is not None
         collided = bool(res.collided[0])
         over = bool(res.done[0])
@@ -178,11 +221,15 @@ class PlatoonGymEnv(gymnasium.Env):
 
 #: Gymnasium namespace of the registered scenarios: ``gymnasium.make("cacc_bench/catchup-v1")``.
 GYM_NAMESPACE = "cacc_bench"
+#: Namespace of the same scenarios in the ``accel`` action mode:
+#: ``gymnasium.make("cacc_bench_accel/catchup-v1")``.
+GYM_ACCEL_NAMESPACE = "cacc_bench_accel"
 
 
 def register_gymnasium() -> list[str]:
     """Register every scenario as ``cacc_bench/<scenario id>`` (the Gymnasium view,
-    :class:`PlatoonGymEnv`, at the scenario's default N); idempotent.
+    :class:`PlatoonGymEnv`, at the scenario's default N) and as ``cacc_bench_accel/<scenario
+    id>`` (the same in the ``accel`` action mode); idempotent.
 
     Runs when this module is imported, so ``gymnasium.make("envs.adapters:cacc_bench/catchup-v1",
     n_vehicles=4)`` works in a fresh interpreter (Gymnasium imports the module before the id).
@@ -196,14 +243,16 @@ def register_gymnasium() -> list[str]:
 
     ids = []
     for spec in list_scenarios():
-        env_id = f"{GYM_NAMESPACE}/{spec.id}"
-        if env_id not in gymnasium.registry:
-            gymnasium.register(
-                env_id, entry_point="envs.adapters:PlatoonGymEnv",
-                kwargs={"scenario": spec.id, "n_vehicles": spec.default_vehicles},
-                disable_env_checker=False,
-            )
-        ids.append(env_id)
+        for namespace, mode in ((GYM_NAMESPACE, "ovm-gain"), (GYM_ACCEL_NAMESPACE, "accel")):
+            env_id = f"{namespace}/{spec.id}"
+            if env_id not in gymnasium.registry:
+                gymnasium.register(
+                    env_id, entry_point="envs.adapters:PlatoonGymEnv",
+                    kwargs={"scenario": spec.id, "n_vehicles": spec.default_vehicles,
+                            "action_mode": mode},
+                    disable_env_checker=False,
+                )
+            ids.append(env_id)
     return ids
 
 

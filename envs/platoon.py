@@ -4,9 +4,18 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
+from envs.accel_mode import (
+    ACCEL_OBS_DIM,
+    accel_observations,
+    check_action_mode,
+    open_accel_channels,
+    transmit_accel_messages,
+)
+from envs.channel import ChannelConfig
 from envs.dynamics import (
     BLOCK_DIM,
     OBS_DIM,
@@ -93,8 +102,9 @@ class StepResult:
         Battery power of every follower over the step (fitted polynomial).
     applied_accel_mps2 : (B, N)
         Applied accelerations of the step.
-    observation : (B, N, 15) or None
-        Agent observations after the step (if the env observes).
+    observation : (B, N, 15) or (B, N, 12) or None
+        Agent observations after the step (if the env observes; the width is the action mode's,
+        :attr:`PlatoonEnv.obs_dim`).
     tracking_reward : (B, N)
         The evaluation reward without the power term (the published benchmark's reward), by the
         same rules: the collision penalty at a collision step, 0 once an episode has ended.
@@ -133,6 +143,13 @@ class PlatoonEnv:
         may turn this off.
     dtype : numpy dtype
         Float type of the observations (physics is always float64).
+    action_mode : {"ovm-gain", "accel"}
+        ``ovm-gain`` (published): :meth:`step_actions` takes OVM-gain indices and agents observe
+        15 numbers. ``accel``: :meth:`step` takes the acceleration commands as the action, and
+        agents observe the 12 numbers of :func:`envs.accel_mode.accel_observations`, whose V2V
+        part passes through the channel ``channel`` (:mod:`envs.accel_mode`).
+    channel : ChannelConfig
+        V2V delay and loss of the ``accel`` mode's messages (ideal by default).
     """
 
     def __init__(
@@ -147,7 +164,11 @@ class PlatoonEnv:
         observe: bool = True,
         weights: RewardWeights = RewardWeights(),
         dtype: type = np.float32,
+        action_mode: str = "ovm-gain",
+        channel: ChannelConfig = ChannelConfig(),
     ) -> None:
+        self.action_mode = check_action_mode(action_mode)
+        self.channel_config = channel
         self.scenario = make_scenario(scenario) if isinstance(scenario, str) else scenario
         self.n_vehicles = check_vehicles(n_vehicles)
         if collision_mode not in COLLISION_MODES:
@@ -178,6 +199,14 @@ class PlatoonEnv:
         self.seeds: np.ndarray = np.zeros(0, dtype=np.int64)
         self._obs: np.ndarray | None = None
         self._blocks: np.ndarray | None = None
+        self._pred_held = np.zeros((0, 0))
+        self._leader_held = np.zeros((0, 0, 2))
+        self._channels: tuple[Any, Any] | None = None
+
+    @property
+    def obs_dim(self) -> int:
+        """Floats in one agent's observation (15 in the ``ovm-gain`` mode, 12 in ``accel``)."""
+        return ACCEL_OBS_DIM if self.action_mode == "accel" else OBS_DIM
 
     # ------------------------------------------------------------------ API
     def reset(
@@ -217,6 +246,10 @@ class PlatoonEnv:
         # observation storage (15, N, B) viewed as (B, N, 15); the own block is a view into it
         self._obs = np.zeros((OBS_DIM, n, b), dtype=self.dtype).transpose(2, 1, 0)
         self._blocks = self._obs[:, :, 0:BLOCK_DIM]
+        if self.action_mode == "accel":
+            self._channels = open_accel_channels(n, seeds_arr, self.channel_config)
+            self._pred_held = np.zeros((b, n))
+            self._leader_held = np.zeros((b, n, 2))
         return self.observation() if self.observe else None
 
     @property
@@ -225,8 +258,14 @@ class PlatoonEnv:
         return len(self.seeds)
 
     def observation(self) -> np.ndarray:
-        """Agent observations ``(B, N, 15)`` of the current state (own, front, rear blocks)."""
+        """Agent observations of the current state: ``(B, N, 15)`` (own, front, rear blocks) in
+        the ``ovm-gain`` mode, ``(B, N, 12)`` in the ``accel`` mode."""
         s = self._require_state()
+        if self.action_mode == "accel":
+            return accel_observations(
+                s.gap_m, s.speed_mps, s.pred_speed_mps, s.applied_accel_mps2,
+                s.realised_accel_mps2, self._pred_held, self._leader_held, self.target_gap_m,
+                self.target_speed_mps, self.params, self.dtype)
         assert self._obs is not None and self._blocks is not None
         vehicle_blocks(
             s.gap_m,
@@ -243,15 +282,27 @@ class PlatoonEnv:
     def step_actions(self, actions: np.ndarray) -> StepResult:
         """Step with discrete MARL actions ``(B, N)`` (OVM gains, published mapping)."""
         s = self._require_state()
+        if self.action_mode != "ovm-gain":
+            raise ConfigError(
+                "step_actions takes OVM-gain indices; this env is in the accel mode: pass the "
+                "acceleration commands to step()")
         u = action_to_command_mps2(actions, s.gap_m, s.speed_mps, s.pred_speed_mps, self.params)
         return self.step(u)
 
     def step(self, command_mps2: np.ndarray) -> StepResult:
-        """Apply acceleration commands ``(B, N)`` (clipped to the bounds) for one step."""
+        """Apply acceleration commands ``(B, N)`` (clipped to the bounds) for one step.
+
+        In the ``accel`` mode the commands are also this step's V2V messages (sent before the
+        physics, observed from the next step on, as ``cacc`` does)."""
         s = self._require_state()
         if s.step >= self.n_steps:
             raise RuntimeError("episode over: call reset()")
         t = s.step
+        if self._channels is not None and self.action_mode == "accel":
+            self._pred_held, self._leader_held = transmit_accel_messages(
+                *self._channels, np.asarray(command_mps2, dtype=np.float64),
+                s.leader_accel_now_mps2, s.leader_speed_now_mps, self.target_speed_mps,
+                self.params)
         lead_now = s.leader_speed_mps[:, t]
         lead_next = s.leader_speed_mps[:, t + 1]
         gap, v, a, applied = physics_step(

@@ -41,13 +41,18 @@ def test_every_scenario_is_a_registered_gymnasium_id_that_passes_the_checker() -
     from envs.scenarios import list_scenarios
 
     ids = register_gymnasium()
-    assert ids == [f"cacc_bench/{s.id}" for s in list_scenarios()]
+    assert ids == [f"{ns}/{s.id}" for s in list_scenarios()
+                   for ns in ("cacc_bench", "cacc_bench_accel")]
     for env_id in ids:
         env = gymnasium.make(env_id)
-        spec = next(s for s in list_scenarios() if f"cacc_bench/{s.id}" == env_id)
+        spec = next(s for s in list_scenarios() if env_id.endswith(f"/{s.id}"))
         assert env.unwrapped.n_vehicles == spec.default_vehicles  # type: ignore[attr-defined]
+        mode = "accel" if env_id.startswith("cacc_bench_accel/") else "ovm-gain"
+        assert env.unwrapped.action_mode == mode  # type: ignore[attr-defined]
         with warnings.catch_warnings():
             warnings.simplefilter("error")
+            # accel mode: a Box in m/s^2 (the MPC's bounds), not the [-1, 1] it recommends
+            warnings.filterwarnings("ignore", message=".*symmetric and normalized")
             check_env(env.unwrapped, skip_render_check=True)
 
 
