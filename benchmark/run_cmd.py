@@ -187,8 +187,10 @@ def execute_sweep(
         raise ConfigError(f"--out {out} exists and is not a folder")
     store = ResultStore(out, writer=True)
     try:
-        done_ok = store.ids("ok")
-        stored = store.ids()
+        # every stored record is checked before any run: an invalid one refuses the sweep
+        before = store.records()
+        done_ok = {r["id"] for r in before if r["status"] == "ok"}
+        stored = {r["id"] for r in before}
         if stored and not resume:
             raise ConfigError(
                 f"{out} already holds {len(stored)} stored runs; add --resume to complete that "

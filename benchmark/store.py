@@ -4,8 +4,10 @@ It is the source of truth of a results folder: the CSV files are rebuilt from it
 loses only the runs in flight (a batch is stored as a whole when it finishes), and ``--resume``
 skips what is stored. A writer holds the folder's lock (``store.lock``, via ``filelock``) for as
 long as the store is open, so two commands never write one folder; the holder's pid and command
-are in ``store.owner``. Opening checks the file's integrity (SQLite ``quick_check``) and every
-record's JSON.
+are in ``store.owner``. Opening checks the file's integrity (SQLite ``quick_check``) and that it
+is a cacc-bench store (its tables and schema version; another program's SQLite file is refused
+and never written into); reading checks every record against the one declared schema
+(:mod:`benchmark.record_schema`).
 """
 
 from __future__ import annotations
@@ -31,16 +33,40 @@ OWNER_NAME = "store.owner"
 #: version-1 store is relabelled when opened.
 SCHEMA_VERSION = 2
 
-_SCHEMA = """
-CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
-CREATE TABLE IF NOT EXISTS runs (
+_SCHEMA = f"""
+BEGIN;
+CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE runs (
     id TEXT PRIMARY KEY,
     status TEXT NOT NULL,
     record TEXT NOT NULL,
     finished_at REAL NOT NULL
 );
-CREATE TABLE IF NOT EXISTS trajectories (id TEXT PRIMARY KEY, data BLOB NOT NULL);
+CREATE TABLE trajectories (id TEXT PRIMARY KEY, data BLOB NOT NULL);
+INSERT INTO meta (key, value) VALUES ('schema_version', '{SCHEMA_VERSION}');
+COMMIT;
 """
+
+#: The tables of a store and their columns; a file with other tables is not a store.
+_TABLES: dict[str, tuple[str, ...]] = {
+    "meta": ("key", "value"),
+    "runs": ("id", "status", "record", "finished_at"),
+    "trajectories": ("id", "data"),
+}
+
+
+def _not_a_store(conn: sqlite3.Connection) -> str | None:
+    """Why the SQLite database of ``conn`` is not a cacc-bench store, or None (read only)."""
+    tables = {name: tuple(c[1] for c in conn.execute(f'PRAGMA table_info("{name}")'))
+              for (name,) in conn.execute("SELECT name FROM sqlite_master WHERE type = 'table' "
+                                          "AND name NOT LIKE 'sqlite_%'")}
+    if tables != _TABLES:
+        listed = ", ".join(sorted(tables)) or "none"
+        return f"its tables ({listed}) are not those of a cacc-bench store"
+    row = conn.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()
+    if row is None:
+        return "it has no schema_version"
+    return None
 
 
 def _clean(value: Any) -> Any:
@@ -49,6 +75,13 @@ def _clean(value: Any) -> Any:
     if isinstance(value, np.generic):
         return _clean(value.item())
     return value
+
+
+def _remedy(path: Path, run_id: str) -> str:
+    """What to do about an invalid row: delete it and rerun it with ``--resume``."""
+    quoted = run_id.replace("'", "''")
+    return (f"delete that row (sqlite3 {path} \"DELETE FROM runs WHERE id = '{quoted}'\") and "
+            "rerun the sweep with --resume to run it again, or choose another --out")
 
 
 class ResultStore:
@@ -77,28 +110,42 @@ class ResultStore:
                 f"{self.path} is empty (0 bytes), not a results store; remove it to start a new "
                 "store in this folder, or choose another --out"
             )
+        new = not self.path.exists()
+        foreign = None
         try:
             self.conn = sqlite3.connect(self.path, timeout=30)
+            if new:  # tables and schema version in one transaction
+                try:
+                    self.conn.executescript(_SCHEMA)
+                except BaseException:  # an interrupt leaves no half-made (0-byte) store
+                    self.conn.close()
+                    self.path.unlink(missing_ok=True)
+                    raise
             check = self.conn.execute("PRAGMA quick_check").fetchone()
             if check is None or check[0] != "ok":
                 raise sqlite3.DatabaseError(f"integrity check: {check[0] if check else 'no answer'}")
-            self.conn.executescript(_SCHEMA)
-            version = self.get_meta("schema_version")
-        except sqlite3.DatabaseError as exc:
-            self._release()
+            foreign = _not_a_store(self.conn)
+            version = None if foreign else self.get_meta("schema_version")
+        except (sqlite3.DatabaseError, ValueError) as exc:
+            self._close_quietly()
             raise ConfigError(
                 f"{self.path} is not a readable results store ({exc}); the CSV files beside it "
                 "are left as they are: move the file away and rerun the sweep into this folder, "
                 "or choose another --out"
             ) from None
-        if version is None:
-            self.set_meta("schema_version", SCHEMA_VERSION)
-        elif int(version) == 1:
+        if foreign is not None:
+            self._close_quietly()
+            raise ConfigError(
+                f"{self.path} is an SQLite file but not a cacc-bench results store ({foreign}); "
+                "nothing was written to it: move it away, or choose another --out"
+            )
+        if version == 1:
             self._relabel_v1()
-        elif int(version) != SCHEMA_VERSION:
+        elif version != SCHEMA_VERSION:
             self.close()
             raise ConfigError(
-                f"{self.path} has store schema {version}, this cacc-bench reads {SCHEMA_VERSION}"
+                f"{self.path} has store schema {version!r}, this cacc-bench reads "
+                f"{SCHEMA_VERSION}; choose another --out"
             )
 
     def _relabel_v1(self) -> None:
@@ -172,6 +219,12 @@ class ResultStore:
         self.conn.close()
         self._release()
 
+    def _close_quietly(self) -> None:
+        conn = getattr(self, "conn", None)
+        if conn is not None:
+            conn.close()
+        self._release()
+
     def __enter__(self) -> ResultStore:
         return self
 
@@ -227,23 +280,40 @@ class ResultStore:
         return {r[0] for r in rows}
 
     def records(self) -> list[dict[str, Any]]:
-        """All stored run records (a consistent snapshot: one read transaction)."""
+        """All stored run records (a consistent snapshot: one read transaction), each checked
+        against :class:`benchmark.record_schema.RunRecord` and its row.
+
+        Raises
+        ------
+        ConfigError
+            Naming the first row whose record is unreadable or invalid, and what to do.
+        """
+        from benchmark.record_schema import record_problem
+
         out = []
         try:
-            rows = self.conn.execute("SELECT id, record FROM runs ORDER BY id").fetchall()
+            rows = self.conn.execute("SELECT id, status, record FROM runs ORDER BY id").fetchall()
         except sqlite3.DatabaseError as exc:
             raise ConfigError(f"{self.path}: the runs table cannot be read ({exc}); move the "
                               "file away and rerun the sweep, or choose another --out") from None
-        for run_id, text in rows:
+        for run_id, status, text in rows:
             try:
+                if not isinstance(run_id, str) or not isinstance(text, str | bytes):
+                    raise ValueError("not the record of a run")
                 rec = json.loads(text)
                 if not isinstance(rec, dict) or rec.get("id") != run_id:
                     raise ValueError("not the record of this run")
             except ValueError as exc:
                 raise ConfigError(
                     f"{self.path}: the stored record of run {run_id!r} is unreadable ({exc}); "
-                    "remove that row (or the file) and rerun with --resume"
+                    f"the CSV files are left as they are: {_remedy(self.path, run_id)}"
                 ) from None
+            problem = record_problem(run_id, status, rec)
+            if problem is not None:
+                raise ConfigError(
+                    f"{self.path}: the stored record of run {run_id!r} is invalid ({problem}); "
+                    f"the CSV files are left as they are: {_remedy(self.path, run_id)}"
+                )
             out.append(rec)
         return out
 
@@ -254,8 +324,15 @@ class ResultStore:
         ).fetchone()
         if row is None:
             return None
-        with np.load(io.BytesIO(row[0])) as data:
-            return {k: data[k] for k in data.files}
+        try:
+            with np.load(io.BytesIO(row[0]), allow_pickle=False) as data:
+                return {k: data[k] for k in data.files}
+        except Exception as exc:  # any damage of the blob (zip, header, type) is the same
+            raise ConfigError(
+                f"{self.path}: the stored trajectory of run {run_id!r} is unreadable "
+                f"({type(exc).__name__}: {exc}); delete it (`DELETE FROM trajectories WHERE id = "
+                f"'{run_id}'`) or rerun that run into another --out"
+            ) from None
 
     def trajectory_ids(self) -> set[str]:
         """Ids of runs with a stored trajectory."""
