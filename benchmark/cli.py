@@ -63,7 +63,25 @@ def fail(message: str) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of the ``cacc-bench`` console script."""
+    """Entry point of the ``cacc-bench`` console script.
+
+    SIGINT and SIGTERM are handled from the first line (:mod:`envs.interrupt`): the command ends
+    with 128 + the signal's number and one line on stderr, after its worker processes and Ray
+    were stopped; repeated signals never interrupt that shutdown.
+    """
+    from envs.interrupt import install
+
+    on_main_thread = threading.current_thread() is threading.main_thread()
+    previous = install() if on_main_thread else {}
+    try:
+        return _main(argv)
+    except KeyboardInterrupt as exc:
+        return _interrupted(exc)
+    finally:
+        _end(previous, restore_handlers=argv is not None)
+
+
+def _main(argv: Sequence[str] | None) -> int:
     args = list(sys.argv[1:] if argv is None else argv)
     if not args:  # a command is required: usage on stderr, status 2 (argparse's convention)
         print(_usage(), file=sys.stderr)
@@ -92,21 +110,48 @@ def main(argv: Sequence[str] | None = None) -> int:
             return fail(f"command {cmd!r} is not available in this version")
         raise
     entry: Callable[[list[str]], int] = module.main
-    from envs.interrupt import Interrupted, install, restore
-
-    previous = install() if threading.current_thread() is threading.main_thread() else {}
     try:
         return int(entry(rest) or 0)
     except CaccBenchError as exc:
+        _stop_workers()
         return fail(str(exc))
-    except KeyboardInterrupt as exc:
-        signum = exc.signum if isinstance(exc, Interrupted) else signal.SIGINT
-        print(f"cacc-bench: interrupted ({signal.Signals(signum).name}); the run in flight was "
-              "not stored, finished runs are (complete with --resume)", file=sys.stderr)
-        return 128 + int(signum)
-    finally:
-        _shutdown_ray()
+
+
+def _interrupted(exc: KeyboardInterrupt) -> int:
+    """Stop what runs (signals only recorded from here on), print one line, 128 + signum."""
+    from envs.interrupt import Interrupted, hold_forever
+
+    hold_forever()
+    signum = exc.signum if isinstance(exc, Interrupted) else signal.SIGINT
+    _stop_workers()
+    print(f"cacc-bench: interrupted ({signal.Signals(signum).name}); the run in flight was "
+          "not stored, finished runs are (complete with --resume)", file=sys.stderr)
+    return 128 + int(signum)
+
+
+def _stop_workers() -> None:
+    """Kill the process executor's workers still running, then stop Ray (every exit path)."""
+    executors = sys.modules.get("benchmark.executors")
+    if executors is not None:
+        executors.stop_all()
+    _shutdown_ray()
+
+
+def _end(previous: dict, restore_handlers: bool) -> None:
+    """The end of every command: workers and Ray stopped; the signal handlers restored when
+    called from Python, kept (recording only) when the process is about to exit."""
+    from envs.interrupt import hold_forever, restore
+
+    if not restore_handlers:
+        hold_forever()  # a signal while the interpreter exits prints no traceback
+    _stop_workers()
+    if restore_handlers:
         restore(previous)
+    elif previous:
+        # ignored, not reset to the default at the interpreter's exit (which would let a late
+        # signal kill the process with it instead of the status the command returned)
+        for sig in previous:
+            signal.signal(sig, signal.SIG_IGN)
 
 
 def _shutdown_ray() -> None:

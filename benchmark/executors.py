@@ -58,14 +58,54 @@ def _worker_env() -> None:
     os.environ.setdefault("MKL_NUM_THREADS", "1")
 
 
-def _worker_init(parent_pid: int) -> None:
-    """Start of a process-executor worker: one thread per library, interrupts that no solver
-    swallows, and death with the parent (whatever kills it, SIGKILL included)."""
-    _worker_env()
-    from envs.interrupt import install
+def _worker_main(conn: Any, parent_pid: int) -> None:
+    """A process-executor worker: apply the jobs it receives on ``conn`` until told to stop.
 
-    install()
+    It started with SIGINT and SIGTERM blocked (the parent's mask while it starts workers), so a
+    Ctrl-C sent to the whole process group during its start-up prints nothing. From here SIGINT
+    is ignored (the parent decides and stops the workers) and SIGTERM ends it at once, silently;
+    it dies with the parent, whatever kills it (SIGKILL included).
+    """
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    if hasattr(signal, "pthread_sigmask"):
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, _SIGNALS)
+    _worker_env()
     die_with_parent(parent_pid)
+    while True:
+        try:
+            job = conn.recv()
+        except (EOFError, OSError):
+            return
+        if job is None:
+            return
+        fn, item = job
+        try:
+            reply: tuple[str, Any] = ("ok", fn(item))
+        except BaseException as exc:  # sent to the parent, which raises it
+            reply = ("error", _portable(exc))
+        try:
+            conn.send(reply)
+        except (OSError, ValueError):
+            return
+
+
+def _portable(exc: BaseException) -> BaseException:
+    """``exc`` if it pickles, else a RuntimeError with its text; the worker's traceback is
+    attached as ``__notes__`` (shown by the parent's traceback)."""
+    import pickle
+    import traceback
+
+    text = "".join(traceback.format_exception(exc))
+    try:
+        pickle.dumps(exc)
+    except Exception:
+        exc = RuntimeError(f"{type(exc).__name__}: {exc}")
+    exc.__notes__ = [f"in the worker process:\n{text}"]
+    exc.__traceback__ = None
+    return exc
 
 
 def die_with_parent(parent_pid: int) -> None:
@@ -145,19 +185,171 @@ def map_jobs(
         yield from _ray(fn, items, workers, ray_address)
 
 
-def _process(fn: Callable[[Any], Any], items: Sequence[Any], workers: int) -> Iterator[Any]:
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor, as_completed
+_SIGNALS = frozenset({2, 15})  # SIGINT, SIGTERM (numbers: the same on every POSIX system)
 
-    ctx = mp.get_context("spawn")
-    pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init,
-                               initargs=(os.getpid(),))
+#: Seconds a worker told to stop may take before it is killed.
+STOP_GRACE_S = 2.0
+
+
+class WorkerDied(RuntimeError):
+    """A worker of the process executor ended without answering (killed from outside)."""
+
+
+class _Pool:
+    """Spawned worker processes, each fed one job at a time through its own pipe.
+
+    No threads and no queues shared between processes: the parent waits on the pipes and the
+    processes' sentinels, so stopping is killing the processes and reaping them, and nothing can
+    wait on a worker that is blocked (``concurrent.futures`` joined its manager thread at exit
+    and hung after a second Ctrl-C).
+    """
+
+    def __init__(self, workers: int) -> None:
+        self.procs: list[Any] = []
+        self.conns: list[Any] = []
+        _LIVE.add(self)
+        import multiprocessing as mp
+        import signal
+
+        from envs.interrupt import held, raise_if_interrupted
+
+        ctx = mp.get_context("spawn")
+        # the workers inherit the blocked mask, so a Ctrl-C to the process group reaches none
+        # of them before they ignore it; here a signal is recorded and raised after the start
+        with held():
+            from multiprocessing import resource_tracker
+
+            # started first: starting it unblocks SIGINT and SIGTERM in this thread
+            resource_tracker.ensure_running()
+            block = hasattr(signal, "pthread_sigmask")
+            old = signal.pthread_sigmask(signal.SIG_BLOCK, _SIGNALS) if block else None
+            try:
+                for _ in range(workers):
+                    parent_end, child_end = ctx.Pipe()
+                    proc = ctx.Process(target=_worker_main, args=(child_end, os.getpid()),
+                                       daemon=True)
+                    self.procs.append(proc)
+                    self.conns.append(parent_end)
+                    if block:
+                        signal.pthread_sigmask(signal.SIG_BLOCK, _SIGNALS)
+                    proc.start()
+                    child_end.close()
+            finally:
+                if block:
+                    signal.pthread_sigmask(signal.SIG_SETMASK, old)  # type: ignore[arg-type]
+        raise_if_interrupted()
+
+    def imap_unordered(self, fn: Callable[[Any], Any], items: Sequence[Any]) -> Iterator[Any]:
+        """Yield ``fn(item)`` for every item as the workers finish them (any order)."""
+        from multiprocessing.connection import wait
+
+        from envs.interrupt import raise_if_interrupted
+
+        todo = list(items)[::-1]
+        busy: dict[int, bool] = {}
+        for i, conn in enumerate(self.conns):
+            if todo:
+                conn.send((fn, todo.pop()))
+                busy[i] = True
+        while busy:
+            ready = wait([self.conns[i] for i in busy] + [self.procs[i].sentinel for i in busy])
+            for i in list(busy):
+                conn = self.conns[i]
+                if conn in ready or conn.poll():
+                    try:
+                        kind, value = conn.recv()
+                    except (EOFError, OSError):
+                        kind, value = "died", None
+                elif self.procs[i].sentinel in ready:
+                    kind, value = "died", None
+                else:
+                    continue
+                if kind == "died":
+                    self._died(i)
+                del busy[i]
+                if kind == "error":
+                    raise value
+                if todo:
+                    conn.send((fn, todo.pop()))
+                    busy[i] = True
+                raise_if_interrupted()
+                yield value
+
+    def _died(self, i: int) -> None:
+        from envs.interrupt import Interrupted, raise_if_interrupted
+
+        proc = self.procs[i]
+        proc.join(1.0)
+        raise_if_interrupted()  # killed with the parent's own signal: that is an interrupt
+        code = proc.exitcode
+        if code is not None and -code in _SIGNALS:
+            raise Interrupted(-code)
+        raise WorkerDied(f"a worker process of the process executor ended without answering "
+                         f"(exit status {code}); its run was not stored")
+
+    def stop(self, graceful: bool) -> None:
+        """End every worker: asked to stop (``graceful``, after the last result), else killed at
+        once; reaped either way, so none is left behind. Signals only recorded meanwhile."""
+        from envs.interrupt import held
+
+        with held():
+            _LIVE.discard(self)
+            if graceful:
+                for conn in self.conns:
+                    try:
+                        conn.send(None)
+                    except (OSError, ValueError):
+                        pass
+                for proc in self.procs:
+                    if proc.pid is not None:
+                        proc.join(STOP_GRACE_S)
+            for proc in self.procs:
+                if proc.pid is not None and proc.exitcode is None:
+                    proc.kill()
+            for proc in self.procs:
+                if proc.pid is not None:
+                    proc.join(STOP_GRACE_S)
+            for conn in self.conns:
+                conn.close()
+            _stop_resource_tracker()
+
+
+def _stop_resource_tracker() -> None:
+    """Stop (and reap) multiprocessing's resource tracker, which spawning a worker started: it
+    would otherwise outlive the command by a moment. It restarts when needed."""
+    from multiprocessing import resource_tracker
+
+    stop = getattr(resource_tracker._resource_tracker, "_stop", None)
+    if stop is not None:
+        try:
+            stop()
+        except Exception:
+            pass
+
+
+#: Pools not yet stopped (the command line stops them on every exit path).
+_LIVE: set[_Pool] = set()
+
+
+def stop_all() -> None:
+    """Kill the workers of every pool still running (a command that ends with an error or an
+    interrupt while a sweep's generator is left suspended)."""
+    for pool in list(_LIVE):
+        pool.stop(graceful=False)
+
+
+def _process(fn: Callable[[Any], Any], items: Sequence[Any], workers: int) -> Iterator[Any]:
+    pool = None
+    finished = False
     try:
-        futures = [pool.submit(fn, item) for item in items]
-        for fut in as_completed(futures):
-            yield fut.result()
+        pool = _Pool(min(workers, len(items)))
+        yield from pool.imap_unordered(fn, items)
+        finished = True
     finally:
-        pool.shutdown(wait=False, cancel_futures=True)
+        if pool is not None:
+            pool.stop(graceful=finished)
+        else:
+            stop_all()
 
 
 def ensure_ray(workers: int, address: str | None = None) -> object:

@@ -1,18 +1,31 @@
-"""Interrupt requests (SIGINT, SIGTERM) that no fallback may swallow.
+"""Interrupt requests (SIGINT, SIGTERM) that no fallback may swallow and no second one re-enters.
 
 The command line installs :func:`install`; a signal then sets a flag and raises
 :class:`Interrupted`. Code that catches broad exceptions to keep a run going (a solver error
 becomes a fallback action, a failing controller a failed run) calls :func:`raise_if_interrupted`
 first, so an interrupt is never recorded as a solver failure or a failed run, even when a solver
-library turned the signal into its own error or status.
+library turned the signal into its own error or status; long loops call it too.
+
+A second signal never interrupts the shutdown the first one started: within
+:data:`REPEAT_GRACE_S` of the first raise, and at any time inside :func:`held` (the cleanup of
+worker pools, the command line's exit path), a signal is only recorded. A later one, outside
+:func:`held`, raises again (in case a library swallowed the first and nothing checked).
 """
 
 from __future__ import annotations
 
 import signal
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import Any
 
+#: Seconds after a raise during which a repeated signal is only recorded.
+REPEAT_GRACE_S = 10.0
+
 _received: int | None = None
+_raised_at: float | None = None
+_holding = 0
 
 
 class Interrupted(KeyboardInterrupt):
@@ -24,20 +37,34 @@ class Interrupted(KeyboardInterrupt):
 
 
 def _handler(signum: int, frame: Any) -> None:
-    global _received
-    _received = signum
-    raise Interrupted(signum)
+    global _received, _raised_at
+    if _received is None:
+        _received = signum  # the first signal names the interrupt (and the exit status)
+    if _holding > 0:
+        return
+    if _raised_at is not None and time.monotonic() - _raised_at < REPEAT_GRACE_S:
+        return
+    _raised_at = time.monotonic()
+    raise Interrupted(_received)
 
 
 def install() -> dict[int, Any]:
     """Handle SIGINT and SIGTERM by raising :class:`Interrupted` (main thread only); returns
     the previous handlers for :func:`restore`."""
-    global _received
-    _received = None
+    global _received, _raised_at, _holding
+    _received, _raised_at, _holding = None, None, 0
     previous: dict[int, Any] = {}
     for sig in (signal.SIGINT, signal.SIGTERM):
         previous[sig] = signal.signal(sig, _handler)
     return previous
+
+
+def reinstall() -> None:
+    """Put :func:`install`'s handlers back after a library replaced them (Ray installs its own
+    SIGTERM handler, which prints a native stack dump and exits 1), keeping what was received."""
+    if signal.getsignal(signal.SIGINT) is _handler:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, _handler)
 
 
 def restore(previous: dict[int, Any]) -> None:
@@ -52,6 +79,27 @@ def received() -> int | None:
 
 
 def raise_if_interrupted() -> None:
-    """Raise :class:`Interrupted` again if a signal arrived (call before any fallback)."""
-    if _received is not None:
+    """Raise :class:`Interrupted` again if a signal arrived (call before any fallback and in
+    long loops)."""
+    global _raised_at
+    if _received is not None and _holding == 0:
+        _raised_at = time.monotonic()
         raise Interrupted(_received)
+
+
+@contextmanager
+def held() -> Iterator[None]:
+    """Within the block, SIGINT and SIGTERM are recorded but raise nothing (a cleanup that must
+    finish: stopping workers, closing the store); :func:`raise_if_interrupted` afterwards."""
+    global _holding
+    _holding += 1
+    try:
+        yield
+    finally:
+        _holding -= 1
+
+
+def hold_forever() -> None:
+    """From now on signals are only recorded (the command is ending)."""
+    global _holding
+    _holding += 1
