@@ -70,7 +70,8 @@ def write_report(jobs: list[dict[str, Any]], names: dict[str, str], scenarios: l
         lines = [
             "# The BDC-MARL paper, reproduced with cacc-bench",
             "",
-            f"Command: `{manifest['command']}`. Budget **{budget.name}**: {budget.description}.",
+            f"Command: `{manifest['command']}` (OUT: this folder; every path below is "
+            f"relative to it). Budget **{budget.name}**: {budget.description}.",
             f"Code: git {git_sha()}; machine: {_machine()}. This invocation took "
             f"{manifest['wall_s']:.0f} s; the training runs took {manifest['train_wall_s']:.0f} s "
             f"of compute in all (recorded per run), the evaluation runs "
@@ -184,7 +185,9 @@ def write_report(jobs: list[dict[str, Any]], names: dict[str, str], scenarios: l
                                           ("verdict", "verdict"), ("reason", "why")]))
     lines.append("")
     path = out / "report.md"
-    path.write_text("\n".join(lines))
+    from envs.atomic import write_text
+
+    write_text(path, "\n".join(lines))
     return path
 
 

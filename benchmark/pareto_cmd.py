@@ -147,17 +147,20 @@ def main(argv: list[str]) -> int:
     from benchmark.paths import writable_dir
 
     out = writable_dir(args.out)
-    print(f"pareto: {len(settings)} settings x {len(scenarios)} scenarios x {len(seeds)} "
-          f"episodes = {len(keys)} runs", file=sys.stderr)
-    rc = execute_sweep(keys, out / "runs", resume=args.resume, executor=args.executor,
-                       workers=args.workers, ray_address=args.ray_address, quiet=True,
-                       first_seed=seeds[0])
-    runs = pd.read_csv(out / "runs" / "runs.csv")
-    runs = runs[(runs["status"] == "ok") & (runs["n_vehicles"] == args.vehicles)]
-    df = pareto_frame(runs, settings)
-    write_csv(df, out / "pareto.csv")
-    for sc in scenarios:
-        plot_pareto(df, sc, out / "figures", f"pareto__{sc}__n{args.vehicles}")
+    from benchmark.folder_lock import folder_lock
+
+    with folder_lock(out):  # one writer per folder, as `run`
+        print(f"pareto: {len(settings)} settings x {len(scenarios)} scenarios x {len(seeds)} "
+              f"episodes = {len(keys)} runs", file=sys.stderr)
+        rc = execute_sweep(keys, out / "runs", resume=args.resume, executor=args.executor,
+                           workers=args.workers, ray_address=args.ray_address, quiet=True,
+                           first_seed=seeds[0])
+        runs = pd.read_csv(out / "runs" / "runs.csv")
+        runs = runs[(runs["status"] == "ok") & (runs["n_vehicles"] == args.vehicles)]
+        df = pareto_frame(runs, settings)
+        write_csv(df, out / "pareto.csv")
+        for sc in scenarios:
+            plot_pareto(df, sc, out / "figures", f"pareto__{sc}__n{args.vehicles}")
     front = df[df["non_dominated"]]
     print(f"wrote {out / 'pareto.csv'} ({len(df)} points, {len(front)} non-dominated) and "
           f"{out / 'figures'}")

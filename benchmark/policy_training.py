@@ -66,18 +66,18 @@ def is_done(job: dict[str, Any]) -> bool:
 
 
 def shipped_checkpoint(job: dict[str, Any]) -> Path | None:
-    """The shipped checkpoint of ``job`` if it has the same config, budget and energy model."""
-    import torch
-
+    """The shipped checkpoint of ``job`` if it has the same config, budget and energy model
+    (verified: a damaged shipped file is refused, :func:`marl.checkpoint.load_checkpoint`)."""
     from benchmark.train_cmd import job_config
     from controllers.policy import CHECKPOINT_DIR
-    from marl.checkpoint import same_energy_model
+    from marl.checkpoint import load_checkpoint, same_energy_model
 
     path = CHECKPOINT_DIR / f"{stem(job)}.pt"
     curve = path.with_suffix("").with_suffix(".curve.csv")
     if not path.exists() or not curve.exists():
         return None
-    data = torch.load(path, map_location="cpu", weights_only=True)
+    data = load_checkpoint(path, algo=job["algo"], n_vehicles=job["vehicles"],
+                           scenario=job["scenario"])
     total = data.get("curve_summary", {}).get("total_steps", data.get("steps", 0))
     if data.get("config") != job_config(job) or not same_energy_model(data) or not (
             job["steps"] <= total <= job["steps"] * (1 + BUDGET_OVERSHOOT)):
@@ -94,33 +94,54 @@ def _last_commit(path: Path) -> str:
         return "unknown"
 
 
+def _shipped_name(path: Path) -> str:
+    """A shipped file's path as the source records it: relative to the shipped folder (a
+    report never prints where this checkout lies)."""
+    from controllers.policy import CHECKPOINT_DIR
+
+    try:
+        return str(path.resolve().relative_to(CHECKPOINT_DIR.resolve().parent.parent))
+    except ValueError:
+        return path.name
+
+
+def _copier(src: Path) -> Any:
+    return lambda tmp: shutil.copyfile(src, tmp)
+
+
 def copy_shipped(job: dict[str, Any], path: Path) -> None:
-    import torch
+    """Copy a shipped run's files into the job's folder (each atomically, the source file
+    last, so an interrupted copy is not taken as done)."""
+    from envs.atomic import StagedFiles
+    from marl.checkpoint import load_checkpoint
 
     out = Path(job["out"])
     out.mkdir(parents=True, exist_ok=True)
     name = stem(job)
-    for suffix in (".pt", ".curve.csv", ".log"):
-        src = path.parent / f"{name}{suffix}"
-        if src.exists():
-            shutil.copyfile(src, out / f"{name}{suffix}")
-    data = torch.load(path, map_location="cpu", weights_only=True)
-    source_file(job).write_text(json.dumps({
-        "source": "shipped", "path": str(path), "commit": _last_commit(path),
-        "config": data["config"], "energy_model": data.get("energy_model"),
-        "steps": int(data["curve_summary"].get("total_steps", 0)),
-        "wall_s": data["curve_summary"].get("wall_s"),
-    }, indent=1, sort_keys=True))
+    data = load_checkpoint(path, algo=job["algo"], n_vehicles=job["vehicles"],
+                           scenario=job["scenario"])
+    with StagedFiles() as staged:
+        for suffix in (".pt", ".curve.csv", ".log"):
+            src = path.parent / f"{name}{suffix}"
+            if src.exists():
+                staged.write_with(out / f"{name}{suffix}", _copier(src))
+        staged.write_text(source_file(job), json.dumps({
+            "source": "shipped", "path": _shipped_name(path), "commit": _last_commit(path),
+            "config": data["config"], "energy_model": data.get("energy_model"),
+            "steps": int(data["curve_summary"].get("total_steps", 0)),
+            "wall_s": data["curve_summary"].get("wall_s"),
+        }, indent=1, sort_keys=True))
+        staged.commit()
 
 
 def record_trained(job: dict[str, Any]) -> None:
-    import torch
-
     from benchmark.provenance import git_sha
+    from envs.atomic import write_text
+    from marl.checkpoint import load_checkpoint
 
-    data = torch.load(Path(job["out"]) / f"{stem(job)}.final.pt", map_location="cpu",
-                      weights_only=True)
-    source_file(job).write_text(json.dumps({
+    data = load_checkpoint(Path(job["out"]) / f"{stem(job)}.final.pt", algo=job["algo"],
+                           n_vehicles=job["vehicles"], scenario=job["scenario"])
+    write_text(source_file(job), json.dumps({
         "source": "trained", "commit": git_sha(), "config": data["config"],
         "energy_model": data.get("energy_model"),
         "steps": int(data["steps"]), "wall_s": data["curve_summary"].get("wall_s"),

@@ -6,6 +6,10 @@ a finished run with the same config is already there, or (paper budget) a shippe
 with that config and budget exists, which is copied with its curve and provenance; (2) every
 policy and the baselines on the evaluation seeds, through the results store; (3)
 ``OUT/report.md`` with its figures and the CSV behind every table.
+
+The command holds OUT's folder lock and works inside OUT (:mod:`benchmark.work_folder`): run
+labels name checkpoint folders relative to it (``bdc[checkpoint_dir=checkpoints,seed=1]``), so
+``--resume`` with OUT spelled otherwise, or after moving it, reruns nothing.
 """
 
 from __future__ import annotations
@@ -36,6 +40,7 @@ from benchmark.cli import plain
 from benchmark.executors import EXECUTORS
 from benchmark.policy_training import make_job, source_file, train_stage, tuned_config
 from benchmark.train_cmd import add_device_argument, add_population_argument, check_population
+from envs.atomic import write_text
 from envs.errors import ConfigError, UnknownNameError
 
 MANIFEST = "reproduce.json"
@@ -159,8 +164,14 @@ def eval_stage(jobs: list[dict[str, Any]], scenarios: list[str], budget: Budget,
     return names
 
 
-# ------------------------------------------------------------------------------ report
 # ------------------------------------------------------------------------------ main
+def _holds_files(folder: Path) -> bool:
+    """Whether ``folder`` holds anything but a lock left by an earlier command."""
+    from benchmark.folder_lock import LOCK_FILES
+
+    return folder.is_dir() and any(p.name not in LOCK_FILES for p in folder.iterdir())
+
+
 def main(argv: list[str]) -> int:
     """Entry point of ``cacc-bench reproduce``."""
     from envs.scenarios import make_scenario
@@ -205,25 +216,31 @@ def main(argv: list[str]) -> int:
         if previous.get("settings") != settings:
             raise ConfigError(f"{out} holds a reproduction with other settings "
                               f"({previous.get('settings')}); use another --out")
-    elif out.exists() and any(out.iterdir()) and not args.resume:
+    elif _holds_files(out) and not args.resume:
         raise ConfigError(f"{out} is not empty; choose another --out (or --resume)")
-    jobs = _train_plan(algos, scenarios, budget, out, studies)
+    from benchmark.work_folder import command_text, working_in
+
     out.mkdir(parents=True, exist_ok=True)
-    manifest: dict[str, Any] = {"settings": settings,
-                                "command": "cacc-bench reproduce " + " ".join(argv)}
-    manifest_path.write_text(json.dumps({**manifest, "status": "started"}, indent=1))
-    train_stage(jobs, args, reuse_shipped=budget.name == "paper")
-    names = eval_stage(jobs, scenarios, budget, args, out)
-    train_wall = sum(float(json.loads(source_file(j).read_text()).get("wall_s") or 0.0)
-                     for j in jobs)
-    import pandas as pd
+    # inside OUT, locked: every recorded path (checkpoint folders in run labels, the report)
+    # is relative to it, so --out spelled otherwise or a moved folder reruns nothing
+    with working_in(out):
+        here = Path(".")
+        jobs = _train_plan(algos, scenarios, budget, here, studies)
+        manifest: dict[str, Any] = {"settings": settings,
+                                    "command": command_text("cacc-bench reproduce", argv)}
+        write_text(here / MANIFEST, json.dumps({**manifest, "status": "started"}, indent=1))
+        train_stage(jobs, args, reuse_shipped=budget.name == "paper")
+        names = eval_stage(jobs, scenarios, budget, args, here)
+        train_wall = sum(float(json.loads(source_file(j).read_text()).get("wall_s") or 0.0)
+                         for j in jobs)
+        import pandas as pd
 
-    runs = pd.read_csv(out / "runs" / "runs.csv")
-    manifest.update({"wall_s": time.perf_counter() - t0, "train_wall_s": train_wall,
-                     "eval_wall_s": float(runs["wall_s"].sum())})
-    from analysis.reproduction_report import write_report
+        runs = pd.read_csv(here / "runs" / "runs.csv")
+        manifest.update({"wall_s": time.perf_counter() - t0, "train_wall_s": train_wall,
+                         "eval_wall_s": float(runs["wall_s"].sum())})
+        from analysis.reproduction_report import write_report
 
-    report = write_report(jobs, names, scenarios, budget, out, manifest)
-    manifest_path.write_text(json.dumps({**manifest, "status": "done"}, indent=1))
+        report = out / write_report(jobs, names, scenarios, budget, here, manifest)
+        write_text(here / MANIFEST, json.dumps({**manifest, "status": "done"}, indent=1))
     print(f"wrote {report}")
     return 0

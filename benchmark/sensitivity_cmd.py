@@ -6,7 +6,9 @@ LSTM, the whole critic) and gamma (0.99, 0.995). Each variant trains (seed 0 unl
 into ``OUT/checkpoints/<variant>``; the unchanged config reuses the shipped policy when its
 config and budget match. Every variant then runs on the evaluation seeds, and the unchanged
 policy also under V2V delay 0.1-0.3 s and packet loss 10-30 %. ``OUT/sensitivity.csv``,
-``OUT/report.md`` and figures come out; everything is resumable.
+``OUT/report.md`` and figures come out; everything is resumable. The command holds OUT's
+folder lock and works inside OUT (:mod:`benchmark.work_folder`): run labels name checkpoint
+folders relative to it, so OUT spelled otherwise or moved reruns nothing.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from benchmark.cli import plain
 from benchmark.executors import add_executor_options
 from benchmark.export import write_csv
 from benchmark.train_cmd import add_device_argument
+from envs.atomic import write_text
 from envs.errors import ConfigError, UnknownNameError
 
 #: Multiples of the tuned consensus eps tried (two decades and more around it).
@@ -156,10 +159,10 @@ def _eval_keys(settings: list[dict[str, Any]], seeds: list[int]) -> list[Any]:
 
 
 def _summaries(settings: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """``settings`` with each training job replaced by its checkpoint's curve summary."""
-    import torch
-
+    """``settings`` with each training job replaced by its checkpoint's curve summary (each
+    checkpoint verified, :func:`marl.checkpoint.load_checkpoint`)."""
     from benchmark.policy_training import stem
+    from marl.checkpoint import load_checkpoint
 
     cache: dict[str, dict[str, float]] = {}
     out = []
@@ -168,11 +171,18 @@ def _summaries(settings: list[dict[str, Any]]) -> list[dict[str, Any]]:
         for job in s["training"]:
             path = str(Path(job["out"]) / f"{stem(job)}.pt")
             if path not in cache:
-                cache[path] = torch.load(path, map_location="cpu",
-                                         weights_only=True)["curve_summary"]
+                cache[path] = load_checkpoint(path, algo=job["algo"],
+                                              n_vehicles=job["vehicles"])["curve_summary"]
             summaries.append(cache[path])
         out.append({**s, "training": summaries})
     return out
+
+
+def _holds_files(folder: Path) -> bool:
+    """Whether ``folder`` holds anything but a lock left by an earlier command."""
+    from benchmark.folder_lock import LOCK_FILES
+
+    return folder.is_dir() and any(p.name not in LOCK_FILES for p in folder.iterdir())
 
 
 def _names(text: str, flag: str, valid: tuple[str, ...] | None = None) -> list[str]:
@@ -227,27 +237,35 @@ def main(argv: list[str]) -> int:
         if previous != settings_key:
             raise ConfigError(f"{out} holds a study with other settings ({previous}); use "
                               "another --out")
-    elif out.exists() and any(out.iterdir()) and not args.resume:
+    elif _holds_files(out) and not args.resume:
         raise ConfigError(f"{out} is not empty; choose another --out (or --resume)")
-    jobs, settings = plan(scenarios, knobs, seeds, args.steps, args.validation_episodes, out)
+    from benchmark.work_folder import command_text, working_in
+
     out.mkdir(parents=True, exist_ok=True)
-    manifest.write_text(json.dumps(settings_key, indent=1))
-    print(f"sensitivity: {len(jobs)} training runs, {len(settings)} settings", file=sys.stderr)
-    train_stage(jobs, args, reuse_shipped=True)
-    eval_seeds = seeds_from_episodes(args.episodes)
-    keys = _eval_keys(settings, eval_seeds)
-    print(f"evaluation: {len(keys)} runs", file=sys.stderr)
-    rc = execute_sweep(keys, out / "runs", resume=True, executor=args.executor,
-                       workers=args.workers, ray_address=args.ray_address, quiet=True,
-                       first_seed=eval_seeds[0])
-    if rc != 0:
-        raise ConfigError(f"some evaluation runs failed (see {out / 'runs' / 'runs.csv'}); fix "
-                          "the cause and rerun with --resume")
-    runs = pd.read_csv(out / "runs" / "runs.csv")
-    runs = runs[runs["status"] == "ok"]
-    df = sensitivity_frame(runs, _summaries(settings))
-    write_csv(df, out / "sensitivity.csv")
-    report = write_report(df, out, "cacc-bench sensitivity " + " ".join(argv), args.steps, seeds,
-                          args.episodes)
+    # inside OUT, locked: checkpoint folders in run labels are relative to it, so --out
+    # spelled otherwise or a moved folder reruns nothing
+    with working_in(out):
+        here = Path(".")
+        jobs, settings = plan(scenarios, knobs, seeds, args.steps, args.validation_episodes,
+                              here)
+        write_text(here / MANIFEST, json.dumps(settings_key, indent=1))
+        print(f"sensitivity: {len(jobs)} training runs, {len(settings)} settings",
+              file=sys.stderr)
+        train_stage(jobs, args, reuse_shipped=True)
+        eval_seeds = seeds_from_episodes(args.episodes)
+        keys = _eval_keys(settings, eval_seeds)
+        print(f"evaluation: {len(keys)} runs", file=sys.stderr)
+        rc = execute_sweep(keys, here / "runs", resume=True, executor=args.executor,
+                           workers=args.workers, ray_address=args.ray_address, quiet=True,
+                           first_seed=eval_seeds[0])
+        if rc != 0:
+            raise ConfigError(f"some evaluation runs failed (see {out / 'runs' / 'runs.csv'}); "
+                              "fix the cause and rerun with --resume")
+        runs = pd.read_csv(here / "runs" / "runs.csv")
+        runs = runs[runs["status"] == "ok"]
+        df = sensitivity_frame(runs, _summaries(settings))
+        write_csv(df, here / "sensitivity.csv")
+        report = out / write_report(df, here, command_text("cacc-bench sensitivity", argv),
+                                    args.steps, seeds, args.episodes)
     print(f"wrote {out / 'sensitivity.csv'} ({len(df)} rows) and {report}")
     return 0

@@ -162,20 +162,25 @@ def main(argv: list[str]) -> int:
     omegas_plot = np.geomspace(0.01, 10.0, 300)
 
     from analysis import stability_report as report
+    from benchmark.folder_lock import folder_lock
 
-    tables = StabilityTables()
-    tables.extend(report.analytic(entries, omegas_plot))
-    tables.extend(report.design(entries, args.time_gap, args.delay, args.lag, omegas_plot, out))
-    if args.empirical:
-        omegas = np.geomspace(args.omega_min, args.omega_max, args.n_omega)
-        tables.extend(report.empirical(
-            entries, omegas, omegas_plot, n_vehicles=args.n_vehicles,
-            amplitude_mps=args.amplitude, delay_s=args.delay, lag_s=args.lag, figures_dir=out))
-    for name, frame in (("stability_grid.csv", tables.grid), ("stability_h_min.csv", tables.h_min),
-                        ("stability_summary.csv", tables.summary_frame()),
-                        ("stability.csv", tables.curve_frame())):
-        if frame is not None:
-            write_csv(frame, out / name, float_format="%.6g")
+    with folder_lock(out):  # one writer per folder, as `run`
+        tables = StabilityTables()
+        tables.extend(report.analytic(entries, omegas_plot))
+        tables.extend(report.design(entries, args.time_gap, args.delay, args.lag, omegas_plot,
+                                    out))
+        if args.empirical:
+            omegas = np.geomspace(args.omega_min, args.omega_max, args.n_omega)
+            tables.extend(report.empirical(
+                entries, omegas, omegas_plot, n_vehicles=args.n_vehicles,
+                amplitude_mps=args.amplitude, delay_s=args.delay, lag_s=args.lag,
+                figures_dir=out))
+        for name, frame in (("stability_grid.csv", tables.grid),
+                            ("stability_h_min.csv", tables.h_min),
+                            ("stability_summary.csv", tables.summary_frame()),
+                            ("stability.csv", tables.curve_frame())):
+            if frame is not None:
+                write_csv(frame, out / name, float_format="%.6g")
     _print_table(tables.summary)
     for line in tables.notes:
         print(line)

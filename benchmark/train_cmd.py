@@ -6,6 +6,10 @@ validation reward and collisions in both evaluation modes) and ``.log`` (evaluat
 communicated) per run. Several seeds of one algorithm and scenario train in one process as a
 population (``--population``): one stacked network, each run exactly as it would alone.
 Shows a progress bar on a terminal and stays quiet otherwise.
+
+A run's files are written when it finishes, each atomically and together
+(:mod:`envs.atomic`): an interrupted or failed run leaves the files of an earlier run byte for
+byte as they were. The command holds ``--out``'s folder lock (:mod:`benchmark.folder_lock`).
 """
 
 from __future__ import annotations
@@ -110,6 +114,7 @@ def _train_job(job: dict) -> dict:
     import torch
 
     from benchmark.policy_eval import validation_evaluator
+    from envs.atomic import StagedFiles, temporary_beside
     from envs.naming import checkpoint_stem
     from envs.params import VALIDATION_SEEDS
     from marl.a2c import algorithm, run_population
@@ -122,29 +127,47 @@ def _train_job(job: dict) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     log_paths = [out / (checkpoint_stem(job["algo"], job["scenario"], job["vehicles"], s) + ".log")
                  for s in seeds]
-    with contextlib.ExitStack() as stack:
-        handles = [stack.enter_context(open(p, "w")) for p in log_paths]
+    # each log grows in a hidden temporary file beside it (``.<stem>.log.*.tmp``, to follow
+    # with tail -f) and replaces the .log only once its run's files are written: an interrupted
+    # or failed run leaves an earlier run's log as it was
+    tmp_logs = [temporary_beside(p) for p in log_paths]
+    done = [False] * len(seeds)
+    try:
+        with contextlib.ExitStack() as stack:
+            handles = [stack.enter_context(open(p, "w")) for p in tmp_logs]
 
-        def logger(fh: Any) -> Any:
-            def log(line: str) -> None:
-                fh.write(time.strftime("%H:%M:%S ") + line + "\n")
-                fh.flush()
-            return log
+            def logger(k: int, fh: Any) -> Any:
+                def log(line: str) -> None:
+                    fh.write(time.strftime("%H:%M:%S ") + line + "\n")
+                    fh.flush()
+                    if line.startswith("done:"):  # run_population wrote the run's files
+                        done[k] = True
+                return log
 
-        logs = [logger(fh) for fh in handles]
-        together = f", in a population of {len(seeds)} (seeds {seeds})" if len(seeds) > 1 else ""
-        for seed, log in zip(seeds, logs, strict=True):
-            log(
-                f"train {job['algo']} on {job['scenario']}, N = {job['vehicles']}, seed {seed}, "
-                f"{job['steps']} steps{together}, config {config.resolved(job['scenario'])}"
-            )
-        results = run_population(
-            algo, [config] * len(seeds), job["scenario"], job["vehicles"], job["steps"], seeds,
-            out, progress=_Bar(job["progress"] and len(seeds) == 1), logs=logs,
-            evaluate=validation_evaluator(
-                job["algo"], job["scenario"], job["vehicles"],
-                VALIDATION_SEEDS[: job.get("validation_episodes") or len(VALIDATION_SEEDS)]),
-            device=job.get("device", "cpu"))
+            logs = [logger(k, fh) for k, fh in enumerate(handles)]
+            together = (f", in a population of {len(seeds)} (seeds {seeds})"
+                        if len(seeds) > 1 else "")
+            for seed, log in zip(seeds, logs, strict=True):
+                log(
+                    f"train {job['algo']} on {job['scenario']}, N = {job['vehicles']}, seed "
+                    f"{seed}, {job['steps']} steps{together}, config "
+                    f"{config.resolved(job['scenario'])}"
+                )
+            results = run_population(
+                algo, [config] * len(seeds), job["scenario"], job["vehicles"], job["steps"],
+                seeds, out, progress=_Bar(job["progress"] and len(seeds) == 1), logs=logs,
+                evaluate=validation_evaluator(
+                    job["algo"], job["scenario"], job["vehicles"],
+                    VALIDATION_SEEDS[: job.get("validation_episodes") or len(VALIDATION_SEEDS)]),
+                device=job.get("device", "cpu"))
+    finally:
+        with StagedFiles() as staged:
+            for tmp, path, finished in zip(tmp_logs, log_paths, done, strict=True):
+                if finished:
+                    staged.adopt(tmp, path)
+            staged.commit()
+        for tmp in tmp_logs:
+            tmp.unlink(missing_ok=True)
     return {"runs": [
         {"algo": job["algo"], "scenario": job["scenario"], "seed": res.seed,
          "checkpoint": str(res.checkpoint), "curve": str(res.curve_csv), "log": str(path),
@@ -243,17 +266,18 @@ def job_config(job: dict) -> dict:
 def _finished(job: dict) -> bool:
     """Whether ``job``'s run finished in its folder with the same config and budget (a
     different one is an error: a finished run is never overwritten silently)."""
-
-    import torch
-
     from envs.naming import checkpoint_stem
-    from marl.checkpoint import energy_model_id, same_energy_model
+    from marl.checkpoint import energy_model_id, load_checkpoint, same_energy_model
 
     stem = checkpoint_stem(job["algo"], job["scenario"], job["vehicles"], job["seed"])
     final = Path(job["out"]) / f"{stem}.final.pt"
     if not final.exists():
         return False
-    data = torch.load(final, map_location="cpu", weights_only=True)
+    try:  # verified: a damaged or truncated file is refused, naming what to do
+        data = load_checkpoint(final, algo=job["algo"], n_vehicles=job["vehicles"],
+                               scenario=job["scenario"])
+    except ConfigError as exc:
+        raise ConfigError(f"{exc} (or remove {final} to train this run again)") from None
     if data["config"] != job_config(job) or data["steps"] < job["steps"]:
         raise ConfigError(
             f"{final} holds a finished run with another config or fewer steps than asked "
@@ -337,17 +361,29 @@ def main(argv: list[str]) -> int:
          "progress": tty and single, "device": args.device}
         for seed in seeds for sc in scenarios for a in algos
     ]
-    if args.resume:
-        done = [j for j in jobs if _finished(j)]
-        if done:
-            print(f"resuming: {len(done)} of {len(jobs)} runs already finished in {args.out}",
-                  file=sys.stderr)
-        jobs = [j for j in jobs if j not in done]
-    populations = population_jobs(jobs, args.population, args.executor, args.workers)
-    for res in map_jobs(_train_job, populations, args.executor, args.workers, args.ray_address):
-        for run in res["runs"]:
-            together = f" (population of {run['population']})" if run["population"] > 1 else ""
-            print(f"{run['algo']} {run['scenario']} seed {run['seed']}: checkpoint "
-                  f"{run['checkpoint']}, curve {run['curve']}, log {run['log']}; "
-                  f"{run['env_steps_per_s']:.0f} env steps/s{together}")
+    from benchmark.folder_lock import folder_lock
+
+    with folder_lock(args.out):  # one writer per folder, as `run`; refused naming the holder
+        if args.resume:
+            done = [j for j in jobs if _finished(j)]
+            if done:
+                print(f"resuming: {len(done)} of {len(jobs)} runs already finished in "
+                      f"{args.out}", file=sys.stderr)
+            jobs = [j for j in jobs if j not in done]
+        populations = population_jobs(jobs, args.population, args.executor, args.workers)
+        try:
+            for res in map_jobs(_train_job, populations, args.executor, args.workers,
+                                args.ray_address):
+                for run in res["runs"]:
+                    together = (f" (population of {run['population']})"
+                                if run["population"] > 1 else "")
+                    print(f"{run['algo']} {run['scenario']} seed {run['seed']}: checkpoint "
+                          f"{run['checkpoint']}, curve {run['curve']}, log {run['log']}; "
+                          f"{run['env_steps_per_s']:.0f} env steps/s{together}")
+        except OSError as exc:  # a full disk, a folder made unwritable meanwhile
+            raise ConfigError(
+                f"training into {args.out} stopped: {exc.strerror or exc}"
+                f"{f' ({exc.filename})' if exc.filename else ''}; runs that did not finish "
+                "left the files there as they were: fix that and rerun with --resume"
+            ) from None
     return 0

@@ -211,17 +211,22 @@ def main(argv: list[str]) -> int:
          "steps": args.steps, "seed": args.seed, "out": str(out)}
         for a in algos for s in scenarios
     ]
-    progress = Progress(len(jobs), "studies")
-    rows: list[dict] = []
-    for res in map_jobs(_study_job, jobs, args.executor, args.workers, args.ray_address):
-        rows.extend(res)
-        progress.advance(note=f"{res[0]['algo']} {res[0]['scenario']}" if res else "")
-    progress.close()
-    table = pd.DataFrame(rows).sort_values(["algo", "scenario", "trial"])
-    write_csv(table, out / "trials.csv")
-    command = "cacc-bench tune " + " ".join(shlex.quote(a) for a in argv)
-    best = tuned_configs(table, args, command)
-    (out / "tuned_configs.json").write_text(json.dumps(best, indent=1, sort_keys=True) + "\n")
+    from benchmark.folder_lock import folder_lock
+    from envs.atomic import write_text
+
+    # one writer per folder, as `run`: a second tune on --out is refused naming the first
+    with folder_lock(out):
+        progress = Progress(len(jobs), "studies")
+        rows: list[dict] = []
+        for res in map_jobs(_study_job, jobs, args.executor, args.workers, args.ray_address):
+            rows.extend(res)
+            progress.advance(note=f"{res[0]['algo']} {res[0]['scenario']}" if res else "")
+        progress.close()
+        table = pd.DataFrame(rows).sort_values(["algo", "scenario", "trial"])
+        write_csv(table, out / "trials.csv")
+        command = "cacc-bench tune " + " ".join(shlex.quote(a) for a in argv)
+        best = tuned_configs(table, args, command)
+        write_text(out / "tuned_configs.json", json.dumps(best, indent=1, sort_keys=True) + "\n")
     for key, entry in sorted(best["configs"].items()):
         print(f"{key}: score {entry['score']:.1f} (trial {entry['trial']}) "
               f"{json.dumps(entry['config'], sort_keys=True)}")

@@ -1571,6 +1571,8 @@ class TrainResult:
     checkpoint: Path | None = None
     final_checkpoint: Path | None = None
     curve_csv: Path | None = None
+    #: The kept snapshot's checkpoint contents, held in memory until the run finishes.
+    kept: dict[str, Any] | None = field(default=None, repr=False)
 
 
 def run_training(
@@ -1748,13 +1750,17 @@ def _finish(
     save_weights: bool,
     final: bool = False,
 ) -> None:
-    """Fill the run's result numbers and (with an output folder) write the curve, the selected
-    checkpoint when ``save_weights`` (a new best on the validation seeds) and, when ``final``,
-    the final weights (``net``: the run's acting network).
+    """Fill the run's result numbers; with an output folder, keep the snapshot in memory when
+    ``save_weights`` (a new best on the validation seeds) and, when ``final``, write the run's
+    files: the curve, the final weights (``net``: the run's acting network) and the kept
+    snapshot with the run's totals.
 
-    Called at every evaluation, so an interrupted run leaves its best checkpoint so far.
+    Nothing is written before the run finishes, and the three files are written to temporary
+    files and renamed together (:class:`envs.atomic.StagedFiles`), so an interrupted or failed
+    run leaves the files of an earlier run byte for byte as they were.
     """
-    from marl.checkpoint import save_checkpoint
+    from envs.atomic import StagedFiles
+    from marl.checkpoint import checkpoint_payload, write_payload
 
     exec_bits = execution_bits_per_agent_step(net)
     result.steps, result.episodes = run.steps, run.episodes
@@ -1771,11 +1777,9 @@ def _finish(
     if out_dir is None:
         return
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     stem = checkpoint_stem(trainer.algo.name, trainer.scenario_id, trainer.n_vehicles, run.seed)
     curve = result.curve
     result.curve_csv = out / f"{stem}.curve.csv"
-    write_curve(result.curve_csv, curve)
     mode = run.config.selection_mode
     evals = [r for r in curve if not math.isnan(r[f"eval_reward_{mode}"])]
     summary = {
@@ -1791,9 +1795,8 @@ def _finish(
     }
     result.checkpoint = out / f"{stem}.pt"
 
-    def save(path: Path) -> None:
-        save_checkpoint(
-            path,
+    def payload() -> dict[str, Any]:
+        return checkpoint_payload(
             algo=trainer.algo.name,
             config=dataclasses.asdict(run.config),
             scenario=trainer.scenario_id,
@@ -1804,24 +1807,39 @@ def _finish(
             weights=net.acting_state_dict(),
         )
 
-    if final:
-        result.final_checkpoint = out / f"{stem}.final.pt"
-        save(result.final_checkpoint)
     if save_weights:
-        save(result.checkpoint)
-    elif result.checkpoint.exists():  # keep the selected weights, refresh the run's totals
-        data = torch.load(result.checkpoint, weights_only=True)
-        kept = {k: v for k, v in data["curve_summary"].items() if k.startswith("selected_")}
-        data["curve_summary"].update(summary)
-        data["curve_summary"].update(kept)
-        data["curve_summary"]["total_steps"] = float(run.steps)
-        torch.save(data, result.checkpoint)
+        result.kept = payload()
+    if not final:
+        return
+    final_data = payload()
+    kept = result.kept if result.kept is not None else final_data
+    # the kept weights with the run's totals (its own selected_* numbers stay)
+    totals = dict(kept["curve_summary"])
+    selected = {k: v for k, v in totals.items() if k.startswith("selected_")}
+    totals.update(final_data["curve_summary"])
+    totals.update(selected)
+    totals["total_steps"] = float(run.steps)
+    kept = {**kept, "curve_summary": totals}
+    result.final_checkpoint = out / f"{stem}.final.pt"
+    out.mkdir(parents=True, exist_ok=True)
+    with StagedFiles() as staged:
+        staged.write_with(result.curve_csv, lambda tmp: _write_curve_file(tmp, curve))
+        staged.write_with(result.final_checkpoint,
+                          lambda tmp: write_payload(tmp, final_data, atomic=False))
+        staged.write_with(result.checkpoint, lambda tmp: write_payload(tmp, kept, atomic=False))
+        staged.commit()
 
 
 def write_curve(path: Path, curve: list[dict[str, float]]) -> None:
     """Learning curve CSV: episode, steps, train_reward (the learner's own, possibly shaped,
     reward), and per evaluation mode the validation reward and collisions (empty where not
-    evaluated)."""
+    evaluated). Written atomically."""
+    from envs.atomic import write_with
+
+    write_with(path, lambda tmp: _write_curve_file(tmp, curve))
+
+
+def _write_curve_file(path: Path, curve: list[dict[str, float]]) -> None:
     evals = [f"eval_{k}_{m}" for m in EVAL_MODES for k in CURVE_EVAL_KEYS]
     with open(path, "w", newline="") as fh:
         w = csv.writer(fh)

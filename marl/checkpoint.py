@@ -8,10 +8,22 @@ training steps, the training curve summary, the fingerprint of the energy model 
 (:func:`energy_model_id`) and a format version. Loading a checkpoint of another
 format version, algorithm or N fails with a :class:`envs.errors.ConfigError` naming the file and
 the command that makes the right one.
+
+Format 2 adds ``sha256``, a content hash over the canonical JSON of every other field and the
+weight tensors in key order (:func:`content_hash`); loading recomputes it and refuses a file
+whose hash, weight dtypes or shapes, or config field types do not match (a damaged, truncated
+or altered file is a :class:`ConfigError` saying what to do, never a traceback). The shipped
+format-1 files (no hash) load only when the whole file's SHA-256 is a shipped one
+(:data:`marl.shipped_digests.FORMAT_1_SHA256`). A checkpoint is written atomically
+(:mod:`envs.atomic`): a reader sees the old file or the new one, never part of one.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import hashlib
+import json
+import math
 from pathlib import Path
 from typing import Any
 
@@ -19,7 +31,9 @@ import torch
 
 from envs.errors import ConfigError
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+#: Format 1: no content hash; read only for the shipped files (by their file digest).
+SHIPPED_FORMAT = 1
 WEIGHT_DTYPE = torch.float16
 
 
@@ -53,9 +67,34 @@ def save_checkpoint(
     steps: int,
     curve_summary: dict[str, float],
     weights: dict[str, torch.Tensor],
+    energy_model: str | None = None,
 ) -> Path:
-    """Write a checkpoint; returns its path."""
+    """Write a checkpoint atomically; returns its path.
+
+    ``energy_model``: the fingerprint to record (default: the shipped model's,
+    :func:`energy_model_id`)."""
     path = Path(path)
+    payload = checkpoint_payload(
+        algo=algo, config=config, scenario=scenario, n_vehicles=n_vehicles, seed=seed,
+        steps=steps, curve_summary=curve_summary, weights=weights, energy_model=energy_model)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_payload(path, payload)
+    return path
+
+
+def checkpoint_payload(
+    *,
+    algo: str,
+    config: dict[str, Any],
+    scenario: str,
+    n_vehicles: int,
+    seed: int,
+    steps: int,
+    curve_summary: dict[str, float],
+    weights: dict[str, torch.Tensor],
+    energy_model: str | None = None,
+) -> dict[str, Any]:
+    """The dict a checkpoint file holds (weights copied to the CPU as float16), hashed."""
     payload = {
         "format_version": FORMAT_VERSION,
         "algo": algo,
@@ -65,12 +104,37 @@ def save_checkpoint(
         "seed": int(seed),
         "steps": int(steps),
         "curve_summary": {k: float(v) for k, v in curve_summary.items()},
-        "energy_model": energy_model_id(),
-        "weights": {k: v.detach().to(WEIGHT_DTYPE).contiguous() for k, v in weights.items()},
+        "energy_model": energy_model if energy_model is not None else energy_model_id(),
+        "weights": {k: v.detach().to("cpu", WEIGHT_DTYPE).clone().contiguous()
+                    for k, v in weights.items()},
     }
-    path.parent.mkdir(parents=True, exist_ok=True)
-    torch.save(payload, path)
-    return path
+    payload["sha256"] = content_hash(payload)
+    return payload
+
+
+def write_payload(path: str | Path, payload: dict[str, Any], atomic: bool = True) -> None:
+    """Write a checkpoint dict (its hash recomputed: fields may have changed); atomically
+    unless ``atomic`` is False (``path`` is then itself a temporary file)."""
+    from envs.atomic import write_with
+
+    payload = {**payload, "sha256": content_hash(payload)}
+    if atomic:
+        write_with(path, lambda tmp: torch.save(payload, tmp))
+    else:
+        torch.save(payload, path)
+
+
+def content_hash(data: dict[str, Any]) -> str:
+    """SHA-256 over the canonical JSON of every field but ``weights`` and ``sha256``, then each
+    weight's name, dtype, shape and bytes in key order."""
+    meta = {k: v for k, v in data.items() if k not in ("weights", "sha256")}
+    h = hashlib.sha256(json.dumps(meta, sort_keys=True, separators=(",", ":"),
+                                  default=repr).encode())
+    for key in sorted(data.get("weights", {})):
+        t = data["weights"][key].detach().to("cpu").contiguous()
+        h.update(f"\0{key}\0{t.dtype}\0{list(t.shape)}\0".encode())
+        h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes())
+    return h.hexdigest()
 
 
 def load_checkpoint(
@@ -80,13 +144,14 @@ def load_checkpoint(
     n_vehicles: int | None = None,
     scenario: str | None = None,
 ) -> dict[str, Any]:
-    """Read a checkpoint and check it (weights come back as float32 tensors).
+    """Read a checkpoint and verify it (weights come back as float32 tensors).
 
     Raises
     ------
     ConfigError
-        Missing or unreadable file, other format version, other algorithm or N, or NaN or
-        infinite weights (the message names the file and the train command).
+        Missing, unreadable, damaged or altered file (content hash, weight dtypes and shapes,
+        config field types), other format version, other algorithm or N, or NaN or infinite
+        weights; the one-line message names the file and what to do.
     """
     path = Path(path)
     want_algo = algo or "ALGO"
@@ -96,20 +161,47 @@ def load_checkpoint(
     def fix() -> str:
         return f"make it with `{train_command(want_algo, want_scenario, want_n)}`"
 
+    def damaged(what: str) -> ConfigError:
+        return ConfigError(
+            f"checkpoint {path} is damaged or was altered ({what}); restore the file (a shipped "
+            f"one with `git checkout -- <file>`) or train it again: {fix()}")
+
     if not path.exists():
         raise ConfigError(f"checkpoint {path} does not exist; {fix()}")
+    if not path.is_file():
+        raise ConfigError(f"checkpoint {path} is not a file; {fix()}")
     try:
-        data = torch.load(path, map_location="cpu", weights_only=True)
+        blob = path.read_bytes()
+        import io
+
+        data = torch.load(io.BytesIO(blob), map_location="cpu", weights_only=True)
     except Exception as exc:  # noqa: BLE001 - any failure means an unusable file
-        raise ConfigError(f"checkpoint {path} cannot be read ({exc}); {fix()}") from None
-    if not isinstance(data, dict) or data.get("format_version") != FORMAT_VERSION:
-        got = data.get("format_version") if isinstance(data, dict) else None
+        reason = " ".join(str(exc).split())[:160] or type(exc).__name__
+        raise ConfigError(f"checkpoint {path} cannot be read ({reason}); {fix()}") from None
+    got = data.get("format_version") if isinstance(data, dict) else None
+    if got == SHIPPED_FORMAT:
+        from marl.shipped_digests import FORMAT_1_SHA256
+
+        if hashlib.sha256(blob).hexdigest() not in FORMAT_1_SHA256:
+            raise ConfigError(
+                f"checkpoint {path} has format version 1 (no content hash) and is not one of the "
+                f"shipped files, so it cannot be verified; re-train: {fix()}")
+    elif got != FORMAT_VERSION:
         raise ConfigError(
             f"checkpoint {path} has format version {got}, this cacc-bench reads version "
             f"{FORMAT_VERSION}; re-train: `{train_command(want_algo, want_scenario, want_n)}`"
         )
-    if scenario is None:
-        want_scenario = data.get("scenario", want_scenario)
+    assert isinstance(data, dict)
+    if scenario is None and isinstance(data.get("scenario"), str):
+        want_scenario = data["scenario"]
+    if got == FORMAT_VERSION:
+        try:
+            ok = data.get("sha256") == content_hash(data)
+        except Exception:  # noqa: BLE001 - weights that cannot even be hashed
+            ok = False
+        if not ok:
+            raise damaged("its content hash does not match")
+    _check_fields(data, damaged)
     if algo is not None and data["algo"] != algo:
         raise ConfigError(
             f"checkpoint {path} holds algorithm {data['algo']!r}, not {algo!r}; {fix()}"
@@ -119,6 +211,7 @@ def load_checkpoint(
             f"checkpoint {path} was trained for N = {data['n_vehicles']} followers, not "
             f"{n_vehicles}; {fix()}"
         )
+    _check_config_and_shapes(data, damaged)
     data["weights"] = {k: v.to(torch.float32) for k, v in data["weights"].items()}
     bad = [k for k, v in data["weights"].items() if not bool(torch.isfinite(v).all())]
     if bad:
@@ -127,3 +220,67 @@ def load_checkpoint(
             f"diverged; {fix()}"
         )
     return data
+
+
+#: Fields every checkpoint holds, with their types.
+_FIELDS: dict[str, type] = {
+    "algo": str, "config": dict, "scenario": str, "n_vehicles": int, "seed": int, "steps": int,
+    "curve_summary": dict, "weights": dict,
+}
+
+
+def _check_fields(data: dict[str, Any], damaged: Any) -> None:
+    """Every field present with its type; weights are named float16 tensors."""
+    for name, kind in _FIELDS.items():
+        value = data.get(name)
+        if not isinstance(value, kind) or isinstance(value, bool):
+            raise damaged(f"field {name!r} is {type(value).__name__}, not {kind.__name__}")
+    for key, value in data["curve_summary"].items():
+        if not isinstance(key, str) or not isinstance(value, float):
+            raise damaged(f"curve_summary entry {key!r} is not a number")
+    for key, value in data["weights"].items():
+        if not isinstance(key, str) or not isinstance(value, torch.Tensor):
+            raise damaged(f"weight {key!r} is not a tensor")
+        if value.dtype != WEIGHT_DTYPE:
+            raise damaged(f"weight {key!r} is {value.dtype}, not {WEIGHT_DTYPE}")
+
+
+#: Python types a config field's annotation admits (annotations are strings here).
+_ANNOTATION_TYPES: dict[str, tuple[type, ...]] = {
+    "int": (int,), "float": (int, float), "bool": (bool,), "str": (str,), "None": (type(None),),
+}
+
+
+def _check_config_and_shapes(data: dict[str, Any], damaged: Any) -> None:
+    """For an algorithm of :mod:`marl.a2c`: the config's fields exist with the annotated
+    types and build a valid config, and every stored weight is one of that network's acting
+    weights with its shape (``(N, ...)``). Other algorithms are covered by the hash only."""
+    from marl.a2c import ALGORITHM_NAMES, algorithm, config_from_dict
+
+    if data["algo"] not in ALGORITHM_NAMES:
+        return
+    algo = algorithm(data["algo"])
+    fields = {f.name: f for f in dataclasses.fields(algo.config_cls)}
+    for key, value in data["config"].items():
+        if key not in fields:
+            raise damaged(f"config field {key!r} is not a {algo.name} field")
+        kinds = [k.strip() for k in str(fields[key].type).split("|")]
+        if all(k in _ANNOTATION_TYPES for k in kinds):
+            allowed = tuple(t for k in kinds for t in _ANNOTATION_TYPES[k])
+            if not isinstance(value, allowed) or (isinstance(value, bool) and "bool" not in kinds):
+                raise damaged(f"config field {key!r} = {value!r} is not {fields[key].type}")
+            if isinstance(value, float) and not math.isfinite(value):
+                raise damaged(f"config field {key!r} = {value!r} is not finite")
+    try:
+        config = config_from_dict(algo, data["config"])
+    except ConfigError as exc:
+        raise damaged(f"config: {exc}") from None
+    with torch.device("meta"):  # shapes only: no memory, no initialisation, no random draw
+        net = algo.build_net(config, data["n_vehicles"], with_critic=False)
+    expected = {k: tuple(v.shape) for k, v in net.acting_state_dict().items()}
+    for key, value in data["weights"].items():
+        if key not in expected:
+            raise damaged(f"weight {key!r} is not a {algo.name} network weight")
+        if tuple(value.shape) != expected[key]:
+            raise damaged(f"weight {key!r} has shape {tuple(value.shape)}, the network's is "
+                          f"{expected[key]}")

@@ -5,7 +5,6 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-import torch
 
 import controllers.policy as policy
 from benchmark.policy_training import (
@@ -17,16 +16,16 @@ from benchmark.policy_training import (
 )
 from benchmark.train_cmd import job_config
 from envs.errors import ConfigError
-from marl.checkpoint import energy_model_id
+from marl.checkpoint import energy_model_id, save_checkpoint
 
 
 def _ship(folder: Path, job: dict, total_steps: int, energy_model: str | None = None,
           **config_changes: object) -> Path:
     config = {**job_config(job), **config_changes}
     path = folder / "bdc__catchup-v1__n8__s0.pt"
-    torch.save({"config": config, "steps": total_steps // 2,
-                "energy_model": energy_model or energy_model_id(),
-                "curve_summary": {"total_steps": total_steps, "wall_s": 12.5}}, path)
+    save_checkpoint(path, algo="bdc", config=config, scenario="catchup-v1", n_vehicles=8, seed=0,
+                    steps=total_steps // 2, energy_model=energy_model or energy_model_id(),
+                    curve_summary={"total_steps": total_steps, "wall_s": 12.5}, weights={})
     path.with_suffix("").with_suffix(".curve.csv").write_text("episode,steps\n1,720\n")
     return path
 
@@ -69,8 +68,9 @@ def test_a_run_trained_under_another_energy_model_is_not_done(tmp_path: Path, jo
     assert not is_done(job)
     source_file(job).unlink()
     final = Path(job["out"]) / "bdc__catchup-v1__n8__s0.final.pt"
-    torch.save({"config": job_config(job), "steps": 600_720, "energy_model": "0123456789ab"},
-               final)
+    save_checkpoint(final, algo="bdc", config=job_config(job), scenario="catchup-v1",
+                    n_vehicles=8, seed=0, steps=600_720, energy_model="0123456789ab",
+                    curve_summary={}, weights={})
     with pytest.raises(ConfigError, match="another energy model"):
         is_done(job)
 

@@ -1,0 +1,51 @@
+"""Commands that work inside their output folder (``reproduce``, ``sensitivity``).
+
+Such a command holds the folder's lock (:func:`benchmark.folder_lock.folder_lock`) and runs
+with the folder as its working directory, so every path it records (checkpoint folders in run
+keys and labels, ``job["out"]``, the report's links) is relative to the folder: the same folder
+spelled differently (absolute, relative, through a link) or moved keeps every run's identity,
+and a resumed command reruns nothing. Workers (process pool, a local Ray instance) start inside
+the command and inherit the working directory.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+
+from benchmark.folder_lock import folder_lock
+
+
+@contextlib.contextmanager
+def working_in(folder: str | Path) -> Iterator[Path]:
+    """Lock ``folder`` and make it the working directory inside the block (restored after);
+    yields the folder's resolved path."""
+    with folder_lock(folder):
+        here = Path(folder).resolve()
+        previous = os.getcwd()
+        os.chdir(here)
+        try:
+            yield here
+        finally:
+            os.chdir(previous)
+
+
+def command_text(prog: str, argv: Sequence[str], flag: str = "--out") -> str:
+    """``prog`` and its arguments as a report prints them: the value of ``flag`` becomes
+    ``OUT`` (the report's own folder), so a report never prints where its folder lay."""
+    args: list[str] = []
+    skip = False
+    for arg in argv:
+        if skip:
+            args.append("OUT")
+            skip = False
+        elif arg == flag:
+            args.append(arg)
+            skip = True
+        elif arg.startswith(flag + "="):
+            args.append(f"{flag}=OUT")
+        else:
+            args.append(arg)
+    return " ".join([prog, *args])

@@ -1,0 +1,326 @@
+"""Nothing finished is overwritten or misread (issue 32, item 1): outputs are written atomically
+and only when their run finishes, checkpoints carry a content hash that loading verifies, and
+every command that writes a folder takes the folder's lock."""
+
+from __future__ import annotations
+
+import errno
+import hashlib
+from pathlib import Path
+
+import pytest
+import torch
+
+from benchmark.cli import main as cli
+from benchmark.folder_lock import folder_lock
+from envs import atomic
+from envs.errors import ConfigError
+from marl.checkpoint import (
+    FORMAT_VERSION,
+    content_hash,
+    load_checkpoint,
+    save_checkpoint,
+    write_payload,
+)
+
+SHIPPED = Path(__file__).resolve().parent.parent / "controllers" / "checkpoints"
+STEM = "bdc__catchup-v1__n2__s0"
+TRAIN = ["train", "--algo", "bdc", "--scenario", "catchup-v1", "--vehicles", "2",
+         "--steps", "1500", "--set", "eval_every_steps=720"]
+
+
+def _digests(folder: Path) -> dict[str, str]:
+    """Every file's digest (the lock file, empty and left by design, aside)."""
+    return {p.name: hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(folder.iterdir()) if p.is_file() and p.name != "store.lock"}
+
+
+def _no_temporaries(folder: Path) -> None:
+    assert not [p.name for p in folder.rglob("*.tmp")]
+
+
+# ------------------------------------------------------------------------- atomic writes
+def test_a_failed_write_leaves_the_old_file_and_no_temporary(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    target = tmp_path / "a.txt"
+    atomic.write_text(target, "old")
+
+    def full(fd: int) -> None:
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(atomic.os, "fsync", full)
+    with pytest.raises(OSError, match="No space"):
+        atomic.write_text(target, "new" * 1000)
+    with pytest.raises(OSError, match="No space"):
+        atomic.write_with(target, lambda tmp: tmp.write_text("new"))
+    assert target.read_text() == "old"
+    _no_temporaries(tmp_path)
+
+
+def test_staged_files_are_renamed_together_or_not_at_all(tmp_path: Path) -> None:
+    a, b = tmp_path / "a", tmp_path / "b"
+    atomic.write_text(a, "a0")
+    atomic.write_text(b, "b0")
+    with pytest.raises(RuntimeError), atomic.StagedFiles() as staged:
+        staged.write_text(a, "a1")
+        staged.write_text(b, "b1")
+        raise RuntimeError("interrupted before the commit")
+    assert (a.read_text(), b.read_text()) == ("a0", "b0")
+    _no_temporaries(tmp_path)
+    with atomic.StagedFiles() as staged:
+        staged.write_text(a, "a1")
+        staged.write_text(b, "b1")
+        staged.commit()
+    assert (a.read_text(), b.read_text()) == ("a1", "b1")
+    assert oct(a.stat().st_mode & 0o777) != oct(0o600)  # a plain file's mode, not mkstemp's
+    _no_temporaries(tmp_path)
+
+
+# ------------------------------------------------------------------------- checkpoints
+@pytest.fixture
+def checkpoint(tmp_path: Path) -> Path:
+    """A real, finished bdc checkpoint (copied from the shipped N = 2 one, saved as format 2)."""
+    data = load_checkpoint(SHIPPED / f"{STEM}.pt")
+    return save_checkpoint(tmp_path / f"{STEM}.pt", algo="bdc", config=data["config"],
+                           scenario="catchup-v1", n_vehicles=2, seed=0, steps=data["steps"],
+                           curve_summary=data["curve_summary"], weights=data["weights"])
+
+
+def test_a_checkpoint_carries_its_content_hash_and_the_weights_round_trip(
+        checkpoint: Path) -> None:
+    raw = torch.load(checkpoint, weights_only=True)
+    assert raw["format_version"] == FORMAT_VERSION == 2
+    assert raw["sha256"] == content_hash(raw)
+    shipped = load_checkpoint(SHIPPED / f"{STEM}.pt")
+    again = load_checkpoint(checkpoint, algo="bdc", n_vehicles=2)
+    for key, value in shipped["weights"].items():
+        assert torch.equal(value, again["weights"][key]), key  # bit for bit
+
+
+def _flip(path: Path, offset: int, n: int = 200) -> None:
+    blob = bytearray(path.read_bytes())
+    for i in range(offset, min(offset + n, len(blob))):
+        blob[i] ^= 0xFF
+    path.write_bytes(bytes(blob))
+
+
+@pytest.mark.parametrize("damage", ["flip-weights", "flip-start", "truncate", "empty",
+                                    "directory"])
+def test_a_damaged_checkpoint_is_refused_with_what_to_do(checkpoint: Path, damage: str) -> None:
+    size = checkpoint.stat().st_size
+    if damage == "flip-weights":
+        _flip(checkpoint, size // 2)
+    elif damage == "flip-start":
+        _flip(checkpoint, 0)
+    elif damage == "truncate":
+        checkpoint.write_bytes(checkpoint.read_bytes()[: size // 3])
+    elif damage == "empty":
+        checkpoint.write_bytes(b"")
+    else:
+        checkpoint.unlink()
+        checkpoint.mkdir()
+    with pytest.raises(ConfigError, match=r"cacc-bench train --algo bdc") as err:
+        load_checkpoint(checkpoint, algo="bdc", n_vehicles=2)
+    assert "\n" not in str(err.value)
+
+
+def _altered(checkpoint: Path, rehash: bool, change: str) -> Path:
+    data = torch.load(checkpoint, weights_only=True)
+    if change == "shape":
+        data["weights"]["fc.weight"] = data["weights"]["fc.weight"][:, :, :10].clone()
+    elif change == "extra-key":
+        data["weights"]["bogus"] = torch.zeros(2, 3, dtype=torch.float16)
+    elif change == "dtype":
+        data["weights"]["fc.weight"] = data["weights"]["fc.weight"].float()
+    elif change == "config-type":
+        data["config"]["hidden"] = "64"
+    elif change == "config-field":
+        data["config"]["nonsense"] = 1.0
+    elif change == "missing-key":
+        del data["weights"]["fc.bias"]
+    elif change == "steps-type":
+        data["steps"] = "many"
+    if rehash:
+        write_payload(checkpoint, data)
+    else:
+        torch.save(data, checkpoint)
+    return checkpoint
+
+
+@pytest.mark.parametrize("change", ["shape", "extra-key", "dtype", "config-type",
+                                    "config-field", "missing-key", "steps-type"])
+def test_an_altered_checkpoint_is_refused(checkpoint: Path, change: str) -> None:
+    """Altered and saved again: the hash no longer matches. Altered with a new hash (a file
+    written wrongly): shapes, dtypes and config types are checked (a missing weight is caught
+    by the hash only: the file as written is what is read)."""
+    with pytest.raises(ConfigError, match="damaged or was altered.*content hash"):
+        load_checkpoint(_altered(checkpoint, False, change), algo="bdc", n_vehicles=2)
+    if change == "missing-key":
+        return
+    with pytest.raises(ConfigError, match="damaged or was altered") as err:
+        load_checkpoint(_altered(checkpoint, True, change), algo="bdc", n_vehicles=2)
+    assert "content hash" not in str(err.value)
+
+
+def test_shipped_format_1_files_load_by_their_digest_anywhere(tmp_path: Path) -> None:
+    """Format 1 (no hash) is read only for the shipped files, wherever a copy lies; a damaged
+    copy or another format-1 file is refused."""
+    copy = tmp_path / f"{STEM}.pt"
+    copy.write_bytes((SHIPPED / f"{STEM}.pt").read_bytes())
+    assert torch.load(copy, weights_only=True)["format_version"] == 1
+    assert load_checkpoint(copy, algo="bdc", n_vehicles=2)["steps"] > 0
+    _flip(copy, copy.stat().st_size // 2)
+    with pytest.raises(ConfigError, match="format version 1.*not one of the shipped files"):
+        load_checkpoint(copy, algo="bdc", n_vehicles=2)
+
+
+def test_every_shipped_checkpoint_is_verified() -> None:
+    from marl.shipped_digests import FORMAT_1_SHA256
+
+    paths = sorted(SHIPPED.rglob("*.pt"))
+    assert len(paths) >= len(FORMAT_1_SHA256) > 0
+    for path in paths:
+        load_checkpoint(path)
+
+
+# ------------------------------------------------------------------------- train
+@pytest.fixture(scope="module")
+def finished(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A folder with a finished run (.pt, .final.pt, .curve.csv, .log)."""
+    out = tmp_path_factory.mktemp("finished")
+    assert cli([*TRAIN, "--out", str(out)]) == 0
+    return out
+
+
+def _copy(src: Path, dst: Path) -> Path:
+    dst.mkdir(parents=True)
+    for p in src.glob(f"{STEM}*"):
+        (dst / p.name).write_bytes(p.read_bytes())
+    return dst
+
+
+def test_an_interrupted_train_leaves_the_finished_files_byte_identical(
+        finished: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """The issue's case: Ctrl-C after the first evaluation (which used to write a snapshot
+    over the finished .pt, .curve.csv and .log) exits 130 and changes nothing."""
+    import benchmark.train_cmd as train_cmd
+    from envs.interrupt import Interrupted
+
+    out = _copy(finished, tmp_path / "out")
+    before = _digests(out)
+    assert {f"{STEM}{s}" for s in (".pt", ".final.pt", ".curve.csv", ".log")} <= set(before)
+    seen: list[int] = []
+
+    def interrupt(self: object, steps: int, total: int, row: dict) -> None:
+        seen.append(steps)
+        if steps > 1000:  # after the evaluation at 720 steps
+            raise Interrupted(2)
+
+    monkeypatch.setattr(train_cmd._Bar, "__call__", interrupt)
+    assert cli([*TRAIN, "--out", str(out)]) == 130
+    assert max(seen) > 1000
+    assert "Traceback" not in capsys.readouterr().err
+    assert _digests(out) == before
+    _no_temporaries(out)
+
+
+def test_a_full_disk_at_the_end_leaves_no_truncated_file(
+        finished: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    import marl.checkpoint as ckpt
+
+    out = _copy(finished, tmp_path / "out")
+    before = _digests(out)
+    calls: list[str] = []
+    real_save = torch.save
+
+    def full_disk(obj: object, f: object, *a: object, **k: object) -> None:
+        calls.append(str(f))
+        real_save(obj, f, *a, **k)  # half written, then the disk is full
+        raise OSError(errno.ENOSPC, "No space left on device", str(f))
+
+    monkeypatch.setattr(ckpt.torch, "save", full_disk)
+    assert cli([*TRAIN, "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "No space left on device" in err and "Traceback" not in err
+    assert len(err.strip().splitlines()) == 1
+    assert calls
+    assert _digests(out) == before
+    _no_temporaries(out)
+
+
+@pytest.mark.parametrize("damage", ["empty", "truncate", "flip"])
+def test_train_resume_refuses_a_damaged_final_checkpoint(
+        finished: Path, tmp_path: Path, damage: str, capsys: pytest.CaptureFixture[str]) -> None:
+    out = _copy(finished, tmp_path / "out")
+    final = out / f"{STEM}.final.pt"
+    blob = final.read_bytes()
+    if damage == "empty":
+        final.write_bytes(b"")
+    elif damage == "truncate":
+        final.write_bytes(blob[: len(blob) // 2])
+    else:
+        _flip(final, len(blob) // 2)
+    before = _digests(out)
+    assert cli([*TRAIN, "--out", str(out), "--resume"]) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert str(final) in err and "remove" in err
+    assert _digests(out) == before
+
+
+def test_train_resume_skips_a_verified_finished_run(
+        finished: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = _copy(finished, tmp_path / "out")
+    before = _digests(out)
+    assert cli([*TRAIN, "--out", str(out), "--resume"]) == 0
+    assert "1 of 1 runs already finished" in capsys.readouterr().err
+    assert _digests(out) == before
+
+
+# ------------------------------------------------------------------------- locks
+LOCKED = {
+    "train": TRAIN,
+    "tune": ["tune", "--algos", "bdc", "--scenarios", "catchup-v1", "--trials", "1",
+             "--steps", "10"],
+    "reproduce": ["reproduce", "--budget", "quick", "--algos", "bdc", "--scenarios",
+                  "catchup-v1"],
+    "sensitivity": ["sensitivity", "--scenarios", "catchup-v1", "--knobs", "v2v",
+                    "--steps", "10"],
+    "pareto": ["pareto", "--scenarios", "catchup-v1", "--episodes", "1"],
+    "stability": ["stability", "--controllers", "cacc"],
+}
+
+
+@pytest.mark.parametrize("command", sorted(LOCKED))
+def test_a_second_writer_of_a_folder_is_refused_naming_the_first(
+        command: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "out"
+    with folder_lock(out):
+        before = _digests(out)
+        assert cli([*LOCKED[command], "--out", str(out)]) == 2
+        err = capsys.readouterr().err
+        assert "Traceback" not in err and len(err.strip().splitlines()) == 1
+        assert f"{out} is being written by pid" in err
+        assert _digests(out) == before
+    assert not (out / "store.owner").exists()
+
+
+def test_a_lock_that_is_a_folder_is_refused(tmp_path: Path) -> None:
+    (tmp_path / "store.lock").mkdir()
+    with pytest.raises(ConfigError, match="store.lock is not a file"), folder_lock(tmp_path):
+        pass
+
+
+def test_an_unwritable_folder_is_refused_before_the_lock(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from filelock import FileLock
+
+    def denied(self: object, *a: object, **k: object) -> None:
+        raise PermissionError(errno.EACCES, "Permission denied")
+
+    monkeypatch.setattr(FileLock, "acquire", denied)
+    with pytest.raises(ConfigError, match="cannot lock this folder.*Permission denied"), \
+            folder_lock(tmp_path / "x"):
+        pass
