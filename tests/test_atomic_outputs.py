@@ -7,6 +7,7 @@ from __future__ import annotations
 import errno
 import hashlib
 from pathlib import Path
+from typing import Any
 
 import pytest
 import torch
@@ -235,7 +236,7 @@ def test_a_full_disk_at_the_end_leaves_no_truncated_file(
     calls: list[str] = []
     real_save = torch.save
 
-    def full_disk(obj: object, f: object, *a: object, **k: object) -> None:
+    def full_disk(obj: Any, f: Any, *a: Any, **k: Any) -> None:
         calls.append(str(f))
         real_save(obj, f, *a, **k)  # half written, then the disk is full
         raise OSError(errno.ENOSPC, "No space left on device", str(f))
