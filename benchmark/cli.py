@@ -119,10 +119,12 @@ def _main(argv: Sequence[str] | None) -> int:
 
 def _interrupted(exc: KeyboardInterrupt) -> int:
     """Stop what runs (signals only recorded from here on), print one line, 128 + signum."""
-    from envs.interrupt import Interrupted, hold_forever
+    from envs.interrupt import Interrupted, hold_forever, received
 
     hold_forever()
-    signum = exc.signum if isinstance(exc, Interrupted) else signal.SIGINT
+    # the first signal received names it (a library may re-raise it as a bare KeyboardInterrupt:
+    # Ray's blocking calls do)
+    signum = received() or (exc.signum if isinstance(exc, Interrupted) else signal.SIGINT)
     _stop_workers()
     print(f"cacc-bench: interrupted ({signal.Signals(signum).name}); the run in flight was "
           "not stored, finished runs are (complete with --resume)", file=sys.stderr)
@@ -156,9 +158,9 @@ def _end(previous: dict, restore_handlers: bool) -> None:
 
 def _shutdown_ray() -> None:
     """Stop the Ray instance a command started or attached to (every exit path)."""
-    ray = sys.modules.get("ray")
-    if ray is not None and getattr(ray, "is_initialized", lambda: False)():
-        ray.shutdown()
+    executors = sys.modules.get("benchmark.executors")
+    if executors is not None:
+        executors.shutdown_ray()
 
 
 if __name__ == "__main__":

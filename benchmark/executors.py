@@ -352,33 +352,133 @@ def _process(fn: Callable[[Any], Any], items: Sequence[Any], workers: int) -> It
             stop_all()
 
 
+#: Seconds a Ray address has to accept a connection before the command is refused.
+RAY_CONNECT_TIMEOUT_S = 5.0
+#: Attempts (about one a second) to attach to a Ray cluster that accepts connections.
+RAY_ATTACH_ATTEMPTS = 5
+
+
+def check_ray_address(address: str | None) -> None:
+    """Refuse (ConfigError, within :data:`RAY_CONNECT_TIMEOUT_S`) a Ray address that does not
+    accept a TCP connection: ``ray.init`` retries such an address for minutes. ``None``,
+    ``auto`` and ``local`` are left to Ray. Call it before anything is created."""
+    import socket
+
+    if not address or address in ("auto", "local"):
+        return
+    hostport = address.split("://", 1)[-1].rstrip("/")
+    host, sep, port_text = hostport.rpartition(":")
+    if not sep or not host or not port_text.isdigit() or not 0 < int(port_text) < 65536:
+        raise ConfigError(f"--ray-address {address!r} is not HOST:PORT (or ray://HOST:PORT)")
+    try:
+        with socket.create_connection((host.strip("[]"), int(port_text)),
+                                      timeout=RAY_CONNECT_TIMEOUT_S):
+            pass
+    except OSError as exc:
+        reason = exc.strerror or type(exc).__name__
+        raise ConfigError(
+            f"the Ray cluster at {address} does not answer ({reason}, waited at most "
+            f"{RAY_CONNECT_TIMEOUT_S:g} s); start it (`ray start --head`) or fix --ray-address "
+            "/ RAY_ADDRESS"
+        ) from None
+
+
+#: The watchdog of the local Ray instance (:mod:`benchmark.reaper`), while one runs.
+_reaper: Any = None
+
+
+def _start_reaper() -> None:
+    """Start :mod:`benchmark.reaper` on this process (Linux): it ends every process the local
+    Ray instance started once this command ends, even by SIGKILL."""
+    global _reaper
+    import subprocess
+    import sys
+
+    if _reaper is not None or not os.path.isdir("/proc/self"):
+        return
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(
+        p for p in (root, os.environ.get("PYTHONPATH")) if p)}
+    _reaper = subprocess.Popen([sys.executable, "-m", "benchmark.reaper", str(os.getpid())],
+                               stdin=subprocess.PIPE, env=env, cwd=root)
+
+
+def shutdown_ray() -> None:
+    """Stop the Ray instance this process started or attached to, then let the reaper end what
+    Ray's shutdown missed, and wait for it (signals only recorded meanwhile)."""
+    import sys
+
+    global _reaper
+    from envs.interrupt import held
+
+    with held():
+        ray = sys.modules.get("ray")
+        if ray is not None and getattr(ray, "is_initialized", lambda: False)():
+            ray.shutdown()
+        if _reaper is not None:
+            reaper, _reaper = _reaper, None
+            try:
+                reaper.stdin.close()
+                reaper.wait(timeout=10)
+            except Exception:
+                reaper.kill()
+
+
 def ensure_ray(workers: int, address: str | None = None) -> object:
     """Attach to ``address`` / ``RAY_ADDRESS`` if given, else start a local instance on loopback.
 
     The local instance has no dashboard, no usage statistics and token authentication off (it
-    only listens on 127.0.0.1).
+    only listens on 127.0.0.1); :mod:`benchmark.reaper` ends its processes when the command
+    ends. Our SIGINT/SIGTERM handlers are put back after ``ray.init`` (Ray's SIGTERM handler
+    prints a native stack dump and exits 1).
     """
+    # read by Ray: attach attempts (about one a second); no native handler that turns SIGTERM
+    # into a stack dump and exit status 1
+    os.environ.setdefault("RAY_NUM_REDIS_GET_RETRIES", str(RAY_ATTACH_ATTEMPTS))
+    os.environ.setdefault("RAY_DISABLE_FAILURE_SIGNAL_HANDLER", "1")
     try:
         import ray
     except ImportError:
         raise ConfigError(
             "the ray executor needs Ray: install with `pip install -e '.[ray]'`"
         ) from None
+    import signal
+
+    from envs.interrupt import Interrupted, held, raise_if_interrupted, reinstall
+
     if ray.is_initialized():
         return ray
     address = address or os.environ.get("RAY_ADDRESS")
     if address:
-        ray.init(address=address, log_to_driver=False)
+        check_ray_address(address)
+        try:
+            ray.init(address=address, log_to_driver=False)
+        except (ConnectionError, RuntimeError) as exc:
+            reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            raise ConfigError(
+                f"cannot attach to the Ray cluster at {address} ({reason}; gave up after "
+                f"{RAY_ATTACH_ATTEMPTS} attempts); start it (`ray start --head`) or fix "
+                "--ray-address / RAY_ADDRESS"
+            ) from None
     else:
         os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
         os.environ.setdefault("RAY_AUTH_MODE", "disabled")
-        ray.init(
-            num_cpus=workers,
-            include_dashboard=False,
-            _node_ip_address="127.0.0.1",
-            log_to_driver=False,
-            configure_logging=False,
-        )
+        _start_reaper()
+        try:  # not interrupted half-way (a half-started Ray crashed at exit): held, then raised
+            with held():
+                ray.init(
+                    num_cpus=workers,
+                    include_dashboard=False,
+                    _node_ip_address="127.0.0.1",
+                    log_to_driver=False,
+                    configure_logging=False,
+                )
+        except SystemExit as exc:  # Ray's own SIGTERM handler while it starts: sys.exit(15)
+            if exc.code == signal.SIGTERM:
+                raise Interrupted(signal.SIGTERM) from None
+            raise
+    reinstall()
+    raise_if_interrupted()
     return ray
 
 
@@ -393,5 +493,14 @@ def _ray(fn: Callable[[Any], Any], items: Sequence[Any], workers: int,
             for ref in done:
                 yield ray.get(ref)  # type: ignore[attr-defined]
     finally:
-        for ref in pending:
-            ray.cancel(ref, force=True)  # type: ignore[attr-defined]
+        from envs.interrupt import held
+
+        # only while Ray runs: a generator finalised after ray.shutdown() (the interrupt came
+        # while its consumer stored a batch) crashed the process (SIGSEGV) by cancelling then
+        with held():
+            if ray.is_initialized():  # type: ignore[attr-defined]
+                for ref in pending:
+                    try:
+                        ray.cancel(ref, force=True)  # type: ignore[attr-defined]
+                    except Exception:
+                        pass

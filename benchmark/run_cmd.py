@@ -150,6 +150,15 @@ def main(argv: list[str]) -> int:
     """Entry point of ``cacc-bench run``."""
     args = build_parser().parse_args(argv)
     controllers, scenarios, seeds = _validate(args)
+    if args.executor == "ray":  # a cluster that does not answer is refused before any file
+        import os
+
+        from benchmark.executors import check_ray_address, ensure_ray
+
+        address = args.ray_address or os.environ.get("RAY_ADDRESS")
+        check_ray_address(address)
+        if address:
+            ensure_ray(args.workers, address)
     from benchmark.paths import writable_dir
 
     writable_dir(args.out)
