@@ -40,6 +40,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from envs.errors import ConfigError
+from envs.interrupt import raise_if_interrupted
 
 if TYPE_CHECKING:  # pragma: no cover
     import control
@@ -240,6 +241,7 @@ def h_min(
     if _excess(loop, w) <= 0:
         return 0.0
     while hi - lo > tol_s:
+        raise_if_interrupted()
         mid = 0.5 * (lo + hi)
         if _excess(loop.replace(time_gap_s=mid), w) > 0:
             lo = mid
@@ -263,6 +265,7 @@ def peak_gain_grid(
     omega = np.empty_like(gain)
     for i, h in enumerate(hs):
         for j, th in enumerate(ths):
+            raise_if_interrupted()
             res = hinf_norm(PloegLoop(kp, kd, float(h), float(th), lag_s, feedforward), n_grid=1500)
             gain[i, j], omega[i, j] = res.gain, res.omega_rad_s
     return gain, omega
@@ -525,6 +528,7 @@ def empirical_gain(
     collided = np.zeros(b, dtype=bool)
     a_bound = min(-params.accel_min_mps2, params.accel_max_mps2) - 1e-9
     for k, w in enumerate(omegas):  # one sine-v1 episode per frequency, through the harness's loop
+        raise_if_interrupted()  # (the loop checks after every act too)
         sc = make_scenario("sine-v1", amplitude_mps=amplitude_mps, frequency_hz=w / (2 * np.pi))
         sc = dataclasses.replace(sc, n_steps=n_steps)
         traj = rollout(ctrl, sc, n, seed + 10 * k, params, channel)
@@ -541,6 +545,7 @@ def empirical_gain(
     t_s = np.arange(n_steps) * dt
     pair_gain = np.empty((b, n))
     for k, w in enumerate(omegas):
+        raise_if_interrupted()
         amp = np.abs(fit_sinusoid(accel[k0:, k, :], float(w), t_s[k0:]))
         with np.errstate(divide="ignore", invalid="ignore"):
             pair_gain[k] = amp[1:] / amp[:-1]
