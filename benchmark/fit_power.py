@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from envs import energy
+from envs import atomic, energy
 from envs.energy import power
 
 
@@ -37,7 +37,6 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--figure",
         metavar="DIR",
-        type=Path,
         help="write the map / polynomial / error figure (PNG and PDF) into DIR",
     )
     return parser
@@ -133,7 +132,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.write:
         data = fit.to_json_dict()
         path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
+        atomic.write_text(path, json.dumps(data, indent=2) + "\n")
         power._default_polynomial.cache_clear()
         print(f"wrote {path}")
     elif not readable:
@@ -142,7 +141,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.figure is not None:
         from analysis.energy_plots import plot_energy_map
 
-        for out in plot_energy_map(args.figure):
+        for out in plot_energy_map(Path(args.figure)):
             print(f"wrote {out}")
     return status
 

@@ -9,11 +9,23 @@ from pathlib import Path
 
 from envs.errors import ConfigError
 
+#: Longest folder name and path the filesystem takes (POSIX values where unknown).
+_NAME_MAX = 255
+_PATH_MAX = 4096
+
 
 def writable_dir(path: str | Path, flag: str = "--out", create: bool = False) -> Path:
     """Check that ``path`` is, or can be made as, a folder files can be written in; make it
-    when ``create`` (otherwise nothing is made, so a refusal later leaves no trace)."""
+    when ``create`` (otherwise nothing is made, so a refusal later leaves no trace). An empty
+    ``path`` or one with a name the filesystem cannot hold is refused."""
+    if not str(path).strip():  # Path("") is the current folder: never what was meant
+        raise ConfigError(f"{flag} is empty; name a folder")
     out = Path(path)
+    too_long = [part for part in out.parts if len(os.fsencode(part)) > _NAME_MAX]
+    if too_long or len(os.fsencode(str(out.absolute()))) >= _PATH_MAX:
+        raise ConfigError(f"{flag} {str(out)[:60]}...: a folder name longer than {_NAME_MAX} "
+                          f"bytes or a path longer than {_PATH_MAX} cannot be made; choose a "
+                          f"shorter {flag}")
     if out.exists() and not out.is_dir():
         raise ConfigError(f"{flag} {out} exists and is not a folder; choose another {flag}")
     probe = out.absolute()

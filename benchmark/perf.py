@@ -22,6 +22,8 @@ from benchmark.cli import plain
 PUBLISHED_ENV_VEHICLE_STEPS_PER_S = 32_000.0
 PUBLISHED_TRAIN_STEPS_PER_S = {"ia2c": 307.0, "bdc": 195.0}
 TARGET_ENV_VEHICLE_STEPS_PER_S = 10_000_000.0
+#: Most seeds the population throughput trains at once.
+MAX_PERF_POPULATION = 256
 
 
 def env_throughput(batch: int = 1024, n_vehicles: int = 8, seconds: float = 2.0) -> dict[str, float]:
@@ -141,6 +143,8 @@ def main(argv: list[str]) -> int:
     args = p.parse_args(argv)
     parts = {x.strip() for x in args.only.split(",") if x.strip()}
     unknown = parts - {"env", "harness", "controllers", "train"}
+    if not parts:
+        raise ConfigError("--only: no part named; valid: env, harness, controllers, train")
     if unknown:
         raise ConfigError(f"--only: unknown part(s) {sorted(unknown)}; valid: env, harness, controllers, train")
     specs: list[tuple[str, dict[str, str]]] = []
@@ -156,8 +160,9 @@ def main(argv: list[str]) -> int:
                 make_controller(name, **opts)  # checks the name and every option
     algos = ([a.strip() for a in args.algos.split(",") if a.strip()] if args.algos
              else list(MARL_ALGORITHMS))
-    if args.population < 0:
-        raise ConfigError(f"--population must be >= 0, got {args.population}")
+    from envs.limits import check_range
+
+    check_range(args.population, "--population", 0, MAX_PERF_POPULATION)
     if "train" in parts:
         from marl.a2c import training_device
 

@@ -107,9 +107,10 @@ def _validate(args: argparse.Namespace) -> tuple[list[tuple[str, dict[str, str]]
             raise ConfigError(
                 f"--vehicles: a platoon needs {MIN_VEHICLES} to {MAX_VEHICLES} followers, got {n}"
             )
+    from envs.limits import check_delay
+
     for d in args.comm_delay:
-        if d < 0:
-            raise ConfigError(f"--comm-delay must be >= 0 s, got {d}")
+        check_delay(d, "--comm-delay")  # one rule with stability's --delay
     for loss in args.packet_loss:
         if not 0 <= loss <= 1:
             raise ConfigError(f"--packet-loss must lie in [0, 1], got {loss}")

@@ -220,8 +220,10 @@ def main(argv: list[str]) -> int:
                              ("--workers", args.workers, 1)):
         if value < low:
             raise ConfigError(f"{flag} must be >= {low}, got {value}")
-    if min(seeds) < 0:
-        raise ConfigError(f"--seeds must be >= 0, got {min(seeds)}")
+    from envs.limits import MAX_TRAIN_SEED, MAX_TRAIN_STEPS, check_range, check_seeds
+
+    check_seeds(seeds, "--seeds", MAX_TRAIN_SEED)  # training seeds
+    check_range(args.steps, "--steps", 1, MAX_TRAIN_STEPS)
     training_device(args.device)  # ConfigError for an unknown device or a missing GPU
     from benchmark.paths import writable_dir
 

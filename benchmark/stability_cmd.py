@@ -62,10 +62,19 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+#: Most frequencies of one sweep.
+MAX_N_OMEGA = 1000
+#: Largest array an empirical sweep may allocate (its accelerations, steps x frequencies x
+#: vehicles, float64).
+MAX_SWEEP_BYTES = 2**30
+
+
 def _check_args(args: argparse.Namespace) -> None:
+    from envs.limits import check_delay, check_range
+
+    check_delay(args.delay, "--delay")
     for flag, value in (
         ("--time-gap", args.time_gap),
-        ("--delay", args.delay),
         ("--lag", args.lag),
     ):
         if not math.isfinite(value) or value < 0:
@@ -84,11 +93,30 @@ def _check_args(args: argparse.Namespace) -> None:
         raise ConfigError(
             f"--omega-max must lie below the Nyquist frequency {nyquist:.4g} rad/s"
         )
-    if args.n_omega < 1:
-        raise ConfigError(f"--n-omega must be >= 1, got {args.n_omega}")
+    check_range(args.n_omega, "--n-omega", 1, MAX_N_OMEGA)
     from envs.scenarios import check_vehicles
 
     check_vehicles(args.n_vehicles)
+    if args.empirical:
+        _check_sweep_size(args)
+
+
+def _check_sweep_size(args: argparse.Namespace) -> None:
+    """Refuse an empirical sweep whose arrays would not fit :data:`MAX_SWEEP_BYTES` (its
+    episodes last at least ``periods`` periods of the lowest frequency)."""
+    import inspect
+
+    from analysis.stability import empirical_gain
+
+    defaults = {k: v.default for k, v in inspect.signature(empirical_gain).parameters.items()}
+    window_s = max(defaults["periods"] * 2 * math.pi / args.omega_min, defaults["min_window_s"])
+    n_steps = (defaults["transient_s"] + window_s) / PlatoonParams().dt_s
+    size = n_steps * args.n_omega * (args.n_vehicles + 1) * 8
+    if size > MAX_SWEEP_BYTES:
+        raise ConfigError(
+            f"--n-omega {args.n_omega} from --omega-min {args.omega_min:g} rad/s with "
+            f"--n-vehicles {args.n_vehicles} needs {size / 2**30:.3g} GiB for the sweep (at most "
+            f"{MAX_SWEEP_BYTES / 2**30:g}); lower --n-omega or raise --omega-min")
 
 
 def _fmt(value: Any) -> str:
@@ -143,8 +171,44 @@ def _entries(args: argparse.Namespace) -> list[Entry]:
             raise ConfigError(f"{name} has no transfer function to analyse (only the linear "
                               "controllers acc and cacc have one); add --empirical to measure its "
                               "string gain in closed loop")
+        else:  # measured on sine-v1: a missing policy fails now, before any sweep
+            _preflight_empirical(name, opts, ctrl, args)
         entries.append(Entry(name, controller_label(name, options), opts, loop))
     return entries
+
+
+def _preflight_empirical(name: str, opts: dict[str, Any], ctrl: Any,
+                         args: argparse.Namespace) -> None:
+    """Load what ``ctrl`` needs for the ``sine-v1`` sweeps with N = ``--n-vehicles``; a policy
+    without a sine-v1 checkpoint is refused naming the option that works (a policy trained on
+    another scenario, ``NAME:scenario=ID``)."""
+    from envs.params import PlatoonParams as Params
+    from envs.scenarios import make_scenario
+
+    try:
+        ctrl.preflight(make_scenario("sine-v1", amplitude_mps=args.amplitude),
+                       args.n_vehicles, Params(lag_s=args.lag))
+    except ConfigError as exc:
+        if resolve_family(name) != "marl" or "scenario" in opts:
+            raise
+        from controllers.policy import checkpoint_path
+
+        have = [sc for sc in ("catchup-v1", "slowdown-v1")
+                if checkpoint_path(name, sc, args.n_vehicles, int(opts.get("seed", 0))).exists()]
+        if not have:
+            raise
+        raise ConfigError(
+            f"{name} has no policy trained on sine-v1 with N = {args.n_vehicles}; measure the "
+            f"one trained on {have[0]}: --controllers {name}:scenario={have[0]} (or train one: "
+            f"`cacc-bench train --algo {name} --scenario sine-v1 --vehicles {args.n_vehicles}`)"
+        ) from exc
+
+
+def resolve_family(name: str) -> str:
+    """The registered family of controller ``name``."""
+    from controllers.registry import resolve
+
+    return resolve(name).family
 
 
 def main(argv: list[str]) -> int:

@@ -318,8 +318,17 @@ def main(argv: list[str]) -> int:
                 f"{sc.split('[')[0]}); train on {sc.split('[')[0]} and evaluate on {sc} with run")
         make_scenario(sc)
     check_vehicles(args.vehicles)
+    from envs.limits import (
+        MAX_EPISODES_PARALLEL,
+        MAX_TRAIN_SEED,
+        MAX_TRAIN_STEPS,
+        check_range,
+        check_seeds,
+    )
+
     if args.steps < 1:
         raise ConfigError(f"--steps must be >= 1, got {args.steps}")
+    check_range(args.steps, "--steps", 1, MAX_TRAIN_STEPS)
     check_population(args.population)
     training_device(args.device)  # ConfigError for an unknown device or a missing GPU
     if args.seeds is not None:
@@ -331,8 +340,8 @@ def main(argv: list[str]) -> int:
             raise ConfigError("--seeds: no seed given")
     else:
         seeds = [args.seed]
-    if any(s < 0 for s in seeds):
-        raise ConfigError("training seeds must be >= 0")
+    # training episode seeds derive from the run's seed in 32-bit generators: one bound
+    check_seeds(seeds, "--seeds" if args.seeds is not None else "--seed", MAX_TRAIN_SEED)
     overrides: dict[str, object] = {}
     for pair in args.overrides:
         key, sep, value = pair.partition("=")
@@ -340,8 +349,7 @@ def main(argv: list[str]) -> int:
             raise ConfigError(f"--set {pair!r}: expected KEY=VALUE, e.g. --set gamma=0.995")
         overrides[key.strip()] = value.strip()
     if args.episodes_parallel is not None:
-        if args.episodes_parallel < 1:
-            raise ConfigError("--episodes-parallel must be >= 1")
+        check_range(args.episodes_parallel, "--episodes-parallel", 1, MAX_EPISODES_PARALLEL)
         overrides["episodes_parallel"] = args.episodes_parallel
     # typed from the config's fields and validated before anything starts
     configs: dict[tuple[str, str], dict[str, object]] = {}

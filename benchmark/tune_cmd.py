@@ -46,6 +46,8 @@ COLLISION_PENALTY = 10_000.0
 #: Trials drawn at random (after the default) before TPE models the results; with sampler seed
 #: ``seed + k`` every study draws the same random configs, so the algorithms start equal.
 STARTUP_TRIALS = 4
+#: Most trials per study.
+MAX_TRIALS = 1000
 #: Algorithms with a consensus step size.
 EPS_ALGOS = ("dcea", "bdc")
 
@@ -197,8 +199,11 @@ def main(argv: list[str]) -> int:
     if not algos or not scenarios:
         raise ConfigError("--algos and --scenarios must name at least one each")
     check_vehicles(args.vehicles)
-    if args.trials < 1 or args.steps < 1 or args.seed < 0:
-        raise ConfigError("--trials and --steps must be >= 1 and --seed >= 0")
+    from envs.limits import MAX_TRAIN_SEED, MAX_TRAIN_STEPS, check_range, check_seeds
+
+    check_range(args.trials, "--trials", 1, MAX_TRIALS)
+    check_range(args.steps, "--steps", 1, MAX_TRAIN_STEPS)
+    check_seeds([args.seed], "--seed", MAX_TRAIN_SEED)  # the trials' training seed
     try:
         import optuna  # noqa: F401
     except ImportError:

@@ -1,0 +1,48 @@
+"""Ranges that keep a command's work finite and allocatable: one rule and one message each,
+checked by every command that takes the number before any work."""
+
+from __future__ import annotations
+
+import math
+
+from envs.errors import ConfigError
+
+#: Longest V2V delay (s): an episode lasts 60 s, so a longer delay delivers no message at all
+#: (and its buffer of delay / dt steps must stay allocatable).
+MAX_V2V_DELAY_S = 60.0
+#: Seeds feed 32-bit generators (numpy, torch, Optuna's sampler with ``seed + trial``).
+MAX_SEED = 2**31 - 1
+#: Most environment steps one training run may ask for (the paper's budget is 6e5).
+MAX_TRAIN_STEPS = 10**8
+#: Most episodes one learner steps together.
+MAX_EPISODES_PARALLEL = 4096
+#: Training episode k of run seed s has env seed ``TRAIN_SEED_STRIDE * (s + 1) + k``
+#: (:meth:`marl.a2c.Run.training_seeds`), drawn by 32-bit generators.
+TRAIN_SEED_STRIDE = 10_000_000
+#: Largest training seed whose episode seeds stay below 2**32 for a longest run (418).
+MAX_TRAIN_SEED = (2**32 - 1 - MAX_TRAIN_STEPS - MAX_EPISODES_PARALLEL) // TRAIN_SEED_STRIDE - 1
+
+
+def check_delay(value: float, flag: str) -> float:
+    """``value`` if it is a V2V delay in [0, :data:`MAX_V2V_DELAY_S`] s, else a ConfigError."""
+    if not (math.isfinite(value) and 0 <= value <= MAX_V2V_DELAY_S):
+        raise ConfigError(f"{flag} must lie in [0, {MAX_V2V_DELAY_S:g}] s (an episode lasts "
+                          f"60 s), got {value}")
+    return float(value)
+
+
+def check_seeds(seeds: list[int] | tuple[int, ...], flag: str, high: int = MAX_SEED
+                ) -> list[int]:
+    """``seeds`` if each lies in 0..``high`` (:data:`MAX_SEED`; training seeds of the MARL
+    learners: :data:`MAX_TRAIN_SEED`), else a ConfigError."""
+    bad = [s for s in seeds if not 0 <= s <= high]
+    if bad:
+        raise ConfigError(f"{flag} must lie in 0..{high}, got {bad[0]}")
+    return list(seeds)
+
+
+def check_range(value: int, flag: str, low: int, high: int) -> int:
+    """``value`` if ``low <= value <= high``, else a ConfigError naming ``flag``."""
+    if not low <= value <= high:
+        raise ConfigError(f"{flag} must lie in {low}..{high}, got {value}")
+    return value

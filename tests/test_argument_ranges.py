@@ -1,0 +1,119 @@
+"""Refused before any work, exit 2, one line (issue 32, item 4): numbers outside the ranges
+that keep the work finite and allocatable, empty strings, paths that cannot be written, and a
+policy that cannot run in the asked setting."""
+
+from __future__ import annotations
+
+import errno
+import os
+from pathlib import Path
+
+import pytest
+
+from benchmark.cli import main as cli
+from envs.limits import MAX_SEED, MAX_TRAIN_SEED
+
+TRAIN = ["train", "--algo", "bdc", "--scenario", "catchup-v1", "--vehicles", "2",
+         "--steps", "10"]
+TUNE = ["tune", "--algos", "bdc", "--scenarios", "catchup-v1", "--trials", "1", "--steps", "10"]
+RUN = ["run", "--controllers", "cacc", "--scenarios", "catchup-v1", "--episodes", "1"]
+
+CASES = {
+    "run --comm-delay 1e9": ([*RUN, "--comm-delay", "1e9"], "--comm-delay must lie in [0, 60] s"),
+    "stability --delay 1e308": (["stability", "--controllers", "cacc", "--delay", "1e308"],
+                                "--delay must lie in [0, 60] s"),
+    "stability --n-omega 1e8": (["stability", "--controllers", "cacc", "--empirical",
+                                 "--n-omega", "100000000"], "--n-omega must lie in 1..1000"),
+    "stability --omega-min tiny": (["stability", "--controllers", "cacc", "--empirical",
+                                    "--omega-min", "1e-300"], "lower --n-omega or raise"),
+    "train --seed huge": ([*TRAIN, "--seed", "99999999999999"],
+                          f"--seed must lie in 0..{MAX_TRAIN_SEED}"),
+    "train --seed past the episode seeds": ([*TRAIN, "--seed", str(MAX_TRAIN_SEED + 1)],
+                                            f"--seed must lie in 0..{MAX_TRAIN_SEED}"),
+    "train --seeds huge": ([*TRAIN, "--seeds", "0,99999999999999999999"],
+                           "--seeds must lie in 0.."),
+    "train --episodes-parallel 1e6": ([*TRAIN, "--episodes-parallel", "1000000"],
+                                      "--episodes-parallel must lie in 1..4096"),
+    "train --steps 1e12": ([*TRAIN[:-2], "--steps", "1000000000000"], "--steps must lie in 1.."),
+    "tune --seed huge": ([*TUNE, "--seed", "99999999999999999999"],
+                         f"--seed must lie in 0..{MAX_TRAIN_SEED}"),
+    "tune --trials 1e9": ([*TUNE[:-4], "--trials", "1000000000", "--steps", "10"],
+                          "--trials must lie in 1..1000"),
+    "sensitivity --seeds huge": (["sensitivity", "--seeds", "99999999999999999999"],
+                                 f"--seeds must lie in 0..{MAX_TRAIN_SEED}"),
+    "perf --only empty": (["perf", "--only", ""], "--only: no part named"),
+    "perf --population huge": (["perf", "--only", "train", "--population", "1000000"],
+                               "--population must lie in 0..256"),
+    "run --out empty": ([*RUN, "--out", ""], "--out is empty"),
+    "train --out empty": ([*TRAIN, "--out", ""], "--out is empty"),
+    "fit-power --figure empty": (["fit-power", "--figure", ""], "--figure is empty"),
+    "run --out 300 characters": ([*RUN, "--out", "x" * 300], "choose a shorter --out"),
+    "train --out 300 characters": ([*TRAIN, "--out", "d/" + "x" * 300], "choose a shorter --out"),
+    "stability --out 300 characters": (["stability", "--controllers", "cacc", "--out",
+                                        "x" * 300], "choose a shorter --out"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(CASES))
+def test_refused_before_any_work_in_one_line(
+        case: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    argv, message = CASES[case]
+    monkeypatch.chdir(tmp_path)
+    if "--out" not in argv and argv[0] not in ("perf", "fit-power"):
+        argv = [*argv, "--out", str(tmp_path / "out")]
+    assert cli(argv) == 2
+    err = capsys.readouterr().err
+    assert message in err, err
+    assert "Traceback" not in err
+    lines = [line for line in err.strip().splitlines() if not line.startswith("DEBUG")]
+    assert len(lines) == 1, err
+    assert not list(tmp_path.iterdir())  # nothing written, not even into the current folder
+
+
+def test_the_seed_bounds_are_the_generators() -> None:
+    """A training seed's episode seeds (1e7 (seed + 1) + episode) stay in a 32-bit generator's
+    range for the longest run; every other seed is a 31-bit one."""
+    from envs.limits import MAX_EPISODES_PARALLEL, MAX_TRAIN_STEPS, TRAIN_SEED_STRIDE
+
+    assert MAX_SEED == 2**31 - 1
+    top = TRAIN_SEED_STRIDE * (MAX_TRAIN_SEED + 1) + MAX_TRAIN_STEPS + MAX_EPISODES_PARALLEL
+    assert top < 2**32 <= top + TRAIN_SEED_STRIDE
+
+
+def test_the_largest_training_seed_trains(tmp_path: Path) -> None:
+    assert cli(["train", "--algo", "bdc", "--scenario", "catchup-v1", "--vehicles", "2",
+                "--steps", "400", "--seed", str(MAX_TRAIN_SEED),
+                "--out", str(tmp_path)]) == 0
+    assert (tmp_path / f"bdc__catchup-v1__n2__s{MAX_TRAIN_SEED}.pt").exists()
+
+
+def test_a_policy_without_a_sine_checkpoint_is_refused_naming_the_option_that_works(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "out"
+    assert cli(["stability", "--controllers", "bdc", "--empirical", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "--controllers bdc:scenario=catchup-v1" in err and "Traceback" not in err
+    assert not out.exists()  # refused at the preflight, before any sweep or figure
+
+
+@pytest.mark.parametrize("target", ["file", "file-parent", "no-permission"])
+def test_an_output_folder_that_cannot_be_written_is_refused(
+        target: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """As a folder (an existing file, a file on the way) or without permission (injected: root
+    passes every permission check)."""
+    (tmp_path / "f").write_text("x")
+    out = {"file": tmp_path / "f", "file-parent": tmp_path / "f" / "sub",
+           "no-permission": tmp_path / "locked" / "sub"}[target]
+    if target == "no-permission":
+        import tempfile
+
+        def denied(*a: object, **k: object) -> str:
+            raise PermissionError(errno.EACCES, os.strerror(errno.EACCES))
+
+        monkeypatch.setattr(tempfile, "mkdtemp", denied)
+    assert cli([*TRAIN, "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "--out" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert not list(tmp_path.rglob("*.pt"))
