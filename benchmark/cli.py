@@ -8,6 +8,7 @@ called, so ``cacc-bench --help`` and ``cacc-bench list`` start fast. Every user-
 from __future__ import annotations
 
 import importlib
+import os
 import re
 import signal
 import sys
@@ -115,6 +116,10 @@ def _main(argv: Sequence[str] | None) -> int:
     except CaccBenchError as exc:
         _stop_workers()
         return fail(str(exc))
+    except BrokenPipeError:  # stdout's reader went away (`cacc-bench list | head`): no traceback
+        _stop_workers()
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # nothing left to flush
+        return 128 + int(signal.SIGPIPE)
 
 
 def _interrupted(exc: KeyboardInterrupt) -> int:

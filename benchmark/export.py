@@ -154,6 +154,9 @@ def write_csvs(
     store is the source of truth, and one with fewer runs than its CSV is not the same store.
     """
     runs_path = folder / "runs.csv"
+    lb_path = folder / "leaderboard.csv"
+    for path in (runs_path, lb_path):
+        _check_file_target(path)
     before = _csv_rows(runs_path)
     if before > len(records):
         raise ConfigError(
@@ -163,7 +166,6 @@ def write_csvs(
         )
     runs = runs_frame(records)
     lb = leaderboard_frame(runs, pool_seeds)
-    lb_path = folder / "leaderboard.csv"
     write_csv(runs, runs_path, float_format="%.10g")
     write_csv(lb, lb_path, float_format="%.10g")
     return runs_path, lb_path, lb
@@ -183,10 +185,18 @@ def write_csv(df: Any, path: Path, float_format: str | None = None) -> None:
     """Write a data frame as CSV atomically (a temporary file renamed over ``path``): the one
     CSV writer of every command, so a reader never sees half a file. ``float_format`` as in
     pandas (None: every digit)."""
+    from envs.atomic import write_with
+
     path = Path(path)
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    df.to_csv(tmp, index=False, float_format=float_format)
-    tmp.replace(path)
+    _check_file_target(path)
+    write_with(path, lambda tmp: df.to_csv(tmp, index=False, float_format=float_format))
+
+
+def _check_file_target(path: Path) -> None:
+    """Refuse (ConfigError) to write a file where a folder of that name stands."""
+    if path.is_dir():
+        raise ConfigError(f"{path} is a folder, so the file cannot be written there; move that "
+                          "folder away or write the results elsewhere")
 
 
 def trajectory_arrays(traj: Trajectory) -> dict[str, np.ndarray]:

@@ -25,6 +25,9 @@ def main(argv: list[str]) -> int:
     args = p.parse_args(argv)
     folder = Path(args.results_dir)
     out = Path(args.out) if args.out else folder / "figures"
+    from benchmark.paths import writable_dir
+
+    writable_dir(args.out if args.out is not None else out)  # before any figure is drawn
     if folder.is_dir() and not (folder / STORE_NAME).exists() and any(
             folder.glob("*.curve.csv")):
         return plot_training_folder(folder, out)

@@ -189,6 +189,9 @@ class ResultStore:
         """Take the folder's writer lock, or refuse naming the process that holds it."""
         from filelock import FileLock, Timeout
 
+        if (self.folder / LOCK_NAME).is_dir():
+            raise ConfigError(f"{self.folder / LOCK_NAME} is a folder, so {self.folder} cannot be "
+                              "locked; remove it or choose another --out")
         lock = FileLock(self.folder / LOCK_NAME, timeout=0)
         try:
             lock.acquire()

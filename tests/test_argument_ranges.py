@@ -117,3 +117,62 @@ def test_an_output_folder_that_cannot_be_written_is_refused(
     err = capsys.readouterr().err
     assert "--out" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
     assert not list(tmp_path.rglob("*.pt"))
+
+
+@pytest.fixture(scope="module")
+def results(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("results") / "r"
+    assert cli(["run", "--controllers", "ovm,cacc", "--scenarios", "catchup-v1",
+                "--episodes", "1", "--out", str(out)]) == 0
+    return out
+
+
+@pytest.mark.parametrize("target", ["file", "file-parent", "empty"])
+def test_plot_refuses_an_output_that_cannot_be_a_folder(
+        results: Path, tmp_path: Path, target: str, capsys: pytest.CaptureFixture[str]) -> None:
+    (tmp_path / "f").write_text("x")
+    out = {"file": str(tmp_path / "f"), "file-parent": str(tmp_path / "f" / "sub"),
+           "empty": ""}[target]
+    assert cli(["plot", str(results), "--out", out]) == 2
+    err = capsys.readouterr().err
+    assert "--out" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert (tmp_path / "f").read_text() == "x"
+
+
+@pytest.mark.parametrize("name", ["runs.csv", "leaderboard.csv", "store.lock"])
+def test_a_folder_where_a_results_file_belongs_is_refused(
+        results: Path, tmp_path: Path, name: str, capsys: pytest.CaptureFixture[str]) -> None:
+    import shutil
+
+    folder = tmp_path / "r"
+    shutil.copytree(results, folder)
+    target = folder / name
+    target.unlink(missing_ok=True)
+    target.mkdir()
+    argv = (["run", "--controllers", "ovm,cacc", "--scenarios", "catchup-v1", "--episodes",
+             "1", "--out", str(folder), "--resume"] if name == "store.lock"
+            else ["leaderboard", str(folder)])
+    assert cli(argv) == 2
+    err = capsys.readouterr().err
+    assert f"{target} is a folder" in err and "Traceback" not in err
+    assert len(err.strip().splitlines()) == 1
+    assert target.is_dir()
+
+
+def test_a_closed_pipe_ends_list_quietly() -> None:
+    """`cacc-bench list | head`: the reader went away; no BrokenPipeError traceback, status
+    128 + SIGPIPE (deterministic: the pipe's reading end is closed before the command starts)."""
+    import signal
+    import subprocess
+    import sys
+
+    read, write = os.pipe()
+    os.close(read)
+    try:
+        proc = subprocess.run([sys.executable, "-m", "benchmark", "list"], stdout=write,
+                              stderr=subprocess.PIPE, text=True, timeout=120,
+                              cwd=Path(__file__).resolve().parent.parent)
+    finally:
+        os.close(write)
+    assert "Traceback" not in proc.stderr and "BrokenPipe" not in proc.stderr, proc.stderr
+    assert proc.returncode == 128 + signal.SIGPIPE
