@@ -325,3 +325,38 @@ def test_an_unwritable_folder_is_refused_before_the_lock(
     with pytest.raises(ConfigError, match="cannot lock this folder.*Permission denied"), \
             folder_lock(tmp_path / "x"):
         pass
+
+
+def test_sigint_after_an_evaluation_leaves_the_finished_files_byte_identical(
+        finished: Path, tmp_path: Path) -> None:
+    """The issue's case as a user meets it: a real SIGINT to `cacc-bench train` once its first
+    evaluation is logged (when the old code had written a snapshot over the finished files)."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out = _copy(finished, tmp_path / "out")
+    before = _digests(out)
+    argv = [*TRAIN[:-4], "--steps", "60000", "--set", "eval_every_steps=720"]
+    proc = subprocess.Popen([sys.executable, "-m", "benchmark", *argv, "--out", str(out)],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            cwd=Path(__file__).resolve().parent.parent)
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and proc.poll() is None:
+            logs = list(out.glob(f".{STEM}.log.*.tmp"))
+            if logs and "[kept]" in logs[0].read_text():
+                break
+            time.sleep(0.2)
+        else:
+            pytest.fail("no evaluation was logged")
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err
+    assert _digests(out) == before
+    _no_temporaries(out)
