@@ -185,7 +185,8 @@ def load_checkpoint(
         if hashlib.sha256(blob).hexdigest() not in FORMAT_1_SHA256:
             raise ConfigError(
                 f"checkpoint {path} has format version 1 (no content hash) and is not one of the "
-                f"shipped files, so it cannot be verified; re-train: {fix()}")
+                f"shipped files, so it cannot be verified; re-train ({fix()}), or, if you trust "
+                f"the file, add its hash: `python -m marl.checkpoint {path}`")
     elif got != FORMAT_VERSION:
         raise ConfigError(
             f"checkpoint {path} has format version {got}, this cacc-bench reads version "
@@ -284,3 +285,48 @@ def _check_config_and_shapes(data: dict[str, Any], damaged: Any) -> None:
         if tuple(value.shape) != expected[key]:
             raise damaged(f"weight {key!r} has shape {tuple(value.shape)}, the network's is "
                           f"{expected[key]}")
+
+
+def upgrade_checkpoint(path: str | Path) -> bool:
+    """Rewrite a format-1 checkpoint (no hash) as format 2, the same weights with their content
+    hash, after checking its fields, dtypes, shapes and config; True if it was rewritten (a
+    format-2 file is verified and left as it is).
+
+    Raises
+    ------
+    ConfigError
+        The file cannot be read, or fails a check.
+    """
+    import io
+
+    path = Path(path)
+    try:
+        data = torch.load(io.BytesIO(path.read_bytes()), map_location="cpu", weights_only=True)
+    except Exception as exc:  # noqa: BLE001 - any failure means an unusable file
+        raise ConfigError(f"checkpoint {path} cannot be read ({type(exc).__name__})") from None
+    version = data.get("format_version") if isinstance(data, dict) else None
+    if version == FORMAT_VERSION:
+        load_checkpoint(path)
+        return False
+    if version != SHIPPED_FORMAT:
+        raise ConfigError(f"checkpoint {path} has format version {version}, not 1")
+
+    def damaged(what: str) -> ConfigError:
+        return ConfigError(f"checkpoint {path} cannot be upgraded ({what}); re-train it")
+
+    _check_fields(data, damaged)
+    _check_config_and_shapes(data, damaged)
+    write_payload(path, {**data, "format_version": FORMAT_VERSION})
+    load_checkpoint(path)
+    return True
+
+
+if __name__ == "__main__":  # python -m marl.checkpoint FILE...: add the hash to format-1 files
+    import sys
+
+    try:
+        for name in sys.argv[1:]:
+            print(f"{name}: {'upgraded to format 2' if upgrade_checkpoint(name) else 'verified'}")
+    except ConfigError as err:
+        print(f"error: {err}", file=sys.stderr)
+        sys.exit(2)

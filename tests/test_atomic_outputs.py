@@ -360,3 +360,24 @@ def test_sigint_after_an_evaluation_leaves_the_finished_files_byte_identical(
     assert "Traceback" not in err
     assert _digests(out) == before
     _no_temporaries(out)
+
+
+def test_a_trusted_format_1_file_can_be_given_its_hash(tmp_path: Path) -> None:
+    """A run trained before checkpoints were hashed is refused, naming the upgrade; the
+    upgrade keeps every tensor bit for bit and the file then loads."""
+    import subprocess
+    import sys
+
+    shipped = torch.load(SHIPPED / f"{STEM}.pt", weights_only=True)
+    old = tmp_path / "mine.pt"
+    torch.save({**shipped, "steps": shipped["steps"] + 1}, old)  # not a shipped file
+    with pytest.raises(ConfigError, match=r"python -m marl\.checkpoint"):
+        load_checkpoint(old)
+    proc = subprocess.run([sys.executable, "-m", "marl.checkpoint", str(old)], text=True,
+                          capture_output=True, cwd=Path(__file__).resolve().parent.parent)
+    assert proc.returncode == 0 and "upgraded to format 2" in proc.stdout, proc.stderr
+    new = torch.load(old, weights_only=True)
+    assert new["format_version"] == 2 and new["steps"] == shipped["steps"] + 1
+    for key, value in shipped["weights"].items():
+        assert torch.equal(value, new["weights"][key]) and value.dtype == new["weights"][key].dtype
+    load_checkpoint(old, algo="bdc", n_vehicles=2)
