@@ -68,9 +68,12 @@ def reinstall() -> None:
 
 
 def restore(previous: dict[int, Any]) -> None:
-    """Put back the handlers :func:`install` replaced."""
+    """Put back the handlers :func:`install` replaced, and forget what was received (code run
+    afterwards in the same process is not interrupted by a command's past signal)."""
+    global _received, _raised_at, _holding
     for sig, handler in previous.items():
         signal.signal(sig, handler)
+    _received, _raised_at, _holding = None, None, 0
 
 
 def received() -> int | None:
