@@ -88,8 +88,10 @@ def _worker_main(conn: Any, parent_pid: int) -> None:
             reply = ("error", _portable(exc))
         try:
             conn.send(reply)
-        except (OSError, ValueError):
+        except (OSError, ValueError):  # the parent went away
             return
+        except Exception as exc:  # the result does not pickle: say so instead of dying
+            conn.send(("error", _portable(exc)))
 
 
 def _portable(exc: BaseException) -> BaseException:
