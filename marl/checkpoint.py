@@ -183,10 +183,14 @@ def load_checkpoint(
         from marl.shipped_digests import FORMAT_1_SHA256
 
         if hashlib.sha256(blob).hexdigest() not in FORMAT_1_SHA256:
+            shipped = {Path(v).name: v for v in reversed(list(FORMAT_1_SHA256.values()))}
+            which = (f"differs from the shipped controllers/checkpoints/{shipped[path.name]} "
+                     "(restore a damaged copy with `git checkout` or copy it again)"
+                     if path.name in shipped else "is not one of the shipped files")
             raise ConfigError(
-                f"checkpoint {path} has format version 1 (no content hash) and is not one of the "
-                f"shipped files, so it cannot be verified; re-train ({fix()}), or, if you trust "
-                f"the file, add its hash: `python -m marl.checkpoint {path}`")
+                f"checkpoint {path} has format version 1 (no content hash) and {which}, so it "
+                f"cannot be verified; re-train ({fix()}), or, if you trust the file, add its "
+                f"hash: `python -m marl.checkpoint {path}`")
     elif got != FORMAT_VERSION:
         raise ConfigError(
             f"checkpoint {path} has format version {got}, this cacc-bench reads version "

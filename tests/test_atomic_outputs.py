@@ -171,8 +171,12 @@ def test_shipped_format_1_files_load_by_their_digest_anywhere(tmp_path: Path) ->
     assert torch.load(copy, weights_only=True)["format_version"] == 1
     assert load_checkpoint(copy, algo="bdc", n_vehicles=2)["steps"] > 0
     _flip(copy, copy.stat().st_size // 2)
-    with pytest.raises(ConfigError, match="format version 1.*not one of the shipped files"):
+    with pytest.raises(ConfigError, match="format version 1.*differs from the shipped.*git checkout"):
         load_checkpoint(copy, algo="bdc", n_vehicles=2)
+    other = tmp_path / "other.pt"
+    other.write_bytes(copy.read_bytes())
+    with pytest.raises(ConfigError, match="format version 1.*not one of the shipped files"):
+        load_checkpoint(other, algo="bdc", n_vehicles=2)
 
 
 def test_every_shipped_checkpoint_is_verified() -> None:
