@@ -466,8 +466,15 @@ def ensure_ray(workers: int, address: str | None = None) -> object:
         os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
         os.environ.setdefault("RAY_AUTH_MODE", "disabled")
         _start_reaper()
-        try:  # not interrupted half-way (a half-started Ray crashed at exit): held, then raised
+        # not interrupted half-way (a half-made core worker crashed the process at exit,
+        # SIGSEGV): signals held, and Ray's own SIGTERM handler (sys.exit(15) from anywhere
+        # inside its start) not installed; a signal received meanwhile is raised after
+        utils = getattr(getattr(ray, "_private", None), "utils", None)
+        own_handler = getattr(utils, "set_sigterm_handler", None)
+        try:
             with held():
+                if own_handler is not None:
+                    utils.set_sigterm_handler = lambda handler: None  # type: ignore[union-attr]
                 ray.init(
                     num_cpus=workers,
                     include_dashboard=False,
@@ -475,10 +482,18 @@ def ensure_ray(workers: int, address: str | None = None) -> object:
                     log_to_driver=False,
                     configure_logging=False,
                 )
-        except SystemExit as exc:  # Ray's own SIGTERM handler while it starts: sys.exit(15)
-            if exc.code == signal.SIGTERM:
+        except BaseException as exc:
+            with held():
+                try:
+                    ray.shutdown()  # whatever was made of it
+                except Exception:
+                    pass
+            if isinstance(exc, SystemExit) and exc.code == signal.SIGTERM:
                 raise Interrupted(signal.SIGTERM) from None
             raise
+        finally:
+            if own_handler is not None:
+                utils.set_sigterm_handler = own_handler  # type: ignore[union-attr]
     reinstall()
     raise_if_interrupted()
     return ray
