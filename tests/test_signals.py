@@ -231,18 +231,28 @@ def test_a_ray_address_that_does_not_answer_is_refused_before_anything_is_made(
     assert not out.exists()
 
 
-def _ray_sweep(tmp_path: Path) -> tuple[subprocess.Popen[str], set[int]]:
-    """A Ray sweep signalled once its workers run; returns it and the processes it started."""
+def _cmdlines(pids: set[int]) -> list[str]:
+    out = []
+    for p in pids:
+        try:
+            out.append(Path(f"/proc/{p}/cmdline").read_text(errors="replace"))
+        except OSError:
+            pass
+    return out
+
+
+def _ray_sweep(tmp_path: Path, moment: str = "workers running"
+               ) -> tuple[subprocess.Popen[str], set[int]]:
+    """A Ray sweep at the moment of its signal (``ray starting``: its raylet is up, its driver
+    not yet connected; ``workers running``); returns it and the processes it started."""
     pytest.importorskip("ray")
     proc = _start(*MPC_SWEEP, "--out", str(tmp_path / "ray"), "--executor", "ray",
                   "--workers", "2")
-
-    def workers_run() -> bool:
-        return any("default_worker" in Path(f"/proc/{p}/cmdline").read_text(errors="replace")
-                   for p in _descendants(proc.pid) if Path(f"/proc/{p}/cmdline").exists())
-
-    _wait_until(workers_run, proc, timeout=180)
-    time.sleep(1.0)
+    needle = "raylet" if moment == "ray starting" else "default_worker"
+    _wait_until(lambda: any(needle in c for c in _cmdlines(_descendants(proc.pid))), proc,
+                timeout=180)
+    if moment == "workers running":
+        time.sleep(1.0)
     return proc, _descendants(proc.pid)
 
 
@@ -258,11 +268,13 @@ def _assert_gone(pids: set[int]) -> None:
 
 
 @pytest.mark.ray
-def test_sigterm_under_ray_exits_143_and_leaves_no_ray_process(tmp_path: Path) -> None:
-    """Ray's own handler exited 1 with a native stack dump."""
-    proc, started = _ray_sweep(tmp_path)
-    assert any("raylet" in Path(f"/proc/{p}/cmdline").read_text(errors="replace")
-               for p in started if Path(f"/proc/{p}/cmdline").exists())
+@pytest.mark.parametrize("moment", ["ray starting", "workers running"])
+def test_sigterm_under_ray_exits_143_and_leaves_no_ray_process(tmp_path: Path,
+                                                              moment: str) -> None:
+    """Ray's own handler exited 1 with a native stack dump, or crashed the process at exit
+    (SIGSEGV) when the signal came while Ray started."""
+    proc, started = _ray_sweep(tmp_path, moment)
+    assert any("raylet" in c for c in _cmdlines(started))
     sent = time.monotonic()
     proc.send_signal(signal.SIGTERM)
     rc, err, took = _end(proc, sent)
