@@ -94,6 +94,22 @@ def harness_throughput(episodes: int = 10, sweep_episodes: int = 50) -> dict[str
             "harness_runs": float(len(keys)), f"harness_sweep_{len(sweep)}_s": sweep_s}
 
 
+def shared_train_throughput(algo: str, steps: int = 131_072, n_vehicles: int = 8) -> float:
+    """Environment steps per second of a shared-policy learner (:mod:`marl.ppo`, its default
+    config, accel mode) on catchup-v1, learning without validation, one torch thread."""
+    import torch
+
+    from marl.ppo import PPOConfig, train
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        return float(train("catchup-v1", n_vehicles, 0, steps, PPOConfig(algo=algo),
+                           validate=False).env_steps_per_s)
+    finally:
+        torch.set_num_threads(threads)
+
+
 def controller_timing(name: str, n_steps: int = 150, n_vehicles: int = 8,
                       scenario_id: str = "catchup-v1",
                       options: dict[str, str] | None = None) -> dict[str, float]:
@@ -158,8 +174,12 @@ def main(argv: list[str]) -> int:
         if args.controllers:
             for name, opts in specs:
                 make_controller(name, **opts)  # checks the name and every option
+    from marl.ppo import SHARED_ALGORITHMS
+
     algos = ([a.strip() for a in args.algos.split(",") if a.strip()] if args.algos
-             else list(MARL_ALGORITHMS))
+             else [*MARL_ALGORITHMS, *SHARED_ALGORITHMS])
+    shared_algos = [a for a in algos if a in SHARED_ALGORITHMS]
+    algos = [a for a in algos if a not in SHARED_ALGORITHMS]
     from envs.limits import check_range
 
     check_range(args.population, "--population", 0, MAX_PERF_POPULATION)
@@ -168,9 +188,9 @@ def main(argv: list[str]) -> int:
 
         training_device(args.device)  # ConfigError for an unknown device or a missing GPU
         unknown_algos = [a for a in algos if a not in MARL_ALGORITHMS]
-        if unknown_algos or not algos:
+        if unknown_algos or not (algos or shared_algos):
             raise ConfigError(f"--algos: unknown algorithm(s) {unknown_algos or '(none named)'}; "
-                              f"valid: {', '.join(MARL_ALGORITHMS)}")
+                              f"valid: {', '.join([*MARL_ALGORITHMS, *SHARED_ALGORITHMS])}")
     out: dict[str, Any] = {}
     if "env" in parts:
         out.update(env_throughput(seconds=0.5 if args.quick else 2.0))
@@ -212,11 +232,19 @@ def main(argv: list[str]) -> int:
                     rate = train_throughput(algo, steps=4_000 if args.quick else 20_000,
                                             device=args.device)
                     runs[algo].append(float(rate))
+        for _ in range(repeats if shared_algos else 0):
+            for algo in shared_algos:
+                rate = shared_train_throughput(algo, steps=8_192 if args.quick else 131_072)
+                out.setdefault("train_shared_env_steps_per_s_runs", {}).setdefault(
+                    algo, []).append(rate)
+        if shared_algos:
+            out["train_shared_env_steps_per_s"] = {
+                a: float(np.median(r)) for a, r in out["train_shared_env_steps_per_s_runs"].items()}
         rates = {algo: float(np.median(r)) for algo, r in runs.items() if r}
         out["train_env_steps_per_s"] = rates
         out["train_device"] = args.device
         out["train_env_steps_per_s_runs"] = {algo: r for algo, r in runs.items() if r}
-        if train_throughput is not None and args.population > 0:
+        if train_throughput is not None and args.population > 0 and algos:
             # the same per-run budget as the one-run figure, K seeds at once, one measurement
             # (K runs average the spread of one)
             out["train_population_size"] = args.population
@@ -257,7 +285,7 @@ def _print_table(out: dict[str, Any]) -> None:
     if "train_env_steps_per_s" in out:
         print(f"training on {out['train_device']} (environment steps/s, one process, one torch "
               "thread; median of the runs):")
-        if not out["train_env_steps_per_s"]:
+        if not out["train_env_steps_per_s"] and not out.get("train_shared_env_steps_per_s"):
             print("  (no MARL trainer available)")
         for algo, rate in out["train_env_steps_per_s"].items():
             ref = PUBLISHED_TRAIN_STEPS_PER_S.get(algo, PUBLISHED_TRAIN_STEPS_PER_S["ia2c"])
@@ -265,6 +293,11 @@ def _print_table(out: dict[str, Any]) -> None:
             spread = f", runs {min(runs):,.0f} to {max(runs):,.0f}" if len(runs) > 1 else ""
             print(f"  {algo:<10} {rate:10,.0f}  ({rate / ref:.1f}x the published {ref:.0f}"
                   f"{spread})")
+        for algo, rate in out.get("train_shared_env_steps_per_s", {}).items():
+            runs = out["train_shared_env_steps_per_s_runs"][algo]
+            spread = f", runs {min(runs):,.0f} to {max(runs):,.0f}" if len(runs) > 1 else ""
+            print(f"  {algo:<10} {rate:10,.0f}  (one policy shared by the followers, accel mode; "
+                  f"target 34,000{spread})")
         if "train_population_env_steps_per_s" in out:
             k = out["train_population_size"]
             print(f"training a population of {k} seeds in one process, one torch thread (total "

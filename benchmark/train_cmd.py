@@ -35,7 +35,9 @@ def _parser() -> argparse.ArgumentParser:
         description="Train a MARL algorithm (one agent per follower) on a scenario.",
     )
     p.add_argument("--algo", required=True,
-                   help=f"one of: {', '.join(ALGORITHM_NAMES)}; a comma list, or all")
+                   help=f"one of: {', '.join(ALGORITHM_NAMES)}; a comma list, or all; or the "
+                        "shared-policy learners ippo, mappo (marl/ppo.py) and distill "
+                        "(marl/distill.py), whose config fields --set takes")
     p.add_argument("--scenario", required=True,
                    help="scenario id, e.g. catchup-v1, or a comma list")
     p.add_argument("--steps", type=int, default=600_000, help="environment steps (default 6e5)")
@@ -296,6 +298,7 @@ def _finished(job: dict) -> bool:
 def main(argv: list[str]) -> int:
     """Entry point: ``cacc-bench train --algo NAME --scenario ID [...]``."""
     from benchmark.executors import map_jobs
+    from benchmark.train_shared import SHARED_LEARNERS
     from controllers.registry import build_config
     from envs.scenarios import SCENARIOS, check_vehicles, make_scenario, parse_scenario_list
     from marl.a2c import ALGORITHM_NAMES, algorithm, training_device
@@ -304,9 +307,13 @@ def main(argv: list[str]) -> int:
     algos = _names(args.algo, "--algo")
     if algos == ["all"]:
         algos = list(ALGORITHM_NAMES)
+    shared = [a for a in algos if a in SHARED_LEARNERS]
+    if shared and len(shared) != len(algos):
+        raise ConfigError(f"--algo: train the shared-policy learners ({', '.join(shared)}) in a "
+                          "command of their own (they take other config fields)")
     for a in algos:
-        if a not in ALGORITHM_NAMES:
-            raise UnknownNameError("algorithm", a, ALGORITHM_NAMES)
+        if a not in ALGORITHM_NAMES and not shared:
+            raise UnknownNameError("algorithm", a, (*ALGORITHM_NAMES, *SHARED_LEARNERS))
     scenarios = parse_scenario_list(args.scenario)  # UnknownNameError for an unknown id
     if not scenarios:
         raise ConfigError("--scenario: no scenario named")
@@ -342,6 +349,10 @@ def main(argv: list[str]) -> int:
         seeds = [args.seed]
     # training episode seeds derive from the run's seed in 32-bit generators: one bound
     check_seeds(seeds, "--seeds" if args.seeds is not None else "--seed", MAX_TRAIN_SEED)
+    if shared:
+        from benchmark.train_shared import main_shared
+
+        return main_shared(args, shared, scenarios, seeds)
     overrides: dict[str, object] = {}
     for pair in args.overrides:
         key, sep, value = pair.partition("=")

@@ -122,6 +122,33 @@ for _algo in MARL_ALGORITHMS:
         )
     )
 
+for _algo, _critic in (("ippo", "a critic of its own observation"),
+                      ("mappo", "a centralised critic (its observation and the platoon's mean)")):
+    register_controller(
+        ControllerSpec(
+            _algo, "marl",
+            "accel mode: predecessor's command (1 float), leader's acceleration and speed "
+            "(2 floats); ovm-gain mode: neighbour blocks",
+            f"one policy shared by every follower (PPO, {_critic}), any N; acceleration "
+            "actions by default (shipped N = 8 checkpoint; actions sampled, mode=greedy for "
+            "the mode)",
+            "controllers.shared_policy:SharedPolicyController",
+            fixed={"algo": _algo},
+        )
+    )
+
+register_controller(
+    ControllerSpec(
+        "distill", "marl",
+        "predecessor's command (1 float), leader's acceleration and speed (2 floats)",
+        "the shared actor trained by imitation of mpc (behaviour cloning, then DAgger on "
+        "training seeds), any N (shipped N = 8 checkpoint; actions sampled from the fitted "
+        "Gaussian, mode=greedy for its mean)",
+        "controllers.shared_policy:SharedPolicyController",
+        fixed={"algo": "distill"},
+    )
+)
+
 #: Controllers of ``cacc-bench run`` when none are named (those available in this install):
 #: the human baseline and its duty schedule, the linear laws, the quadratic MPC and the paper's
 #: method, all quick.

@@ -1,0 +1,241 @@
+"""Shared-policy learners (IPPO, MAPPO) as controllers, at any platoon size.
+
+``SharedPolicyController(algo)`` loads ``<algo>__<scenario>__n<vehicles>__s<seed>.pt`` (the
+checkpoint trained with ``vehicles`` followers, 8 by default) and drives any N from 2 to 64 with
+it: every follower runs the same actor on its own observation, whose position features (first,
+last, ``i / N``) tell it where it is. In the ``accel`` action mode the command is the actor's
+acceleration; in ``ovm-gain`` its OVM-gain index becomes the published OVM command.
+
+Everything the policy receives from another vehicle goes through the run's channels (declared as
+:class:`controllers.base.Message`, so delay and loss act on it and its bits are counted):
+``accel`` mode, the predecessor's command and the leader's planned acceleration and speed with
+``cacc``'s timing (:mod:`envs.accel_mode`); ``ovm-gain`` mode, each follower's 5-float vehicle
+block to both neighbours (as the paper's policies). Sampled actions (``mode=sampled``, the
+default: the policy as trained) come from the episode's own uniform stream, so reruns, batches
+and executors give the same actions.
+"""
+
+from __future__ import annotations
+
+import functools
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from controllers.base import Controller, EpisodeContext, Message
+from controllers.policy import CHECKPOINT_DIR, MIN_LANES, checkpoint_path
+from envs.accel_mode import (
+    LEADER_MESSAGE,
+    PRED_MESSAGE,
+    accel_observations,
+    leader_links,
+)
+from envs.channel import episode_uniforms
+from envs.dynamics import action_to_command_mps2, agent_observations
+from envs.errors import ConfigError
+from envs.params import EVAL_MODES, PlatoonParams
+from envs.platoon import PlatoonState
+from envs.scenarios import Scenario
+
+#: The shared policies this controller loads: the PPO learners and the MPC distillation.
+SHARED_POLICIES: tuple[str, ...] = ("ippo", "mappo", "distill")
+
+
+@functools.cache
+def mlp_rows_are_batch_invariant(action_mode: str = "accel") -> bool:
+    """Whether a row of the shared actor gets the same numbers among 64 episodes' rows as among
+    :data:`controllers.policy.MIN_LANES` episodes' (random weights, once per process)."""
+    import torch
+
+    from marl.ppo import PPOConfig, SharedActor
+
+    torch.manual_seed(0)
+    actor = SharedActor(PPOConfig(action_mode=action_mode))
+    with torch.no_grad():
+        for p in actor.body.parameters():
+            p.add_(0.1 * torch.randn(p.shape))
+        obs = torch.randn(64, 8, PPOConfig(action_mode=action_mode).obs_dim,
+                          generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+        full = actor(obs)
+        for row in (0, 31, 63):
+            sub = actor(obs[[row] * MIN_LANES].contiguous())
+            if not torch.equal(sub[0], full[row]):
+                return False
+    return True
+
+
+class SharedPolicyController(Controller):
+    """A shared policy of ``ippo``, ``mappo`` or ``distill``, sampled (default) or greedy, at
+    any N.
+
+    Parameters
+    ----------
+    algo : str
+        ``ippo``, ``mappo`` or ``distill``.
+    scenario : str, optional
+        Load the checkpoint trained on this scenario instead of the run's one.
+    checkpoint : str, optional
+        Explicit checkpoint file.
+    checkpoint_dir : str, optional
+        Folder of ``cacc-bench train --out`` to load from instead of the shipped checkpoints.
+    seed : int
+        Training seed (0).
+    vehicles : int
+        N the checkpoint was trained with (8); the run's N may differ.
+    mode : {"sampled", "greedy"}
+        Actions drawn from the policy as trained (default) or its mode.
+    """
+
+    family = "marl"
+    deterministic = False
+    batch_invariant = True
+    needs_observation = False
+
+    def __init__(self, algo: str, scenario: str | None = None, checkpoint: str | None = None,
+                 checkpoint_dir: str | None = None, seed: int | str = 0,
+                 vehicles: int | str = 8, mode: str = "sampled") -> None:
+        super().__init__()
+        if algo not in SHARED_POLICIES:
+            raise ConfigError(f"unknown shared-policy algorithm {algo!r}; valid: "
+                              f"{', '.join(SHARED_POLICIES)}")
+        if mode not in EVAL_MODES:
+            raise ConfigError(f"{algo}: mode must be one of {', '.join(EVAL_MODES)}, got {mode!r}")
+        try:
+            seed, vehicles = int(seed), int(vehicles)
+        except ValueError:
+            raise ConfigError(f"{algo}: seed and vehicles must be integers") from None
+        if seed < 0 or not 2 <= vehicles <= 64:
+            raise ConfigError(f"{algo}: seed must be >= 0 and vehicles in 2..64")
+        self.name = self.algo = algo
+        self.scenario, self.checkpoint, self.checkpoint_dir = scenario, checkpoint, checkpoint_dir
+        self.seed, self.vehicles, self.mode = seed, vehicles, mode
+        self.deterministic = mode == "greedy"
+        self.options = {k: v for k, v in {
+            "scenario": scenario, "checkpoint": checkpoint, "checkpoint_dir": checkpoint_dir,
+            "seed": seed or None, "vehicles": vehicles if vehicles != 8 else None,
+            "mode": mode if mode != EVAL_MODES[0] else None}.items() if v is not None}
+        self.actor: Any = None
+        self.loaded: dict[str, Any] = {}
+        self._source: str | None = None
+
+    @staticmethod
+    def batch_invariant_probe(algo: str, **_: Any) -> bool:
+        """Whether the harness may batch this policy's episodes here."""
+        return mlp_rows_are_batch_invariant()
+
+    # ---------------------------------------------------------------- loading
+    def _path(self, source: str) -> Path:
+        if self.checkpoint:
+            return Path(self.checkpoint)
+        return checkpoint_path(self.algo, source, self.vehicles, self.seed, self.checkpoint_dir)
+
+    def preflight(self, scenario: Scenario, n_vehicles: int, params: PlatoonParams | None = None
+                  ) -> None:
+        """Load the policy now: a missing or damaged checkpoint fails before a sweep starts."""
+        source = self.scenario or scenario.id
+        if self.actor is not None and self._source == source:
+            return
+        import torch
+
+        from marl.checkpoint import load_checkpoint
+        from marl.ppo import load_actor
+
+        torch.set_num_threads(1)
+        path = self._path(source)
+        if not path.exists():
+            where = self.checkpoint_dir or CHECKPOINT_DIR.name
+            raise ConfigError(
+                f"no trained {self.algo} policy for {source} with N = {self.vehicles} in {where} "
+                f"({path.name} missing); make it with `cacc-bench train --algo {self.algo} "
+                f"--scenario {source} --vehicles {self.vehicles} --seed {self.seed}`, or pick "
+                f"another with {self.algo}:scenario=ID")
+        data = load_checkpoint(path, algo=self.algo, scenario=source)
+        self.actor = load_actor(data)
+        self.action_mode = self.actor_config(data)["action_mode"]
+        self.loaded, self._source = data, source
+
+    @staticmethod
+    def actor_config(data: dict[str, Any]) -> dict[str, Any]:
+        """The checkpoint's learner config."""
+        return dict(data["config"])
+
+    # ---------------------------------------------------------------- interface
+    def messages(self, ctx: EpisodeContext) -> tuple[Message, ...]:
+        """``accel``: the command to the follower behind, the leader's broadcast; ``ovm-gain``:
+        the vehicle block to both neighbours."""
+        self.preflight(ctx.scenario, ctx.n_vehicles, ctx.params)
+        if self.action_mode == "accel":
+            name, width = PRED_MESSAGE
+            lname, lwidth = LEADER_MESSAGE
+            return (Message(name, width, "predecessor"),
+                    Message(lname, lwidth, tuple(leader_links(ctx.n_vehicles))))
+        return (Message(f"{self.algo}-blocks", 5, "neighbours"),)
+
+    def reset(self, ctx: EpisodeContext) -> None:
+        self.preflight(ctx.scenario, ctx.n_vehicles, ctx.params)
+        self.params, self.ctx = ctx.params, ctx
+        b, n = ctx.batch_size, ctx.n_vehicles
+        self.seeds, self.t = ctx.seeds, 0
+        self._lanes = max(b, MIN_LANES)
+        if self.action_mode == "accel":
+            self._pred_channel = ctx.channel(PRED_MESSAGE[0])
+            self._leader_channel = ctx.channel(LEADER_MESSAGE[0])
+            self._pred_held = np.zeros((b, n))
+            self._leader_held = np.zeros((b, n, 2))
+        else:
+            self._block_channel = ctx.channel(f"{self.algo}-blocks")
+
+    def _observation(self, state: PlatoonState) -> np.ndarray:
+        ctx, p = self.ctx, self.params
+        if self.action_mode == "accel":
+            return accel_observations(
+                state.gap_m, state.speed_mps, state.pred_speed_mps, state.applied_accel_mps2,
+                state.realised_accel_mps2, self._pred_held, self._leader_held,
+                ctx.target_gap_m, ctx.target_speed_mps, p)
+        from envs.dynamics import vehicle_blocks
+        from marl.ppo import agent_inputs
+
+        own = vehicle_blocks(state.gap_m, state.speed_mps, state.pred_speed_mps,
+                             state.applied_accel_mps2, ctx.target_gap_m, ctx.target_speed_mps,
+                             p).astype(np.float32)
+        b, n, _ = own.shape
+        payload = np.zeros((b, n + 1, 5))
+        payload[:, 1:] = own
+        held = self._block_channel.transmit(payload)
+        obs = agent_observations(own)
+        obs[:, 1:, 5:10] = held[:, : n - 1]   # (i-1 -> i) for i = 2..N
+        obs[:, :-1, 10:15] = held[:, n - 1:]  # (i+1 -> i) for i = 1..N-1
+        return agent_inputs(obs, "ovm-gain")
+
+    def act(self, state: PlatoonState, observation: np.ndarray | None) -> np.ndarray:
+        import torch
+
+        from marl.ppo import ACTION_STREAM, sample_with_uniforms
+
+        obs = self._observation(state)
+        b, n = obs.shape[:2]
+        if b < self._lanes:  # at least MIN_LANES episodes' rows: see controllers.policy
+            obs = np.concatenate([obs, np.repeat(obs[:1], self._lanes - b, 0)])
+        uniforms = None
+        if self.mode == "sampled":
+            uniforms = episode_uniforms(self.seeds, ACTION_STREAM, self.t, n)
+            if b < self._lanes:
+                uniforms = np.concatenate([uniforms, np.repeat(uniforms[:1], self._lanes - b, 0)])
+        self.t += 1
+        with torch.no_grad():
+            out = self.actor(torch.from_numpy(np.ascontiguousarray(obs)))
+            action = sample_with_uniforms(self.actor, out, uniforms)[:b]
+            if self.actor.continuous:
+                command = self.actor.command(action).numpy().astype(np.float64)
+            else:
+                command = action_to_command_mps2(action.numpy().astype(np.int64), state.gap_m, state.speed_mps,
+                                                 state.pred_speed_mps, self.params)
+        if self.action_mode == "accel":
+            from envs.accel_mode import transmit_accel_messages
+
+            pred, lead = transmit_accel_messages(
+                self._pred_channel, self._leader_channel, command, state.leader_accel_now_mps2,
+                state.leader_speed_now_mps, self.ctx.target_speed_mps, self.params)
+            self._pred_held, self._leader_held = pred.copy(), lead.copy()
+        return command

@@ -1,0 +1,167 @@
+"""``distill``: the shared actor of :mod:`marl.ppo` trained by imitation of a model-based expert.
+
+Behaviour cloning, then DAgger (Ross, Gordon and Bagnell, AISTATS 2011), on training episodes
+only (seeds ``1e7 (seed + 1) + k``; the validation seeds choose the round that is kept, the
+evaluation seeds are never seen):
+
+1. round 0 drives the platoon with the expert and records its commands (behaviour cloning);
+2. every later round drives it with the current policy's mode while the expert, fed the same
+   states through its own V2V channels, labels what it would command; the labels are added to
+   the data set and the actor is fitted again on all of it.
+
+The fit is the mean of the policy's Gaussian in command space, ``c + h tanh(mean)`` against the
+expert's command (squared error), and its standard deviation in ``z`` is the residuals' RMS in
+command space over the squash's slope at zero, ``h`` (so "actions as trained" are the fitted
+Gaussian; the maximum-likelihood value in ``z`` is dominated by the few labels at the bounds,
+where ``atanh`` diverges). It is the
+reference of what this network can represent, and of how fast a learned controller is beside
+the solver it copies. The expert comes from the layer above (:mod:`benchmark.train_shared`
+builds ``mpc``): here it is any ``make_expert(env) -> act(state) -> (B, N) commands``.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from envs.channel import ChannelConfig
+from envs.errors import ConfigError
+from envs.params import PlatoonParams
+from envs.platoon import PlatoonEnv, PlatoonState
+from envs.scenarios import check_vehicles, make_scenario
+from marl.ppo import PPOConfig, PPOResult, SharedActor, agent_inputs, as_shipped, validation_score
+
+#: ``make_expert(env)`` after ``env.reset(seeds)``: the expert's ``act(state) -> (B, N)``.
+ExpertFactory = Callable[[PlatoonEnv], Callable[[PlatoonState], np.ndarray]]
+
+
+@dataclass(frozen=True)
+class DistillConfig:
+    """Hyper-parameters of the imitation.
+
+    Attributes
+    ----------
+    expert : str
+        Name of the expert controller (recorded; the factory is given to :func:`distill`).
+    rounds : int
+        Data-collection rounds: the first by the expert (behaviour cloning), the rest DAgger.
+    episodes_per_round : int
+        Training episodes collected per round.
+    grad_steps, minibatch_rows, lr : int, int, float
+        Adam steps on the whole data set after each round (the actor and its optimiser carry
+        over from round to round), rows per step, learning rate.
+    hidden : int
+        Width of the actor (as :class:`marl.ppo.PPOConfig`).
+    """
+
+    expert: str = "mpc"
+    rounds: int = 5
+    episodes_per_round: int = 8
+    grad_steps: int = 3000
+    minibatch_rows: int = 1024
+    lr: float = 1e-3
+    hidden: int = 64
+
+    def __post_init__(self) -> None:
+        for name in ("rounds", "episodes_per_round", "grad_steps", "minibatch_rows", "hidden"):
+            if not 1 <= getattr(self, name) <= 10**6:
+                raise ConfigError(f"{name} must lie in 1..1e6, got {getattr(self, name)}")
+        if not (math.isfinite(self.lr) and self.lr > 0):
+            raise ConfigError(f"lr must be a finite number > 0, got {self.lr}")
+
+    def actor_config(self) -> PPOConfig:
+        """The actor's network settings (accel mode) as the shared learners write them."""
+        return PPOConfig(hidden=self.hidden)
+
+
+def distill(
+    scenario: str,
+    make_expert: ExpertFactory,
+    n_vehicles: int = 8,
+    seed: int = 0,
+    config: DistillConfig = DistillConfig(),
+    params: PlatoonParams = PlatoonParams(),
+    log: Callable[[str], None] | None = None,
+) -> PPOResult:
+    """Distil the expert into the shared actor on ``scenario`` with N followers.
+
+    Returns the round whose actor has the fewest validation collisions, then the best validation
+    reward (actions sampled as trained), as :class:`marl.ppo.PPOResult` (``steps``: environment
+    steps collected).
+    """
+    cfg, sc = config, make_scenario(scenario)
+    n = check_vehicles(n_vehicles)
+    torch.manual_seed(int(seed))
+    gen = torch.Generator().manual_seed(int(seed))
+    actor_cfg = cfg.actor_config()
+    actor = SharedActor(actor_cfg, params)
+    opt = torch.optim.Adam(actor.body.parameters(), lr=cfg.lr)
+    obs_rows: list[torch.Tensor] = []
+    label_rows: list[torch.Tensor] = []
+    curve: list[dict[str, float]] = []
+    best: dict[str, float] = {}
+    best_state = as_shipped(actor).state_dict()
+    steps, t0 = 0, time.perf_counter()
+    for rnd in range(cfg.rounds):
+        env = PlatoonEnv(sc, n, params, action_mode="accel", channel=ChannelConfig())
+        seeds = 10_000_000 * (seed + 1) + rnd * cfg.episodes_per_round + np.arange(
+            cfg.episodes_per_round)
+        obs = env.reset(seeds)
+        expert = make_expert(env)
+        for _ in range(env.n_steps):
+            s = env.state
+            assert s is not None
+            live = torch.from_numpy(~s.done)
+            label = expert(s)
+            x = torch.from_numpy(agent_inputs(obs, "accel"))
+            obs_rows.append(x[live].reshape(-1, x.shape[-1]))
+            label_rows.append(torch.from_numpy(np.asarray(label, dtype=np.float32))[live].reshape(-1))
+            steps += int(live.sum())
+            if rnd == 0:
+                command = np.asarray(label, dtype=np.float64)
+            else:
+                with torch.no_grad():
+                    command = actor.command(actor(x)).numpy().astype(np.float64)
+            res = env.step(command)
+            obs = res.observation
+            if res.done.all():
+                break
+        data_x, data_u = torch.cat(obs_rows), torch.cat(label_rows)
+        _fit(actor, opt, data_x, data_u, cfg, gen)
+        shipped = as_shipped(actor)
+        score = validation_score(shipped, sc.id, n, params, actor_cfg)
+        curve.append({"steps": float(steps), **score})
+        if log:
+            log(f"distill {cfg.expert} {sc.id} seed {seed}: round {rnd} ({len(data_u)} labels), "
+                f"validation reward {score['reward']:.1f}, collisions {score['collisions']:.0f}")
+        if not best or (score["collisions"], -score["reward"]) <= (best["collisions"], -best["reward"]):
+            best = {"steps": float(steps), "round": float(rnd), **score}
+            best_state = shipped.state_dict()
+    actor.load_state_dict(best_state)
+    rate = steps / max(time.perf_counter() - t0, 1e-9)
+    return PPOResult(actor, steps, curve, best, rate, actor_cfg)
+
+
+def _fit(actor: SharedActor, opt: torch.optim.Optimizer, x: torch.Tensor, u: torch.Tensor,
+         cfg: DistillConfig, gen: torch.Generator) -> None:
+    """Observation statistics of the data set, then ``grad_steps`` Adam steps of squared command
+    error on random minibatches; the log std set from the residuals (see the module's text)."""
+    with torch.no_grad():
+        actor.obs_mean.copy_(x.double().mean(0))
+        actor.obs_var.copy_(x.double().var(0, unbiased=False))
+    nx = actor.normalise(x)
+    rows = len(u)
+    for _ in range(cfg.grad_steps):
+        idx = torch.randint(rows, (min(cfg.minibatch_rows, rows),), generator=gen)
+        loss = (actor.command(actor.policy(nx[idx])) - u[idx]).pow(2).mean()
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+    with torch.no_grad():  # residual RMS in command space over the squash's slope at zero
+        rms = float((actor.command(actor.policy(nx)) - u).pow(2).mean().sqrt())
+        actor.log_std.fill_(math.log(rms / float(actor.half_range) + 1e-6))

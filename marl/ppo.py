@@ -1,0 +1,569 @@
+"""IPPO and MAPPO with one policy shared by every follower, in either action mode.
+
+Read top to bottom, as CleanRL's ``ppo_continuous_action.py`` reads: the config, the networks,
+the rollout, the returns (GAE), the clipped PPO loss and the update, then validation and the
+checkpoint. What is this project's own, and why it is written here rather than taken from a
+library, is in ``docs/notes/marl-library-choice.md``.
+
+- **Shared policy**: one actor for all followers; each agent's observation carries its position
+  (first, last, ``i / N``: :func:`envs.accel_mode.position_features`), so one checkpoint acts at
+  any N from 2 to 64. A batch of ``B`` episodes with ``N`` followers is ``B N`` rows of one
+  product per layer.
+- **Action modes** (:mod:`envs.accel_mode`): ``accel``, a tanh-squashed Gaussian in the command
+  bounds (``c + h tanh(z)``; PPO's ratio needs only ``z``, the Jacobian cancels), with the V2V
+  part of the observation through the training channel; ``ovm-gain``, a categorical over the
+  published four OVM gain pairs.
+- **IPPO vs MAPPO**: the critic sees the agent's observation (``ippo``) or the agent's
+  observation beside the platoon's mean observation (``mappo``: a centralised critic that any N
+  can feed).
+- **Rewards**: the paper's training reward per agent (safety term included), the cruise power
+  ``P(v*, 0)`` subtracted from the power term (a constant per running agent-step, so the same
+  optimum, a centred value), divided by the running standard deviation of the discounted return
+  and clipped to +-10 (Stable-Baselines3's and CleanRL's reward normalisation; the quadratic
+  costs of a platoon drifting apart are unbounded otherwise). Observations are normalised by
+  running statistics kept in the actor (frozen in the checkpoint). A collision ends the episode with the
+  collision penalty at every remaining scheduled step, discounted (the absorbing value of
+  ``marl.a2c``), so ending early never pays; the time limit is a truncation (bootstrapped).
+- **Determinism**: every random number comes from the run's ``torch.Generator`` (the action
+  noise, minibatch order, initial weights) and the training episodes' seeds from the run's seed,
+  so a seed gives the same weights, on one thread count.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from envs.accel_mode import check_action_mode, position_features
+from envs.channel import ChannelConfig, episode_uniforms
+from envs.errors import ConfigError
+from envs.params import OVM_ACTIONS, VALIDATION_SEEDS, PlatoonParams
+from envs.platoon import PlatoonEnv
+from envs.scenarios import check_vehicles, make_scenario
+
+#: The shared-policy learners of this file.
+SHARED_ALGORITHMS: tuple[str, ...] = ("ippo", "mappo")
+#: Uniform stream of sampled evaluation actions (per episode, step and agent).
+ACTION_STREAM = "shared-policy-actions"
+
+
+# ---------------------------------------------------------------------------- config
+@dataclass(frozen=True)
+class PPOConfig:
+    """Hyper-parameters (CleanRL's continuous-action PPO where the platoon does not differ).
+
+    Attributes
+    ----------
+    algo : {"ippo", "mappo"}
+        Local critic or centralised (agent + platoon-mean observation) critic.
+    action_mode : {"accel", "ovm-gain"}
+        The env's action mode (:mod:`envs.accel_mode`).
+    n_envs : int
+        Episodes stepped together (B).
+    rollout_steps : int
+        Steps per episode between updates (T); an update learns from ``B T N`` agent-steps.
+    epochs, minibatch_rows : int
+        Passes over a rollout, and agent-steps per gradient step.
+    lr : float
+        Adam learning rate, annealed linearly to 0 over the run.
+    gamma, gae_lambda : float
+        Discount and GAE's lambda.
+    clip_coef, vf_coef, ent_coef, max_grad_norm : float
+        PPO's ratio clip, value-loss weight, entropy bonus, global grad-norm clip.
+    hidden : int
+        Width of the two ReLU layers of actor and critic.
+    init_log_std : float
+        Initial log standard deviation of the Gaussian ``z`` (``accel``).
+    reward_alpha : float
+        Reward sharing: agent i learns from ``sum_j alpha^|i-j| r_j`` (0: its own reward, the
+        default; 1: the platoon's), as the paper's learners' ``reward_alpha``.
+    reward_clip, obs_clip : float
+        Clip of the normalised reward and observation.
+    comm_delay_s, packet_loss : float
+        V2V of the training episodes (``accel``).
+    eval_every_steps : int
+        Environment steps between validations (the kept snapshot: fewest collisions on the
+        validation seeds, then best reward, actions sampled as trained).
+    """
+
+    algo: str = "ippo"
+    action_mode: str = "accel"
+    n_envs: int = 64
+    rollout_steps: int = 64
+    epochs: int = 4
+    minibatch_rows: int = 8192
+    lr: float = 1e-3
+    gamma: float = 0.99
+    gae_lambda: float = 0.95
+    clip_coef: float = 0.2
+    vf_coef: float = 0.5
+    ent_coef: float = 0.0
+    max_grad_norm: float = 0.5
+    hidden: int = 64
+    init_log_std: float = -1.5
+    reward_alpha: float = 0.0
+    reward_clip: float = 10.0
+    obs_clip: float = 10.0
+    comm_delay_s: float = 0.0
+    packet_loss: float = 0.0
+    eval_every_steps: int = 100_000
+
+    def __post_init__(self) -> None:
+        if self.algo not in SHARED_ALGORITHMS:
+            raise ConfigError(f"algo must be one of {', '.join(SHARED_ALGORITHMS)}, got {self.algo!r}")
+        check_action_mode(self.action_mode)
+        for name in ("n_envs", "rollout_steps", "epochs", "minibatch_rows", "hidden",
+                     "eval_every_steps"):
+            if not 1 <= getattr(self, name) <= 10**7:
+                raise ConfigError(f"{name} must lie in 1..1e7, got {getattr(self, name)}")
+        for name in ("lr", "reward_clip", "obs_clip", "max_grad_norm"):
+            if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0):
+                raise ConfigError(f"{name} must be a finite number > 0, got {getattr(self, name)}")
+        if not 0 <= self.reward_alpha <= 1:
+            raise ConfigError(f"reward_alpha must lie in [0, 1], got {self.reward_alpha}")
+        for name in ("gamma", "gae_lambda"):
+            if not 0 < getattr(self, name) <= 1:
+                raise ConfigError(f"{name} must lie in (0, 1], got {getattr(self, name)}")
+        if not (0 < self.clip_coef < 1 and self.vf_coef >= 0 and self.ent_coef >= 0):
+            raise ConfigError("clip_coef must lie in (0, 1); vf_coef and ent_coef must be >= 0")
+        ChannelConfig(self.comm_delay_s, self.packet_loss)  # the channel's own checks
+
+    @property
+    def obs_dim(self) -> int:
+        """Floats per agent the networks read (the ``ovm-gain`` observation gets the position
+        features appended; the ``accel`` one has them)."""
+        return 12 if self.action_mode == "accel" else 15 + 3
+
+
+# ---------------------------------------------------------------------------- networks
+def _mlp(n_in: int, hidden: int, n_out: int, gain: float) -> nn.Sequential:
+    """Two ReLU layers, orthogonal init (CleanRL's ``layer_init``). ReLU, not CleanRL's tanh:
+    this torch build's CPU tanh took 2.1 ms on a (8192, 64) batch against ReLU's 0.07 ms
+    (one thread), most of a training step."""
+    layers = [nn.Linear(n_in, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU(),
+              nn.Linear(hidden, n_out)]
+    for layer, g in zip(layers[::2], (math.sqrt(2), math.sqrt(2), gain)):
+        assert isinstance(layer, nn.Linear)
+        nn.init.orthogonal_(layer.weight, g)
+        nn.init.zeros_(layer.bias)
+    return nn.Sequential(*layers)
+
+
+class SharedActor(nn.Module):
+    """The policy every follower shares: observation ``(..., D)`` -> action parameters.
+
+    ``accel``: the Gaussian mean of ``z`` and a state-independent log std; the command is
+    ``c + h tanh(z)`` with ``c, h`` the midpoint and half-range of the command bounds.
+    ``ovm-gain``: logits of the four OVM gain pairs.
+    """
+
+    centre: torch.Tensor
+    half_range: torch.Tensor
+    obs_mean: torch.Tensor
+    obs_var: torch.Tensor
+    obs_count: torch.Tensor
+
+    def __init__(self, config: PPOConfig, params: PlatoonParams = PlatoonParams()) -> None:
+        super().__init__()
+        self.continuous = config.action_mode == "accel"
+        n_out = 1 if self.continuous else len(OVM_ACTIONS)
+        self.body = _mlp(config.obs_dim, config.hidden, n_out, 0.01)
+        self.log_std = nn.Parameter(torch.full((1,), float(config.init_log_std)))
+        self.obs_clip = float(config.obs_clip)
+        self.register_buffer("obs_mean", torch.zeros(config.obs_dim, dtype=torch.float64))
+        self.register_buffer("obs_var", torch.ones(config.obs_dim, dtype=torch.float64))
+        self.register_buffer("obs_count", torch.tensor(1e-4, dtype=torch.float64),
+                             persistent=False)  # training only
+        self.register_buffer("centre", torch.tensor((params.accel_max_mps2 + params.accel_min_mps2) / 2))
+        self.register_buffer("half_range", torch.tensor((params.accel_max_mps2 - params.accel_min_mps2) / 2))
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        """Gaussian mean of ``z`` ``(...)`` (``accel``) or logits ``(..., 4)`` of raw
+        observations."""
+        return self.policy(self.normalise(obs))
+
+    def policy(self, nobs: torch.Tensor) -> torch.Tensor:
+        """As :meth:`forward`, of normalised observations."""
+        out = self.body(nobs)
+        return out[..., 0] if self.continuous else out
+
+    def normalise(self, obs: torch.Tensor) -> torch.Tensor:
+        """``clip((obs - mean) / sqrt(var + 1e-8), -obs_clip, obs_clip)`` (float32)."""
+        scale = (self.obs_var + 1e-8).rsqrt()
+        return ((obs - self.obs_mean) * scale).float().clamp_(-self.obs_clip, self.obs_clip)
+
+    @torch.no_grad()
+    def update_obs_stats(self, obs: torch.Tensor) -> None:
+        """Merge the rows ``(..., D)`` into the running mean and variance (Chan et al.)."""
+        x = obs.reshape(-1, obs.shape[-1]).double()
+        if not len(x):
+            return
+        n_b, mean_b, var_b = float(len(x)), x.mean(0), x.var(0, unbiased=False)
+        n_a = float(self.obs_count)
+        n = n_a + n_b
+        delta = mean_b - self.obs_mean
+        self.obs_var.copy_((self.obs_var * n_a + var_b * n_b + delta**2 * n_a * n_b / n) / n)
+        self.obs_mean.add_(delta * n_b / n)
+        self.obs_count.fill_(n)
+
+    def command(self, z: torch.Tensor) -> torch.Tensor:
+        """Acceleration command of the pre-squash sample ``z`` (m/s^2), inside the bounds."""
+        return self.centre + self.half_range * torch.tanh(z)
+
+    def log_prob_entropy(self, out: torch.Tensor, action: torch.Tensor
+                         ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Log-probability of ``action`` (``z``, or the index) and the entropy (of ``z``'s
+        Gaussian: the squash's Jacobian cancels in PPO's ratio)."""
+        if self.continuous:
+            std = self.log_std.exp()
+            logp = -0.5 * ((action - out) / std) ** 2 - self.log_std - 0.5 * math.log(2 * math.pi)
+            ent = (0.5 + 0.5 * math.log(2 * math.pi) + self.log_std).expand_as(out)
+            return logp, ent
+        logp_all = torch.log_softmax(out, dim=-1)
+        logp = logp_all.gather(-1, action.long().unsqueeze(-1)).squeeze(-1)
+        ent = -(logp_all.exp() * logp_all).sum(-1)
+        return logp, ent
+
+
+class Critic(nn.Module):
+    """Value of each agent: its observation (IPPO), or with the platoon's mean beside it (MAPPO)."""
+
+    def __init__(self, config: PPOConfig) -> None:
+        super().__init__()
+        self.central = config.algo == "mappo"
+        self.body = _mlp(config.obs_dim * (2 if self.central else 1), config.hidden, 1, 1.0)
+
+    def inputs(self, obs: torch.Tensor) -> torch.Tensor:
+        """What the critic reads of ``obs (..., N, D)``: ``(..., N, D)`` or ``(..., N, 2 D)``."""
+        if not self.central:
+            return obs
+        return torch.cat([obs, obs.mean(dim=-2, keepdim=True).expand_as(obs)], dim=-1)
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        """``obs (..., N, D)`` -> values ``(..., N)``."""
+        return self.body(self.inputs(obs))[..., 0]
+
+
+def agent_inputs(obs: np.ndarray | None, action_mode: str) -> np.ndarray:
+    """What the networks read from the env's observation ``(B, N, D)``: the ``accel`` one as it
+    is, the ``ovm-gain`` one with the position features appended (float32)."""
+    if obs is None:
+        raise ValueError("the env does not observe (observe=False)")
+    if action_mode == "accel":
+        return np.ascontiguousarray(obs, dtype=np.float32)
+    b, n, _ = obs.shape
+    pos = np.broadcast_to(position_features(n)[None].astype(np.float32), (b, n, 3))
+    return np.concatenate([obs.astype(np.float32), pos], axis=-1)
+
+
+def to_command(actor: SharedActor, action: torch.Tensor, env: PlatoonEnv) -> np.ndarray:
+    """The env's ``(B, N)`` command of the actions (``z``, or OVM-gain indices)."""
+    if actor.continuous:
+        return actor.command(action).numpy().astype(np.float64)
+    from envs.dynamics import action_to_command_mps2
+
+    s = env.state
+    assert s is not None
+    return action_to_command_mps2(action.numpy().astype(np.int64), s.gap_m, s.speed_mps,
+                                  s.pred_speed_mps, env.params)
+
+
+def sample_with_uniforms(actor: SharedActor, out: torch.Tensor, uniforms: np.ndarray | None
+                         ) -> torch.Tensor:
+    """Evaluation actions: from the episodes' own uniforms ``(B, N)`` (inverse CDF: reruns and
+    batches give the same actions), or the mode (``z = mean``, the argmax) when None."""
+    if uniforms is None:
+        return out if actor.continuous else out.argmax(-1)
+    u = torch.from_numpy(np.clip(uniforms, 1e-12, 1 - 1e-12)).to(out.dtype)
+    if actor.continuous:
+        return out + actor.log_std.exp() * math.sqrt(2.0) * torch.erfinv(2 * u - 1)
+    cdf = torch.softmax(out, dim=-1).cumsum(-1)
+    return (cdf < u.unsqueeze(-1)).sum(-1).clamp_(max=out.shape[-1] - 1)
+
+
+# ---------------------------------------------------------------------------- training
+@dataclass
+class PPOResult:
+    """What :func:`train` returns: the kept actor (acting weights), its validation score, the
+    learning curve and the throughput."""
+
+    actor: SharedActor
+    steps: int
+    curve: list[dict[str, float]]
+    best: dict[str, float]
+    env_steps_per_s: float
+    config: PPOConfig
+
+
+def train(
+    scenario: str,
+    n_vehicles: int = 8,
+    seed: int = 0,
+    total_steps: int = 1_000_000,
+    config: PPOConfig = PPOConfig(),
+    params: PlatoonParams = PlatoonParams(),
+    log: Callable[[str], None] | None = None,
+    validate: bool = True,
+) -> PPOResult:
+    """Train one shared policy on ``scenario`` with N followers for ``total_steps`` environment
+    steps (one step of one episode each).
+
+    Returns the snapshot with the fewest validation collisions, then the best validation reward
+    (actions sampled as trained), or the last one when ``validate`` is False.
+    """
+    cfg, sc = config, make_scenario(scenario)
+    n = check_vehicles(n_vehicles)
+    gen = torch.Generator().manual_seed(int(seed))
+    torch.manual_seed(int(seed))  # nn.init draws from the global generator
+    actor, critic = SharedActor(cfg, params), Critic(cfg)
+    opt = torch.optim.Adam([*actor.parameters(), *critic.parameters()], lr=cfg.lr, eps=1e-5)
+    env = PlatoonEnv(sc, n, params, training=True, action_mode=cfg.action_mode,
+                     channel=ChannelConfig(cfg.comm_delay_s, cfg.packet_loss, params.dt_s))
+    p0 = float(env.power(np.array([sc.target_speed_mps]), np.array([0.0]))[0])
+    baseline = -env.weights.power * p0  # the cruise power's constant part, per running agent-step
+    b, t_len = cfg.n_envs, cfg.rollout_steps
+    idx_n = torch.arange(n, dtype=torch.float32)
+    sharing = cfg.reward_alpha ** (idx_n[:, None] - idx_n[None, :]).abs()  # (N, N)
+    episode = 0
+
+    ret_acc = torch.zeros(b, n, dtype=torch.float64)   # discounted return so far, per agent
+    ret_stats = [1e-4, 0.0, 1.0]                       # count, mean, var of those returns
+
+    def new_episodes() -> torch.Tensor:
+        nonlocal episode
+        seeds = 10_000_000 * (seed + 1) + episode + np.arange(b)
+        episode += b
+        ret_acc.zero_()
+        return torch.from_numpy(agent_inputs(env.reset(seeds), cfg.action_mode))
+
+    def reward_std(reward: torch.Tensor, live: torch.Tensor) -> float:
+        """Update the running variance of the discounted return with this step's rewards."""
+        ret_acc.mul_(cfg.gamma).add_(reward.double())
+        x = ret_acc[live]
+        if len(x):
+            n_a, mean_a, var_a = ret_stats
+            n_b, mean_b, var_b = float(x.numel()), float(x.mean()), float(x.var(unbiased=False))
+            tot = n_a + n_b
+            delta = mean_b - mean_a
+            ret_stats[:] = [tot, mean_a + delta * n_b / tot,
+                            (var_a * n_a + var_b * n_b + delta**2 * n_a * n_b / tot) / tot]
+        return math.sqrt(ret_stats[2] + 1e-8)
+
+    obs = new_episodes()
+    steps, updates, next_eval = 0, 0, 0
+    curve: list[dict[str, float]] = []
+    best: dict[str, float] = {}
+    best_state = as_shipped(actor).state_dict()
+    n_updates = max(1, math.ceil(total_steps / (b * t_len)))
+    d = cfg.obs_dim
+    t0 = time.perf_counter()
+    while steps < total_steps:
+        if validate and steps >= next_eval:
+            shipped = as_shipped(actor)
+            score = validation_score(shipped, sc.id, n, params, cfg)
+            curve.append({"steps": float(steps), **score})
+            if not best or (score["collisions"], -score["reward"]) <= (best["collisions"], -best["reward"]):
+                best = {"steps": float(steps), **score}
+                best_state = shipped.state_dict()
+            if log:
+                log(f"{cfg.algo} {sc.id} seed {seed}: {steps} steps, validation reward "
+                    f"{score['reward']:.1f}, collisions {score['collisions']:.0f}")
+            next_eval += cfg.eval_every_steps
+        # ---- rollout: T steps of B episodes
+        buf_obs = torch.zeros(t_len, b, n, d)
+        buf_cobs = torch.zeros(t_len, b, n, d * (2 if critic.central else 1))
+        buf_act = torch.zeros(t_len, b, n)
+        buf_logp = torch.zeros(t_len, b, n)
+        buf_val = torch.zeros(t_len + 1, b, n)
+        buf_rew = torch.zeros(t_len, b, n)
+        buf_live = torch.zeros(t_len, b)     # the step belongs to a running episode
+        buf_cont = torch.zeros(t_len, b)     # the episode goes on after the step
+        buf_term_value = torch.zeros(t_len, b, n)  # value after an ending: absorbing or bootstrap
+        for t in range(t_len):
+            s = env.state
+            assert s is not None
+            live = ~s.done
+            with torch.no_grad():
+                actor.update_obs_stats(obs[torch.from_numpy(live)])
+                nobs = actor.normalise(obs)
+                out = actor.policy(nobs)
+                if actor.continuous:
+                    action = out + actor.log_std.exp() * torch.randn(out.shape, generator=gen)
+                else:
+                    u = torch.rand(out.shape, generator=gen).clamp_(1e-12, 1.0)
+                    action = (out - torch.log(-torch.log(u))).argmax(-1).to(out.dtype)
+                logp, _ = actor.log_prob_entropy(out, action)
+                buf_cobs[t] = critic.inputs(nobs)
+                buf_val[t] = critic.body(buf_cobs[t])[..., 0]
+            res = env.step(to_command(actor, action, env))
+            buf_obs[t], buf_act[t], buf_logp[t] = nobs, action, logp
+            live_t = torch.from_numpy(live)
+            buf_live[t] = live_t.float()
+            reward = (torch.from_numpy(res.reward.astype(np.float32)) + baseline) * live_t[:, None]
+            if cfg.reward_alpha > 0:
+                reward = reward @ sharing
+            std = reward_std(reward, live_t)
+            buf_rew[t] = (reward / std).clamp_(-cfg.reward_clip, cfg.reward_clip)
+            ended = torch.from_numpy(res.done & live)
+            collided = torch.from_numpy(res.collided & live)
+            buf_cont[t] = (~ended).float()
+            remaining = env.n_steps - s.step
+            absorbing = _absorbing(env.weights.collision, cfg.gamma, remaining) / std
+            if res.done.all():
+                next_obs = new_episodes()
+                with torch.no_grad():  # truncated at the time limit: bootstrap from the last state
+                    last = critic(actor.normalise(
+                        torch.from_numpy(agent_inputs(res.observation, cfg.action_mode))))
+            else:
+                next_obs = torch.from_numpy(agent_inputs(res.observation, cfg.action_mode))
+                last = None
+            if ended.any():
+                if last is None:
+                    with torch.no_grad():
+                        last = critic(actor.normalise(next_obs))
+                term_value = torch.where(collided[:, None], torch.tensor(absorbing), last)
+                buf_term_value[t] = term_value * ended[:, None]
+            obs = next_obs
+            steps += int(live.sum())
+        with torch.no_grad():
+            buf_val[t_len] = critic(actor.normalise(obs))
+        # ---- returns: GAE over the rollout, ended episodes closed by their terminal value
+        adv = torch.zeros(t_len, b, n)
+        last_gae = torch.zeros(b, n)
+        for t in reversed(range(t_len)):
+            cont = buf_cont[t][:, None]
+            next_value = buf_val[t + 1] * cont + buf_term_value[t]
+            delta = buf_rew[t] + cfg.gamma * next_value - buf_val[t]
+            last_gae = delta + cfg.gamma * cfg.gae_lambda * cont * last_gae
+            adv[t] = last_gae
+        ret = adv + buf_val[:t_len]
+        # ---- PPO update on the live agent-steps
+        keep = buf_live.bool()[:, :, None].expand(t_len, b, n).reshape(-1)
+        flat = [x.reshape(-1, *x.shape[3:])[keep]
+                for x in (buf_obs, buf_cobs, buf_act, buf_logp, adv, ret)]
+        f_obs, f_cobs, f_act, f_logp, f_adv, f_ret = flat
+        rows = f_obs.shape[0]
+        frac = 1.0 - updates / n_updates
+        for g in opt.param_groups:
+            g["lr"] = cfg.lr * frac
+        for _ in range(cfg.epochs):
+            order = torch.randperm(rows, generator=gen)
+            for start in range(0, rows, cfg.minibatch_rows):
+                idx = order[start:start + cfg.minibatch_rows]
+                mb_adv = f_adv[idx]
+                mb_adv = (mb_adv - mb_adv.mean()) / (mb_adv.std() + 1e-8)
+                out = actor.policy(f_obs[idx])
+                logp, ent = actor.log_prob_entropy(out, f_act[idx])
+                ratio = (logp - f_logp[idx]).exp()
+                pg = torch.max(-mb_adv * ratio,
+                               -mb_adv * ratio.clamp(1 - cfg.clip_coef, 1 + cfg.clip_coef)).mean()
+                v_loss = 0.5 * (critic.body(f_cobs[idx])[..., 0] - f_ret[idx]).pow(2).mean()
+                loss = pg + cfg.vf_coef * v_loss - cfg.ent_coef * ent.mean()
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                # apart: the critic's gradient (returns of hundreds) must not shrink the actor's
+                nn.utils.clip_grad_norm_(actor.parameters(), cfg.max_grad_norm)
+                nn.utils.clip_grad_norm_(critic.parameters(), cfg.max_grad_norm)
+                opt.step()
+        updates += 1
+    rate = steps / max(time.perf_counter() - t0, 1e-9)
+    if validate:
+        shipped = as_shipped(actor)
+        score = validation_score(shipped, sc.id, n, params, cfg)
+        curve.append({"steps": float(steps), **score})
+        if (score["collisions"], -score["reward"]) <= (best["collisions"], -best["reward"]):
+            best = {"steps": float(steps), **score}
+            best_state = shipped.state_dict()
+        actor.load_state_dict(best_state)
+    else:
+        actor = as_shipped(actor)
+    return PPOResult(actor, steps, curve, best, rate, cfg)
+
+
+def as_shipped(actor: SharedActor) -> SharedActor:
+    """A copy of ``actor`` with its weights rounded through float16, as a checkpoint stores
+    them: validation judges, and selection keeps, exactly what ships."""
+    import copy
+
+    out = copy.deepcopy(actor)
+    with torch.no_grad():
+        for key, value in out.state_dict().items():
+            if key != "obs_count":
+                value.copy_(value.to(torch.float16).to(value.dtype))
+    out.eval()
+    return out
+
+
+def _absorbing(penalty: float, gamma: float, remaining: int) -> float:
+    """The collision penalty at each of ``remaining`` steps, discounted."""
+    if remaining <= 0:
+        return 0.0
+    return penalty * remaining if gamma == 1 else penalty * (1 - gamma**remaining) / (1 - gamma)
+
+
+# ---------------------------------------------------------------------------- validation
+@torch.no_grad()
+def validation_score(actor: SharedActor, scenario: str, n_vehicles: int,
+                     params: PlatoonParams, config: PPOConfig,
+                     seeds: tuple[int, ...] = VALIDATION_SEEDS) -> dict[str, float]:
+    """Mean evaluation reward (sum over agents per step, as the benchmark's tables) and
+    collisions on the validation seeds, actions sampled from the episodes' own uniforms."""
+    env = PlatoonEnv(scenario, n_vehicles, params, action_mode=config.action_mode,
+                     channel=ChannelConfig(config.comm_delay_s, config.packet_loss, params.dt_s))
+    seeds_arr = np.asarray(seeds)
+    obs = env.reset(seeds_arr)
+    per_step = np.zeros((env.n_steps, len(seeds_arr)))
+    steps = np.zeros(len(seeds_arr), dtype=np.int64)
+    for t in range(env.n_steps):
+        out = actor(torch.from_numpy(agent_inputs(obs, config.action_mode)))
+        u = episode_uniforms(seeds_arr, ACTION_STREAM, t, n_vehicles)
+        action = sample_with_uniforms(actor, out, u)
+        running = ~env.state.done  # type: ignore[union-attr]
+        res = env.step(to_command(actor, action, env))
+        per_step[t] = np.ascontiguousarray(res.reward).sum(axis=1)
+        steps += running
+        obs = res.observation
+        if res.done.all():
+            break
+    # each episode's mean over its own steps, as the benchmark's metrics take it
+    rewards = [per_step[: steps[k], k].mean() for k in range(len(seeds_arr))]
+    return {"reward": float(np.mean(rewards)),
+            "collisions": float(env.state.collided.sum())}  # type: ignore[union-attr]
+
+
+# ---------------------------------------------------------------------------- checkpoint
+def save(result: PPOResult, path: str | Path, scenario: str, n_vehicles: int, seed: int) -> Path:
+    """Write the acting weights (float16) and the config as a checkpoint."""
+    from marl.checkpoint import save_checkpoint
+
+    summary = {f"best_{k}": v for k, v in result.best.items()}
+    summary["env_steps_per_s"] = result.env_steps_per_s
+    return save_checkpoint(
+        path, algo=result.config.algo, config=dataclasses.asdict(result.config),
+        scenario=scenario, n_vehicles=n_vehicles, seed=seed, steps=result.steps,
+        curve_summary=summary, weights=dict(result.actor.state_dict()))
+
+
+def load_actor(data: dict[str, Any], params: PlatoonParams = PlatoonParams()) -> SharedActor:
+    """The actor of a loaded checkpoint dict (float32 weights); a config or weights that do not
+    make this learner's actor give a :class:`ConfigError`."""
+    acting = ("action_mode", "hidden", "obs_clip")  # what the actor's shape and acting read
+    try:
+        config = PPOConfig(**{k: v for k, v in data["config"].items() if k in acting})
+        actor = SharedActor(config, params)
+        actor.load_state_dict({k: v.float() for k, v in data["weights"].items()}, strict=True)
+    except (TypeError, ValueError, RuntimeError, KeyError) as exc:
+        reason = " ".join(str(exc).split())[:200]
+        raise ConfigError(f"a {data.get('algo')} checkpoint whose config or weights do not fit "
+                          f"this learner ({reason}); train it again") from None
+    actor.eval()
+    return actor

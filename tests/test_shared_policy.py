@@ -1,0 +1,196 @@
+"""The shared-policy learners (IPPO, MAPPO) and their controller, at any N."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from envs.errors import ConfigError
+from envs.params import PlatoonParams
+from marl.ppo import (
+    Critic,
+    PPOConfig,
+    SharedActor,
+    as_shipped,
+    load_actor,
+    sample_with_uniforms,
+    train,
+    validation_score,
+)
+
+TINY = PPOConfig(n_envs=4, rollout_steps=16, epochs=2, minibatch_rows=64, eval_every_steps=10**6)
+
+
+def _weights(actor: SharedActor) -> dict[str, torch.Tensor]:
+    return {k: v.clone() for k, v in actor.state_dict().items()}
+
+
+@pytest.mark.parametrize(("field", "value", "needle"), [
+    ("algo", "ppo", "algo must be one of ippo, mappo"),
+    ("action_mode", "gains", "unknown action mode"),
+    ("n_envs", 0, "n_envs must lie in"),
+    ("lr", float("nan"), "lr must be a finite number"),
+    ("gamma", 1.5, "gamma must lie in"),
+    ("reward_alpha", -0.1, "reward_alpha must lie in"),
+    ("packet_loss", 2.0, "packet loss must lie in"),
+])
+def test_a_bad_config_is_refused(field: str, value: object, needle: str) -> None:
+    with pytest.raises(ConfigError, match=needle):
+        PPOConfig(**{field: value})  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("algo", ["ippo", "mappo"])
+@pytest.mark.parametrize("mode", ["accel", "ovm-gain"])
+def test_a_seed_gives_the_same_weights_and_another_seed_others(algo: str, mode: str) -> None:
+    cfg = dataclasses.replace(TINY, algo=algo, action_mode=mode)
+    a = train("catchup-v1", 3, 5, 128, cfg, validate=False)
+    b = train("catchup-v1", 3, 5, 128, cfg, validate=False)
+    c = train("catchup-v1", 3, 6, 128, cfg, validate=False)
+    wa, wb, wc = _weights(a.actor), _weights(b.actor), _weights(c.actor)
+    assert all(torch.equal(wa[k], wb[k]) for k in wa)
+    assert not all(torch.equal(wa[k], wc[k]) for k in wa)
+    assert a.steps == 128 and 0 < a.env_steps_per_s
+
+
+def test_what_is_returned_is_what_ships() -> None:
+    """The returned actor's weights are already float16 values (the checkpoint's)."""
+    res = train("catchup-v1", 3, 0, 64, TINY, validate=False)
+    for key, value in res.actor.state_dict().items():
+        assert torch.equal(value, value.to(torch.float16).to(value.dtype)), key
+    again = as_shipped(res.actor)
+    assert all(torch.equal(v, again.state_dict()[k]) for k, v in res.actor.state_dict().items())
+
+
+def test_the_gaussian_sample_of_the_uniforms_has_the_policys_mean_and_std() -> None:
+    """Inverse-CDF sampling: z = mean + std sqrt(2) erfinv(2u - 1) over a fine uniform grid has
+    the mean and standard deviation of N(mean, std^2) (derivable)."""
+    actor = SharedActor(PPOConfig())
+    with torch.no_grad():
+        actor.log_std.fill_(math.log(0.3))
+    u = (np.arange(200_000) + 0.5) / 200_000
+    z = sample_with_uniforms(actor, torch.full((200_000,), 0.7, dtype=torch.float64), u)
+    assert float(z.mean()) == pytest.approx(0.7, abs=1e-6)
+    assert float(z.std()) == pytest.approx(0.3, rel=2e-3)
+    assert torch.equal(sample_with_uniforms(actor, torch.tensor([0.7]), None), torch.tensor([0.7]))
+
+
+def test_the_categorical_sample_of_the_uniforms_has_the_policys_probabilities() -> None:
+    actor = SharedActor(PPOConfig(action_mode="ovm-gain"))
+    logits = torch.log(torch.tensor([0.1, 0.2, 0.3, 0.4])).expand(100_000, 4)
+    u = (np.arange(100_000) + 0.5) / 100_000
+    counts = np.bincount(sample_with_uniforms(actor, logits, u).numpy(), minlength=4)
+    np.testing.assert_allclose(counts / 100_000, [0.1, 0.2, 0.3, 0.4], atol=1e-4)
+
+
+def test_the_squashed_command_stays_in_the_bounds_of_every_controller() -> None:
+    p = PlatoonParams()
+    actor = SharedActor(PPOConfig(), p)
+    u = actor.command(torch.tensor([-1e3, -1.0, 0.0, 1.0, 1e3], dtype=torch.float64))
+    assert float(u.min()) == p.accel_min_mps2 and float(u.max()) == p.accel_max_mps2
+    assert float(u[2]) == 0.0
+
+
+def test_the_mappo_critic_sees_the_platoon_and_the_ippo_critic_does_not() -> None:
+    obs = torch.randn(2, 5, 12)
+    ippo, mappo = Critic(PPOConfig(algo="ippo")), Critic(PPOConfig(algo="mappo"))
+    assert ippo.inputs(obs).shape == (2, 5, 12) and mappo.inputs(obs).shape == (2, 5, 24)
+    other = obs.clone()
+    other[:, 4] += 1.0  # another agent changes: only the centralised critic's value of agent 0 moves
+    assert torch.equal(ippo(obs)[:, 0], ippo(other)[:, 0])
+    assert not torch.equal(mappo(obs)[:, 0], mappo(other)[:, 0])
+
+
+@pytest.fixture(scope="module")
+def tiny_checkpoint(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """An IPPO checkpoint trained briefly at N = 4 on catchup-v1, written as `train` writes it."""
+    from benchmark.train_shared import train_shared
+
+    out = tmp_path_factory.mktemp("shared")
+    cfg = dataclasses.replace(TINY, eval_every_steps=256)
+    return train_shared("ippo", "catchup-v1", 4, 0, 512, out, cfg, log=lambda _: None)
+
+
+def test_the_controller_in_the_harness_scores_what_validation_scored(tiny_checkpoint: Path) -> None:
+    """The benchmark's closed loop with the controller gives the learner's own validation
+    number to the last bit (same actor, observation, V2V timing and uniforms), both modes."""
+    from benchmark.rollout import rollout_batch
+    from controllers.shared_policy import SharedPolicyController
+    from envs.params import VALIDATION_SEEDS
+    from envs.scenarios import make_scenario
+    from marl.checkpoint import load_checkpoint
+
+    data = load_checkpoint(tiny_checkpoint)
+    actor = load_actor(data)
+    cfg = PPOConfig(**data["config"])
+    ours = validation_score(actor, "catchup-v1", 4, PlatoonParams(), cfg)
+    assert data["curve_summary"]["best_reward"] == ours["reward"]
+    ctrl = SharedPolicyController("ippo", checkpoint=str(tiny_checkpoint))
+    trajs = rollout_batch(ctrl, make_scenario("catchup-v1"), 4, list(VALIDATION_SEEDS))
+    assert np.mean([t.reward.mean() for t in trajs]) == ours["reward"]
+    assert sum(t.collided for t in trajs) == ours["collisions"]
+
+
+@pytest.mark.parametrize("n", [2, 4, 12])
+def test_one_checkpoint_drives_any_platoon_size(tiny_checkpoint: Path, n: int) -> None:
+    from benchmark.check import check_controller
+
+    check_controller("ippo", "slowdown-v1", n, steps=20, checkpoint=str(tiny_checkpoint))
+
+
+def test_the_controller_refuses_a_missing_or_mismatched_checkpoint(
+        tiny_checkpoint: Path, tmp_path: Path) -> None:
+    from controllers.shared_policy import SharedPolicyController
+    from envs.scenarios import make_scenario
+
+    with pytest.raises(ConfigError, match="no trained ippo policy for brake-v1 with N = 8"):
+        SharedPolicyController("ippo", checkpoint_dir=str(tmp_path)).preflight(
+            make_scenario("brake-v1"), 8)
+    with pytest.raises(ConfigError, match="holds algorithm 'ippo', not 'mappo'"):
+        SharedPolicyController("mappo", checkpoint=str(tiny_checkpoint)).preflight(
+            make_scenario("catchup-v1"), 8)
+    with pytest.raises(ConfigError, match="vehicles in 2..64"):
+        SharedPolicyController("ippo", vehicles=65)
+
+
+def test_weights_that_do_not_fit_the_learner_are_refused(tiny_checkpoint: Path) -> None:
+    from marl.checkpoint import load_checkpoint
+
+    data = load_checkpoint(tiny_checkpoint)
+    data["weights"]["body.0.weight"] = torch.zeros(3, 3)
+    with pytest.raises(ConfigError, match="do not fit this learner"):
+        load_actor(data)
+
+
+def test_distill_copies_a_linear_law_and_a_seed_gives_the_same_weights() -> None:
+    """Behaviour cloning then DAgger of ``cacc`` (cheap, smooth): the kept actor commands what
+    cacc commands on the platoon's own states to within 0.1 m/s^2 RMS, collision-free on the
+    validation seeds; the same seed gives the same weights."""
+    from benchmark.train_shared import model_expert
+    from marl.distill import DistillConfig, distill
+
+    cfg = DistillConfig(expert="cacc", rounds=2, episodes_per_round=4, grad_steps=1500)
+    res = distill("catchup-v1", model_expert("cacc"), 3, 0, cfg)
+    again = distill("catchup-v1", model_expert("cacc"), 3, 0, cfg)
+    assert all(torch.equal(v, again.actor.state_dict()[k])
+               for k, v in res.actor.state_dict().items())
+    assert res.best["collisions"] == 0
+    from envs.platoon import PlatoonEnv
+
+    env = PlatoonEnv("catchup-v1", 3, action_mode="accel")
+    obs = env.reset([1, 2])
+    expert = model_expert("cacc")(env)
+    errors = []
+    for _ in range(300):
+        label = expert(env.state)
+        with torch.no_grad():
+            from marl.ppo import agent_inputs
+
+            mine = res.actor.command(res.actor(torch.from_numpy(agent_inputs(obs, "accel"))))
+        errors.append(mine.numpy() - label)
+        obs = env.step(mine.numpy().astype(np.float64)).observation
+    assert float(np.sqrt(np.mean(np.square(errors)))) < 0.1
