@@ -122,6 +122,9 @@ def main(argv: list[str]) -> int:
     from envs.scenarios import check_vehicles, make_scenario
 
     args = _parser().parse_args(argv)
+    from benchmark.executors import check_ray_address
+
+    check_ray_address(args.ray_address)  # an address that does not answer: refused before work
     scenarios = list(dict.fromkeys(s.strip() for s in args.scenarios.split(",") if s.strip()))
     if not scenarios:
         raise ConfigError("--scenarios: nothing named")

@@ -179,6 +179,9 @@ def main(argv: list[str]) -> int:
 
     t0 = time.perf_counter()
     args = _parser().parse_args(argv)
+    from benchmark.executors import check_ray_address
+
+    check_ray_address(args.ray_address)  # an address that does not answer: refused before work
     budget = BUDGETS[args.budget]
     algos = [a.strip() for a in args.algos.split(",") if a.strip()]
     if algos == ["all"]:

@@ -207,6 +207,9 @@ def main(argv: list[str]) -> int:
     from marl.a2c import training_device
 
     args = _parser().parse_args(argv)
+    from benchmark.executors import check_ray_address
+
+    check_ray_address(args.ray_address)  # an address that does not answer: refused before work
     scenarios = _names(args.scenarios, "--scenarios")
     for sc in scenarios:
         make_scenario(sc)

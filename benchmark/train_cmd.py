@@ -304,6 +304,9 @@ def main(argv: list[str]) -> int:
     from marl.a2c import ALGORITHM_NAMES, algorithm, training_device
 
     args = _parser().parse_args(argv)
+    from benchmark.executors import check_ray_address
+
+    check_ray_address(args.ray_address)  # an address that does not answer: refused before work
     algos = _names(args.algo, "--algo")
     if algos == ["all"]:
         algos = list(ALGORITHM_NAMES)

@@ -189,6 +189,9 @@ def main(argv: list[str]) -> int:
     from marl.a2c import ALGORITHM_NAMES
 
     args = _parser().parse_args(argv)
+    from benchmark.executors import check_ray_address
+
+    check_ray_address(args.ray_address)  # an address that does not answer: refused before work
     algos = [a.strip() for a in args.algos.split(",") if a.strip()]
     scenarios = [s.strip() for s in args.scenarios.split(",") if s.strip()]
     for a in algos:

@@ -51,6 +51,9 @@ CASES = {
     "train --out 300 characters": ([*TRAIN, "--out", "d/" + "x" * 300], "choose a shorter --out"),
     "stability --out 300 characters": (["stability", "--controllers", "cacc", "--out",
                                         "x" * 300], "choose a shorter --out"),
+    **{f"{argv[0]} --ray-address that does not answer": (
+        [*argv, "--executor", "ray", "--ray-address", "127.0.0.1:1"], "does not answer")
+       for argv in (TRAIN, TUNE, ["reproduce"], ["sensitivity"], ["pareto"])},
 }
 
 
