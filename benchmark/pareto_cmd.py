@@ -97,7 +97,9 @@ def settings_for(families: list[str], scenarios: list[str], n_vehicles: int
             for name in POINTS:
                 add(name, name, {}, "", "")
         if group == "marl":
-            for algo in ALGORITHM_NAMES:
+            from controllers.shared_policy import SHARED_POLICIES
+
+            for algo in (*ALGORITHM_NAMES, *SHARED_POLICIES):
                 if not all(checkpoint_path(algo, sc, n_vehicles).exists() for sc in scenarios):
                     continue
                 if algo not in MARL_SWEEPS:

@@ -80,8 +80,12 @@ def main(argv: list[str]) -> int:
         if ready and not os.read(stdin.fileno(), 1024):
             break
     time.sleep(0.2)  # what the command's own shutdown ends by itself is gone by now
-    seen.update(descendants(root))
-    kill_all({pid: t for pid, t in seen.items() if (pid, t) not in before})
+    for _ in range(3):  # the command's processes, reparented when it died, may have started more
+        alive = [p for p, t in seen.items() if (_stat(p) or (0, "", ""))[2] == t]
+        for pid in [root, *alive]:  # only the processes noted, not a reused pid
+            seen.update(descendants(pid))
+        kill_all({pid: t for pid, t in seen.items() if (pid, t) not in before})
+        time.sleep(SCAN_S)
     return 0
 
 

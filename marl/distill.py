@@ -5,9 +5,12 @@ only (seeds ``1e7 (seed + 1) + k``; the validation seeds choose the round that i
 evaluation seeds are never seen):
 
 1. round 0 drives the platoon with the expert and records its commands (behaviour cloning);
-2. every later round drives it with the current policy's mode while the expert, fed the same
-   states through its own V2V channels, labels what it would command; the labels are added to
-   the data set and the actor is fitted again on all of it.
+2. every later round ``k`` drives it with the current policy's mode, except the first
+   ``beta^k`` share of its episodes, which the expert still drives (DAgger's mixture, ``beta``
+   = 0.5), while the expert, fed the same states through its own V2V channels, labels what it
+   would command; the labels are added to the data set and the actor is fitted again on all
+   of it. The observation statistics are those of round 0 throughout (a fit that shifted them
+   as crashed episodes entered the data set once turned a good round into 31 collisions of 32).
 
 The fit is the mean of the policy's Gaussian in command space, ``c + h tanh(mean)`` against the
 expert's command (squared error), and its standard deviation in ``z`` is the residuals' RMS in
@@ -50,6 +53,9 @@ class DistillConfig:
         Name of the expert controller (recorded; the factory is given to :func:`distill`).
     rounds : int
         Data-collection rounds: the first by the expert (behaviour cloning), the rest DAgger.
+    beta : float
+        DAgger's mixture: in round ``k`` the expert drives the first ``beta^k`` share of the
+        episodes (0: the policy drives every episode after round 0).
     episodes_per_round : int
         Training episodes collected per round.
     grad_steps, minibatch_rows, lr : int, int, float
@@ -61,6 +67,7 @@ class DistillConfig:
 
     expert: str = "mpc"
     rounds: int = 5
+    beta: float = 0.5
     episodes_per_round: int = 8
     grad_steps: int = 3000
     minibatch_rows: int = 1024
@@ -71,6 +78,8 @@ class DistillConfig:
         for name in ("rounds", "episodes_per_round", "grad_steps", "minibatch_rows", "hidden"):
             if not 1 <= getattr(self, name) <= 10**6:
                 raise ConfigError(f"{name} must lie in 1..1e6, got {getattr(self, name)}")
+        if not 0 <= self.beta <= 1:
+            raise ConfigError(f"beta must lie in [0, 1], got {self.beta}")
         if not (math.isfinite(self.lr) and self.lr > 0):
             raise ConfigError(f"lr must be a finite number > 0, got {self.lr}")
 
@@ -113,6 +122,7 @@ def distill(
             cfg.episodes_per_round)
         obs = env.reset(seeds)
         expert = make_expert(env)
+        n_expert = int(math.floor(cfg.episodes_per_round * cfg.beta**rnd))
         for _ in range(env.n_steps):
             s = env.state
             assert s is not None
@@ -122,16 +132,20 @@ def distill(
             obs_rows.append(x[live].reshape(-1, x.shape[-1]))
             label_rows.append(torch.from_numpy(np.asarray(label, dtype=np.float32))[live].reshape(-1))
             steps += int(live.sum())
-            if rnd == 0:
-                command = np.asarray(label, dtype=np.float64)
-            else:
+            command = np.asarray(label, dtype=np.float64).copy()
+            if rnd > 0:
                 with torch.no_grad():
-                    command = actor.command(actor(x)).numpy().astype(np.float64)
+                    mine = actor.command(actor(x)).numpy().astype(np.float64)
+                command[n_expert:] = mine[n_expert:]
             res = env.step(command)
             obs = res.observation
             if res.done.all():
                 break
         data_x, data_u = torch.cat(obs_rows), torch.cat(label_rows)
+        if rnd == 0:
+            with torch.no_grad():
+                actor.obs_mean.copy_(data_x.double().mean(0))
+                actor.obs_var.copy_(data_x.double().var(0, unbiased=False))
         _fit(actor, opt, data_x, data_u, cfg, gen)
         shipped = as_shipped(actor)
         score = validation_score(shipped, sc.id, n, params, actor_cfg)
@@ -149,11 +163,8 @@ def distill(
 
 def _fit(actor: SharedActor, opt: torch.optim.Optimizer, x: torch.Tensor, u: torch.Tensor,
          cfg: DistillConfig, gen: torch.Generator) -> None:
-    """Observation statistics of the data set, then ``grad_steps`` Adam steps of squared command
-    error on random minibatches; the log std set from the residuals (see the module's text)."""
-    with torch.no_grad():
-        actor.obs_mean.copy_(x.double().mean(0))
-        actor.obs_var.copy_(x.double().var(0, unbiased=False))
+    """``grad_steps`` Adam steps of squared command error on random minibatches; the log std set
+    from the residuals (see the module's text)."""
     nx = actor.normalise(x)
     rows = len(u)
     for _ in range(cfg.grad_steps):
