@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from controllers.base import Controller, EpisodeContext, Message
-from controllers.policy import CHECKPOINT_DIR, MIN_LANES, checkpoint_path
+from controllers.policy import CHECKPOINT_DIR, MIN_LANES, UNIFORM_BLOCK_STEPS, checkpoint_path
 from envs.accel_mode import (
     LEADER_MESSAGE,
     PRED_MESSAGE,
@@ -177,6 +177,8 @@ class SharedPolicyController(Controller):
         self.params, self.ctx = ctx.params, ctx
         b, n = ctx.batch_size, ctx.n_vehicles
         self.seeds, self.t = ctx.seeds, 0
+        self._u_block: np.ndarray | None = None
+        self._u_start = 0
         self._lanes = max(b, MIN_LANES)
         if self.action_mode == "accel":
             self._pred_channel = ctx.channel(PRED_MESSAGE[0])
@@ -219,7 +221,12 @@ class SharedPolicyController(Controller):
             obs = np.concatenate([obs, np.repeat(obs[:1], self._lanes - b, 0)])
         uniforms = None
         if self.mode == "sampled":
-            uniforms = episode_uniforms(self.seeds, ACTION_STREAM, self.t, n)
+            k = self.t - self._u_start
+            if self._u_block is None or k >= len(self._u_block):  # the same numbers as one
+                self._u_block = episode_uniforms(  # draw per step, in one vectorised pass
+                    self.seeds, ACTION_STREAM, self.t, n, steps=UNIFORM_BLOCK_STEPS)
+                self._u_start, k = self.t, 0
+            uniforms = self._u_block[k]
             if b < self._lanes:
                 uniforms = np.concatenate([uniforms, np.repeat(uniforms[:1], self._lanes - b, 0)])
         self.t += 1
