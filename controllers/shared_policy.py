@@ -24,7 +24,14 @@ from typing import Any
 import numpy as np
 
 from controllers.base import Controller, EpisodeContext, Message
-from controllers.policy import CHECKPOINT_DIR, MIN_LANES, UNIFORM_BLOCK_STEPS, checkpoint_path
+from controllers.policy import (
+    CHECKPOINT_DIR,
+    MIN_LANES,
+    UNIFORM_BLOCK_STEPS,
+    VARIANT_DIR,
+    checkpoint_path,
+    shipped_variants,
+)
 from envs.accel_mode import (
     LEADER_MESSAGE,
     PRED_MESSAGE,
@@ -83,6 +90,9 @@ class SharedPolicyController(Controller):
         Training seed (0).
     vehicles : int
         N the checkpoint was trained with (8); the run's N may differ.
+    variant : str, optional
+        A shipped variant (a folder of ``controllers/checkpoints/variants``; ``ovm-gain``: the
+        same learner in the published action mode).
     mode : {"sampled", "greedy"}
         Actions drawn from the policy as trained (default) or its mode.
     """
@@ -94,7 +104,8 @@ class SharedPolicyController(Controller):
 
     def __init__(self, algo: str, scenario: str | None = None, checkpoint: str | None = None,
                  checkpoint_dir: str | None = None, seed: int | str = 0,
-                 vehicles: int | str = 8, mode: str = "sampled") -> None:
+                 vehicles: int | str = 8, variant: str | None = None,
+                 mode: str = "sampled") -> None:
         super().__init__()
         if algo not in SHARED_POLICIES:
             raise ConfigError(f"unknown shared-policy algorithm {algo!r}; valid: "
@@ -107,12 +118,21 @@ class SharedPolicyController(Controller):
             raise ConfigError(f"{algo}: seed and vehicles must be integers") from None
         if seed < 0 or not 2 <= vehicles <= 64:
             raise ConfigError(f"{algo}: seed must be >= 0 and vehicles in 2..64")
+        if variant is not None:
+            if checkpoint_dir is not None:
+                raise ConfigError(f"{algo}: give variant or checkpoint_dir, not both")
+            if variant not in shipped_variants():
+                raise ConfigError(f"{algo}: unknown variant {variant!r}; shipped: "
+                                  f"{', '.join(shipped_variants()) or 'none'}")
+            checkpoint_dir = str(VARIANT_DIR / variant)
         self.name = self.algo = algo
+        self.variant = variant
         self.scenario, self.checkpoint, self.checkpoint_dir = scenario, checkpoint, checkpoint_dir
         self.seed, self.vehicles, self.mode = seed, vehicles, mode
         self.deterministic = mode == "greedy"
         self.options = {k: v for k, v in {
-            "scenario": scenario, "checkpoint": checkpoint, "checkpoint_dir": checkpoint_dir,
+            "scenario": scenario, "checkpoint": checkpoint, "variant": variant,
+            "checkpoint_dir": checkpoint_dir if variant is None else None,
             "seed": seed or None, "vehicles": vehicles if vehicles != 8 else None,
             "mode": mode if mode != EVAL_MODES[0] else None}.items() if v is not None}
         self.actor: Any = None
@@ -144,7 +164,7 @@ class SharedPolicyController(Controller):
         torch.set_num_threads(1)
         path = self._path(source)
         if not path.exists():
-            where = self.checkpoint_dir or CHECKPOINT_DIR.name
+            where = self.variant or self.checkpoint_dir or CHECKPOINT_DIR.name
             raise ConfigError(
                 f"no trained {self.algo} policy for {source} with N = {self.vehicles} in {where} "
                 f"({path.name} missing); make it with `cacc-bench train --algo {self.algo} "

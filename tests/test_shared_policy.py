@@ -208,7 +208,8 @@ SHIPPED: dict[tuple[str, str], tuple[int, float]] = {
 MPC_REWARD = {"catchup-v1": -468.93, "slowdown-v1": -396.40}
 
 
-def pooled_shared(algo: str, scenario: str, n_vehicles: int = 8) -> dict[str, float]:
+def pooled_shared(algo: str, scenario: str, n_vehicles: int = 8, **options: str
+                  ) -> dict[str, float]:
     """The shipped seeds 0-2 of ``algo`` through the harness's closed loop on the 50
     evaluation seeds: collisions, and the mean over all episodes of each one's mean reward."""
     from benchmark.rollout import rollout_batch
@@ -218,7 +219,7 @@ def pooled_shared(algo: str, scenario: str, n_vehicles: int = 8) -> dict[str, fl
 
     rewards, collisions = [], 0
     for seed in (0, 1, 2):
-        ctrl = SharedPolicyController(algo, seed=seed)
+        ctrl = SharedPolicyController(algo, seed=seed, **options)  # type: ignore[arg-type]
         for traj in rollout_batch(ctrl, make_scenario(scenario), n_vehicles, list(EVAL_SEEDS)):
             rewards.append(traj.reward.mean())
             collisions += traj.collided
@@ -231,6 +232,18 @@ def test_the_shipped_shared_policies_read_the_readme(algo: str, scenario: str) -
     collisions, reward = SHIPPED[(algo, scenario)]
     assert pooled["collisions"] == collisions
     assert pooled["reward"] == pytest.approx(reward, abs=0.5)
+
+
+def test_the_same_learner_with_ovm_gain_actions() -> None:
+    """The shipped variant ``ovm-gain`` (ippo trained as the shipped ippo, in the published action
+    mode): ahead of the acceleration mode on catchup-v1, far behind on slowdown-v1."""
+    catchup = pooled_shared("ippo", "catchup-v1", variant="ovm-gain")
+    slowdown = pooled_shared("ippo", "slowdown-v1", variant="ovm-gain")
+    assert (catchup["collisions"], slowdown["collisions"]) == (0, 0)
+    assert catchup["reward"] == pytest.approx(-446.09, abs=0.5)
+    assert slowdown["reward"] == pytest.approx(-581.36, abs=0.5)
+    assert catchup["reward"] > SHIPPED[("ippo", "catchup-v1")][1]
+    assert slowdown["reward"] < SHIPPED[("ippo", "slowdown-v1")][1] - 100
 
 
 def test_the_readme_claims_on_the_shipped_shared_policies() -> None:
