@@ -285,3 +285,32 @@ def test_the_shipped_n8_policies_drive_4_and_12_followers_without_a_collision(
         assert pooled_shared(algo, scenario, n)["collisions"] == 0, algo
     if n == 12 and scenario == "slowdown-v1":  # the README's reading of the 4/12 table
         assert pooled_shared("ippo", scenario, n)["reward"] == pytest.approx(-591.60, abs=0.5)
+
+
+def test_the_validation_table_of_the_docs_is_the_checkpoints() -> None:
+    """docs/learned-control.md's per-seed validation rewards are those the shipped checkpoints
+    record."""
+    from controllers.policy import checkpoint_path
+    from marl.checkpoint import load_checkpoint
+
+    text = (Path(__file__).resolve().parent.parent / "docs" / "learned-control.md").read_text()
+    for algo in ("ippo", "mappo", "distill"):
+        row = next(line for line in text.splitlines() if line.startswith(f"| `{algo}` |"))
+        for sc in ("catchup-v1", "slowdown-v1"):
+            for seed in (0, 1, 2):
+                data = load_checkpoint(checkpoint_path(algo, sc, 8, seed))
+                assert f"{data['curve_summary']['best_reward']:.2f}" in row, (algo, sc, seed)
+
+
+@pytest.mark.slow
+def test_the_string_stability_reading_of_the_docs(tmp_path: Path) -> None:
+    import pandas as pd
+
+    from benchmark.cli import main as cli
+
+    assert cli(["stability", "--controllers", "ippo:scenario=slowdown-v1,"
+                "distill:scenario=slowdown-v1", "--empirical", "--out", str(tmp_path)]) == 0
+    summary = pd.read_csv(tmp_path / "stability_summary.csv")
+    peaks = dict(zip(summary["controller"], summary["peak_gain"]))
+    assert round(peaks["ippo[scenario=slowdown-v1]"], 3) == 1.356
+    assert round(peaks["distill[scenario=slowdown-v1]"], 3) == 1.539
