@@ -52,6 +52,28 @@ def temporary_beside(path: str | Path) -> Path:
     return Path(tmp)
 
 
+def _synced(tmp: Path) -> None:
+    """Flush ``tmp`` to the disk and give it the mode a new file gets."""
+    with open(tmp, "rb+") as fh:
+        os.fsync(fh.fileno())
+    os.chmod(tmp, _umask_mode())
+
+
+@contextlib.contextmanager
+def _replacing(path: Path) -> Iterator[Path]:
+    """A temporary path beside ``path``; on a clean exit it is synced and renamed over
+    ``path``, on any exception removed (the target left as it was)."""
+    tmp = temporary_beside(path)
+    try:
+        yield tmp
+        _synced(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    _sync_folder(path.parent)
+
+
 @contextlib.contextmanager
 def atomic_open(path: str | Path, mode: str = "w", **kwargs: Any) -> Iterator[IO[Any]]:
     """Open a temporary file beside ``path`` for writing; on a clean exit it replaces ``path``.
@@ -72,19 +94,8 @@ def atomic_open(path: str | Path, mode: str = "w", **kwargs: Any) -> Iterator[IO
     """
     if mode not in ("w", "wb"):
         raise ValueError(f"atomic_open writes whole files: mode 'w' or 'wb', not {mode!r}")
-    path = Path(path)
-    tmp = temporary_beside(path)
-    try:
-        with open(tmp, mode, **kwargs) as fh:
-            yield fh
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.chmod(tmp, _umask_mode())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    _sync_folder(path.parent)
+    with _replacing(Path(path)) as tmp, open(tmp, mode, **kwargs) as fh:
+        yield fh
 
 
 def write_bytes(path: str | Path, data: bytes) -> Path:
@@ -105,17 +116,8 @@ def write_with(path: str | Path, writer: Callable[[Path], object]) -> Path:
     """Atomically (re)place ``path`` with what ``writer(tmp)`` writes to a temporary path (for
     libraries that take a file name, e.g. ``torch.save`` or ``DataFrame.to_csv``)."""
     path = Path(path)
-    tmp = temporary_beside(path)
-    try:
+    with _replacing(path) as tmp:
         writer(tmp)
-        with open(tmp, "rb+") as fh:
-            os.fsync(fh.fileno())
-        os.chmod(tmp, _umask_mode())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    _sync_folder(path.parent)
     return path
 
 
@@ -156,9 +158,7 @@ class StagedFiles:
         tmp = temporary_beside(path)
         self._pending.append((tmp, path))
         writer(tmp)
-        with open(tmp, "rb+") as fh:
-            os.fsync(fh.fileno())
-        os.chmod(tmp, _umask_mode())
+        _synced(tmp)
 
     def write_text(self, path: str | Path, text: str) -> None:
         """Stage ``path`` with ``text`` (UTF-8)."""
@@ -167,9 +167,7 @@ class StagedFiles:
     def adopt(self, tmp: str | Path, path: str | Path) -> None:
         """Stage an already written temporary file ``tmp`` (in ``path``'s folder) for ``path``."""
         tmp = Path(tmp)
-        with open(tmp, "rb+") as fh:
-            os.fsync(fh.fileno())
-        os.chmod(tmp, _umask_mode())
+        _synced(tmp)
         self._pending.append((tmp, Path(path)))
 
     def commit(self) -> None:
