@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from envs.errors import ConfigError
-from envs.naming import checkpoint_stem, coerce_option
+from envs.naming import checkpoint_stem
 
 #: The learners of one policy shared by every follower, trained by this module.
 SHARED_LEARNERS: tuple[str, ...] = ("ippo", "mappo", "distill")
@@ -27,28 +27,23 @@ SHARED_LEARNERS: tuple[str, ...] = ("ippo", "mappo", "distill")
 def shared_config(algo: str, overrides: Sequence[str], tuned: dict[str, Any] | None = None
                   ) -> Any:
     """The config of ``algo`` (:class:`marl.ppo.PPOConfig`, or :class:`marl.distill.
-    DistillConfig` for ``distill``) with ``tuned`` options, then ``--set KEY=VALUE`` overrides,
-    applied (strings coerced by the field's type)."""
-    import typing
-
+    DistillConfig` for ``distill``) with ``tuned`` options, then ``--set KEY=VALUE`` overrides
+    (typed and checked by :func:`controllers.registry.build_config`, the one option rule)."""
+    from controllers.registry import build_config
     from marl.distill import DistillConfig
     from marl.ppo import PPOConfig
 
-    cls: type = DistillConfig if algo == "distill" else PPOConfig
-    fields = {f.name for f in dataclasses.fields(cls)}
-    hints = typing.get_type_hints(cls)
-    values: dict[str, Any] = {**(tuned or {})}
-    if cls is PPOConfig:
-        values["algo"] = algo
+    values: dict[str, Any] = dict(tuned or {})
     for item in overrides:
-        if "=" not in item:
-            raise ConfigError(f"--set {item!r}: write KEY=VALUE")
-        key, value = (x.strip() for x in item.split("=", 1))
-        if key not in fields or key == "algo":
-            raise ConfigError(f"{algo} has no config field {key!r}; its fields are: "
-                              f"{', '.join(sorted(fields - {'algo'}))}")
-        values[key] = coerce_option(value, hints[key], key, algo)
-    return cls(**values)
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise ConfigError(f"--set {item!r}: expected KEY=VALUE, e.g. --set lr=0.0003")
+        if key.strip() == "algo":
+            raise ConfigError("--set algo: name the learner with --algo")
+        values[key.strip()] = value.strip()
+    if algo == "distill":
+        return build_config(DistillConfig, values, f"{algo} (--set)")
+    return build_config(PPOConfig, {**values, "algo": algo}, f"{algo} (--set)")
 
 
 def model_expert(name: str) -> Callable[[Any], Callable[[Any], Any]]:

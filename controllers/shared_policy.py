@@ -39,7 +39,7 @@ from envs.accel_mode import (
     leader_links,
 )
 from envs.channel import episode_uniforms
-from envs.dynamics import action_to_command_mps2, agent_observations
+from envs.dynamics import agent_observations
 from envs.errors import ConfigError
 from envs.params import EVAL_MODES, PlatoonParams
 from envs.platoon import PlatoonState
@@ -172,13 +172,8 @@ class SharedPolicyController(Controller):
                 f"another with {self.algo}:scenario=ID")
         data = load_checkpoint(path, algo=self.algo, scenario=source)
         self.actor = load_actor(data)
-        self.action_mode = self.actor_config(data)["action_mode"]
+        self.action_mode = data["config"]["action_mode"]
         self.loaded, self._source = data, source
-
-    @staticmethod
-    def actor_config(data: dict[str, Any]) -> dict[str, Any]:
-        """The checkpoint's learner config."""
-        return dict(data["config"])
 
     # ---------------------------------------------------------------- interface
     def messages(self, ctx: EpisodeContext) -> tuple[Message, ...]:
@@ -233,7 +228,7 @@ class SharedPolicyController(Controller):
     def act(self, state: PlatoonState, observation: np.ndarray | None) -> np.ndarray:
         import torch
 
-        from marl.ppo import ACTION_STREAM, sample_with_uniforms
+        from marl.ppo import ACTION_STREAM, sample_with_uniforms, to_command
 
         obs = self._observation(state)
         b, n = obs.shape[:2]
@@ -253,11 +248,7 @@ class SharedPolicyController(Controller):
         with torch.no_grad():
             out = self.actor(torch.from_numpy(np.ascontiguousarray(obs)))
             action = sample_with_uniforms(self.actor, out, uniforms)[:b]
-            if self.actor.continuous:
-                command = self.actor.command(action).numpy().astype(np.float64)
-            else:
-                command = action_to_command_mps2(action.numpy().astype(np.int64), state.gap_m, state.speed_mps,
-                                                 state.pred_speed_mps, self.params)
+            command = to_command(self.actor, action, state, self.params)
         if self.action_mode == "accel":
             from envs.accel_mode import transmit_accel_messages
 

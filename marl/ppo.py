@@ -47,7 +47,7 @@ from envs.accel_mode import check_action_mode, position_features
 from envs.channel import ChannelConfig, episode_uniforms
 from envs.errors import ConfigError
 from envs.params import OVM_ACTIONS, VALIDATION_SEEDS, PlatoonParams
-from envs.platoon import PlatoonEnv
+from envs.platoon import PlatoonEnv, PlatoonState
 from envs.scenarios import check_vehicles, make_scenario
 
 #: The shared-policy learners of this file.
@@ -265,16 +265,18 @@ def agent_inputs(obs: np.ndarray | None, action_mode: str) -> np.ndarray:
     return np.concatenate([obs.astype(np.float32), pos], axis=-1)
 
 
-def to_command(actor: SharedActor, action: torch.Tensor, env: PlatoonEnv) -> np.ndarray:
-    """The env's ``(B, N)`` command of the actions (``z``, or OVM-gain indices)."""
+def to_command(actor: SharedActor, action: torch.Tensor, state: PlatoonState | None,
+               params: PlatoonParams) -> np.ndarray:
+    """The ``(B, N)`` acceleration commands of the actions in ``state``: ``c + h tanh(z)``, or
+    the published OVM command of the gain indices (the trainer, validation and the controller
+    all act through this)."""
     if actor.continuous:
         return actor.command(action).numpy().astype(np.float64)
     from envs.dynamics import action_to_command_mps2
 
-    s = env.state
-    assert s is not None
-    return action_to_command_mps2(action.numpy().astype(np.int64), s.gap_m, s.speed_mps,
-                                  s.pred_speed_mps, env.params)
+    assert state is not None
+    return action_to_command_mps2(action.numpy().astype(np.int64), state.gap_m,
+                                  state.speed_mps, state.pred_speed_mps, params)
 
 
 def sample_with_uniforms(actor: SharedActor, out: torch.Tensor, uniforms: np.ndarray | None
@@ -404,7 +406,7 @@ def train(
                 logp, _ = actor.log_prob_entropy(out, action)
                 buf_cobs[t] = critic.inputs(nobs)
                 buf_val[t] = critic.body(buf_cobs[t])[..., 0]
-            res = env.step(to_command(actor, action, env))
+            res = env.step(to_command(actor, action, env.state, env.params))
             buf_obs[t], buf_act[t], buf_logp[t] = nobs, action, logp
             live_t = torch.from_numpy(live)
             buf_live[t] = live_t.float()
@@ -528,7 +530,7 @@ def validation_score(actor: SharedActor, scenario: str, n_vehicles: int,
         u = episode_uniforms(seeds_arr, ACTION_STREAM, t, n_vehicles)
         action = sample_with_uniforms(actor, out, u)
         running = ~env.state.done  # type: ignore[union-attr]
-        res = env.step(to_command(actor, action, env))
+        res = env.step(to_command(actor, action, env.state, env.params))
         per_step[t] = np.ascontiguousarray(res.reward).sum(axis=1)
         steps += running
         obs = res.observation
