@@ -185,7 +185,10 @@ class Comparison:
         return (self.ours_flaws == 0) != (self.other_flaws == 0)
 
     def interval(self, digits: int = 1, unit: str = "") -> str:
-        """``'+1.0 [+0.5, +1.5]'`` (with ``unit`` after the mean)."""
+        """``'+1.0 [+0.5, +1.5]'`` (with ``unit`` after the mean); ``'no interval'`` when the
+        flaws decided with nothing to compare."""
+        if not math.isfinite(self.mean):
+            return "no interval"
         u = f" {unit}" if unit else ""
         return (f"{self.mean:+.{digits}f}{u} [{self.low:+.{digits}f}, {self.high:+.{digits}f}]")
 
@@ -247,18 +250,21 @@ def compare_steps(ours: Sequence[float], other: Sequence[float]) -> Comparison:
     """:func:`compare` for convergence steps per training seed (``NaN``: not converged).
 
     The flaws are the seeds that did not converge; the interval is over the converged seeds
-    (one value each: the bootstrap draws training seeds only), lower is better. When a side has
-    no converged seed and the flaws do not decide, neither is ahead (nothing to compare).
+    (one value each: the bootstrap draws training seeds only), lower is better. A side with
+    some converged seeds is ahead of one with none; with none on either side, neither is.
     """
     a, na = converged(ours)
     b, nb = converged(other)
     if not a or not b:
         nan = math.nan
-        if (na == 0) == (nb == 0) or (not a and not b):
+        if not a and not b:
             return Comparison(nan, nan, nan, "lower", na, nb, "neither",
-                              "no converged seed to compare")
-        return Comparison(nan, nan, nan, "lower", na, nb, "ours" if na == 0 else "other",
-                          "no non-converged seeds first")
+                              "no converged seed on either side")
+        if (na == 0) != (nb == 0):
+            return Comparison(nan, nan, nan, "lower", na, nb, "ours" if na == 0 else "other",
+                              "no non-converged seeds first")
+        return Comparison(nan, nan, nan, "lower", na, nb, "ours" if a else "other",
+                          "converged seeds against none")
     return compare(np.array(a)[:, None], np.array(b)[:, None], better="lower", ours_flaws=na,
                    other_flaws=nb, flaw="non-converged seed")
 

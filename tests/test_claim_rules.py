@@ -112,9 +112,12 @@ def test_compare_steps_puts_seeds_that_did_not_converge_first() -> None:
     # both with a seed that did not converge: the one with more cannot win on the interval
     c = cl.compare_steps([nan, nan, 20_000.0], [nan, 300_000.0, 320_000.0])
     assert c.winner == "neither" and "more non-converged seeds" in c.basis
-    # no converged seed on one side, both flawed: nothing to compare
+    # no converged seed on one side, some on the other: the other is ahead
     c = cl.compare_steps([nan, nan, nan], [nan, 300_000.0, 320_000.0])
-    assert c.winner == "neither" and c.basis == "no converged seed to compare"
+    assert (c.winner, c.basis) == ("other", "converged seeds against none")
+    assert c.interval() == "no interval"
+    c = cl.compare_steps([nan, nan], [nan, nan, nan])
+    assert (c.winner, c.basis) == ("neither", "no converged seed on either side")
 
 
 def test_convergence_claim_does_not_credit_curves_that_fall() -> None:
