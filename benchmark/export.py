@@ -23,7 +23,11 @@ RUN_COLUMNS: tuple[str, ...] = (
     "packet_loss", "lag_s", "wall_s", "version", "git_sha",
     # additions
     "controller_name", "options", "deterministic", "spacing_string_gain",
+    "safety_interventions", "safety_correction_mps2",
 )
+
+#: Columns a store written before they existed lacks; a finished run there had no safety filter.
+ZERO_WHEN_ABSENT: tuple[str, ...] = ("safety_interventions", "safety_correction_mps2")
 
 LEADERBOARD_METRICS: tuple[str, ...] = (
     "reward", "tracking_reward", "energy_kwh", "power_mean_kw", "gap_mean_m", "gap_std_m",
@@ -47,6 +51,10 @@ def runs_frame(records: list[dict[str, Any]]) -> Any:
         row = {c: rec.get(c) for c in RUN_COLUMNS}
         row["controller_name"] = rec.get("name", rec.get("controller"))
         row["options"] = rec.get("options", "{}")
+        if rec.get("status") == "ok":
+            for c in ZERO_WHEN_ABSENT:
+                if c not in rec:
+                    row[c] = 0.0
         rows.append(row)
     df = pd.DataFrame(rows, columns=list(RUN_COLUMNS))
     if len(df):

@@ -38,4 +38,12 @@ def main(argv: list[str]) -> int:
         print(f"  {c.name:<8} [{c.family}] {c.description}; V2V: {c.v2v}")
         opts = ", ".join(f"{k}={v}" for k, v in controller_options(c.name).items())
         print(f"           options: {opts or 'none'}")
+    print("  safe:<name> [its family] the controller <name> (any above but openacc-real) behind "
+          "the worst-case-braking safety filter (docs/safety-filter.md), e.g. safe:cacc, "
+          "safe:bdc:scenario=catchup-v1")
+    from controllers.safety_filter import OPTION_PREFIX, SafetyFilterConfig
+
+    own = ", ".join(f"{OPTION_PREFIX}{k}={getattr(SafetyFilterConfig(), k)}"
+                    for k in SafetyFilterConfig.__dataclass_fields__)
+    print(f"           options: <name>'s, and {own}")
     return 0

@@ -85,4 +85,8 @@ def run_metrics(
         "compute_ms_first": float(per_step_ms[0]) if steps else math.nan,
         "solver_failures": int(traj.solver_failures),
         "comm_bits_per_s": float(traj.bits_sent / (n * steps * dt)) if steps else 0.0,
+        # the safety filter (safe:<controller>): fraction of follower-steps it changed, and its
+        # mean correction over all follower-steps (m/s^2); 0 for an unfiltered controller
+        "safety_interventions": traj.safety_interventions / (n * steps) if steps else 0.0,
+        "safety_correction_mps2": traj.safety_correction_mps2 / (n * steps) if steps else 0.0,
     }

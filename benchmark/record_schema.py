@@ -90,6 +90,9 @@ class RunRecord(BaseModel):
     compute_ms_p99: NonNegative = Field(default=None, ge=0.0)
     compute_ms_first: NonNegative = Field(default=None, ge=0.0)
     comm_bits_per_s: NonNegative = Field(default=None, ge=0.0)
+    # the safety filter (absent from stores written before it: read as 0 by runs.csv)
+    safety_interventions: NonNegative = Field(default=None, ge=0.0, le=1.0)
+    safety_correction_mps2: NonNegative = Field(default=None, ge=0.0)
 
     @field_validator("options")
     @classmethod

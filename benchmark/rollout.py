@@ -42,6 +42,11 @@ class Trajectory:
     steps : int
     bits_sent : int
     solver_failures : int
+    safety_interventions : int
+        Follower-steps whose command a safety filter lowered (0 without one, see
+        :meth:`controllers.base.Controller.intervention_totals`).
+    safety_correction_mps2 : float
+        Sum over those follower-steps of how much it lowered the applied command (m/s^2).
     """
 
     gap_m: np.ndarray
@@ -59,6 +64,8 @@ class Trajectory:
     bits_sent: int
     solver_failures: int
     dt_s: float
+    safety_interventions: int = 0
+    safety_correction_mps2: float = 0.0
 
 
 def rollout(
@@ -148,6 +155,7 @@ def rollout_batch(
         obs = res.observation
         if res.done.all():
             break
+    totals = controller.intervention_totals()
     out = []
     for k in range(b):
         n_k = int(steps[k])
@@ -172,6 +180,8 @@ def rollout_batch(
                 bits_sent=int(bits[:n_k].sum()),
                 solver_failures=int(getattr(controller, "solver_failures", 0)),
                 dt_s=params.dt_s,
+                safety_interventions=int(totals[0][k]) if totals is not None else 0,
+                safety_correction_mps2=float(totals[1][k]) if totals is not None else 0.0,
             )
         )
     return out

@@ -217,6 +217,12 @@ class Controller(ABC):
             Agent observations, when ``needs_observation`` is set.
         """
 
+    def intervention_totals(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """For a safety filter (:mod:`controllers.safety_filter`): per episode of the batch since
+        the reset, ``(B,)`` each, the follower-steps whose command it lowered and the sum of how
+        much (m/s^2). None (the default): the controller filters nothing."""
+        return None
+
     def describe(self) -> str:
         """Options as a stable string (recorded in the run's provenance)."""
         return ",".join(f"{k}={v}" for k, v in sorted(self.options.items()))

@@ -16,7 +16,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from envs.errors import ConfigError, UnknownNameError
+from envs.errors import CaccBenchError, ConfigError, UnknownNameError
 from envs.naming import coerce_option, format_label, parse_named_list
 from envs.params import MARL_ALGORITHMS
 
@@ -165,15 +165,41 @@ def available_controllers() -> list[ControllerSpec]:
     return [s for s in CONTROLLERS.values() if s.available]
 
 
+#: Prefix of a filtered controller: ``safe:<controller>`` wraps a registered controller in the
+#: safety filter (:mod:`controllers.safety_filter`); its options are the wrapped one's.
+SAFE_PREFIX = "safe:"
+
+
 def parse_controller_list(text: str) -> list[tuple[str, dict[str, str]]]:
-    """Parse ``"mpc:solver=ipopt,horizon=30,cacc"`` into ``[("mpc", {...}), ("cacc", {})]``."""
-    return parse_named_list(text, "controller")
+    """Parse ``"mpc:solver=ipopt,horizon=30,cacc"`` into ``[("mpc", {...}), ("cacc", {})]``;
+    ``safe:bdc:scenario=catchup-v1`` is the controller ``safe:bdc`` with its option."""
+    return parse_named_list(text, "controller", name_prefixes=(SAFE_PREFIX,))
 
 
 def controller_label(name: str, options: dict[str, Any]) -> str:
     """Leaderboard label: the name, plus its non-default options in brackets, sorted (an option
     given at its default value adds nothing: ``ovm:alpha=0.5`` is ``ovm``)."""
     return format_label(name, canonical_options(name, options))
+
+
+def _safe_spec(name: str) -> ControllerSpec:
+    """The spec of ``safe:<controller>``: the wrapped controller's family and V2V, built by
+    :class:`controllers.safety_filter.SafetyFilter`."""
+    inner = name[len(SAFE_PREFIX):].strip()
+    if not inner:
+        raise ConfigError(f"{name!r} names no controller to filter; write {SAFE_PREFIX}<controller>, "
+                          f"e.g. {SAFE_PREFIX}cacc or {SAFE_PREFIX}bdc:scenario=catchup-v1")
+    if inner.startswith(SAFE_PREFIX):
+        raise ConfigError(f"{name!r}: the safety filter wraps a controller once (filtering a "
+                          f"filtered command changes nothing); write {SAFE_PREFIX}"
+                          f"{inner.removeprefix(SAFE_PREFIX).lstrip(':')}")
+    spec = resolve(inner)
+    if spec.family == "data":
+        raise ConfigError(f"{name!r}: {inner} is a recorded platoon, not a control law; it has no "
+                          "commands for the safety filter to correct")
+    return ControllerSpec(name, spec.family, spec.v2v,
+                          f"{inner} behind the worst-case-braking safety filter",
+                          "controllers.safety_filter:SafetyFilter", fixed={"inner": inner})
 
 
 def _factory(spec: ControllerSpec) -> Callable[..., Any]:
@@ -201,6 +227,9 @@ def controller_options(name: str) -> dict[str, Any]:
     fields, or its constructor's keyword arguments)."""
     spec = resolve(name)
     factory = _factory(spec)
+    options_of = getattr(factory, "options_of", None)  # a wrapper: its inner's and its own
+    if options_of is not None:
+        return dict(options_of(**spec.fixed))
     config_cls = getattr(factory, "config_cls", None)
     if config_cls is not None and dataclasses.is_dataclass(config_cls):
         return {f.name: (f.default if f.default is not dataclasses.MISSING
@@ -229,7 +258,11 @@ def _is_default(value: Any, default: Any, key: str, owner: str) -> bool:
 
 def canonical_options(name: str, options: dict[str, Any]) -> dict[str, Any]:
     """``options`` without those given at their default value (unregistered names: as given)."""
-    if not options or name not in CONTROLLERS or not CONTROLLERS[name].available:
+    if not options:
+        return dict(options)
+    try:
+        resolve(name)
+    except CaccBenchError:
         return dict(options)
     defaults = controller_options(name)
     return {k: v for k, v in options.items()
@@ -237,7 +270,10 @@ def canonical_options(name: str, options: dict[str, Any]) -> dict[str, Any]:
 
 
 def resolve(name: str) -> ControllerSpec:
-    """The spec of a registered and available controller, or a clear error."""
+    """The spec of a registered and available controller (or of ``safe:<controller>``), or a
+    clear error."""
+    if name.startswith(SAFE_PREFIX):
+        return _safe_spec(name)
     spec = CONTROLLERS.get(name)
     if spec is None or not spec.available:
         raise UnknownNameError("controller", name, [s.name for s in available_controllers()])

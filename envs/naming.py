@@ -14,20 +14,28 @@ from typing import Any
 from envs.errors import ConfigError
 
 
-def parse_named_list(text: str, kind: str) -> list[tuple[str, dict[str, str]]]:
+def parse_named_list(text: str, kind: str, name_prefixes: tuple[str, ...] = ()
+                     ) -> list[tuple[str, dict[str, str]]]:
     """Parse ``"mpc:solver=ipopt,horizon=30,cacc"`` into ``[("mpc", {...}), ("cacc", {})]``;
-    labels (``"sine-v1[amplitude_mps=2]"``) are accepted as items too."""
+    labels (``"sine-v1[amplitude_mps=2]"``) are accepted as items too. An item that starts with
+    one of ``name_prefixes`` (``"safe:"``, repeated or not) keeps it in its name:
+    ``safe:bdc:seed=1`` is ``("safe:bdc", {"seed": "1"})``."""
     out: list[tuple[str, dict[str, str]]] = []
     for raw in _split_outside_brackets(text):
         item = raw.strip()
         if not item:
             continue
+        prefix = ""
+        while name_prefixes and item.startswith(name_prefixes):
+            p = next(p for p in name_prefixes if item.startswith(p))
+            prefix, item = prefix + p, item[len(p):]
         if "[" in item:
-            out.append(parse_label(item, kind))
+            name, options = parse_label(item, kind)
+            out.append((prefix + name, options))
             continue
-        if ":" in item:
-            name, opt = item.split(":", 1)
-            out.append((name.strip(), {}))
+        if prefix or ":" in item:
+            name, _, opt = item.partition(":")
+            out.append((prefix + name.strip(), {}))
             item = opt
             if not item:
                 continue
