@@ -155,7 +155,8 @@ def rollout_batch(
         obs = res.observation
         if res.done.all():
             break
-    totals = controller.intervention_totals()
+    totals_of = getattr(controller, "intervention_totals", None)  # a safety filter's counts
+    totals = totals_of() if totals_of is not None else None
     out = []
     for k in range(b):
         n_k = int(steps[k])
