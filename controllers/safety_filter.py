@@ -399,6 +399,3 @@ class SafetyFilter(Controller):
         """Per episode since the reset, ``(B,)`` each: follower-steps whose command the filter
         lowered, and the sum of the corrections (m/s^2)."""
         return self.interventions.copy(), self.correction_sum_mps2.copy()
-
-    def describe(self) -> str:
-        return ",".join(f"{k}={v}" for k, v in sorted(self.options.items()))
