@@ -374,6 +374,15 @@ PAPER_QUOTES: dict[str, str] = {
              "consistent IVS, moderate velocities, and the lowest variation in power consumption, "
              "indicative of an efficient balance between fuel efficiency and operational "
              "stability."),
+    "sharing_reward": ("While BDC-MARL exhibits some mid-training variability, it ultimately "
+                       "achieves the highest rewards, making it the most effective method for "
+                       "maximizing training rewards."),
+    "stability": ("The BDC-MARL approach quickly converges in terms of IVS and maintains a more "
+                  "stable velocity and acceleration pattern, due to its efficient use of limited "
+                  "bandwidth and information processing capabilities, preventing data overflow "
+                  "and response lag."),
+    "size_power": ("Larger platoons save fuel through reduced aerodynamic drag without "
+                   "increasing power use proportionally."),
     "openacc": ("However, there are noticeable differences in the standard deviation of IVS, "
                 "showing greater variability in the OpenACC."),
 }

@@ -322,13 +322,16 @@ def convergence_claim(curves: Mapping[CurveKey, Any], scenario: str,
 
 
 def reward_claim(runs: Any, labels: Mapping[str, str], t2: Any, scenario: str,
-                 rivals: Sequence[str] = MARL_RIVALS) -> Verdict:
+                 rivals: Sequence[str] = MARL_RIVALS, claim: str | None = None,
+                 quote: str | None = None) -> Verdict:
     """"BDC reaches the highest reward" (Tables I and II) on the evaluation episodes: BDC
     against each rival by :func:`analysis.claims.compare` (collisions first, as the leaderboard
     ranks, then the reward difference with its two-stage interval over training seeds and
-    episodes), BDC ahead of every one (:func:`analysis.claims.all_ahead`)."""
-    claim = "BDC-MARL reaches a higher test reward than IA2C, FPrint, CommNet and DIAL (Table II)"
-    quote = cl.PAPER_QUOTES["reward"]
+    episodes), BDC ahead of every one (:func:`analysis.claims.all_ahead`). ``claim`` and
+    ``quote`` name another claim of the same kind (default: Table II's)."""
+    claim = claim or ("BDC-MARL reaches a higher test reward than IA2C, FPrint, CommNet and DIAL "
+                      "(Table II)")
+    quote = quote or cl.PAPER_QUOTES["reward"]
     sub = t2[t2["scenario"] == scenario].set_index("name")
     present = [a for a in rivals if a in sub.index]
     if "bdc" not in sub.index or not present:
@@ -348,6 +351,48 @@ def reward_claim(runs: Any, labels: Mapping[str, str], t2: Any, scenario: str,
                            + ([f"{', '.join(by_safety)} collision-free while BDC collides"]
                               if by_safety else []))
     return Verdict(claim, measured, verdict, reason, quote)
+
+
+#: The two weight-sharing schemes the paper sets against BDC (Figs. 4 to 6).
+SHARING_RIVALS: tuple[str, ...] = ("wac", "dcea")
+
+
+def sharing_reward_claim(runs: Any, labels: Mapping[str, str], t2: Any, scenario: str) -> Verdict:
+    """"BDC ultimately achieves the highest rewards" among WAC, DCEA and BDC (Fig. 4): the rule
+    of :func:`reward_claim` on the evaluation reward of the final weights (the training reward is
+    the learner's own shaping, not comparable between schemes)."""
+    return reward_claim(runs, labels, t2, scenario, SHARING_RIVALS,
+                        "BDC-MARL ultimately reaches a higher reward than WAC and DCEA (Fig. 4; "
+                        "test reward of the final weights)", cl.PAPER_QUOTES["sharing_reward"])
+
+
+def stability_claim(runs: Any, labels: Mapping[str, str], scenario: str,
+                    rivals: Sequence[str] = SHARING_RIVALS) -> Verdict:
+    """"BDC maintains a more stable velocity and acceleration pattern" than WAC and DCEA
+    (Fig. 5), two halves (:func:`analysis.claims.both_halves`): the within-run std of speed and
+    of acceleration, BDC against each rival by :func:`analysis.claims.compare` (collisions
+    first, then the paired interval; lower is better)."""
+    claim = ("BDC-MARL keeps a more stable velocity and acceleration than WAC and DCEA (Fig. 5; "
+             "within-run std, two halves)")
+    quote = cl.PAPER_QUOTES["stability"]
+    safety = _safety(runs, labels, scenario)
+    present = [r for r in rivals if r in safety]
+    if "bdc" not in safety or not present:
+        return Verdict(claim, "runs missing", cl.NOT_TESTABLE, "no runs", quote)
+    halves, parts = [], []
+    for column, label in (("speed_std_mps", "speed std (m/s)"),
+                          ("accel_std_mps2", "acceleration std (m/s^2)")):
+        table = _seeds_by_episodes(runs, labels, scenario, column)
+        comps = {r: _compare_names(table, safety, "bdc", r, better="lower") for r in present}
+        means = table.groupby(level="name").mean().mean(axis=1)
+        halves.append(cl.all_ahead(comps))
+        parts.append(f"{label}: " + ", ".join(f"{n} {means[n]:.3f}" for n in ["bdc", *present])
+                     + "; BDC minus " + ", ".join(f"{r} {c.interval(3)}" for r, c in comps.items()))
+    measured = (f"{scenario}: " + "; ".join(parts) + "; collisions: "
+                + ", ".join(f"{n} {safety[n].text()}" for n in ["bdc", *present]))
+    reason = (f"velocity: {halves[0][0]} ({halves[0][1]}); acceleration: {halves[1][0]} "
+              f"({halves[1][1]})")
+    return Verdict(claim, measured, cl.both_halves(halves[0], halves[1]), reason, quote)
 
 
 def qsgd_claim(runs: Any, labels: Mapping[str, str], t2: Any, scenario: str,
@@ -469,6 +514,46 @@ def size_claim(sizes: Any, runs: Any, labels: Mapping[str, str], scenario: str =
     reason = (f"lowest power variation: {halves[0][0]} ({halves[0][1]}); most consistent IVS: "
               f"{halves[1][0]} ({halves[1][1]})")
     return Verdict(claim, measured, cl.both_halves(halves[0], halves[1]), reason, quote)
+
+
+def size_power_claim(runs: Any, labels: Mapping[str, str], algos: Sequence[str],
+                     scenario: str = SIZE_SCENARIO) -> Verdict:
+    """"Larger platoons save fuel without increasing power use proportionally" (Sec. V): per
+    algorithm, the per-vehicle platoon power of its largest size against its smallest, on the
+    same episodes, by :func:`analysis.claims.compare` (collisions first, then the paired
+    interval; lower is better); holds if the largest size is ahead for every algorithm
+    (:func:`analysis.claims.all_ahead`)."""
+    claim = ("Larger platoons use less power per vehicle: the largest size against the smallest, "
+             "per algorithm (Fig. 8)")
+    quote = cl.PAPER_QUOTES["size_power"]
+    sub = runs[(runs["scenario"] == scenario) & runs["controller"].isin(list(labels))].copy()
+    sub["name"] = sub["controller"].map(labels)
+    sub["power_per_vehicle_kw"] = sub["power_mean_kw"].astype(float) / sub["n_vehicles"]
+    safety = cl.safety_of(runs[runs["scenario"] == scenario], labels)
+    comps, parts = {}, []
+    for algo in algos:
+        g = sub[sub["name"] == algo]
+        sizes = sorted(set(int(n) for n in g["n_vehicles"]))
+        if len(sizes) < 2:
+            continue
+        lo_n, hi_n = sizes[0], sizes[-1]
+        tabs = [g[g["n_vehicles"] == n].pivot_table(index="controller", columns="seed",
+                                                     values="power_per_vehicle_kw", aggfunc="mean")
+                for n in (hi_n, lo_n)]
+        common = [c for c in tabs[0].columns if c in set(tabs[1].columns)]
+        c = comps[f"{algo} N={lo_n}"] = cl.compare(
+            tabs[0][common].to_numpy(), tabs[1][common].to_numpy(), better="lower",
+            ours_flaws=safety[(algo, scenario, hi_n)].flaws,
+            other_flaws=safety[(algo, scenario, lo_n)].flaws)
+        parts.append(f"{algo}: power/veh N={hi_n} {np.nanmean(tabs[0].to_numpy()):.3f} kW, "
+                     f"N={lo_n} {np.nanmean(tabs[1].to_numpy()):.3f} kW, N={hi_n} minus N={lo_n} "
+                     f"{c.interval(3, 'kW')}")
+    if not comps:
+        return Verdict(claim, "sizes missing", cl.NOT_TESTABLE, "no algorithm run at two sizes",
+                       quote)
+    verdict, reason = cl.all_ahead(comps)
+    reason = reason.replace(" ahead (", " uses less power per vehicle (")
+    return Verdict(claim, "; ".join(parts), verdict, reason, quote)
 
 
 #: OpenACC test window -> the paper's group name in Table III.

@@ -176,7 +176,9 @@ def write_report(jobs: list[dict[str, Any]], names: dict[str, str], scenarios: l
         verdicts += [rp.energy_claim(runs, names, sc), rp.reward_claim(runs, names, t2, sc),
                      rp.convergence_claim(curves, sc), rp.qsgd_claim(runs, names, t2, sc),
                      rp.energy_magnitude_claim(runs, names, sc),
-                     rp.collision_claim(runs, names, sc)]
+                     rp.collision_claim(runs, names, sc),
+                     rp.sharing_reward_claim(runs, names, t2, sc),
+                     rp.stability_claim(runs, names, sc)]
     lines += _size_section(jobs, all_runs, names, fig_dir, out, verdicts)
     lines += _openacc_section(jobs, all_runs, names, out, verdicts)
     claims = pd.DataFrame([dataclasses.asdict(v) for v in verdicts],
@@ -234,8 +236,10 @@ def _size_section(jobs: list[dict[str, Any]], runs: Any, names: dict[str, str], 
     claim = "A platoon of 6 vehicles is the best balance (Figs. 7, 8)"
     size_jobs = [j for j in jobs if j["study"] == "sizes"]
     if not size_jobs:
-        verdicts.append(rp.not_testable(claim, "the size study was skipped (or catchup-v1 not run)",
-                                        PAPER_QUOTES["size"]))
+        why = "the size study was skipped (or catchup-v1 not run)"
+        verdicts.append(rp.not_testable(claim, why, PAPER_QUOTES["size"]))
+        verdicts.append(rp.not_testable("Larger platoons use less power per vehicle (Fig. 8)", why,
+                                        PAPER_QUOTES["size_power"]))
         return []
     main8 = [dict(j, study="sizes") for j in jobs if j["study"] == "main"
              and j["scenario"] == SIZE_SCENARIO and j["algo"] in SIZE_ALGOS and j["name"] == j["algo"]]
@@ -264,6 +268,8 @@ def _size_section(jobs: list[dict[str, Any]], runs: Any, names: dict[str, str], 
         ("ivs_within_std_m", "IVS std m"), ("speed_mps_avg", "speed m/s"),
         ("energy_kwh_per_100km", "kWh/100 km")], 3), ""]
     verdicts.append(rp.size_claim(sizes, runs, names, SIZE_SCENARIO))
+    verdicts.append(rp.size_power_claim(runs[runs["n_vehicles"].isin([*SIZES, N_VEHICLES])],
+                                        names, SIZE_ALGOS, SIZE_SCENARIO))
     return lines
 
 

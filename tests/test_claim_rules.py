@@ -390,6 +390,49 @@ def test_size_claim_judges_both_criteria_with_intervals(spread: dict[int, float]
     assert v.quote == cl.PAPER_QUOTES["size"]
 
 
+@pytest.mark.parametrize(("bdc8", "ia2c8", "verdict"), [
+    (4.9, 5.1, cl.HOLDS),  # both algorithms use less power per vehicle at N = 8 than at N = 2
+    (4.9, 5.5, cl.DOES_NOT_HOLD),  # the committed reading: IA2C 5.52 at N = 8, 5.22 at N = 2
+    (5.2, 5.1, cl.INCONCLUSIVE),  # BDC's N = 8 equal to its N = 2 within the noise
+])
+def test_size_power_claim_compares_the_largest_size_with_the_smallest(
+        bdc8: float, ia2c8: float, verdict: str) -> None:
+    rng = np.random.default_rng(11)
+    frames = []
+    for algo, per_vehicle in (("bdc", {2: 5.2, 8: bdc8}), ("ia2c", {2: 5.2, 8: ia2c8})):
+        for n, p in per_vehicle.items():
+            values = {f"{algo}-n{n}-s{k}": [-400.0] * 30 for k in range(3)}
+            extra = {lab: {"power_mean_kw": list(n * (p + rng.normal(0, 0.05, 30)))}
+                     for lab in values}
+            frames.append(_runs(values, n_vehicles=n, extra=extra))
+    runs = pd.concat(frames, ignore_index=True)
+    labels = {lab: lab.split("-n")[0] for lab in runs["controller"].unique()}
+    v = rp.size_power_claim(runs, labels, ("bdc", "ia2c"))
+    assert v.verdict == verdict, v.reason
+    assert "bdc: power/veh N=8" in v.measured and "N=8 minus N=2" in v.measured
+    assert v.quote == cl.PAPER_QUOTES["size_power"]
+
+
+def test_sharing_reward_and_stability_claims() -> None:
+    rng = np.random.default_rng(12)
+    base = -450 + rng.normal(0, 10, 20)
+    values = _seeded(base, {"bdc": (10.0, 12, 11), "wac": (0.0, 0, 0), "dcea": (-5.0, 0, 5)})
+    labels = _labels(values)
+    extra = {lab: {"speed_std_mps": list((0.5 if lab.startswith("bdc") else 0.7)
+                                         + rng.normal(0, 0.01, 20)),
+                   "accel_std_mps2": list((0.3 if lab.startswith("bdc") else 0.2)
+                                          + rng.normal(0, 0.01, 20))} for lab in values}
+    runs = _runs(values, extra=extra)
+    v = rp.sharing_reward_claim(runs, labels, rp.table_two(runs, labels), "catchup-v1")
+    assert v.verdict == cl.HOLDS and "than WAC and DCEA" in v.claim
+    assert v.quote == cl.PAPER_QUOTES["sharing_reward"]
+    v = rp.stability_claim(runs, labels, "catchup-v1")
+    # steadier speed, busier acceleration: the claim has two halves and fails on the second
+    assert v.verdict == cl.DOES_NOT_HOLD
+    assert v.reason.startswith("velocity: holds") and "acceleration: does not hold" in v.reason
+    assert re.search(r"speed std \(m/s\): bdc 0\.[45]\d\d, wac 0\.[67]\d\d", v.measured)
+
+
 def test_openacc_claim_is_collisions_first_and_states_the_spacing() -> None:
     rng = np.random.default_rng(10)
     frames = []
