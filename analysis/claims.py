@@ -94,7 +94,18 @@ def convergence_step(steps: np.ndarray, values: np.ndarray, band: float = CONVER
 
 
 def converged(steps_per_seed: Iterable[float]) -> tuple[list[float], int]:
-    """The finite convergence steps of a list, and how many seeds did not converge (NaN)."""
+    """The converged seeds of a list of convergence steps.
+
+    Parameters
+    ----------
+    steps_per_seed : iterable of float
+        :func:`convergence_step` per training seed.
+
+    Returns
+    -------
+    steps, not_converged : list of float, int
+        The finite steps, and how many seeds did not converge (NaN).
+    """
     values = list(steps_per_seed)
     ok = [float(v) for v in values if math.isfinite(v)]
     return ok, len(values) - len(ok)
@@ -270,8 +281,19 @@ def compare_steps(ours: Sequence[float], other: Sequence[float]) -> Comparison:
 
 
 def all_ahead(comparisons: Mapping[str, Comparison]) -> tuple[str, str]:
-    """Verdict of "ours is ahead of every rival": holds if ahead of each, does not hold if any
-    rival is ahead, else inconclusive; with the reason naming the rivals."""
+    """Verdict of "ours is ahead of every rival".
+
+    Parameters
+    ----------
+    comparisons : mapping
+        Rival name -> :class:`Comparison` of ours against it.
+
+    Returns
+    -------
+    verdict, reason : str
+        Holds if ours is ahead of each rival, does not hold if any rival is ahead, else
+        inconclusive (not testable with no rival); the reason names the rivals and what decided.
+    """
     if not comparisons:
         return NOT_TESTABLE, "no rival to compare with"
     behind = [r for r, c in comparisons.items() if c.winner == "other"]
@@ -286,9 +308,20 @@ def all_ahead(comparisons: Mapping[str, Comparison]) -> tuple[str, str]:
 def not_worse(c: Comparison, margin: float) -> tuple[str, str]:
     """Verdict of "ours keeps the other's performance" (non-inferiority within ``margin``).
 
-    Flaws first as in :func:`compare`: the flaw-free side is the better one. Otherwise holds if
-    the interval (oriented so that positive favours ours) lies above ``-margin``, does not hold
-    if it lies below, inconclusive if it straddles ``-margin``.
+    Parameters
+    ----------
+    c : Comparison
+        Ours against the other.
+    margin : float
+        How far ours may trail, in the units of ``c``'s statistic (positive).
+
+    Returns
+    -------
+    verdict, reason : str
+        Flaws first as in :func:`compare`: if they decided, holds when ours is the flaw-free
+        side and does not hold otherwise. Else holds if the interval (oriented so that positive
+        favours ours) lies above ``-margin``, does not hold if it lies below, inconclusive if
+        it straddles ``-margin``.
     """
     if c.by_flaws:
         if c.winner == "ours":
@@ -303,11 +336,21 @@ def not_worse(c: Comparison, margin: float) -> tuple[str, str]:
 
 
 def magnitude(c: Comparison, target: float) -> tuple[str, str]:
-    """Verdict of "the effect is about ``target``" (in the units of ``c``'s statistic).
+    """Verdict of "the effect is about ``target``".
 
-    Judged only when neither side has flaws (else the other's value is no like-for-like base:
-    inconclusive). Holds if the interval covers ``target`` and excludes 0; does not hold if it
-    excludes ``target``; inconclusive if it covers both.
+    Parameters
+    ----------
+    c : Comparison
+        Ours against the other; its statistic is the effect (a saving in %, a difference).
+    target : float
+        The paper's figure, in the units of the statistic.
+
+    Returns
+    -------
+    verdict, reason : str
+        Judged only when neither side has flaws (else the other's value is no like-for-like
+        base: inconclusive). Holds if the interval covers ``target`` and excludes 0; does not
+        hold if it excludes ``target``; inconclusive if it covers both.
     """
     if c.ours_flaws or c.other_flaws:
         return INCONCLUSIVE, "a side collides or fails, so its value is no like-for-like base"
@@ -320,8 +363,19 @@ def magnitude(c: Comparison, target: float) -> tuple[str, str]:
 
 
 def both_halves(first: tuple[str, str], second: tuple[str, str]) -> str:
-    """Verdict of a claim with two halves from each half's verdict: holds if both hold; does
-    not hold if either does not; inconclusive if either is inconclusive; else not testable."""
+    """Verdict of a claim with two halves.
+
+    Parameters
+    ----------
+    first, second : (verdict, reason)
+        Each half's verdict and reason (the caller states both reasons).
+
+    Returns
+    -------
+    str
+        Holds if both halves hold; does not hold if either does not; inconclusive if either is
+        inconclusive; else (a half not testable) not testable here.
+    """
     pair = (first[0], second[0])
     if pair == (HOLDS, HOLDS):
         return HOLDS
@@ -332,15 +386,39 @@ def both_halves(first: tuple[str, str], second: tuple[str, str]) -> str:
 
 
 def rate_interval(per_seed: Sequence[np.ndarray]) -> tuple[float, float, float]:
-    """Mean and two-stage interval of a per-episode 0/1 indicator over training seeds and
-    episodes (:func:`analysis.statistics.hierarchical_bootstrap_ci`)."""
+    """Mean and two-stage interval of a per-episode 0/1 indicator.
+
+    Parameters
+    ----------
+    per_seed : sequence of 1-D arrays
+        One array of per-episode indicators (a collision: 1) per training seed.
+
+    Returns
+    -------
+    mean, low, high : float
+        :func:`analysis.statistics.hierarchical_bootstrap_ci` over training seeds, then
+        episodes.
+    """
     return hierarchical_bootstrap_ci([np.asarray(g, dtype=float) for g in per_seed])
 
 
 def rate_at_most(rates: Mapping[str, tuple[float, float, float]],
                  bound: float) -> tuple[str, str]:
-    """Verdict of "every controller's rate is at most ``bound``": holds if every interval lies
-    at or below it, does not hold if some interval lies wholly above it, else inconclusive."""
+    """Verdict of "every controller's rate is at most ``bound``".
+
+    Parameters
+    ----------
+    rates : mapping
+        Controller -> (mean, low, high) of its rate (:func:`rate_interval`).
+    bound : float
+        The largest rate the claim allows (a fraction).
+
+    Returns
+    -------
+    verdict, reason : str
+        Holds if every interval lies at or below ``bound``, does not hold if some interval lies
+        wholly above it, else inconclusive (not testable with no controller).
+    """
     if not rates:
         return NOT_TESTABLE, "no controller"
     above = [n for n, (_, lo, _) in rates.items() if lo > bound]
