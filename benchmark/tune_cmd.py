@@ -15,6 +15,12 @@ Search space (the same for all seven; ``consensus_eps`` only where the algorithm
 ``power_baseline`` in {paper (0 kW), cruise (P(v*, 0))}; ``advantage_norm`` in {off, on};
 ``consensus_eps`` log-uniform in [1e-4, 1e-2] (DCEA, BDC).
 
+The shared-policy learners ``ippo`` and ``mappo`` (:mod:`marl.ppo`) get the same budget
+(trials, steps, seeds, score) over their own knobs: ``lr`` log-uniform in [1e-4, 3e-3];
+``init_log_std`` uniform in [-3, -1]; ``gamma`` in {0.99, 0.995}; ``n_envs`` in {64, 256};
+``reward_alpha`` in {0, 0.5}. ``--set KEY=VALUE`` fixes a config field of theirs in every trial
+(for example ``--set prior=cacc``, the residual variant) and is recorded with the best config.
+
 Trials 1..3 are random draws that every study shares (sampler seed ``seed + k``), then TPE
 proposes from the study's own results.
 
@@ -52,8 +58,20 @@ MAX_TRIALS = 1000
 EPS_ALGOS = ("dcea", "bdc")
 
 
+#: Learners of one shared policy that ``tune`` also tunes (their own search space).
+SHARED_TUNED = ("ippo", "mappo")
+
+
 def search_space(trial: Any, algo: str) -> dict[str, Any]:
-    """Config overrides of one trial (the same ranges for every algorithm)."""
+    """Config overrides of one trial (the same ranges for every algorithm of a family)."""
+    if algo in SHARED_TUNED:
+        return {
+            "lr": trial.suggest_float("lr", 1e-4, 3e-3, log=True),
+            "init_log_std": trial.suggest_float("init_log_std", -3.0, -1.0),
+            "gamma": trial.suggest_categorical("gamma", [0.99, 0.995]),
+            "n_envs": trial.suggest_categorical("n_envs", [64, 256]),
+            "reward_alpha": trial.suggest_categorical("reward_alpha", [0.0, 0.5]),
+        }
     opts: dict[str, Any] = {
         "lr_scale": trial.suggest_float("lr_scale", 1.0, 8.0, log=True),
         "entropy_coef_final": trial.suggest_float("entropy_coef_final", 5e-4, 5e-2, log=True),
@@ -69,6 +87,12 @@ def search_space(trial: Any, algo: str) -> dict[str, Any]:
 
 def default_params(algo: str) -> dict[str, Any]:
     """The search-space point of the algorithm's default config (every study's first trial)."""
+    if algo in SHARED_TUNED:
+        from marl.ppo import PPOConfig
+
+        ppo = PPOConfig()
+        return {"lr": ppo.lr, "init_log_std": ppo.init_log_std, "gamma": ppo.gamma,
+                "n_envs": ppo.n_envs, "reward_alpha": ppo.reward_alpha}
     from marl.a2c import algorithm
 
     cfg = algorithm(algo).config_cls()
@@ -98,7 +122,7 @@ def _parser() -> argparse.ArgumentParser:
         description="Tune every MARL algorithm with the same budget (Optuna, validation seeds).",
     )
     p.add_argument("--algos", default=",".join(ALGORITHM_NAMES),
-                   help="comma list of algorithms (default: all seven)")
+                   help="comma list of algorithms (default: all seven; also ippo, mappo)")
     p.add_argument("--scenarios", default="catchup-v1,slowdown-v1",
                    help="comma list of scenarios (default catchup-v1,slowdown-v1)")
     p.add_argument("--vehicles", type=int, default=8, help="followers N (default 8)")
@@ -112,6 +136,8 @@ def _parser() -> argparse.ArgumentParser:
                    help="how studies run side by side (default serial)")
     p.add_argument("--workers", type=int, default=2, help="processes or Ray CPUs (default 2)")
     p.add_argument("--ray-address", default=None, help="attach to this Ray cluster")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="fix a config field of ippo/mappo in every trial (repeatable)")
     return p
 
 
@@ -135,6 +161,8 @@ def _study_job(job: dict) -> list[dict]:
     study = optuna.create_study(study_name=name, storage=storage, direction="maximize",
                                 load_if_exists=True)
     meta = {"steps": job["steps"], "seed": job["seed"], "vehicles": n}
+    if job["fixed"]:
+        meta["fixed"] = job["fixed"]
     if study.user_attrs.get("budget", meta) != meta:
         raise ConfigError(
             f"study {name} in {out} was run with {study.user_attrs['budget']}, not {meta}; "
@@ -144,7 +172,8 @@ def _study_job(job: dict) -> list[dict]:
     for t in study.get_trials(deepcopy=False):
         if t.state == optuna.trial.TrialState.RUNNING:  # interrupted: discard, redo
             study._storage.set_trial_state_values(t._trial_id, optuna.trial.TrialState.FAIL)
-    algo = algorithm(algo_name)
+    shared = algo_name in SHARED_TUNED
+    algo = None if shared else algorithm(algo_name)
 
     def complete() -> list[Any]:
         return study.get_trials(states=(optuna.trial.TrialState.COMPLETE,))
@@ -156,12 +185,17 @@ def _study_job(job: dict) -> list[dict]:
             study.enqueue_trial(default_params(algo_name))
         trial = study.ask()
         options = search_space(trial, algo_name)
-        config = build_config(algo.config_cls, options, f"{algo_name} (tune)")
         run_dir = out / "trials" / name / f"t{k:03d}"
-        result = run_training(algo, config, scenario, n, job["steps"], job["seed"], run_dir,
-                              evaluate=validation_evaluator(algo_name, scenario, n))
-        assert result.checkpoint is not None
-        summary = load_checkpoint(result.checkpoint)["curve_summary"]
+        if shared:
+            summary = _shared_trial(job, options, run_dir)
+            options = {**job["fixed"], **options}
+        else:
+            assert algo is not None
+            config = build_config(algo.config_cls, options, f"{algo_name} (tune)")
+            result = run_training(algo, config, scenario, n, job["steps"], job["seed"], run_dir,
+                                  evaluate=validation_evaluator(algo_name, scenario, n))
+            assert result.checkpoint is not None
+            summary = load_checkpoint(result.checkpoint)["curve_summary"]
         trial.set_user_attr("options", {k2: v for k2, v in options.items()})
         for key in ("selected_eval_reward_sampled", "selected_eval_collisions_sampled",
                     "selected_eval_reward_greedy", "selected_eval_collisions_greedy",
@@ -177,6 +211,23 @@ def _study_job(job: dict) -> list[dict]:
          **{key: v for key, v in t.user_attrs.items() if key != "options"}}
         for k, t in enumerate(complete()[: job["trials"]])
     ]
+
+
+def _shared_trial(job: dict, options: dict[str, Any], run_dir: Path) -> dict[str, float]:
+    """Train one ``ippo``/``mappo`` trial (fixed ``--set`` fields, then the trial's) and return
+    its kept snapshot's validation numbers under the paper learners' summary keys."""
+    from benchmark.train_shared import shared_config, train_shared
+    from marl.checkpoint import load_checkpoint
+
+    fixed = [f"{key}={value}" for key, value in {**job["fixed"], **options}.items()]
+    config = shared_config(job["algo"], fixed)
+    path = train_shared(job["algo"], job["scenario"], job["vehicles"], job["seed"], job["steps"],
+                        run_dir, config, resume=True, log=lambda line: None)
+    best = load_checkpoint(path)["curve_summary"]
+    return {"selected_eval_reward_sampled": best["best_reward"],
+            "selected_eval_collisions_sampled": best["best_collisions"],
+            "selected_eval_reward_greedy": math.nan, "selected_eval_collisions_greedy": math.nan,
+            "selected_at_steps": best["best_steps"]}
 
 
 def main(argv: list[str]) -> int:
@@ -195,8 +246,23 @@ def main(argv: list[str]) -> int:
     algos = [a.strip() for a in args.algos.split(",") if a.strip()]
     scenarios = [s.strip() for s in args.scenarios.split(",") if s.strip()]
     for a in algos:
-        if a not in ALGORITHM_NAMES:
-            raise UnknownNameError("algorithm", a, ALGORITHM_NAMES)
+        if a not in (*ALGORITHM_NAMES, *SHARED_TUNED):
+            raise UnknownNameError("algorithm", a, (*ALGORITHM_NAMES, *SHARED_TUNED))
+    fixed: dict[str, str] = {}
+    if args.overrides:
+        if not all(a in SHARED_TUNED for a in algos):
+            raise ConfigError(f"--set fixes a field of {'/'.join(SHARED_TUNED)} only; tune "
+                              "the paper's algorithms without it")
+        from benchmark.train_shared import shared_config
+
+        for item in args.overrides:
+            key, sep, value = item.partition("=")
+            if not sep or not key.strip():
+                raise ConfigError(f"--set {item!r}: expected KEY=VALUE, e.g. --set prior=cacc")
+            fixed[key.strip()] = value.strip()
+        for a in algos:  # typed and checked now, before any trial
+            shared_config(a, [f"{k}={v}" for k, v in fixed.items()])
+    args.fixed = fixed
     for s in scenarios:
         make_scenario(s)
     if not algos or not scenarios:
@@ -216,7 +282,7 @@ def main(argv: list[str]) -> int:
     out = writable_dir(args.out)
     jobs = [
         {"algo": a, "scenario": s, "vehicles": args.vehicles, "trials": args.trials,
-         "steps": args.steps, "seed": args.seed, "out": str(out)}
+         "steps": args.steps, "seed": args.seed, "out": str(out), "fixed": fixed}
         for a in algos for s in scenarios
     ]
     from benchmark.folder_lock import folder_lock
@@ -262,7 +328,8 @@ def tuned_configs(table: Any, args: argparse.Namespace, command: str) -> dict[st
         }
     return {
         "budget": {"trials": args.trials, "steps_per_trial": args.steps, "seed": args.seed,
-                   "vehicles": args.vehicles},
+                   "vehicles": args.vehicles, **({"fixed": dict(sorted(args.fixed.items()))}
+                                                 if args.fixed else {})},
         "command": command,
         "configs": configs,
     }

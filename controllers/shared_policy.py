@@ -248,7 +248,8 @@ class SharedPolicyController(Controller):
         with torch.no_grad():
             out = self.actor(torch.from_numpy(np.ascontiguousarray(obs)))
             action = sample_with_uniforms(self.actor, out, uniforms)[:b]
-            command = to_command(self.actor, action, state, self.params)
+            command = to_command(self.actor, action, state, self.params, obs[:b],
+                                 (self.ctx.target_gap_m, self.ctx.target_speed_mps))
         if self.action_mode == "accel":
             from envs.accel_mode import transmit_accel_messages
 

@@ -185,3 +185,31 @@ def position_features(n_vehicles: int) -> np.ndarray:
     pos[-1, 1] = 1.0
     pos[:, 2] = np.arange(1, n_vehicles + 1) / n_vehicles
     return pos
+
+
+def cacc_from_observation(
+    obs: np.ndarray,
+    target_gap_m: float,
+    target_speed_mps: float,
+    params: PlatoonParams = PlatoonParams(),
+    time_gap_s: float = 0.5,
+    kp: float = 0.2,
+    kd: float = 0.7,
+) -> np.ndarray:
+    """Ploeg's CACC (the registered ``cacc`` controller's law and default gains) computed from
+    nothing but the ``accel`` observation ``(..., 12)``: the command ``(...)`` in m/s^2.
+
+    The controller's filter state is its last command, which the observation carries (column 4,
+    the last applied acceleration), so the law needs no memory: ``c = a c_prev + (1 - a) w``
+    with ``a = exp(-dt / h)`` and ``w = kp (gap - r - h v) + kd (dv - h a_real) + u_pred``,
+    ``r = d* - h v*``. The sensed relative speed is clipped in the observation (+-10 m/s), so
+    the law is exact while ``|dv| <= 10`` m/s (tested against the controller's run).
+    """
+    a_max = params.accel_max_mps2
+    x = np.asarray(obs, dtype=np.float64)
+    dv = x[..., 1] * 5.0
+    # gap - r - h v, with gap = d* (1 + col3) - dv dt and v = v* (1 + col0)
+    spacing = x[..., 3] * target_gap_m - dv * params.dt_s - time_gap_s * target_speed_mps * x[..., 0]
+    w = kp * spacing + kd * (dv - time_gap_s * x[..., 5] * a_max) + x[..., 6] * a_max
+    alpha = np.exp(-params.dt_s / time_gap_s)
+    return np.clip(alpha * x[..., 4] * a_max + (1 - alpha) * w, params.accel_min_mps2, a_max)

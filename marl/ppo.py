@@ -52,6 +52,8 @@ from envs.scenarios import check_vehicles, make_scenario
 
 #: The shared-policy learners of this file.
 SHARED_ALGORITHMS: tuple[str, ...] = ("ippo", "mappo")
+#: Model-based priors a residual policy can add to (``PPOConfig.prior``).
+PRIORS: tuple[str, ...] = ("", "cacc")
 #: Uniform stream of sampled evaluation actions (per episode, step and agent).
 ACTION_STREAM = "shared-policy-actions"
 
@@ -93,6 +95,14 @@ class PPOConfig:
     eval_every_steps : int
         Environment steps between validations (the kept snapshot: fewest collisions on the
         validation seeds, then best reward, actions sampled as trained).
+    prior : {"", "cacc"}
+        ``"cacc"``: residual policy learning (Silver et al. 2018; Johannink et al., ICRA 2019):
+        the command is ``clip(cacc(obs) + h tanh(z))``, Ploeg's CACC computed from the same
+        observation (:func:`envs.accel_mode.cacc_from_observation`) plus the learned residual,
+        which starts near zero; ``""``: ``c + h tanh(z)`` (``accel`` only).
+    critic_warmup_updates : int
+        Updates at the start that fit only the critic (so a random critic's advantages do not
+        move a policy that starts from a good prior).
     """
 
     algo: str = "ippo"
@@ -116,6 +126,8 @@ class PPOConfig:
     comm_delay_s: float = 0.0
     packet_loss: float = 0.0
     eval_every_steps: int = 100_000
+    prior: str = ""
+    critic_warmup_updates: int = 0
 
     def __post_init__(self) -> None:
         if self.algo not in SHARED_ALGORITHMS:
@@ -128,6 +140,13 @@ class PPOConfig:
         for name in ("lr", "reward_clip", "obs_clip", "max_grad_norm"):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0):
                 raise ConfigError(f"{name} must be a finite number > 0, got {getattr(self, name)}")
+        if self.prior not in PRIORS:
+            raise ConfigError(f"prior must be one of {PRIORS} ('' for none), got {self.prior!r}")
+        if self.prior and self.action_mode != "accel":
+            raise ConfigError("prior: a residual on an acceleration prior needs action_mode=accel")
+        if not 0 <= self.critic_warmup_updates <= 10**6:
+            raise ConfigError(f"critic_warmup_updates must lie in 0..1e6, got "
+                              f"{self.critic_warmup_updates}")
         if not 0 <= self.reward_alpha <= 1:
             raise ConfigError(f"reward_alpha must lie in [0, 1], got {self.reward_alpha}")
         for name in ("gamma", "gae_lambda"):
@@ -175,6 +194,7 @@ class SharedActor(nn.Module):
     def __init__(self, config: PPOConfig, params: PlatoonParams = PlatoonParams()) -> None:
         super().__init__()
         self.continuous = config.action_mode == "accel"
+        self.prior = config.prior
         n_out = 1 if self.continuous else len(OVM_ACTIONS)
         self.body = _mlp(config.obs_dim, config.hidden, n_out, 0.01)
         self.log_std = nn.Parameter(torch.full((1,), float(config.init_log_std)))
@@ -266,12 +286,23 @@ def agent_inputs(obs: np.ndarray | None, action_mode: str) -> np.ndarray:
 
 
 def to_command(actor: SharedActor, action: torch.Tensor, state: PlatoonState | None,
-               params: PlatoonParams) -> np.ndarray:
-    """The ``(B, N)`` acceleration commands of the actions in ``state``: ``c + h tanh(z)``, or
-    the published OVM command of the gain indices (the trainer, validation and the controller
-    all act through this)."""
+               params: PlatoonParams, obs: np.ndarray | None = None,
+               targets: tuple[float, float] | None = None) -> np.ndarray:
+    """The ``(B, N)`` acceleration commands of the actions in ``state``: ``c + h tanh(z)``, the
+    residual ``clip(prior(obs) + h tanh(z))`` of an actor with a prior (``obs``: the raw
+    ``accel`` observation, ``targets``: the scenario's target gap and speed), or the published
+    OVM command of the gain indices (the trainer, validation and the controller all act
+    through this)."""
     if actor.continuous:
-        return actor.command(action).numpy().astype(np.float64)
+        if not actor.prior:
+            return actor.command(action).numpy().astype(np.float64)
+        if obs is None or targets is None:
+            raise ValueError("an actor with a prior acts on the observation and the targets")
+        from envs.accel_mode import cacc_from_observation
+
+        base = cacc_from_observation(obs, targets[0], targets[1], params)
+        residual = (actor.half_range * torch.tanh(action)).numpy().astype(np.float64)
+        return np.clip(base + residual, params.accel_min_mps2, params.accel_max_mps2)
     from envs.dynamics import action_to_command_mps2
 
     assert state is not None
@@ -286,6 +317,8 @@ def sample_with_uniforms(actor: SharedActor, out: torch.Tensor, uniforms: np.nda
     if uniforms is None:
         return out if actor.continuous else out.argmax(-1)
     u = torch.from_numpy(np.clip(uniforms, 1e-12, 1 - 1e-12)).to(out.dtype)
+    # in float32 ``1 - 1e-12`` rounds to 1, whose erfinv is inf (a command at the bound)
+    u.clamp_(max=1.0 - torch.finfo(out.dtype).eps / 2)
     if actor.continuous:
         return out + actor.log_std.exp() * math.sqrt(2.0) * torch.erfinv(2 * u - 1)
     cdf = torch.softmax(out, dim=-1).cumsum(-1)
@@ -330,6 +363,7 @@ def train(
     opt = torch.optim.Adam([*actor.parameters(), *critic.parameters()], lr=cfg.lr, eps=1e-5)
     env = PlatoonEnv(sc, n, params, training=True, action_mode=cfg.action_mode,
                      channel=ChannelConfig(cfg.comm_delay_s, cfg.packet_loss, params.dt_s))
+    targets = (sc.target_gap_m, sc.target_speed_mps)
     p0 = float(env.power(np.array([sc.target_speed_mps]), np.array([0.0]))[0])
     baseline = -env.weights.power * p0  # the cruise power's constant part, per running agent-step
     b, t_len = cfg.n_envs, cfg.rollout_steps
@@ -406,7 +440,7 @@ def train(
                 logp, _ = actor.log_prob_entropy(out, action)
                 buf_cobs[t] = critic.inputs(nobs)
                 buf_val[t] = critic.body(buf_cobs[t])[..., 0]
-            res = env.step(to_command(actor, action, env.state, env.params))
+            res = env.step(to_command(actor, action, env.state, env.params, obs.numpy(), targets))
             buf_obs[t], buf_act[t], buf_logp[t] = nobs, action, logp
             live_t = torch.from_numpy(live)
             buf_live[t] = live_t.float()
@@ -469,7 +503,9 @@ def train(
                 pg = torch.max(-mb_adv * ratio,
                                -mb_adv * ratio.clamp(1 - cfg.clip_coef, 1 + cfg.clip_coef)).mean()
                 v_loss = 0.5 * (critic.body(f_cobs[idx])[..., 0] - f_ret[idx]).pow(2).mean()
-                loss = pg + cfg.vf_coef * v_loss - cfg.ent_coef * ent.mean()
+                loss = cfg.vf_coef * v_loss
+                if updates >= cfg.critic_warmup_updates:
+                    loss = loss + pg - cfg.ent_coef * ent.mean()
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
                 # apart: the critic's gradient (returns of hundreds) must not shrink the actor's
@@ -523,14 +559,17 @@ def validation_score(actor: SharedActor, scenario: str, n_vehicles: int,
                      channel=ChannelConfig(config.comm_delay_s, config.packet_loss, params.dt_s))
     seeds_arr = np.asarray(seeds)
     obs = env.reset(seeds_arr)
+    sc = env.scenario
     per_step = np.zeros((env.n_steps, len(seeds_arr)))
     steps = np.zeros(len(seeds_arr), dtype=np.int64)
     for t in range(env.n_steps):
-        out = actor(torch.from_numpy(agent_inputs(obs, config.action_mode)))
+        x = agent_inputs(obs, config.action_mode)
+        out = actor(torch.from_numpy(x))
         u = episode_uniforms(seeds_arr, ACTION_STREAM, t, n_vehicles)
         action = sample_with_uniforms(actor, out, u)
         running = ~env.state.done  # type: ignore[union-attr]
-        res = env.step(to_command(actor, action, env.state, env.params))
+        res = env.step(to_command(actor, action, env.state, env.params, x,
+                                  (sc.target_gap_m, sc.target_speed_mps)))
         per_step[t] = np.ascontiguousarray(res.reward).sum(axis=1)
         steps += running
         obs = res.observation
@@ -558,7 +597,7 @@ def save(result: PPOResult, path: str | Path, scenario: str, n_vehicles: int, se
 def load_actor(data: dict[str, Any], params: PlatoonParams = PlatoonParams()) -> SharedActor:
     """The actor of a loaded checkpoint dict (float32 weights); a config or weights that do not
     make this learner's actor give a :class:`ConfigError`."""
-    acting = ("action_mode", "hidden", "obs_clip")  # what the actor's shape and acting read
+    acting = ("action_mode", "hidden", "obs_clip", "prior")  # what the actor's shape and acting read
     try:
         config = PPOConfig(**{k: v for k, v in data["config"].items() if k in acting})
         actor = SharedActor(config, params)

@@ -147,6 +147,31 @@ def test_cacc_written_on_the_observation_drives_the_platoon_as_the_cacc_controll
     np.testing.assert_allclose(np.array(gaps), ref.gap_m, atol=1e-8)
 
 
+@pytest.mark.parametrize("scenario", ["catchup-v1", "slowdown-v1", "openacc-s-v1"])
+def test_memoryless_cacc_law_of_the_observation_is_the_cacc_controller(
+        scenario: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """:func:`envs.accel_mode.cacc_from_observation` (the prior of the residual learners) reads
+    its filter state from the observation's last applied command: it drives the platoon as the
+    registered ``cacc`` controller does, with 0.2 s delay and 30 % loss."""
+    import envs.accel_mode
+    from benchmark.rollout import rollout
+    from controllers.registry import make_controller
+    from envs.accel_mode import cacc_from_observation
+
+    monkeypatch.setattr(envs.accel_mode, "PRED_MESSAGE", ("cacc_u", 1))
+    channel = ChannelConfig(delay_s=0.2, packet_loss=0.3)
+    sc = make_scenario(scenario)
+    ref = rollout(make_controller("cacc"), sc, 5, 2001, PlatoonParams(), channel)
+    env = PlatoonEnv(sc, 5, action_mode="accel", channel=channel, dtype=np.float64)
+    obs = env.reset([2001])
+    gaps = [env.state.gap_m[0].copy()]  # type: ignore[union-attr]
+    for _ in range(ref.steps):
+        res = env.step(cacc_from_observation(obs, sc.target_gap_m, sc.target_speed_mps))
+        obs = res.observation
+        gaps.append(env.state.gap_m[0].copy())  # type: ignore[union-attr]
+    np.testing.assert_allclose(np.array(gaps), ref.gap_m, atol=1e-8)
+
+
 def test_pettingzoo_parallel_api_in_the_accel_mode() -> None:
     env = PlatoonParallelEnv("catchup-v1", 4, action_mode="accel", comm_delay_s=0.2,
                              packet_loss=0.3)

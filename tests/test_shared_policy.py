@@ -38,6 +38,8 @@ def _weights(actor: SharedActor) -> dict[str, torch.Tensor]:
     ("gamma", 1.5, "gamma must lie in"),
     ("reward_alpha", -0.1, "reward_alpha must lie in"),
     ("packet_loss", 2.0, "packet loss must lie in"),
+    ("prior", "mpc", "prior must be one of"),
+    ("critic_warmup_updates", -1, "critic_warmup_updates must lie in"),
 ])
 def test_a_bad_config_is_refused(field: str, value: object, needle: str) -> None:
     with pytest.raises(ConfigError, match=needle):
@@ -140,6 +142,55 @@ def test_one_checkpoint_drives_any_platoon_size(tiny_checkpoint: Path, n: int) -
     from benchmark.check import check_controller
 
     check_controller("ippo", "slowdown-v1", n, steps=20, checkpoint=str(tiny_checkpoint))
+
+
+def test_a_residual_needs_acceleration_actions() -> None:
+    with pytest.raises(ConfigError, match="needs action_mode=accel"):
+        PPOConfig(prior="cacc", action_mode="ovm-gain")
+
+
+def test_a_residual_policy_with_a_zero_residual_drives_the_platoon_as_cacc() -> None:
+    """``prior=cacc`` with the last layer zeroed and a negligible std: validation (the learner's
+    own loop) scores what the registered ``cacc`` controller scores in the harness (on
+    scenarios whose relative speeds stay inside the observation's +-10 m/s clip; slowdown-v1's
+    initial speeds leave it, and there the prior is not ``cacc``)."""
+    from benchmark.rollout import rollout_batch
+    from controllers.registry import make_controller
+    from envs.params import VALIDATION_SEEDS
+    from envs.scenarios import make_scenario
+
+    cfg = PPOConfig(prior="cacc")
+    actor = SharedActor(cfg)
+    with torch.no_grad():
+        actor.body[-1].weight.zero_()  # type: ignore[union-attr]
+        actor.body[-1].bias.zero_()  # type: ignore[union-attr]
+        actor.log_std.fill_(-60.0)
+    for scenario in ("catchup-v1", "sine-v1"):
+        ours = validation_score(actor, scenario, 5, PlatoonParams(), cfg)
+        trajs = rollout_batch(make_controller("cacc"), make_scenario(scenario), 5,
+                              list(VALIDATION_SEEDS))
+        ref = float(np.mean([t.reward.mean() for t in trajs]))
+        assert ours["collisions"] == 0 and ours["reward"] == pytest.approx(ref, rel=1e-5)
+
+
+def test_a_residual_checkpoint_scores_in_the_harness_what_validation_scored(
+        tmp_path: Path) -> None:
+    """The controller passes the observation and the run's targets to the prior, as training
+    and validation do: the harness gives the validation number to the last bit."""
+    from benchmark.rollout import rollout_batch
+    from benchmark.train_shared import train_shared
+    from controllers.shared_policy import SharedPolicyController
+    from envs.params import VALIDATION_SEEDS
+    from envs.scenarios import make_scenario
+    from marl.checkpoint import load_checkpoint
+
+    cfg = dataclasses.replace(TINY, prior="cacc", critic_warmup_updates=1, eval_every_steps=256)
+    path = train_shared("ippo", "slowdown-v1", 4, 0, 512, tmp_path, cfg, log=lambda _: None)
+    data = load_checkpoint(path)
+    assert data["config"]["prior"] == "cacc"
+    ctrl = SharedPolicyController("ippo", checkpoint=str(path))
+    trajs = rollout_batch(ctrl, make_scenario("slowdown-v1"), 4, list(VALIDATION_SEEDS))
+    assert np.mean([t.reward.mean() for t in trajs]) == data["curve_summary"]["best_reward"]
 
 
 def test_the_controller_refuses_a_missing_or_mismatched_checkpoint(

@@ -110,9 +110,14 @@ def test_tuned_options(tmp_path: Path, capsys) -> None:
     shipped = json.loads(TUNED_CONFIGS.read_text())
     assert shipped["budget"] == {"trials": 8, "steps_per_trial": 200_000, "seed": 0, "vehicles": 8}
     assert {"bdc/catchup-v1", "bdc/slowdown-v1"} <= set(shipped["configs"])
+    from benchmark.train_shared import SHARED_LEARNERS, shared_config
+
     for key in shipped["configs"]:
         a, sc = key.split("/")
-        build_config(algorithm(a).config_cls, tuned_options(a, sc), key)
+        if a in SHARED_LEARNERS:
+            shared_config(a, [], tuned_options(a, sc))
+        else:
+            build_config(algorithm(a).config_cls, tuned_options(a, sc), key)
 
 
 def test_tune_tiny_study_resumes(tmp_path: Path, capsys) -> None:
@@ -137,6 +142,29 @@ def test_tune_tiny_study_resumes(tmp_path: Path, capsys) -> None:
     assert main([*args[:-2], "--steps", "700", "--out", str(tmp_path)]) == 2
     assert main(["tune", "--algos", "nope"]) == 2
     assert "Traceback" not in capsys.readouterr().err
+
+
+def test_tune_the_shared_learners_with_a_fixed_field(tmp_path: Path, capsys) -> None:
+    """``ippo``/``mappo`` get the same budget over their own knobs; ``--set`` fixes a field in
+    every trial and is recorded; the first trial is the default config."""
+    import json
+
+    args = ["tune", "--algos", "ippo", "--scenarios", "catchup-v1", "--trials", "2",
+            "--steps", "2000", "--vehicles", "2", "--set", "prior=cacc", "--out", str(tmp_path)]
+    assert main(args) == 0
+    trials = pd.read_csv(tmp_path / "trials.csv")
+    assert len(trials) == 2 and (trials["config.prior"] == "cacc").all()
+    first = trials[trials["trial"] == 0].iloc[0]
+    assert (first["lr"], first["n_envs"], first["gamma"]) == (0.001, 64, 0.99)
+    best = json.loads((tmp_path / "tuned_configs.json").read_text())
+    assert best["budget"]["fixed"] == {"prior": "cacc"}
+    assert best["configs"]["ippo/catchup-v1"]["config"]["prior"] == "cacc"
+    capsys.readouterr()
+    assert main([*args[:-4], "--out", str(tmp_path)]) == 2  # the same study without the field
+    assert main(["tune", "--algos", "bdc", "--set", "prior=cacc", "--out", str(tmp_path / "b")]) == 2
+    assert main(["tune", "--algos", "ippo", "--set", "nope=1", "--out", str(tmp_path / "c")]) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and "--set fixes a field of ippo/mappo only" in err
 
 
 def test_a_population_of_seeds_equals_separate_processes(tmp_path: Path, capsys) -> None:
