@@ -39,6 +39,10 @@ CONVERGENCE_BAND = 0.1
 #: Validation points averaged for a curve's final plateau; all of them must lie in the band.
 PLATEAU_POINTS = 3
 
+#: Converged seeds each side needs before the interval over seeds may decide a convergence
+#: comparison (a single seed has no spread to draw).
+MIN_CONVERGED_SEEDS = 2
+
 #: "The same performance" (non-inferiority): ours may trail by at most this fraction of the
 #: other side's mean magnitude (``|mean of the other|``).
 SAME_PERFORMANCE_MARGIN = 0.05
@@ -262,7 +266,9 @@ def compare_steps(ours: Sequence[float], other: Sequence[float]) -> Comparison:
 
     The flaws are the seeds that did not converge; the interval is over the converged seeds
     (one value each: the bootstrap draws training seeds only), lower is better. A side with
-    some converged seeds is ahead of one with none; with none on either side, neither is.
+    some converged seeds is ahead of one with none; with none on either side, neither is; and
+    when the flaws do not decide, an interval needs at least :data:`MIN_CONVERGED_SEEDS`
+    converged seeds on each side (one seed has no spread to draw), else neither is ahead.
     """
     a, na = converged(ours)
     b, nb = converged(other)
@@ -276,6 +282,10 @@ def compare_steps(ours: Sequence[float], other: Sequence[float]) -> Comparison:
                               "no non-converged seeds first")
         return Comparison(nan, nan, nan, "lower", na, nb, "ours" if a else "other",
                           "converged seeds against none")
+    if (na == 0) == (nb == 0) and min(len(a), len(b)) < MIN_CONVERGED_SEEDS:
+        nan = math.nan
+        return Comparison(nan, nan, nan, "lower", na, nb, "neither",
+                          f"fewer than {MIN_CONVERGED_SEEDS} converged seeds on a side")
     return compare(np.array(a)[:, None], np.array(b)[:, None], better="lower", ours_flaws=na,
                    other_flaws=nb, flaw="non-converged seed")
 

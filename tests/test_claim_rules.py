@@ -110,8 +110,11 @@ def test_compare_steps_puts_seeds_that_did_not_converge_first() -> None:
     c = cl.compare_steps([100_000.0, 400_000.0, 250_000.0], [300_000.0, 200_000.0, 240_000.0])
     assert c.winner == "neither" and c.basis == "interval covers 0"
     # both with a seed that did not converge: the one with more cannot win on the interval
-    c = cl.compare_steps([nan, nan, 20_000.0], [nan, 300_000.0, 320_000.0])
+    c = cl.compare_steps([nan, 10_000.0, 20_000.0, nan], [nan, 300_000.0, 320_000.0, 310_000.0])
     assert c.winner == "neither" and "more non-converged seeds" in c.basis
+    # one converged seed on a side has no spread: no interval, neither is ahead
+    c = cl.compare_steps([nan, nan, 585_840.0], [nan, 601_020.0, nan])
+    assert c.winner == "neither" and c.basis == "fewer than 2 converged seeds on a side"
     # no converged seed on one side, some on the other: the other is ahead
     c = cl.compare_steps([nan, nan, nan], [nan, 300_000.0, 320_000.0])
     assert (c.winner, c.basis) == ("other", "converged seeds against none")
