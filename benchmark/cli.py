@@ -29,6 +29,8 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "reproduce": ("benchmark.reproduce_cmd", "the paper's tables, curves and claims in one report"),
     "pareto": ("benchmark.pareto_cmd", "energy against spacing error for every controller family"),
     "sensitivity": ("benchmark.sensitivity_cmd", "BDC-MARL's knobs one at a time and its V2V tolerance"),
+    "compare-learned": ("benchmark.compare_learned_cmd",
+                        "learned control against MPC: action set, learning, V2V, one report"),
     "fit-power": ("benchmark.fit_power", "re-fit the energy polynomial and print its quality"),
     "perf": ("benchmark.perf", "environment, controller and training throughput"),
 }

@@ -1,0 +1,255 @@
+"""The answer to "MARL or MPC?": paired comparisons of learned and model-based controllers.
+
+:func:`episodes_frame` reduces a results folder's ``runs.csv`` to one row per policy, training
+seed, V2V setting and episode; :func:`comparisons_frame` computes every comparison of
+:data:`COMPARISONS` (and, per controller, degraded against ideal V2V) as a paired difference of
+rewards over training seeds and episodes (:func:`analysis.statistics.paired_ci`); and
+:func:`write_report` writes ``report.md`` from them. The verdict of a comparison puts collisions
+first, as the leaderboard ranks: a side with fewer colliding episodes is better whatever its
+reward; otherwise the reward difference decides when its 95 % interval excludes zero, and the
+comparison is "inconclusive" when it does not.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from analysis.statistics import paired_ci
+
+#: Report name -> (registered controller, options other than the training seed).
+POLICIES: dict[str, tuple[str, dict[str, str]]] = {
+    "cacc": ("cacc", {}),
+    "mpc": ("mpc", {}),
+    "bdc": ("bdc", {}),
+    "ippo (OVM-gain)": ("ippo", {"variant": "ovm-gain"}),
+    "ippo": ("ippo", {}),
+    "mappo": ("mappo", {}),
+    "ippo (residual on cacc)": ("ippo", {"variant": "residual-cacc"}),
+    "distill": ("distill", {}),
+}
+
+#: Ideal V2V and the degraded setting of the communication question: (delay s, loss).
+IDEAL: tuple[float, float] = (0.0, 0.0)
+DEGRADED: tuple[float, float] = (0.2, 0.3)
+
+
+@dataclass(frozen=True)
+class Comparison:
+    """``ours`` against ``other`` (names of :data:`POLICIES`) and what the difference measures."""
+
+    question: str
+    ours: str
+    other: str
+    meaning: str
+
+
+#: The decomposition of the gap between the paper's learned control and ``mpc``:
+#: ``ippo (OVM-gain) - mpc = [OVM-gain - accel] + [ippo - distill] + [distill - mpc]``.
+COMPARISONS: tuple[Comparison, ...] = (
+    Comparison("the gap", "ippo (OVM-gain)", "mpc",
+               "a learned policy on the published action set against mpc: the whole gap"),
+    Comparison("action set and information", "ippo (OVM-gain)", "ippo",
+               "the same learner with the published OVM-gain actions instead of acceleration "
+               "commands with V2V"),
+    Comparison("action set and information", "bdc", "ippo (OVM-gain)",
+               "the paper's method (per-agent networks, consensus) against one shared policy, "
+               "both on OVM-gain actions"),
+    Comparison("learning", "ippo", "distill",
+               "reinforcement learning against imitation of mpc, same network and information"),
+    Comparison("learning", "distill", "mpc", "the imitation against the solver it copies"),
+    Comparison("learning", "ippo", "mpc", "reinforcement learning against mpc"),
+    Comparison("learning", "mappo", "ippo", "a centralised critic against a local one"),
+    Comparison("learning", "ippo (residual on cacc)", "cacc",
+               "a learned residual on top of cacc against cacc alone"),
+    Comparison("learning", "cacc", "mpc", "the linear controller against mpc"),
+)
+
+#: Verdict words.
+HIGHER, LOWER, INCONCLUSIVE = "higher", "lower", "inconclusive"
+
+
+def policy_name(controller: str, options: dict[str, Any]) -> str | None:
+    """The :data:`POLICIES` name of a run's controller and options (its seed dropped), or None."""
+    opts = {k: str(v) for k, v in options.items() if k != "seed"}
+    for name, (ctrl, want) in POLICIES.items():
+        if ctrl == controller and opts == want:
+            return name
+    return None
+
+
+def episodes_frame(runs: Any) -> Any:
+    """One row per policy, training seed, V2V setting, scenario and episode of ``runs.csv``
+    (finished runs of :data:`POLICIES` only): the columns this report reads."""
+    import pandas as pd
+
+    rows = []
+    for _, r in runs.iterrows():
+        if r["status"] != "ok":
+            continue
+        opts = json.loads(r["options"] or "{}")
+        name = policy_name(str(r["controller_name"]), opts)
+        if name is None:
+            continue
+        rows.append({
+            "policy": name, "train_seed": int(opts.get("seed", 0)), "scenario": r["scenario"],
+            "n_vehicles": int(r["n_vehicles"]), "comm_delay_s": float(r["comm_delay_s"]),
+            "packet_loss": float(r["packet_loss"]), "seed": int(r["seed"]),
+            "reward": float(r["reward"]), "collision": bool(r["collision"] in (True, "True")),
+            "energy_kwh_per_100km": float(r["energy_kwh_per_100km"]),
+            "gap_rmse_m": float(r["gap_rmse_m"]), "compute_ms_p50": float(r["compute_ms_p50"]),
+        })
+    cols = ["policy", "train_seed", "scenario", "n_vehicles", "comm_delay_s", "packet_loss",
+            "seed", "reward", "collision", "energy_kwh_per_100km", "gap_rmse_m",
+            "compute_ms_p50"]
+    df = pd.DataFrame(rows, columns=cols)
+    return df.sort_values(cols[:7], kind="mergesort").reset_index(drop=True)
+
+
+def _side(ep: Any, policy: str, scenario: str, setting: tuple[float, float]) -> Any:
+    """Rewards ``(training seeds, episodes)`` and the colliding episodes of one side."""
+    sel = ep[(ep["policy"] == policy) & (ep["scenario"] == scenario)
+             & np.isclose(ep["comm_delay_s"], setting[0]) & np.isclose(ep["packet_loss"], setting[1])]
+    if sel.empty:
+        return None
+    return sel.pivot(index="train_seed", columns="seed", values="reward"), int(sel["collision"].sum())
+
+
+def compare(ours: Any, other: Any, same_policy: bool = False) -> dict[str, Any]:
+    """The paired comparison of two sides of :func:`_side` (same episodes), collisions first.
+
+    Two policies: the training seeds of each side are drawn apart, the episodes together. The
+    same policy in two settings (``same_policy``): the differences per training seed and
+    episode are resampled (seeds, then episodes), which keeps both pairings.
+    """
+    (a, ca), (b, cb) = ours, other
+    seeds = sorted(set(a.columns) & set(b.columns))
+    if same_policy:
+        train = sorted(set(a.index) & set(b.index))
+        diff = a.loc[train, seeds].to_numpy() - b.loc[train, seeds].to_numpy()
+        mean, lo, hi = paired_ci(diff, np.zeros((1, len(seeds))))
+    else:
+        mean, lo, hi = paired_ci(a[seeds].to_numpy(), b[seeds].to_numpy())
+    if ca != cb:
+        verdict = HIGHER if ca < cb else LOWER
+        basis = "collisions"
+    else:
+        verdict = HIGHER if lo > 0 else LOWER if hi < 0 else INCONCLUSIVE
+        basis = "reward"
+    return {"episodes": len(seeds), "train_seeds_ours": len(a), "train_seeds_other": len(b),
+            "collisions_ours": ca, "collisions_other": cb, "reward_ours": float(a[seeds].mean().mean()),
+            "reward_other": float(b[seeds].mean().mean()), "difference": mean,
+            "ci_low": lo, "ci_high": hi, "verdict": verdict, "basis": basis}
+
+
+def comparisons_frame(ep: Any) -> Any:
+    """Every comparison of :data:`COMPARISONS` under ideal V2V, then each policy under
+    :data:`DEGRADED` against itself under :data:`IDEAL` ("communication"), per scenario; pairs
+    with a side that did not run are left out."""
+    import pandas as pd
+
+    rows = []
+    for scenario in sorted(ep["scenario"].unique()):
+        for c in COMPARISONS:
+            ours, other = _side(ep, c.ours, scenario, IDEAL), _side(ep, c.other, scenario, IDEAL)
+            if ours is not None and other is not None:
+                rows.append({"question": c.question, "scenario": scenario, "ours": c.ours,
+                             "other": c.other, "setting": "ideal V2V", **compare(ours, other),
+                             "meaning": c.meaning})
+        for policy in POLICIES:
+            bad, good = _side(ep, policy, scenario, DEGRADED), _side(ep, policy, scenario, IDEAL)
+            if bad is not None and good is not None:
+                rows.append({"question": "communication", "scenario": scenario, "ours": policy,
+                             "other": policy, "setting": "0.2 s delay, 30 % loss vs ideal",
+                             **compare(bad, good, same_policy=True),
+                             "meaning": "degraded V2V against ideal V2V, same policy"})
+    return pd.DataFrame(rows)
+
+
+def policy_table(ep: Any) -> Any:
+    """Per policy, scenario and V2V setting: episodes, training seeds, collisions and the means
+    of reward, energy, gap RMSE and compute per step."""
+    keys = ["scenario", "comm_delay_s", "packet_loss", "policy"]
+    g = ep.groupby(keys, sort=True)
+    out = g.agg(episodes=("seed", "nunique"), train_seeds=("train_seed", "nunique"),
+                collisions=("collision", "sum"), reward=("reward", "mean"),
+                energy_kwh_per_100km=("energy_kwh_per_100km", "mean"),
+                gap_rmse_m=("gap_rmse_m", "mean"), compute_ms_p50=("compute_ms_p50", "mean"))
+    order = {p: i for i, p in enumerate(POLICIES)}
+    out = out.reset_index()
+    out["_o"] = out["policy"].map(order)
+    return out.sort_values(["scenario", "comm_delay_s", "_o"]).drop(columns="_o").reset_index(drop=True)
+
+
+def _num(x: float, digits: int = 2) -> str:
+    return "n/a" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:,.{digits}f}"
+
+
+def _sentence(row: Any) -> str:
+    """One comparison as a sentence with its numbers."""
+    diff = (f"{_num(row['difference'])} [{_num(row['ci_low'])}, {_num(row['ci_high'])}]")
+    if row["basis"] == "collisions":
+        return (f"`{row['ours']}` {row['collisions_ours']} colliding episodes against "
+                f"`{row['other']}` {row['collisions_other']}: **{row['verdict']}** on collisions "
+                f"(reward difference {diff}).")
+    return (f"`{row['ours']}` {_num(row['reward_ours'])} against `{row['other']}` "
+            f"{_num(row['reward_other'])}: difference {diff}, **{row['verdict']}**.")
+
+
+def write_report(ep: Any, comp: Any, out: Path, command: str) -> Path:
+    """Write ``report.md`` (policy table, the three questions with every comparison) in ``out``."""
+    table = policy_table(ep)
+    n = sorted(ep["n_vehicles"].unique())
+    lines = [
+        "# MARL or MPC: what the gap is made of",
+        "",
+        f"Made by `{command} --out FOLDER` (N = {', '.join(str(x) for x in n)}; "
+        f"{ep['seed'].nunique()} evaluation episodes per policy and training seed; learned "
+        "policies pooled over their training seeds, actions sampled as trained). Every "
+        "difference is ours minus other in mean episode reward (higher is better) with its 95 % "
+        "paired two-stage bootstrap interval over training seeds and episodes; collisions "
+        "decide first, then the reward when its interval excludes zero, otherwise "
+        "\"inconclusive\". Tables: `policies.csv`, `comparisons.csv`, `episodes.csv`.",
+        "",
+        "## The policies",
+        "",
+        "| scenario | V2V | policy | seeds | episodes | collisions | reward | energy kWh/100 km "
+        "| gap RMSE m | compute ms/step (median) |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for _, r in table.iterrows():
+        v2v = "ideal" if r["comm_delay_s"] == 0 and r["packet_loss"] == 0 else (
+            f"{r['comm_delay_s']:g} s, {100 * r['packet_loss']:g} % loss")
+        lines.append(f"| {r['scenario']} | {v2v} | `{r['policy']}` | {r['train_seeds']} | "
+                     f"{r['episodes']} | {r['collisions']} | {_num(r['reward'])} | "
+                     f"{_num(r['energy_kwh_per_100km'])} | {_num(r['gap_rmse_m'])} | "
+                     f"{_num(r['compute_ms_p50'], 3)} |")
+    titles = {
+        "the gap": "The gap between learned control on the published action set and mpc",
+        "action set and information": ("1. How much of the gap is the action set and "
+                                       "information?"),
+        "learning": "2. How much is learning?",
+        "communication": "3. Does communication now matter?",
+    }
+    for question, title in titles.items():
+        lines += ["", f"## {title}", ""]
+        sub = comp[comp["question"] == question] if len(comp) else comp
+        if not len(sub):
+            lines.append("Not measured in this run (a side did not run).")
+            continue
+        for scenario, grp in sub.groupby("scenario", sort=True):
+            lines.append(f"**{scenario}**")
+            lines.append("")
+            for _, r in grp.iterrows():
+                lines.append(f"- {_sentence(r)} ({r['meaning']})")
+            lines.append("")
+    path = out / "report.md"
+    from envs.atomic import write_text
+
+    write_text(path, "\n".join(lines).rstrip() + "\n")
+    return path

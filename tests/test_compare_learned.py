@@ -1,0 +1,103 @@
+"""``cacc-bench compare-learned`` and :mod:`analysis.learned_report`: the comparison rules on
+hand-made episodes, the command in small form, and the committed report read back."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from analysis.learned_report import (
+    DEGRADED,
+    HIGHER,
+    IDEAL,
+    INCONCLUSIVE,
+    LOWER,
+    comparisons_frame,
+    policy_name,
+)
+from benchmark.cli import main
+
+
+def _episodes(policy: str, rewards: np.ndarray, setting: tuple[float, float] = IDEAL,
+              collisions: tuple[int, ...] = ()) -> list[dict]:
+    """Rows of an episodes frame: ``rewards`` (training seeds, episodes)."""
+    rows = []
+    for s, row in enumerate(np.atleast_2d(rewards)):
+        for k, r in enumerate(row):
+            rows.append({"policy": policy, "train_seed": s, "scenario": "catchup-v1",
+                         "n_vehicles": 8, "comm_delay_s": setting[0], "packet_loss": setting[1],
+                         "seed": 2000 + 10 * k, "reward": float(r),
+                         "collision": (s, k) in collisions, "energy_kwh_per_100km": 9.0,
+                         "gap_rmse_m": 1.0, "compute_ms_p50": 0.01})
+    return rows
+
+
+def test_policy_names_drop_the_training_seed_and_keep_the_variant() -> None:
+    assert policy_name("ippo", {"seed": "2"}) == "ippo"
+    assert policy_name("ippo", {"seed": "1", "variant": "ovm-gain"}) == "ippo (OVM-gain)"
+    assert policy_name("ippo", {"variant": "elsewhere"}) is None
+    assert policy_name("cacc", {}) == "cacc"
+
+
+def test_collisions_decide_first_then_the_interval() -> None:
+    rng = np.random.default_rng(0)
+    base = rng.normal(-400, 20, size=30)
+    rows = (_episodes("mpc", base) + _episodes("distill", base - 5 + rng.normal(0, 0.1, 30))
+            + _episodes("ippo", np.stack([base + 50, base + 60, base + 40]), collisions=((1, 3),))
+            + _episodes("ippo (OVM-gain)", np.stack([base + rng.normal(0, 5, 30)] * 3)))
+    comp = comparisons_frame(pd.DataFrame(rows)).set_index(["ours", "other"])
+    # far higher reward, but one colliding episode: lower, decided on collisions
+    assert comp.loc[("ippo", "mpc"), "verdict"] == LOWER
+    assert comp.loc[("ippo", "mpc"), "basis"] == "collisions"
+    # a clear paired difference of -5: lower, on the reward
+    row = comp.loc[("distill", "mpc")]
+    assert row["verdict"] == LOWER and row["basis"] == "reward"
+    assert row["difference"] == pytest.approx(-5.0, abs=0.05) and row["ci_high"] < 0
+    # noise around zero: inconclusive
+    assert comp.loc[("ippo (OVM-gain)", "mpc"), "verdict"] == INCONCLUSIVE
+
+
+def test_the_gap_is_the_sum_of_its_parts() -> None:
+    """``OVM-gain - mpc = (OVM-gain - ippo) + (ippo - distill) + (distill - mpc)`` in the means."""
+    rng = np.random.default_rng(1)
+    rows = []
+    for name, shift in (("mpc", 0), ("distill", -3), ("ippo", -20), ("ippo (OVM-gain)", -8)):
+        rows += _episodes(name, rng.normal(-400 + shift, 15, size=(3 if name != "mpc" else 1, 20)))
+    comp = comparisons_frame(pd.DataFrame(rows)).set_index(["ours", "other"])["difference"]
+    parts = (comp[("ippo (OVM-gain)", "ippo")] + comp[("ippo", "distill")]
+             + comp[("distill", "mpc")])
+    assert comp[("ippo (OVM-gain)", "mpc")] == pytest.approx(parts, rel=1e-12)
+
+
+def test_communication_pairs_each_training_seed_and_episode_with_itself() -> None:
+    """A policy whose degraded runs are its ideal ones plus 0.5: the difference is 0.5 with a
+    zero-width interval, however much the seeds and episodes differ among themselves."""
+    rng = np.random.default_rng(2)
+    ideal = rng.normal(-400, 50, size=(3, 25))
+    rows = _episodes("ippo", ideal) + _episodes("ippo", ideal + 0.5, DEGRADED)
+    comp = comparisons_frame(pd.DataFrame(rows))
+    row = comp[comp["question"] == "communication"].iloc[0]
+    assert row["difference"] == pytest.approx(0.5)
+    assert row["ci_low"] == pytest.approx(0.5) and row["ci_high"] == pytest.approx(0.5)
+    assert row["verdict"] == HIGHER
+
+
+def test_the_command_in_small_form(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "cl"
+    argv = ["compare-learned", "--scenarios", "catchup-v1", "--episodes", "2", "--vehicles",
+            "4", "--executor", "serial", "--out", str(out)]
+    assert main(argv) == 0
+    report = (out / "report.md").read_text()
+    assert str(tmp_path) not in report  # the report names no machine's path
+    comp = pd.read_csv(out / "comparisons.csv")
+    assert {"the gap", "learning", "communication"} <= set(comp["question"])
+    policies = pd.read_csv(out / "policies.csv")
+    assert {"cacc", "mpc", "ippo", "distill"} <= set(policies["policy"])
+    assert main([*argv, "--resume"]) == 0
+    capsys.readouterr()
+    assert main(["compare-learned", "--scenarios", "nope-v1", "--out", str(tmp_path / "x")]) == 2
+    assert main(["compare-learned", "--vehicles", "1", "--out", str(tmp_path / "x")]) == 2
+    assert "Traceback" not in capsys.readouterr().err
