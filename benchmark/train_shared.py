@@ -1,5 +1,5 @@
-"""``cacc-bench train`` for the shared-policy learners: ``ippo``, ``mappo`` (:mod:`marl.ppo`) and
-``distill`` (:mod:`marl.distill`, imitating ``mpc``).
+"""``cacc-bench train`` for the shared-policy learners: ``ippo``, ``mappo``, ``ippo-bdc``
+(:mod:`marl.ppo`) and ``distill`` (:mod:`marl.distill`, imitating ``mpc``).
 
 Per run (algorithm x scenario x seed) it writes ``<out>/<algo>__<scenario>__n<N>__s<seed>.pt``
 (the snapshot kept on the validation seeds, acting weights in float16), ``.curve.csv``
@@ -21,7 +21,7 @@ from envs.errors import ConfigError
 from envs.naming import checkpoint_stem
 
 #: The learners of one policy shared by every follower, trained by this module.
-SHARED_LEARNERS: tuple[str, ...] = ("ippo", "mappo", "distill")
+SHARED_LEARNERS: tuple[str, ...] = ("ippo", "mappo", "distill", "ippo-bdc")
 
 
 def shared_config(algo: str, overrides: Sequence[str], tuned: dict[str, Any] | None = None
@@ -125,6 +125,7 @@ def train_shared(
     summary = {f"best_{k}": v for k, v in result.best.items()}
     summary.update(budget_steps=float(steps), env_steps_per_s=result.env_steps_per_s,
                    wall_s=wall)
+    summary.update({f"{k}_bits_per_agent": v for k, v in result.bits_per_agent.items()})
     payload = checkpoint_payload(
         algo=algo, config=stored_config(config), scenario=scenario, n_vehicles=n_vehicles,
         seed=seed, steps=result.steps, curve_summary=summary,

@@ -139,6 +139,19 @@ for _algo, _critic in (("ippo", "a critic of its own observation"),
 
 register_controller(
     ControllerSpec(
+        "ippo-bdc", "marl",
+        "predecessor's command (1 float), leader's acceleration and speed (2 floats); in "
+        "training, the critics' sign patterns to the front and rear neighbours",
+        "BDC-MARL's consensus on the acceleration-action learner: an actor and critic per "
+        "follower, critics agreeing by binary differential consensus, QSGD critic gradients "
+        "(shipped N = 8 checkpoint, that N only; actions sampled, mode=greedy for the mode)",
+        "controllers.shared_policy:SharedPolicyController",
+        fixed={"algo": "ippo-bdc"},
+    )
+)
+
+register_controller(
+    ControllerSpec(
         "distill", "marl",
         "predecessor's command (1 float), leader's acceleration and speed (2 floats)",
         "the shared actor trained by imitation of mpc (behaviour cloning, then DAgger on "

@@ -46,7 +46,7 @@ from envs.platoon import PlatoonState
 from envs.scenarios import Scenario
 
 #: The shared policies this controller loads: the PPO learners and the MPC distillation.
-SHARED_POLICIES: tuple[str, ...] = ("ippo", "mappo", "distill")
+SHARED_POLICIES: tuple[str, ...] = ("ippo", "mappo", "distill", "ippo-bdc")
 
 
 @functools.cache
@@ -155,7 +155,10 @@ class SharedPolicyController(Controller):
         """Load the policy now: a missing or damaged checkpoint fails before a sweep starts."""
         source = self.scenario or scenario.id
         if self.actor is not None and self._source == source:
-            return
+            if self.actor.n_agents and n_vehicles != self.actor.n_agents:
+                self.actor = None  # checked again below, with the message
+            else:
+                return
         import torch
 
         from marl.checkpoint import load_checkpoint
@@ -172,6 +175,11 @@ class SharedPolicyController(Controller):
                 f"another with {self.algo}:scenario=ID")
         data = load_checkpoint(path, algo=self.algo, scenario=source)
         self.actor = load_actor(data)
+        if self.actor.n_agents and n_vehicles != self.actor.n_agents:
+            raise ConfigError(
+                f"{self.algo} has one network per follower, trained for N = "
+                f"{self.actor.n_agents}; run it with --vehicles {self.actor.n_agents} (the "
+                "shared policies ippo, mappo and distill act at any N)")
         self.action_mode = data["config"]["action_mode"]
         self.loaded, self._source = data, source
 

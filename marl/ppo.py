@@ -32,6 +32,7 @@ library, is in ``docs/notes/marl-library-choice.md``.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import time
 from collections.abc import Callable
@@ -49,9 +50,12 @@ from envs.errors import ConfigError
 from envs.params import OVM_ACTIONS, VALIDATION_SEEDS, PlatoonParams
 from envs.platoon import PlatoonEnv, PlatoonState
 from envs.scenarios import check_vehicles, make_scenario
+from marl.consensus import bdc, consensus_round
+from marl.quantize import ErrorFeedbackQSGD, qsgd_bits, ternary_bits
 
-#: The shared-policy learners of this file.
-SHARED_ALGORITHMS: tuple[str, ...] = ("ippo", "mappo")
+#: The learners of this file: one shared policy (``ippo``, ``mappo``), or one actor and critic
+#: per agent whose critics agree by binary differential consensus (``ippo-bdc``).
+SHARED_ALGORITHMS: tuple[str, ...] = ("ippo", "mappo", "ippo-bdc")
 #: Model-based priors a residual policy can add to (``PPOConfig.prior``).
 PRIORS: tuple[str, ...] = ("", "cacc")
 #: Uniform stream of sampled evaluation actions (per episode, step and agent).
@@ -65,8 +69,12 @@ class PPOConfig:
 
     Attributes
     ----------
-    algo : {"ippo", "mappo"}
-        Local critic or centralised (agent + platoon-mean observation) critic.
+    algo : {"ippo", "mappo", "ippo-bdc"}
+        Local critic or centralised (agent + platoon-mean observation) critic, one policy
+        shared by all; or (``ippo-bdc``) BDC-MARL's scheme on this learner: an actor and a local
+        critic per agent, the critics' weights brought together after every update by binary
+        differential consensus with the front and rear neighbours, their gradients compressed
+        by QSGD with error feedback (:mod:`marl.bdc`), so the policy is trained for one N.
     action_mode : {"accel", "ovm-gain"}
         The env's action mode (:mod:`envs.accel_mode`).
     n_envs : int
@@ -103,6 +111,9 @@ class PPOConfig:
     critic_warmup_updates : int
         Updates at the start that fit only the critic (so a random critic's advantages do not
         move a policy that starts from a good prior).
+    consensus_eps, qsgd_levels, qsgd_bucket : float, int, int
+        ``ippo-bdc``: the consensus step (BDC's default), QSGD's levels on the critic gradients
+        (0: off) and entries per QSGD bucket.
     """
 
     algo: str = "ippo"
@@ -128,6 +139,9 @@ class PPOConfig:
     eval_every_steps: int = 100_000
     prior: str = ""
     critic_warmup_updates: int = 0
+    consensus_eps: float = 0.001
+    qsgd_levels: int = 1
+    qsgd_bucket: int = 128
 
     def __post_init__(self) -> None:
         if self.algo not in SHARED_ALGORITHMS:
@@ -147,6 +161,10 @@ class PPOConfig:
         if not 0 <= self.critic_warmup_updates <= 10**6:
             raise ConfigError(f"critic_warmup_updates must lie in 0..1e6, got "
                               f"{self.critic_warmup_updates}")
+        if not 0 < self.consensus_eps <= 0.5:
+            raise ConfigError(f"consensus_eps must lie in (0, 0.5], got {self.consensus_eps}")
+        if not (0 <= self.qsgd_levels <= 64 and 1 <= self.qsgd_bucket <= 10**6):
+            raise ConfigError("qsgd_levels must lie in 0..64 and qsgd_bucket in 1..1e6")
         if not 0 <= self.reward_alpha <= 1:
             raise ConfigError(f"reward_alpha must lie in [0, 1], got {self.reward_alpha}")
         for name in ("gamma", "gae_lambda"):
@@ -157,6 +175,11 @@ class PPOConfig:
         ChannelConfig(self.comm_delay_s, self.packet_loss)  # the channel's own checks
 
     @property
+    def per_agent(self) -> bool:
+        """One actor and critic per agent (``ippo-bdc``) instead of one shared by all."""
+        return self.algo == "ippo-bdc"
+
+    @property
     def obs_dim(self) -> int:
         """Floats per agent the networks read (the ``ovm-gain`` observation gets the position
         features appended; the ``accel`` one has them)."""
@@ -164,13 +187,37 @@ class PPOConfig:
 
 
 # ---------------------------------------------------------------------------- networks
-def _mlp(n_in: int, hidden: int, n_out: int, gain: float) -> nn.Sequential:
-    """Two ReLU layers, orthogonal init (CleanRL's ``layer_init``). ReLU, not CleanRL's tanh:
-    this torch build's CPU tanh took 2.1 ms on a (8192, 64) batch against ReLU's 0.07 ms
-    (one thread), most of a training step."""
-    layers = [nn.Linear(n_in, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU(),
-              nn.Linear(hidden, n_out)]
+class StackedLinear(nn.Module):
+    """One linear layer per agent: ``(..., N, n_in) -> (..., N, n_out)``, weights ``(N, n_in,
+    n_out)`` (one batched product; the agent axis stays where the consensus rules want it)."""
+
+    def __init__(self, n_agents: int, n_in: int, n_out: int) -> None:
+        super().__init__()
+        self.weight = nn.Parameter(torch.empty(n_agents, n_in, n_out))
+        self.bias = nn.Parameter(torch.zeros(n_agents, n_out))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        n, d = x.shape[-2:]
+        rows = x.reshape(-1, n, d).transpose(0, 1)  # (N, M, n_in)
+        out = torch.baddbmm(self.bias[:, None, :], rows, self.weight)
+        return out.transpose(0, 1).reshape(*x.shape[:-1], -1)
+
+
+def _mlp(n_in: int, hidden: int, n_out: int, gain: float, n_agents: int = 0) -> nn.Sequential:
+    """Two ReLU layers, orthogonal init (CleanRL's ``layer_init``), shared (``n_agents`` 0) or
+    one per agent. ReLU, not CleanRL's tanh: this torch build's CPU tanh took 2.1 ms on a
+    (8192, 64) batch against ReLU's 0.07 ms (one thread), most of a training step."""
+    def linear(a: int, b: int) -> nn.Module:
+        return StackedLinear(n_agents, a, b) if n_agents else nn.Linear(a, b)
+
+    layers = [linear(n_in, hidden), nn.ReLU(), linear(hidden, hidden), nn.ReLU(),
+              linear(hidden, n_out)]
     for layer, g in zip(layers[::2], (math.sqrt(2), math.sqrt(2), gain)):
+        if isinstance(layer, StackedLinear):
+            with torch.no_grad():  # each agent's (n_in, n_out) as nn.Linear's (out, in)
+                for i in range(layer.weight.shape[0]):
+                    nn.init.orthogonal_(layer.weight[i].T, g)
+            continue
         assert isinstance(layer, nn.Linear)
         nn.init.orthogonal_(layer.weight, g)
         nn.init.zeros_(layer.bias)
@@ -191,13 +238,15 @@ class SharedActor(nn.Module):
     obs_var: torch.Tensor
     obs_count: torch.Tensor
 
-    def __init__(self, config: PPOConfig, params: PlatoonParams = PlatoonParams()) -> None:
+    def __init__(self, config: PPOConfig, params: PlatoonParams = PlatoonParams(),
+                 n_agents: int = 0) -> None:
         super().__init__()
         self.continuous = config.action_mode == "accel"
         self.prior = config.prior
+        self.n_agents = n_agents  # 0: shared by every follower, else one network per agent
         n_out = 1 if self.continuous else len(OVM_ACTIONS)
-        self.body = _mlp(config.obs_dim, config.hidden, n_out, 0.01)
-        self.log_std = nn.Parameter(torch.full((1,), float(config.init_log_std)))
+        self.body = _mlp(config.obs_dim, config.hidden, n_out, 0.01, n_agents)
+        self.log_std = nn.Parameter(torch.full((max(n_agents, 1),), float(config.init_log_std)))
         self.obs_clip = float(config.obs_clip)
         self.register_buffer("obs_mean", torch.zeros(config.obs_dim, dtype=torch.float64))
         self.register_buffer("obs_var", torch.ones(config.obs_dim, dtype=torch.float64))
@@ -257,10 +306,11 @@ class SharedActor(nn.Module):
 class Critic(nn.Module):
     """Value of each agent: its observation (IPPO), or with the platoon's mean beside it (MAPPO)."""
 
-    def __init__(self, config: PPOConfig) -> None:
+    def __init__(self, config: PPOConfig, n_agents: int = 0) -> None:
         super().__init__()
         self.central = config.algo == "mappo"
-        self.body = _mlp(config.obs_dim * (2 if self.central else 1), config.hidden, 1, 1.0)
+        self.body = _mlp(config.obs_dim * (2 if self.central else 1), config.hidden, 1, 1.0,
+                         n_agents)
 
     def inputs(self, obs: torch.Tensor) -> torch.Tensor:
         """What the critic reads of ``obs (..., N, D)``: ``(..., N, D)`` or ``(..., N, 2 D)``."""
@@ -337,6 +387,7 @@ class PPOResult:
     best: dict[str, float]
     env_steps_per_s: float
     config: PPOConfig
+    bits_per_agent: dict[str, float] = dataclasses.field(default_factory=dict)
 
 
 def train(
@@ -359,7 +410,10 @@ def train(
     n = check_vehicles(n_vehicles)
     gen = torch.Generator().manual_seed(int(seed))
     torch.manual_seed(int(seed))  # nn.init draws from the global generator
-    actor, critic = SharedActor(cfg, params), Critic(cfg)
+    n_agents = n if cfg.per_agent else 0
+    actor, critic = SharedActor(cfg, params, n_agents), Critic(cfg, n_agents)
+    bits = {"consensus": 0.0, "qsgd_local": 0.0}  # per agent, ippo-bdc
+    qsgd = ErrorFeedbackQSGD(max(cfg.qsgd_levels, 1), gen, cfg.qsgd_bucket)
     opt = torch.optim.Adam([*actor.parameters(), *critic.parameters()], lr=cfg.lr, eps=1e-5)
     env = PlatoonEnv(sc, n, params, training=True, action_mode=cfg.action_mode,
                      channel=ChannelConfig(cfg.comm_delay_s, cfg.packet_loss, params.dt_s))
@@ -482,10 +536,17 @@ def train(
             last_gae = delta + cfg.gamma * cfg.gae_lambda * cont * last_gae
             adv[t] = last_gae
         ret = adv + buf_val[:t_len]
-        # ---- PPO update on the live agent-steps
-        keep = buf_live.bool()[:, :, None].expand(t_len, b, n).reshape(-1)
-        flat = [x.reshape(-1, *x.shape[3:])[keep]
-                for x in (buf_obs, buf_cobs, buf_act, buf_logp, adv, ret)]
+        # ---- PPO update on the live agent-steps (per agent: live episode-steps of N agents)
+        if cfg.per_agent:
+            keep = buf_live.bool().reshape(-1)
+            flat = [x.reshape(t_len * b, *x.shape[2:])[keep]
+                    for x in (buf_obs, buf_cobs, buf_act, buf_logp, adv, ret)]
+            mb_rows = max(1, cfg.minibatch_rows // n)
+        else:
+            keep = buf_live.bool()[:, :, None].expand(t_len, b, n).reshape(-1)
+            flat = [x.reshape(-1, *x.shape[3:])[keep]
+                    for x in (buf_obs, buf_cobs, buf_act, buf_logp, adv, ret)]
+            mb_rows = cfg.minibatch_rows
         f_obs, f_cobs, f_act, f_logp, f_adv, f_ret = flat
         rows = f_obs.shape[0]
         frac = 1.0 - updates / n_updates
@@ -493,8 +554,8 @@ def train(
             g["lr"] = cfg.lr * frac
         for _ in range(cfg.epochs):
             order = torch.randperm(rows, generator=gen)
-            for start in range(0, rows, cfg.minibatch_rows):
-                idx = order[start:start + cfg.minibatch_rows]
+            for start in range(0, rows, mb_rows):
+                idx = order[start:start + mb_rows]
                 mb_adv = f_adv[idx]
                 mb_adv = (mb_adv - mb_adv.mean()) / (mb_adv.std() + 1e-8)
                 out = actor.policy(f_obs[idx])
@@ -511,7 +572,13 @@ def train(
                 # apart: the critic's gradient (returns of hundreds) must not shrink the actor's
                 nn.utils.clip_grad_norm_(actor.parameters(), cfg.max_grad_norm)
                 nn.utils.clip_grad_norm_(critic.parameters(), cfg.max_grad_norm)
+                if cfg.per_agent:
+                    _compress_critic_gradients(critic, qsgd, cfg, bits)
                 opt.step()
+                if cfg.per_agent:  # BDC: one synchronous round on the critics' weights
+                    n_weights = consensus_round(critic.parameters(),
+                                                functools.partial(bdc, eps=cfg.consensus_eps))
+                    bits["consensus"] += ternary_bits(n_weights)
         updates += 1
     rate = steps / max(time.perf_counter() - t0, 1e-9)
     if validate:
@@ -524,7 +591,20 @@ def train(
         actor.load_state_dict(best_state)
     else:
         actor = as_shipped(actor)
-    return PPOResult(actor, steps, curve, best, rate, cfg)
+    return PPOResult(actor, steps, curve, best, rate, cfg, bits if cfg.per_agent else {})
+
+
+def _compress_critic_gradients(critic: Critic, qsgd: ErrorFeedbackQSGD, cfg: PPOConfig,
+                               bits: dict[str, float]) -> None:
+    """``ippo-bdc``: every critic gradient replaced by its QSGD compression with error
+    feedback before the step (applied locally, as :func:`marl.bdc.compress_critic_gradients`;
+    its payload tallied per agent)."""
+    if cfg.qsgd_levels == 0:
+        return
+    grads = [p.grad for p in critic.parameters() if p.grad is not None]
+    for g, q in zip(grads, qsgd.compress(grads), strict=True):
+        g.copy_(q)
+        bits["qsgd_local"] += qsgd_bits(g[0].numel(), cfg.qsgd_levels, bucket=cfg.qsgd_bucket)
 
 
 def as_shipped(actor: SharedActor) -> SharedActor:
@@ -588,6 +668,7 @@ def save(result: PPOResult, path: str | Path, scenario: str, n_vehicles: int, se
 
     summary = {f"best_{k}": v for k, v in result.best.items()}
     summary["env_steps_per_s"] = result.env_steps_per_s
+    summary.update({f"{k}_bits_per_agent": v for k, v in result.bits_per_agent.items()})
     return save_checkpoint(
         path, algo=result.config.algo, config=dataclasses.asdict(result.config),
         scenario=scenario, n_vehicles=n_vehicles, seed=seed, steps=result.steps,
@@ -597,10 +678,10 @@ def save(result: PPOResult, path: str | Path, scenario: str, n_vehicles: int, se
 def load_actor(data: dict[str, Any], params: PlatoonParams = PlatoonParams()) -> SharedActor:
     """The actor of a loaded checkpoint dict (float32 weights); a config or weights that do not
     make this learner's actor give a :class:`ConfigError`."""
-    acting = ("action_mode", "hidden", "obs_clip", "prior")  # what the actor's shape and acting read
+    acting = ("algo", "action_mode", "hidden", "obs_clip", "prior")  # what the actor's shape and acting read
     try:
         config = PPOConfig(**{k: v for k, v in data["config"].items() if k in acting})
-        actor = SharedActor(config, params)
+        actor = SharedActor(config, params, int(data["n_vehicles"]) if config.per_agent else 0)
         actor.load_state_dict({k: v.float() for k, v in data["weights"].items()}, strict=True)
     except (TypeError, ValueError, RuntimeError, KeyError) as exc:
         reason = " ".join(str(exc).split())[:200]

@@ -31,7 +31,8 @@ def _weights(actor: SharedActor) -> dict[str, torch.Tensor]:
 
 
 @pytest.mark.parametrize(("field", "value", "needle"), [
-    ("algo", "ppo", "algo must be one of ippo, mappo"),
+    ("algo", "ppo", "algo must be one of ippo, mappo, ippo-bdc"),
+    ("consensus_eps", 0.0, "consensus_eps must lie in"),
     ("action_mode", "gains", "unknown action mode"),
     ("n_envs", 0, "n_envs must lie in"),
     ("lr", float("nan"), "lr must be a finite number"),
@@ -46,7 +47,7 @@ def test_a_bad_config_is_refused(field: str, value: object, needle: str) -> None
         PPOConfig(**{field: value})  # type: ignore[arg-type]
 
 
-@pytest.mark.parametrize("algo", ["ippo", "mappo"])
+@pytest.mark.parametrize("algo", ["ippo", "mappo", "ippo-bdc"])
 @pytest.mark.parametrize("mode", ["accel", "ovm-gain"])
 def test_a_seed_gives_the_same_weights_and_another_seed_others(algo: str, mode: str) -> None:
     cfg = dataclasses.replace(TINY, algo=algo, action_mode=mode)
@@ -142,6 +143,41 @@ def test_one_checkpoint_drives_any_platoon_size(tiny_checkpoint: Path, n: int) -
     from benchmark.check import check_controller
 
     check_controller("ippo", "slowdown-v1", n, steps=20, checkpoint=str(tiny_checkpoint))
+
+
+def test_ippo_bdc_trains_a_network_per_agent_and_counts_its_consensus_messages(
+        tmp_path: Path) -> None:
+    """``ippo-bdc``: one actor and critic per follower; every gradient step is followed by one
+    BDC round on the critics (log2 3 bits per critic weight per agent, derivable); the
+    controller scores validation's number in the harness and refuses another N."""
+    import math
+
+    from benchmark.rollout import rollout_batch
+    from benchmark.train_shared import train_shared
+    from controllers.shared_policy import SharedPolicyController
+    from envs.params import VALIDATION_SEEDS
+    from envs.scenarios import make_scenario
+    from marl.checkpoint import load_checkpoint
+
+    cfg = dataclasses.replace(TINY, algo="ippo-bdc", eval_every_steps=10**6)
+    res = train("catchup-v1", 3, 0, 128, cfg, validate=False)
+    w = res.actor.body[0].weight  # type: ignore[union-attr]
+    assert w.shape == (3, 12, 64) and not torch.equal(w[0], w[1])
+    critic_weights = sum(p[0].numel() for p in Critic(cfg, 3).parameters())
+    # 2 updates of 4 x 16 episode-steps, minibatches of 64 // 3 episode-steps of 3 agents
+    steps = 2 * cfg.epochs * math.ceil(64 / (cfg.minibatch_rows // 3))
+    assert res.bits_per_agent["consensus"] == pytest.approx(steps * critic_weights * math.log2(3))
+    assert res.bits_per_agent["qsgd_local"] > 0
+    path = train_shared("ippo-bdc", "catchup-v1", 3, 0, 256,
+                        tmp_path, dataclasses.replace(cfg, eval_every_steps=128),
+                        log=lambda _: None)
+    data = load_checkpoint(path)
+    ctrl = SharedPolicyController("ippo-bdc", checkpoint=str(path))
+    trajs = rollout_batch(ctrl, make_scenario("catchup-v1"), 3, list(VALIDATION_SEEDS))
+    assert np.mean([t.reward.mean() for t in trajs]) == data["curve_summary"]["best_reward"]
+    assert data["curve_summary"]["consensus_bits_per_agent"] > 0
+    with pytest.raises(ConfigError, match="one network per follower, trained for N = 3"):
+        ctrl.preflight(make_scenario("catchup-v1"), 4)
 
 
 def test_a_residual_needs_acceleration_actions() -> None:
