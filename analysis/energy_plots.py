@@ -107,8 +107,10 @@ def plot_energy_map(
         )
     paths = [out / f"{stem}.png", out / f"{stem}.pdf"]
     try:
-        fig.savefig(paths[0], dpi=150)
-        fig.savefig(paths[1])
+        from analysis.plots import savefig_atomic
+
+        savefig_atomic(fig, paths[0], dpi=150)
+        savefig_atomic(fig, paths[1])
     finally:
         plt.close(fig)
     return paths

@@ -23,12 +23,20 @@ def _plt() -> Any:
     return plt
 
 
+def savefig_atomic(fig: Any, path: Path, **kwargs: Any) -> Path:
+    """``fig.savefig(path)`` through a temporary file renamed over ``path``: an interrupted
+    write leaves the earlier figure as it was (:func:`envs.atomic.write_with`)."""
+    from envs.atomic import write_with
+
+    return write_with(path, lambda tmp: fig.savefig(tmp, format=path.suffix[1:], **kwargs))
+
+
 def _save(fig: Any, out_dir: Path, stem: str) -> list[Path]:
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = []
     for ext in ("png", "pdf"):
         p = out_dir / f"{stem}.{ext}"
-        fig.savefig(p, dpi=130, bbox_inches="tight")
+        savefig_atomic(fig, p, dpi=130, bbox_inches="tight")
         paths.append(p)
     _plt().close(fig)
     return paths

@@ -151,6 +151,8 @@ def save_figure(fig: Figure, out_dir: str | Path, stem: str) -> list[Path]:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths = [out / f"{stem}.png", out / f"{stem}.pdf"]
-    fig.savefig(paths[0], dpi=150)
-    fig.savefig(paths[1])
+    from analysis.plots import savefig_atomic
+
+    savefig_atomic(fig, paths[0], dpi=150)
+    savefig_atomic(fig, paths[1])
     return paths

@@ -385,3 +385,28 @@ def test_a_trusted_format_1_file_can_be_given_its_hash(tmp_path: Path) -> None:
     for key, value in shipped["weights"].items():
         assert torch.equal(value, new["weights"][key]) and value.dtype == new["weights"][key].dtype
     load_checkpoint(old, algo="bdc", n_vehicles=2)
+
+
+def test_a_figure_that_fails_to_save_leaves_the_earlier_one(tmp_path: Path) -> None:
+    """Figures go through a temporary file too (:func:`analysis.plots.savefig_atomic`)."""
+    from analysis.plots import _plt, savefig_atomic
+
+    plt = _plt()
+    fig, ax = plt.subplots()
+    ax.plot([0, 1], [0, 1])
+    path = tmp_path / "f.png"
+    savefig_atomic(fig, path, dpi=50)
+    before = path.read_bytes()
+    assert before.startswith(b"\x89PNG")
+
+    class Broken(Exception):
+        pass
+
+    def fail(*args: object, **kwargs: object) -> None:
+        raise Broken
+
+    fig.savefig = fail  # type: ignore[method-assign]
+    with pytest.raises(Broken):
+        savefig_atomic(fig, path)
+    assert path.read_bytes() == before and [p.name for p in tmp_path.iterdir()] == ["f.png"]
+    plt.close(fig)
