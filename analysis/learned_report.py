@@ -31,6 +31,7 @@ POLICIES: dict[str, tuple[str, dict[str, str]]] = {
     "ippo": ("ippo", {}),
     "mappo": ("mappo", {}),
     "ippo (residual on cacc)": ("ippo", {"variant": "residual-cacc"}),
+    "ippo-bdc": ("ippo-bdc", {}),
     "distill": ("distill", {}),
 }
 
@@ -60,6 +61,12 @@ COMPARISONS: tuple[Comparison, ...] = (
     Comparison("action set and information", "bdc", "ippo (OVM-gain)",
                "the paper's method (per-agent networks, consensus) against one shared policy, "
                "both on OVM-gain actions"),
+    Comparison("action set and information", "bdc", "ippo-bdc",
+               "the paper's consensus scheme on OVM-gain actions against the same scheme (an "
+               "actor and critic per agent, binary differential consensus on the critics, QSGD) "
+               "on acceleration actions with V2V"),
+    Comparison("learning", "ippo-bdc", "ippo",
+               "networks per agent agreeing by BDC consensus against one policy shared by all"),
     Comparison("learning", "ippo", "distill",
                "reinforcement learning against imitation of mpc, same network and information"),
     Comparison("learning", "distill", "mpc", "the imitation against the solver it copies"),

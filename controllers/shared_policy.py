@@ -47,6 +47,8 @@ from envs.scenarios import Scenario
 
 #: The shared policies this controller loads: the PPO learners and the MPC distillation.
 SHARED_POLICIES: tuple[str, ...] = ("ippo", "mappo", "distill", "ippo-bdc")
+#: Those of them with one network per follower: they act at their trained N only.
+PER_AGENT_POLICIES: tuple[str, ...] = ("ippo-bdc",)
 
 
 @functools.cache
