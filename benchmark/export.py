@@ -24,15 +24,25 @@ RUN_COLUMNS: tuple[str, ...] = (
     # additions
     "controller_name", "options", "deterministic", "spacing_string_gain",
     "safety_interventions", "safety_correction_mps2",
+    "controllable_energy_kwh", "controllable_energy_kwh_per_100km",
 )
 
 #: Columns a store written before they existed lacks; a finished run there had no safety filter.
 ZERO_WHEN_ABSENT: tuple[str, ...] = ("safety_interventions", "safety_correction_mps2")
 
+#: Columns a store written before they existed lacks and that cannot be recomputed without the
+#: trajectory: empty (NaN) in runs.csv for such a run, never 0. A leaderboard mean of one of them
+#: is NaN unless every finished run of its row has the value (a mean over part of the episodes
+#: would not be comparable with the other columns' means over all of them).
+UNKNOWN_WHEN_ABSENT: tuple[str, ...] = (
+    "controllable_energy_kwh", "controllable_energy_kwh_per_100km",
+)
+
 LEADERBOARD_METRICS: tuple[str, ...] = (
     "reward", "tracking_reward", "energy_kwh", "power_mean_kw", "gap_mean_m", "gap_std_m",
     "gap_rmse_m", "speed_mean_mps", "speed_std_mps", "accel_std_mps2", "jerk_rms_mps3",
     "string_gain", "compute_ms_p50", "comm_bits_per_s", "energy_kwh_per_100km", "min_gap_m",
+    "controllable_energy_kwh", "controllable_energy_kwh_per_100km",
 )
 
 GROUP_COLUMNS: tuple[str, ...] = (
@@ -130,7 +140,12 @@ def leaderboard_frame(runs: Any, pool_seeds: bool = False) -> Any:
         train_seeds = sorted(set(ok["train_seed"].dropna().astype(int)))
         row["n_train_seeds"] = len(train_seeds) if train_seeds else None
         for metric in LEADERBOARD_METRICS:
-            vals = pd.to_numeric(ok[metric], errors="coerce").to_numpy(dtype=float)
+            if metric not in ok:  # a frame of runs from before the column existed
+                vals = np.full(len(ok), np.nan)
+            else:
+                vals = pd.to_numeric(ok[metric], errors="coerce").to_numpy(dtype=float)
+            if metric in UNKNOWN_WHEN_ABSENT and not np.isfinite(vals).all():
+                vals = np.full(len(ok), np.nan)  # unknown for some episodes: no mean
             if len(train_seeds) > 1:
                 groups = [vals[(ok["train_seed"] == s).to_numpy()] for s in train_seeds]
                 mean, lo, hi = hierarchical_bootstrap_ci(groups, seed=BOOTSTRAP_SEED)

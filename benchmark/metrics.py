@@ -36,6 +36,59 @@ def _percentiles(x: np.ndarray, qs: tuple[float, ...]) -> list[float]:
     return [float(v) for v in np.percentile(x, qs)]
 
 
+def cruise_energy_kwh(traj: Trajectory) -> float:
+    """Battery energy (kWh) of the followers' distances driven at steady cruise at the leader's
+    mean speed: ``P(v_bar, 0) * (sum_i d_i) / v_bar``.
+
+    ``v_bar`` is the mean of the leader's speed over rows 1..T (the rows the other metrics use),
+    ``d_i = sum_t v_i[t] dt`` the distance follower ``i`` drove over the same rows (the distance
+    of ``energy_kwh_per_100km``), ``P`` the fitted power model of the environment (the shipped
+    polynomial, :func:`envs.energy.battery_power_kw`). See ``docs/controllable-energy.md``.
+
+    Parameters
+    ----------
+    traj : Trajectory
+        One run.
+
+    Returns
+    -------
+    float
+        0 for a run of no step (no distance); NaN when the leader's mean speed is not positive
+        (steady cruise has no cost per metre there).
+    """
+    if traj.steps == 0:
+        return 0.0
+    v_bar_mps = float(np.mean(traj.leader_speed_mps[1 : traj.steps + 1]))
+    if not v_bar_mps > 0.0:
+        return math.nan
+    from envs.energy import battery_power_kw
+
+    cruise_kw = float(battery_power_kw(v_bar_mps, 0.0))
+    distance_m = float(traj.speed_mps[1:].sum() * traj.dt_s)
+    return cruise_kw * (distance_m / v_bar_mps) / 3600.0
+
+
+def controllable_energy_kwh(traj: Trajectory) -> float:
+    """The followers' battery energy above :func:`cruise_energy_kwh` (kWh): what a controller can
+    change. 0 for a platoon that cruises exactly at the leader's constant speed; negative when
+    the followers used less than cruising their distances would cost (regeneration on a net
+    descent in speed, or a distance driven below the leader's speed). See
+    ``docs/controllable-energy.md``.
+
+    Parameters
+    ----------
+    traj : Trajectory
+        One run.
+
+    Returns
+    -------
+    float
+        NaN when :func:`cruise_energy_kwh` is.
+    """
+    p = traj.power_kw[1:] if traj.steps else traj.power_kw
+    return float(p.sum() * traj.dt_s / 3600.0) - cruise_energy_kwh(traj)
+
+
 def run_metrics(
     traj: Trajectory, target_gap_m: float, target_speed_mps: float
 ) -> dict[str, float | int | bool]:
@@ -52,6 +105,7 @@ def run_metrics(
     jerk = np.diff(traj.accel_mps2, axis=0)[1:] / dt if steps > 1 else np.zeros((1, n))
     energy_kwh = float(p.sum() * dt / 3600.0)
     distance_km = float(traj.speed_mps[1:].sum() * dt / 1000.0) / n if steps else 0.0
+    controllable_kwh = controllable_energy_kwh(traj)
     per_step_ms = traj.compute_s * 1000.0 / n
     rest = per_step_ms[1:]
     skip = 1 + STRING_GAIN_SKIP_STEPS
@@ -89,4 +143,8 @@ def run_metrics(
         # mean correction over all follower-steps (m/s^2); 0 for an unfiltered controller
         "safety_interventions": traj.safety_interventions / (n * steps) if steps else 0.0,
         "safety_correction_mps2": traj.safety_correction_mps2 / (n * steps) if steps else 0.0,
+        # the energy above steady cruise at the leader's mean speed (docs/controllable-energy.md)
+        "controllable_energy_kwh": controllable_kwh,
+        "controllable_energy_kwh_per_100km": ((controllable_kwh / n) / distance_km * 100.0
+                                              if distance_km > 0 else math.nan),
     }

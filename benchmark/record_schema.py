@@ -93,6 +93,10 @@ class RunRecord(BaseModel):
     # the safety filter (absent from stores written before it: read as 0 by runs.csv)
     safety_interventions: NonNegative = Field(default=None, ge=0.0, le=1.0)
     safety_correction_mps2: NonNegative = Field(default=None, ge=0.0)
+    # the energy above steady cruise (absent from stores written before it: unknown, so runs.csv
+    # leaves it empty; it cannot be recomputed without the trajectory)
+    controllable_energy_kwh: Metric = None
+    controllable_energy_kwh_per_100km: Metric = None
 
     @field_validator("options")
     @classmethod

@@ -1,0 +1,186 @@
+"""Controllable energy (docs/controllable-energy.md): the followers' energy above what their
+distances cost at steady cruise at the leader's mean speed, per run, in runs.csv, the
+leaderboard, the Pareto fronts and the reproduction report."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from benchmark.export import LEADERBOARD_METRICS, RUN_COLUMNS, leaderboard_frame, runs_frame
+from benchmark.metrics import controllable_energy_kwh, cruise_energy_kwh, run_metrics
+from benchmark.rollout import Trajectory
+from envs.energy import battery_power_kw
+
+DT_S = 0.1
+
+
+def _traj(speed_mps: np.ndarray, accel_mps2: np.ndarray, leader_speed_mps: np.ndarray,
+          power_kw: np.ndarray | None = None) -> Trajectory:
+    """A trajectory of rows 0..T (row 0 the initial state), powers from the shipped model."""
+    rows, n = speed_mps.shape
+    steps = rows - 1
+    if power_kw is None:
+        power_kw = np.asarray(battery_power_kw(speed_mps, accel_mps2), dtype=float)
+        power_kw[0] = 0.0
+    return Trajectory(
+        gap_m=np.full((rows, n), 20.0), speed_mps=speed_mps, accel_mps2=accel_mps2,
+        power_kw=power_kw, leader_speed_mps=leader_speed_mps,
+        leader_accel_mps2=np.zeros(rows), reward=np.zeros(steps),
+        tracking_reward=np.zeros(steps), command_mps2=accel_mps2[1:].copy(),
+        compute_s=np.full(steps, 1e-3), collided=False, steps=steps, bits_sent=0,
+        solver_failures=0, dt_s=DT_S)
+
+
+# ------------------------------------------------------------------------------ the metric
+def test_a_platoon_cruising_at_the_leaders_constant_speed_controls_nothing() -> None:
+    """Followers at exactly the leader's constant speed, no acceleration: the energy is the
+    cruise floor itself, so the controllable energy is 0 to float precision."""
+    rows, n = 601, 8
+    t = _traj(np.full((rows, n), 15.0), np.zeros((rows, n)), np.full(rows, 15.0))
+    m = run_metrics(t, 20.0, 15.0)
+    assert m["energy_kwh"] == pytest.approx(float(battery_power_kw(15.0, 0.0)) * n * 60 / 3600)
+    assert abs(m["controllable_energy_kwh"]) < 1e-12 * m["energy_kwh"]
+    assert abs(m["controllable_energy_kwh_per_100km"]) < 1e-10
+
+
+def test_an_accelerating_platoon_controls_a_positive_energy_worked_out_by_hand() -> None:
+    """Followers accelerating at 0.5 m/s^2 from 15 m/s behind a leader at 15 m/s: above the
+    cruise floor by exactly energy - P(15, 0) * distance / 15, and positive."""
+    rows, n = 41, 3
+    v = 15.0 + 0.5 * DT_S * np.arange(rows)[:, None] * np.ones((1, n))
+    a = np.full((rows, n), 0.5)
+    a[0] = 0.0
+    t = _traj(v, a, np.full(rows, 15.0))
+    energy = float(battery_power_kw(v[1:], a[1:]).sum()) * DT_S / 3600
+    distance_m = float(v[1:].sum()) * DT_S
+    cruise = float(battery_power_kw(15.0, 0.0)) * distance_m / 15.0 / 3600
+    m = run_metrics(t, 20.0, 15.0)
+    assert m["controllable_energy_kwh"] == pytest.approx(energy - cruise, rel=1e-12)
+    assert m["controllable_energy_kwh"] > 0.0
+    per_vehicle_km = distance_m / n / 1000
+    assert m["controllable_energy_kwh_per_100km"] == pytest.approx(
+        (energy - cruise) / n / per_vehicle_km * 100, rel=1e-12)
+
+
+def test_the_hand_built_run_of_test_metrics() -> None:
+    """T = 2, N = 2, powers 10, 20, 30, 40 kW (given, not from the model), speeds 15, 16, 17,
+    14 m/s, leader at 15 m/s: 10 kJ against P(15, 0) x 6.2 m / 15 m/s."""
+    t = _traj(np.array([[15.0, 15.0], [15.0, 16.0], [17.0, 14.0]]),
+              np.array([[0.0, 0.0], [1.0, -1.0], [2.0, 0.0]]), np.full(3, 15.0),
+              np.array([[0.0, 0.0], [10.0, 20.0], [30.0, 40.0]]))
+    cruise = float(battery_power_kw(15.0, 0.0)) * 6.2 / 15.0 / 3600
+    assert cruise_energy_kwh(t) == pytest.approx(cruise, rel=1e-12)
+    m = run_metrics(t, 19.0, 15.0)
+    assert m["controllable_energy_kwh"] == pytest.approx(10.0 / 3600 - cruise, rel=1e-12)
+    assert m["controllable_energy_kwh_per_100km"] == pytest.approx(
+        (10.0 / 3600 - cruise) / 2 / 0.0031 * 100, rel=1e-12)
+
+
+def test_cruise_is_at_the_leaders_mean_speed_and_can_be_undercut() -> None:
+    """The floor uses the leader's mean over rows 1..T (not the target, not row 0); followers
+    that coast down from above it, regenerating, spend less than the floor: negative."""
+    rows, n = 21, 2
+    lead = np.concatenate([[99.0], np.linspace(14.0, 16.0, rows - 1)])  # row 0 is not counted
+    v = np.linspace(18.0, 15.0, rows)[:, None] * np.ones((1, n))
+    a = np.full((rows, n), -1.5)
+    a[0] = 0.0
+    t = _traj(v, a, lead)
+    v_bar = float(lead[1:].mean())
+    assert v_bar == pytest.approx(15.0)
+    want = float(battery_power_kw(v_bar, 0.0)) * float(v[1:].sum()) * DT_S / v_bar / 3600
+    assert cruise_energy_kwh(t) == pytest.approx(want, rel=1e-12)
+    assert controllable_energy_kwh(t) < 0.0
+
+
+def test_no_step_is_nothing_controlled_and_a_still_leader_is_unknown() -> None:
+    none = run_metrics(_traj(np.full((1, 2), 15.0), np.zeros((1, 2)), np.full(1, 15.0)),
+                       20.0, 15.0)
+    assert none["controllable_energy_kwh"] == 0.0
+    assert math.isnan(none["controllable_energy_kwh_per_100km"])
+    still = _traj(np.full((5, 2), 1.0), np.zeros((5, 2)), np.zeros(5))
+    assert math.isnan(cruise_energy_kwh(still))
+    assert math.isnan(run_metrics(still, 20.0, 15.0)["controllable_energy_kwh"])
+
+
+def test_a_real_run_splits_its_energy_into_cruise_and_controllable() -> None:
+    """On a closed-loop run the two per-100-km columns differ by the cruise consumption at the
+    leader's mean speed, P(v_bar, 0) / v_bar (the identity the docs state)."""
+    from benchmark.rollout import rollout
+    from controllers.registry import make_controller
+    from envs.scenarios import make_scenario
+
+    sc = make_scenario("catchup-v1")
+    t = rollout(make_controller("cacc"), sc, 4, 2000)
+    m = run_metrics(t, sc.target_gap_m, sc.target_speed_mps)
+    v_bar = float(t.leader_speed_mps[1:].mean())
+    floor_per_100km = float(battery_power_kw(v_bar, 0.0)) / v_bar * 1e5 / 3600
+    assert m["energy_kwh_per_100km"] - m["controllable_energy_kwh_per_100km"] == pytest.approx(
+        floor_per_100km, rel=1e-9)
+    assert 0.0 < m["controllable_energy_kwh"] < 0.2 * m["energy_kwh"]
+
+
+# ------------------------------------------------------------------- runs.csv, leaderboard
+def _record(seed: int, controllable: float | None) -> dict:
+    rec = {"controller": "c", "name": "c", "family": "linear", "scenario": "catchup-v1",
+           "n_vehicles": 4, "comm_delay_s": 0.0, "packet_loss": 0.0, "lag_s": 0.0, "seed": seed,
+           "status": "ok", "error": "", "options": "{}", "deterministic": True, "steps": 600,
+           "collision": False, "string_stable": True, "solver_failures": 0}
+    for m in LEADERBOARD_METRICS:
+        rec[m] = 1.0
+    del rec["controllable_energy_kwh"], rec["controllable_energy_kwh_per_100km"]
+    if controllable is not None:
+        rec["controllable_energy_kwh"] = controllable
+        rec["controllable_energy_kwh_per_100km"] = 10 * controllable
+    return rec
+
+
+def test_runs_csv_has_the_columns_and_an_old_record_reads_as_unknown_not_zero() -> None:
+    assert {"controllable_energy_kwh", "controllable_energy_kwh_per_100km"} <= set(RUN_COLUMNS)
+    runs = runs_frame([_record(2000, 0.02), _record(2010, None)])
+    assert runs["controllable_energy_kwh"].tolist()[0] == 0.02
+    assert math.isnan(runs["controllable_energy_kwh"].tolist()[1])
+    assert math.isnan(runs["controllable_energy_kwh_per_100km"].tolist()[1])
+    # the safety columns of the same records (absent too) still read as 0: no filter then
+    assert runs["safety_interventions"].tolist() == [0.0, 0.0]
+
+
+def test_an_old_record_without_the_columns_passes_the_store_schema() -> None:
+    from benchmark.record_schema import RunRecord
+
+    rec = _record(2000, None)
+    rec.update(id="x", version="0", git_sha="0", wall_s=1.0)
+    assert RunRecord.model_validate(rec).controllable_energy_kwh is None
+    rec["controllable_energy_kwh"] = -0.3  # negative is a value (below the cruise floor)
+    assert RunRecord.model_validate(rec).controllable_energy_kwh == -0.3
+
+
+def test_leaderboard_has_the_mean_and_interval_only_when_every_episode_has_a_value() -> None:
+    full = leaderboard_frame(runs_frame([_record(2000, 0.02), _record(2010, 0.04)]))
+    assert full["controllable_energy_kwh_mean"].tolist() == [pytest.approx(0.03)]
+    assert full["controllable_energy_kwh_ci_low"].iloc[0] == pytest.approx(0.02)
+    assert full["controllable_energy_kwh_ci_high"].iloc[0] == pytest.approx(0.04)
+    assert full["controllable_energy_kwh_per_100km_mean"].tolist() == [pytest.approx(0.3)]
+    part = leaderboard_frame(runs_frame([_record(2000, 0.02), _record(2010, None)]))
+    for col in ("controllable_energy_kwh_mean", "controllable_energy_kwh_ci_low",
+                "controllable_energy_kwh_per_100km_ci_high"):
+        assert math.isnan(part[col].iloc[0])
+    assert part["energy_kwh_mean"].iloc[0] == 1.0  # the other columns as before
+    # a runs.csv written before the columns existed (no such column at all)
+    old = runs_frame([_record(2000, 0.02)]).drop(columns=["controllable_energy_kwh",
+                                                          "controllable_energy_kwh_per_100km"])
+    lb = leaderboard_frame(old)
+    assert math.isnan(lb["controllable_energy_kwh_mean"].iloc[0])
+    assert lb["reward_mean"].iloc[0] == 1.0
+
+
+def test_golden_runs_carry_the_columns() -> None:
+    golden = Path(__file__).resolve().parent / "golden"
+    runs = pd.read_csv(golden / "smoke_runs.csv")
+    assert runs["controllable_energy_kwh"].notna().all()
+    lb = pd.read_csv(golden / "smoke_leaderboard.csv")
+    assert lb["controllable_energy_kwh_per_100km_mean"].notna().all()
