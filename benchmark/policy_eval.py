@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from benchmark.rollout import rollout_batch
-from envs.params import VALIDATION_SEEDS
+from envs.params import VALIDATION_SEEDS, check_decision_seeds
 from envs.scenarios import make_scenario
 
 
@@ -50,7 +50,18 @@ def evaluate_policy(
 def validation_evaluator(
     algo: str, scenario_id: str, n_vehicles: int, seeds: Sequence[int] = VALIDATION_SEEDS
 ) -> Callable[[Any, str], dict[str, float]]:
-    """The evaluator :func:`marl.a2c.run_training` takes: ``(net, mode) -> summary``."""
+    """The evaluator :func:`marl.a2c.run_training` takes: ``(net, mode) -> summary``.
+
+    Its scores choose the kept snapshot (and, through ``cacc-bench tune``, the tuned configs):
+    a decision, so test seeds are refused (:func:`envs.params.check_decision_seeds`).
+
+    Raises
+    ------
+    ConfigError
+        When any of ``seeds`` is a test seed (:data:`envs.params.TEST_SEEDS`).
+    """
+    check_decision_seeds(seeds, "benchmark.policy_eval.validation_evaluator")
+    seeds = tuple(int(s) for s in seeds)
 
     def evaluate(net: Any, mode: str) -> dict[str, float]:
         return evaluate_policy(algo, net, scenario_id, n_vehicles, seeds, mode)

@@ -16,10 +16,18 @@ from benchmark.executors import (
     run_batches,
 )
 from benchmark.progress import Progress
-from benchmark.suite import MAX_SEED, RunKey, build_sweep, seeds_from_episodes, unique
+from benchmark.suite import (
+    MAX_SEED,
+    RunKey,
+    build_sweep,
+    seeds_from_episodes,
+    seeds_from_set,
+    unique,
+)
 from controllers.registry import default_controllers, parse_controller_list
 from envs.errors import ConfigError
 from envs.interrupt import raise_if_interrupted
+from envs.params import SEED_SETS, TEST_SEEDS, VALIDATION_SEEDS
 from envs.scenarios import (
     DEFAULT_SCENARIOS,
     MAX_VEHICLES,
@@ -69,8 +77,16 @@ def build_parser() -> argparse.ArgumentParser:
                         "8 for the published ones, 4 for OpenACC; see `cacc-bench list`)")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--episodes", type=int, default=None,
-                   help="first K published evaluation seeds 2000, 2010, ... (default: 10)")
+                   help="first K published evaluation seeds 2000, 2010, ... (default: 10), or "
+                        "the first K of --seed-set")
     g.add_argument("--seeds", type=_csv("--seeds", int), default=None, help="explicit seeds")
+    p.add_argument("--seed-set", choices=tuple(SEED_SETS), default=None,
+                   help="which named seeds --episodes counts from (docs/seed-sets.md): eval "
+                        "(default, the published 2000, 2010, ...), test "
+                        f"({TEST_SEEDS[0]}..{TEST_SEEDS[-1]}, the final word; default all "
+                        f"{len(TEST_SEEDS)}) or validation ({VALIDATION_SEEDS[0]}.."
+                        f"{VALIDATION_SEEDS[-1]}, the seeds decisions are made on; default all "
+                        f"{len(VALIDATION_SEEDS)}); not with --seeds")
     p.add_argument("--comm-delay", type=_csv("--comm-delay", float), default=[0.0],
                    help="V2V delay in s, whole steps (comma list; default 0)")
     p.add_argument("--packet-loss", type=_csv("--packet-loss", float), default=[0.0],
@@ -119,11 +135,16 @@ def _validate(args: argparse.Namespace) -> tuple[list[tuple[str, dict[str, str]]
             raise ConfigError(f"--lag must be >= 0 s, got {lag}")
     if args.workers < 1:
         raise ConfigError(f"--workers must be >= 1, got {args.workers}")
+    if args.seeds is not None and args.seed_set is not None:
+        raise ConfigError("--seed-set and --seeds exclude each other: --seeds names the seeds "
+                          "itself, --seed-set picks a named set (with --episodes K, its first K)")
     if args.seeds is not None:
         seeds = unique(str(s) for s in args.seeds)
         seed_list = [int(s) for s in seeds]
         if any(not 0 <= s <= MAX_SEED for s in seed_list):
             raise ConfigError(f"--seeds must lie in 0..{MAX_SEED}")
+    elif args.seed_set not in (None, "eval"):
+        seed_list = seeds_from_set(args.seed_set, args.episodes)
     else:
         episodes = 10 if args.episodes is None else args.episodes
         if episodes < 1:

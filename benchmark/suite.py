@@ -231,6 +231,43 @@ def seeds_from_episodes(episodes: int) -> list[int]:
     ]
 
 
+def seeds_from_set(seed_set: str, episodes: int | None) -> list[int]:
+    """The first ``episodes`` seeds of a named seed set (``docs/seed-sets.md``).
+
+    Parameters
+    ----------
+    seed_set : {"eval", "test", "validation"}
+        ``eval``: the published evaluation seeds (:func:`seeds_from_episodes`, 10 when
+        ``episodes`` is None); ``test``: :data:`envs.params.TEST_SEEDS`, the final word;
+        ``validation``: :data:`envs.params.VALIDATION_SEEDS`, the seeds decisions are made on.
+    episodes : int or None
+        How many, from the start of the set; None: the whole test or validation set.
+
+    Returns
+    -------
+    list of int
+        The seeds, in the set's order.
+
+    Raises
+    ------
+    ConfigError
+        An unknown set, or ``episodes`` outside 1..the size of the test or validation set.
+    """
+    from envs.params import SEED_SETS
+
+    if seed_set not in SEED_SETS:
+        raise ConfigError(f"--seed-set must be one of {', '.join(SEED_SETS)}, got {seed_set!r}")
+    if seed_set == "eval":
+        return seeds_from_episodes(10 if episodes is None else episodes)
+    seeds = SEED_SETS[seed_set]
+    if episodes is None:
+        return list(seeds)
+    if not 1 <= episodes <= len(seeds):
+        raise ConfigError(f"--episodes must lie in 1..{len(seeds)} with --seed-set {seed_set} "
+                          f"(the {seed_set} set has {len(seeds)} seeds), got {episodes}")
+    return list(seeds[:episodes])
+
+
 def unique(items: Iterable[str]) -> list[str]:
     """Items in first-seen order without repeats."""
     return list(dict.fromkeys(items))

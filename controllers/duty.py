@@ -11,6 +11,7 @@ actions achieves.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -19,7 +20,7 @@ from controllers.base import ClosedLoop, Controller, EpisodeContext
 from controllers.registry import build_config
 from envs.dynamics import action_to_command_mps2
 from envs.errors import ConfigError
-from envs.params import VALIDATION_SEEDS, PlatoonParams
+from envs.params import VALIDATION_SEEDS, PlatoonParams, check_decision_seeds
 from envs.platoon import PlatoonState
 from envs.scenarios import Scenario, make_scenario
 
@@ -63,26 +64,36 @@ def duty_scores(
     k_max: int,
     params: PlatoonParams = PlatoonParams(),
     closed_loop: ClosedLoop | None = None,
+    seeds: Sequence[int] = VALIDATION_SEEDS,
 ) -> tuple[tuple[int, int, float], ...]:
     """``(k, collisions, mean reward)`` of every k in 1..k_max on the validation seeds.
 
     The reward is the benchmark's: per episode the mean over its steps of the sum over agents
-    (evaluation form, a collision ends the episode), then the mean over the 32 episodes. All
-    k run as one batch of ``k_max x 32`` episodes through ``closed_loop``, the benchmark's
-    (:func:`benchmark.rollout.rollout_batch`); results are cached per process.
+    (evaluation form, a collision ends the episode), then the mean over the episodes (the 32
+    validation seeds by default). All k run as one batch of ``k_max x len(seeds)`` episodes
+    through ``closed_loop``, the benchmark's (:func:`benchmark.rollout.rollout_batch`); results
+    are cached per process.
+
+    Raises
+    ------
+    ConfigError
+        Without ``closed_loop`` on a first call, or when any of ``seeds`` is a test seed (choosing
+        k is a decision: :func:`envs.params.check_decision_seeds`).
     """
+    check_decision_seeds(seeds, "duty (choosing k)")
+    seed_list = [int(s) for s in seeds]
     sc = make_scenario(scenario) if isinstance(scenario, str) else scenario
     # the length is part of the key: a shortened copy of a scenario (perf timing) has the same id
-    key = (sc.id, repr(sorted(sc.options.items())), sc.n_steps, n_vehicles, k_max, params)
+    key = (sc.id, repr(sorted(sc.options.items())), sc.n_steps, n_vehicles, k_max, params,
+           tuple(seed_list))
     if key not in _SCORES:
         if closed_loop is None:
             raise ConfigError(
                 "duty: choosing k runs episodes through the benchmark's closed loop; run duty "
                 "through benchmark.rollout (cacc-bench run), pass "
                 "closed_loop=benchmark.rollout.rollout_batch, or give k")
-        seeds = list(VALIDATION_SEEDS)
-        ks = np.repeat(np.arange(1, k_max + 1), len(seeds))
-        trajs = closed_loop(_Schedules(ks), sc, n_vehicles, seeds * k_max, params)
+        ks = np.repeat(np.arange(1, k_max + 1), len(seed_list))
+        trajs = closed_loop(_Schedules(ks), sc, n_vehicles, seed_list * k_max, params)
         out = []
         for k in range(1, k_max + 1):
             mine = [t for t, kk in zip(trajs, ks, strict=True) if kk == k]
@@ -98,9 +109,11 @@ def best_k(
     k_max: int = 20,
     params: PlatoonParams = PlatoonParams(),
     closed_loop: ClosedLoop | None = None,
+    seeds: Sequence[int] = VALIDATION_SEEDS,
 ) -> int:
-    """The k of :func:`duty_scores` with the fewest collisions, then the best reward."""
-    scores = duty_scores(scenario, n_vehicles, k_max, params, closed_loop)
+    """The k of :func:`duty_scores` with the fewest collisions, then the best reward (on the
+    validation seeds by default; test seeds are refused)."""
+    scores = duty_scores(scenario, n_vehicles, k_max, params, closed_loop, seeds)
     return min(scores, key=lambda r: (r[1], -r[2], r[0]))[0]
 
 

@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass
+
+import numpy as np
 
 from envs.errors import ConfigError
 
@@ -16,6 +19,54 @@ EVAL_SEEDS: tuple[int, ...] = tuple(range(2000, 2500, 10))
 #: Validation seeds 1..32: checkpoint selection, tuning and any other choice made on data. They
 #: are never evaluation seeds and never training seeds (training episodes use seeds >= 1e7).
 VALIDATION_SEEDS: tuple[int, ...] = tuple(range(1, 33))
+
+#: Test seeds 900000..900099 (100 episodes): kept for the final word (the generalisation matrix
+#: and the README's main table). No training, tuning, selection or budget decision reads them
+#: (:func:`check_decision_seeds` refuses); they are disjoint from the training seeds
+#: (``1e7 (seed + 1) + k``), the validation seeds, the published evaluation seeds and their
+#: extension ``2000 + 10 k`` up to ``--episodes 10000``. Rule: ``docs/seed-sets.md``.
+TEST_SEEDS: tuple[int, ...] = tuple(range(900_000, 900_100))
+
+#: The named seed sets of ``cacc-bench run --seed-set``, the default first.
+SEED_SETS: dict[str, tuple[int, ...]] = {
+    "eval": EVAL_SEEDS,
+    "test": TEST_SEEDS,
+    "validation": VALIDATION_SEEDS,
+}
+
+_TEST_SEED_SET = frozenset(TEST_SEEDS)
+
+
+def check_decision_seeds(seeds: Iterable[int] | np.ndarray, who: str) -> None:
+    """Refuse the test seeds in a decision (training, validation, selection, tuning, budget).
+
+    Decisions are made on the validation seeds (:data:`VALIDATION_SEEDS`); the test seeds
+    (:data:`TEST_SEEDS`) are read only by the final evaluation, so that no choice is fitted to
+    them. Every helper that makes such a choice calls this on the seeds it is given.
+
+    Parameters
+    ----------
+    seeds : iterable of int or numpy.ndarray
+        The episode seeds the decision would read.
+    who : str
+        The helper making the decision, named in the message
+        (``"benchmark.policy_eval.validation_evaluator"``).
+
+    Raises
+    ------
+    ConfigError
+        When any of ``seeds`` is a test seed.
+    """
+    flat = seeds.ravel().tolist() if isinstance(seeds, np.ndarray) else seeds
+    found = sorted({int(s) for s in flat} & _TEST_SEED_SET)
+    if found:
+        shown = ", ".join(str(s) for s in found[:5]) + (", ..." if len(found) > 5 else "")
+        raise ConfigError(
+            f"{who}: seeds {shown} are test seeds ({len(found)} of them); the test seeds "
+            f"{TEST_SEEDS[0]}..{TEST_SEEDS[-1]} are kept for the final evaluation and no "
+            "training, tuning, selection or budget decision may read them: decide on the "
+            "validation seeds (envs.params.VALIDATION_SEEDS). The rule: docs/seed-sets.md"
+        )
 
 #: Evaluation modes of a learned policy, the default first: ``sampled`` (actions drawn from the
 #: policy, as trained) and ``greedy`` (argmax; a different policy when the trained one stays
