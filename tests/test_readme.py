@@ -61,9 +61,10 @@ def test_tour_commands_in_small_form(tmp_path: Path) -> None:
 
 
 def test_the_example_controller_runs_as_the_readme_says(tmp_path: Path) -> None:
-    """The README's example controller file: saved and run, it passes the contract check and
-    prints what the README says it prints."""
-    text = (ROOT / "README.md").read_text()
+    """The example controller file (docs/contributing.md, "Add a controller", which the README
+    links): saved and run, it passes the contract check and prints what the page says it
+    prints."""
+    text = (ROOT / "docs" / "contributing.md").read_text()
     (code,) = re.findall(r"```python\n(.*?)```", text, re.S)
     (claim,) = re.findall(r"It prints `([^`]*)`", text)
     (tmp_path / "my_controller.py").write_text(code)
@@ -71,3 +72,20 @@ def test_the_example_controller_runs_as_the_readme_says(tmp_path: Path) -> None:
                          text=True, timeout=600, env={"PYTHONPATH": str(ROOT), "PATH": ""})
     assert res.returncode == 0, res.stderr
     assert res.stdout.strip() == claim
+
+
+def test_the_readme_table_is_rows_of_the_full_one() -> None:
+    """The README's small results table is rows of the full table in docs/results.md, copied
+    verbatim (so the numbers the tests pin there are the README's too)."""
+    rows = [ln for ln in (ROOT / "README.md").read_text().splitlines()
+            if re.match(r"^\| (catchup|slowdown)-v1 \|", ln)]
+    assert len(rows) >= 3
+    full = set((ROOT / "docs" / "results.md").read_text().splitlines())
+    assert [r for r in rows if r not in full] == []
+
+
+def test_the_readme_stays_a_short_guide() -> None:
+    """A user's guide, not lab notes: about 250 lines at most and no dated measurement."""
+    text = (ROOT / "README.md").read_text()
+    assert len(text.splitlines()) <= 250
+    assert not re.search(r"\b20\d\d-\d\d-\d\d\b", text)

@@ -147,9 +147,9 @@ def test_policy_checkpoint_dir_names_the_train_command(tmp_path: Path) -> None:
 
 
 def _readme_reproduce_command() -> list[str]:
-    text = (Path(__file__).resolve().parent.parent / "README.md").read_text()
-    section = re.search(r"^## Reproducing the paper\n(.*?)(?=^## )", text, re.S | re.M)
-    assert section, "README has no section 'Reproducing the paper'"
+    text = (Path(__file__).resolve().parent.parent / "docs" / "reproduction.md").read_text()
+    section = re.search(r"^## The command\n(.*?)(?=^## )", text, re.S | re.M)
+    assert section, "docs/reproduction.md has no section 'The command'"
     block = re.search(r"```bash\n(.*?)```", section.group(1), re.S)
     assert block
     (line,) = [ln for ln in block.group(1).strip().splitlines() if ln.strip()]
@@ -247,7 +247,7 @@ def test_the_readme_quotes_the_committed_paper_report() -> None:
     copied from the run that made it): rewards, collisions, power and verdicts as the CSVs hold
     them, formatted from the CSVs and looked up in the README."""
     docs = Path(__file__).resolve().parent.parent / "docs" / "paper-reproduction"
-    readme = (docs.parent.parent / "README.md").read_text()
+    readme = (docs.parent / "reproduction.md").read_text()  # moved there from the README
     readme = " ".join(readme.split())  # line breaks aside
     t2 = pd.read_csv(docs / "table2.csv").set_index(["name", "scenario"])
     quoted = [f"{t2.loc[(name, 'catchup-v1'), 'reward_mean']:.1f}"

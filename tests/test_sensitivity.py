@@ -104,7 +104,7 @@ def test_the_readme_quotes_the_committed_study() -> None:
     numbers its sensitivity.csv holds."""
     root = Path(__file__).resolve().parent.parent
     table = pd.read_csv(root / "docs" / "sensitivity" / "sensitivity.csv")
-    readme = " ".join((root / "README.md").read_text().split())
+    readme = " ".join((root / "docs" / "results.md").read_text().split())  # was the README's
     report = " ".join((root / "docs" / "sensitivity" / "report.md").read_text().split())
 
     def reward(scenario: str, knob: str, value: str) -> float:
