@@ -68,6 +68,11 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--vehicles", type=int, default=8, help="followers N (default: 8)")
     p.add_argument("--families", default=",".join(FAMILY_GROUPS),
                    help="comma list among " + ", ".join(FAMILY_GROUPS) + " (default: all)")
+    p.add_argument("--energy", choices=("total", "controllable"), default="total",
+                   help="energy objective: the total energy per vehicle, or only its part above "
+                        "steady cruise at the leader's mean speed (docs/controllable-energy.md); "
+                        "controllable writes pareto-controllable.csv and its own figures beside "
+                        "pareto.csv (default: %(default)s)")
     p.add_argument("--out", default="results/pareto", help="output folder (default: %(default)s)")
     p.add_argument("--resume", action="store_true", help="complete a sweep in --out")
     add_executor_options(p, default="process")  # a sweep of many runs: both cores
@@ -118,7 +123,7 @@ def main(argv: list[str]) -> int:
     """Entry point of ``cacc-bench pareto``."""
     import pandas as pd
 
-    from analysis.pareto import pareto_frame, plot_pareto
+    from analysis.pareto import ENERGY_METRICS, pareto_frame, plot_pareto
     from benchmark.run_cmd import execute_sweep
     from benchmark.suite import build_sweep, seeds_from_episodes
     from envs.scenarios import check_vehicles, make_scenario
@@ -162,14 +167,24 @@ def main(argv: list[str]) -> int:
                            first_seed=seeds[0])
         runs = pd.read_csv(out / "runs" / "runs.csv")
         runs = runs[(runs["status"] == "ok") & (runs["n_vehicles"] == args.vehicles)]
-        df = pareto_frame(runs, settings)
-        write_csv(df, out / "pareto.csv")
+        energy_col = ENERGY_METRICS[args.energy]
+        unknown = int(runs[energy_col].isna().sum()) if energy_col in runs else len(runs)
+        if args.energy != "total" and unknown:
+            print(f"pareto: {unknown} of {len(runs)} runs in {out / 'runs'} were stored before "
+                  "controllable energy was measured (no value); their settings have no point: "
+                  "run the sweep into a new --out", file=sys.stderr)
+        df = pareto_frame(runs, settings, args.energy)
+        suffix = "" if args.energy == "total" else f"-{args.energy}"
+        csv_path = out / f"pareto{suffix}.csv"
+        write_csv(df, csv_path)
         for sc in scenarios:
-            plot_pareto(df, sc, out / "figures", f"pareto__{sc}__n{args.vehicles}")
+            plot_pareto(df, sc, out / "figures", f"pareto{suffix}__{sc}__n{args.vehicles}",
+                        args.energy)
     front = df[df["non_dominated"]]
-    print(f"wrote {out / 'pareto.csv'} ({len(df)} points, {len(front)} non-dominated) and "
+    print(f"wrote {csv_path} ({len(df)} points, {len(front)} non-dominated) and "
           f"{out / 'figures'}")
+    what = "kWh/100 km" if args.energy == "total" else "kWh/100 km above cruise"
     for _, r in front.iterrows():
-        print(f"  {r['scenario']}: {r['controller']} {r['energy_kwh_per_100km_mean']:.2f} "
-              f"kWh/100 km, gap RMSE {r['gap_rmse_m_mean']:.2f} m")
+        print(f"  {r['scenario']}: {r['controller']} {r[f'{energy_col}_mean']:.2f} "
+              f"{what}, gap RMSE {r['gap_rmse_m_mean']:.2f} m")
     return rc

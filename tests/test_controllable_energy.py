@@ -184,3 +184,72 @@ def test_golden_runs_carry_the_columns() -> None:
     assert runs["controllable_energy_kwh"].notna().all()
     lb = pd.read_csv(golden / "smoke_leaderboard.csv")
     assert lb["controllable_energy_kwh_per_100km_mean"].notna().all()
+
+
+# -------------------------------------------------------------------------------- Pareto
+def _pareto_runs() -> pd.DataFrame:
+    """Three settings, two episodes each: ``a`` is best on total energy, ``b`` on controllable
+    energy (its cruise floor is higher), ``c`` has one episode of unknown controllable energy."""
+    rows = []
+    for label, total, ctrl, gap in (("a", 10.0, 2.0, 1.0), ("b", 11.0, 1.0, 1.0),
+                                    ("c", 9.0, 0.5, 1.0)):
+        for k, seed in enumerate((2000, 2010)):
+            rows.append({"scenario": "catchup-v1", "controller": label, "seed": seed,
+                         "energy_kwh_per_100km": total,
+                         "controllable_energy_kwh_per_100km": (math.nan if label == "c" and k
+                                                               else ctrl),
+                         "gap_rmse_m": gap, "speed_rmse_mps": 0.5, "string_gain": 1.0,
+                         "collision": False})
+    return pd.DataFrame(rows)
+
+
+def _settings() -> list[dict]:
+    return [{"label": x, "family": x, "controller": x, "knob": "", "knob_value": ""}
+            for x in ("a", "b", "c")]
+
+
+def test_pareto_on_controllable_energy_picks_its_own_front() -> None:
+    from analysis.pareto import PARETO_COLUMNS, pareto_columns, pareto_frame
+
+    total = pareto_frame(_pareto_runs(), _settings()).set_index("controller")
+    assert list(pareto_frame(_pareto_runs(), _settings()).columns) == list(PARETO_COLUMNS)
+    assert total["non_dominated"].to_dict() == {"a": False, "b": False, "c": True}
+    ctrl = pareto_frame(_pareto_runs(), _settings(), "controllable")
+    assert list(ctrl.columns) == list(pareto_columns("controllable"))
+    ctrl = ctrl.set_index("controller")
+    assert ctrl.loc["b", "controllable_energy_kwh_per_100km_mean"] == 1.0
+    # c's unknown episode: no point, not a mean over the one it has
+    assert math.isnan(ctrl.loc["c", "controllable_energy_kwh_per_100km_mean"])
+    assert ctrl["non_dominated"].to_dict() == {"a": False, "b": True, "c": False}
+
+
+def test_pareto_energy_objective_is_checked_and_an_old_runs_csv_has_no_points() -> None:
+    from analysis.pareto import pareto_frame
+    from envs.errors import UnknownNameError
+
+    with pytest.raises(UnknownNameError, match="controllable"):
+        pareto_frame(_pareto_runs(), _settings(), "kinetic")
+    old = _pareto_runs().drop(columns=["controllable_energy_kwh_per_100km"])
+    df = pareto_frame(old, _settings(), "controllable")
+    assert df["controllable_energy_kwh_per_100km_mean"].isna().all()
+    assert not df["non_dominated"].any()
+
+
+def test_the_pareto_command_takes_energy_controllable(tmp_path: Path) -> None:
+    from analysis.pareto import pareto_columns
+    from benchmark.cli import main as cli
+
+    out = tmp_path / "p"
+    args = ["pareto", "--families", "points", "--episodes", "1", "--vehicles", "2", "--out",
+            str(out), "--executor", "serial"]
+    assert cli([*args, "--energy", "controllable"]) == 0
+    df = pd.read_csv(out / "pareto-controllable.csv")
+    assert list(df.columns) == list(pareto_columns("controllable"))
+    assert (out / "figures" / "pareto-controllable__catchup-v1__n2.png").stat().st_size > 0
+    runs = pd.read_csv(out / "runs" / "runs.csv").set_index("controller")
+    got = df.set_index("controller")["controllable_energy_kwh_per_100km_mean"]
+    for label in ("ovm", "duty"):
+        assert got[label] == pytest.approx(runs.loc[label, "controllable_energy_kwh_per_100km"])
+    assert not (out / "pareto.csv").exists()  # the default file is the total-energy front's
+    assert cli([*args, "--resume"]) == 0
+    assert "energy_kwh_per_100km_mean" in pd.read_csv(out / "pareto.csv").columns
