@@ -97,7 +97,9 @@ def table_two(runs: Any, labels: Mapping[str, str]) -> Any:
     DataFrame with one row per name and scenario: per metric ``<m>_avg`` (mean over episodes
     of the episode mean over vehicles and steps), ``<m>_std`` (standard deviation of those
     episode means across episodes, our reading of the paper's "Std"), ``<m>_within_std`` (mean
-    within-episode std), ``paper_<m>_avg/std``; ``collisions``, ``n_episodes``, ``reward_mean``.
+    within-episode std), ``paper_<m>_avg/std``; ``collisions``, ``n_episodes``, ``reward_mean``;
+    ``controllable_power_kw_avg/std``: the platoon's mean power above steady cruise at the
+    leader's mean speed (:func:`controllable_power_kw`; NaN if a run predates the measure).
     """
     import pandas as pd
 
@@ -123,7 +125,137 @@ def table_two(runs: Any, labels: Mapping[str, str]) -> Any:
                 w = within[col]
                 row[f"{key}_within_std"] = float(g[w].mean()) if w else math.nan
                 row[f"paper_{key}_avg"], row[f"paper_{key}_std"] = paper.get(key, (math.nan, math.nan))
+            c = controllable_power_kw(g)
+            known = bool(np.isfinite(c).all())
+            row["controllable_power_kw_avg"] = float(np.mean(c)) if known else math.nan
+            row["controllable_power_kw_std"] = (float(np.std(c, ddof=1))
+                                                if known and len(c) > 1 else math.nan)
             rows.append(row)
+    return pd.DataFrame(rows)
+
+
+#: runs.csv column of the energy above steady cruise at the leader's mean speed
+#: (``docs/controllable-energy.md``).
+CONTROLLABLE_COLUMN = "controllable_energy_kwh"
+
+
+def controllable_power_kw(runs: Any, dt_s: float | None = None) -> np.ndarray:
+    """Per run, the platoon's mean power above steady cruise at the leader's mean speed (kW):
+    ``controllable_energy_kwh * 3600 / (steps * dt)``, on the same steps as ``power_mean_kw``
+    (so ``power_mean_kw`` minus it is the run's cruise floor in kW).
+
+    Parameters
+    ----------
+    runs : DataFrame
+        ``runs.csv`` rows.
+    dt_s : float, optional
+        The step (s); the environment's default step when omitted.
+
+    Returns
+    -------
+    ndarray
+        One value per row; NaN for a run stored before controllable energy was measured (the
+        column empty or absent) and for a run of no step.
+    """
+    if CONTROLLABLE_COLUMN not in runs:
+        return np.full(len(runs), np.nan)
+    if dt_s is None:
+        from envs.params import PlatoonParams
+
+        dt_s = PlatoonParams().dt_s
+    ctrl_kwh = runs[CONTROLLABLE_COLUMN].to_numpy(dtype=float)
+    duration_s = runs["steps"].to_numpy(dtype=float) * dt_s
+    safe_s = np.where(duration_s > 0, duration_s, 1.0)
+    return np.where(duration_s > 0, ctrl_kwh * 3600.0 / safe_s, np.nan)
+
+
+#: The row of the paper's Table II closest to steady cruise (speed 15.01 +- 0.03 m/s,
+#: acceleration 0.01 +- 0.02 m/s^2): the paper prints neither its power polynomial nor a cruise
+#: power, so its rows are set against this one's power instead.
+PAPER_CRUISE_PROXY = "commnet"
+
+
+def power_basis_table(t2: Any, scenario: str, n_vehicles: int, target_speed_mps: float,
+                      reference: str = "bdc", paper_n_vehicles: int = 8,
+                      paper_cruise_proxy: str = PAPER_CRUISE_PROXY) -> Any:
+    """The paper's Table II platoon powers beside ours on a common basis: per vehicle, and
+    relative to each model's cruise power, with ``reference``'s saving against each row on total
+    and (ours only) on controllable power.
+
+    Our cruise power is ``P(v*, 0)`` per vehicle from the fitted power model
+    (:func:`envs.energy.battery_power_kw`). The paper's is not printed: its rows are set against
+    the row of ``paper_cruise_proxy`` (:data:`PAPER_CRUISE_PROXY`), the paper's closest to
+    steady cruise. If that platoon spent anything above cruise, the paper's cruise power is lower
+    and every paper row sits further above it.
+
+    Parameters
+    ----------
+    t2 : DataFrame
+        :func:`table_two` (its ``controllable_power_kw_avg`` column may be NaN).
+    scenario : str
+        The scenario read as Table II's.
+    n_vehicles : int
+        Our followers N.
+    target_speed_mps : float
+        The scenario's target speed v*.
+    reference : str
+        The name whose saving against every row is stated (BDC, the paper's).
+    paper_n_vehicles : int
+        The paper's followers in Table II (8).
+    paper_cruise_proxy : str
+        The paper row standing in for its cruise power.
+
+    Returns
+    -------
+    DataFrame
+        One row per name of ``t2`` on ``scenario``: ``name``, ``collisions``;
+        ``paper_power_kw``, ``paper_per_vehicle_kw``, ``paper_vs_cruise_pct`` (per-vehicle power
+        over the proxy's, minus 1, in %), ``paper_saving_pct`` (``reference``'s saving against
+        the row, % of the row's power); ``power_kw``, ``per_vehicle_kw``, ``vs_cruise_pct``
+        (over ``P(v*, 0)``), ``controllable_per_vehicle_kw``, ``saving_pct`` (of total power),
+        ``controllable_saving_pct`` (of the row's controllable power; NaN when it is not
+        positive or not measured); ``cruise_per_vehicle_kw`` (``P(v*, 0)``, every row).
+    """
+    import pandas as pd
+
+    from envs.energy import battery_power_kw
+
+    cruise_kw = float(battery_power_kw(target_speed_mps, 0.0))
+    paper_cruise = TABLE_II.get(paper_cruise_proxy, {}).get("power_kw", (math.nan,))[0]
+    paper_cruise_per_vehicle = paper_cruise / paper_n_vehicles
+    paper_ref = TABLE_II.get(reference, {}).get("power_kw", (math.nan,))[0]
+    sub = t2[t2["scenario"] == scenario].set_index("name")
+    if reference in sub.index:
+        ours_ref = float(sub.loc[reference, "power_kw_avg"])
+        ctrl_ref = float(sub.loc[reference, "controllable_power_kw_avg"]) \
+            if "controllable_power_kw_avg" in sub else math.nan
+    else:
+        ours_ref = ctrl_ref = math.nan
+
+    def saving(ref: float, other: float) -> float:
+        return 100.0 * (other - ref) / other if other > 0 else math.nan
+
+    rows = []
+    for name, r in sub.iterrows():
+        paper = TABLE_II.get(str(name), {}).get("power_kw", (math.nan,))[0]
+        power = float(r["power_kw_avg"])
+        ctrl = float(r["controllable_power_kw_avg"]) if "controllable_power_kw_avg" in r \
+            else math.nan
+        rows.append({
+            "name": name, "collisions": int(r["collisions"]),
+            "paper_power_kw": paper,
+            "paper_per_vehicle_kw": paper / paper_n_vehicles,
+            "paper_vs_cruise_pct": 100.0 * (paper / paper_n_vehicles / paper_cruise_per_vehicle
+                                            - 1.0),
+            "paper_saving_pct": saving(paper_ref, paper),
+            "power_kw": power,
+            "per_vehicle_kw": power / n_vehicles,
+            "vs_cruise_pct": 100.0 * (power / n_vehicles / cruise_kw - 1.0),
+            "controllable_per_vehicle_kw": ctrl / n_vehicles,
+            "saving_pct": saving(ours_ref, power),
+            "controllable_saving_pct": saving(ctrl_ref, ctrl),
+            "cruise_per_vehicle_kw": cruise_kw,
+        })
     return pd.DataFrame(rows)
 
 
@@ -216,6 +348,109 @@ def _compare_names(table: Any, safety: Mapping[str, cl.Safety], ours: str, other
                       other_flaws=safety[other].flaws)
 
 
+def paired_ratio_saving_ci(ours: np.ndarray, other: np.ndarray, confidence: float = 0.95,
+                           n_resamples: int = 2000, seed: int = 0) -> tuple[float, float, float]:
+    """Saving of ours against other in % of other's mean, ``100 (mean(other) - mean(ours)) /
+    mean(other)``, with the two-stage percentile-bootstrap interval of
+    :func:`analysis.statistics.paired_ci` (training seeds drawn on each side, then the same
+    episodes for both sides).
+
+    A ratio of means, not a mean of per-episode ratios: the controllable energy of an episode
+    can be near 0, and one such episode would dominate a mean of ratios.
+
+    Parameters
+    ----------
+    ours, other : (seeds, episodes) arrays
+        Same episodes in the same order; no NaN.
+    confidence : float
+        Coverage of the interval.
+    n_resamples : int
+        Bootstrap resamples.
+    seed : int
+        Seed of the resampling stream.
+
+    Returns
+    -------
+    mean, low, high : float
+        In %; NaN when other's mean is not positive (a saving in % of it means nothing).
+    """
+    a, b = np.atleast_2d(np.asarray(ours, float)), np.atleast_2d(np.asarray(other, float))
+    if a.shape[1] != b.shape[1] or a.shape[1] == 0:
+        raise ValueError(f"the two sides need the same episodes, got {a.shape} and {b.shape}")
+    base = float(b.mean(0).mean())
+    if not base > 0.0:
+        return math.nan, math.nan, math.nan
+    mean = 100.0 * (base - float(a.mean(0).mean())) / base
+    rng = np.random.Generator(np.random.PCG64(seed))
+    ra = a[rng.integers(0, a.shape[0], (n_resamples, a.shape[0]))].mean(1)  # (R, episodes)
+    rb = b[rng.integers(0, b.shape[0], (n_resamples, b.shape[0]))].mean(1)
+    episodes = rng.integers(0, a.shape[1], (n_resamples, a.shape[1]))
+    ma = np.take_along_axis(ra, episodes, axis=1).mean(1)
+    mb = np.take_along_axis(rb, episodes, axis=1).mean(1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        savings = 100.0 * (mb - ma) / mb
+    alpha = (1.0 - confidence) / 2.0
+    lo, hi = np.quantile(savings, [alpha, 1.0 - alpha])
+    return mean, float(lo), float(hi)
+
+
+def controllable_saving_text(runs: Any, labels: Mapping[str, str], scenario: str,
+                             others: Sequence[str], ours: str = "bdc") -> str:
+    """Ours' saving on controllable energy (``docs/controllable-energy.md``) against each of
+    ``others`` on the same episodes, in % of the other's mean (:func:`paired_ratio_saving_ci`),
+    as a sentence for a claim's measurement. A rival whose mean controllable energy is not
+    positive gets the difference in kWh instead; runs stored before the measure say so.
+
+    Parameters
+    ----------
+    runs : DataFrame
+        ``runs.csv`` rows (status ok).
+    labels : mapping
+        Leaderboard label -> name.
+    scenario : str
+        The scenario compared on.
+    others : sequence of str
+        Names set against ``ours``.
+    ours : str
+        The name whose saving is stated.
+
+    Returns
+    -------
+    str
+    """
+    head = "on controllable energy (above steady cruise at the leader's mean speed)"
+    if CONTROLLABLE_COLUMN not in runs:
+        return f"{head}: not measured in these runs"
+    table = _seeds_by_episodes(runs, labels, scenario, CONTROLLABLE_COLUMN)
+    names = set(table.index.get_level_values("name"))
+    present = [o for o in others if o in names]
+    if ours not in names or not present:
+        return f"{head}: not measured in these runs"
+    episodes = runs.loc[(runs["scenario"] == scenario) & runs["controller"].isin(list(labels)),
+                        "seed"].nunique()
+    if table.shape[1] < episodes:  # an episode none of whose runs has the value
+        return f"{head}: not measured on every episode"
+    means = {n: float(np.nanmean(table.loc[n].to_numpy())) for n in [ours, *present]}
+    parts = []
+    for o in present:
+        pair = table.loc[[ours, o]]
+        if pair.isna().to_numpy().any():
+            parts.append(f"vs {o}: not measured on every episode")
+            continue
+        a, b = pair.loc[ours].to_numpy(), pair.loc[o].to_numpy()
+        m, lo, hi = paired_ratio_saving_ci(a, b)
+        if math.isfinite(m):
+            parts.append(f"vs {o} {m:+.1f} % [{lo:+.1f}, {hi:+.1f}]")
+        else:
+            from analysis.statistics import paired_ci
+
+            d, dlo, dhi = paired_ci(a, b)
+            parts.append(f"vs {o}: {o}'s is not positive, no % ({ours} minus {o} "
+                         f"{d:+.4f} kWh [{dlo:+.4f}, {dhi:+.4f}])")
+    return (f"{head}, mean kWh per episode " + ", ".join(f"{n} {v:.4f}" for n, v in means.items())
+            + f": {ours}'s saving " + "; ".join(parts))
+
+
 def energy_claim(runs: Any, labels: Mapping[str, str], scenario: str,
                  others: Sequence[str] = MARL_RIVALS) -> Verdict:
     """"BDC has the highest energy saving": BDC's platoon power against each other MARL
@@ -233,9 +468,10 @@ def energy_claim(runs: Any, labels: Mapping[str, str], scenario: str,
     safety = _safety(runs, labels, scenario)
     comps = {o: _compare_names(table, safety, "bdc", o, "saving") for o in rivals}
     best = max((c.mean, o) for o, c in comps.items())
-    measured = (f"{scenario}: BDC's power saving "
+    measured = (f"{scenario}: BDC's saving on total power "
                 + "; ".join(f"vs {o} {c.interval(2, '%')}" for o, c in comps.items())
-                + f" (largest {best[0]:.2f} % vs {best[1]}); collisions: "
+                + f" (largest {best[0]:.2f} % vs {best[1]}); "
+                + controllable_saving_text(runs, labels, scenario, rivals) + "; collisions: "
                 + ", ".join(f"{n} {safety[n].text()}" for n in ["bdc", *rivals]))
     verdict, reason = cl.all_ahead(comps)
     return Verdict(claim, measured, verdict, reason, quote)
@@ -257,9 +493,10 @@ def energy_magnitude_claim(runs: Any, labels: Mapping[str, str], scenario: str,
         return Verdict(claim, f"BDC or {against} was not run", cl.NOT_TESTABLE, "no runs", quote)
     safety = _safety(runs, labels, scenario)
     c = _compare_names(table, safety, "bdc", against, "saving")
-    measured = (f"{scenario}: BDC's power saving vs {against} {c.interval(2, '%')} (paper "
-                f"{100 * (paper_other - paper_bdc) / paper_other:.2f} %); bdc "
-                f"{safety['bdc'].text()}, {against} {safety[against].text()}")
+    measured = (f"{scenario}: BDC's saving on total power vs {against} {c.interval(2, '%')} "
+                f"(paper {100 * (paper_other - paper_bdc) / paper_other:.2f} %); "
+                + controllable_saving_text(runs, labels, scenario, [against])
+                + f"; bdc {safety['bdc'].text()}, {against} {safety[against].text()}")
     verdict, reason = cl.magnitude(c, target)
     return Verdict(claim, measured, verdict, reason, quote)
 
