@@ -47,7 +47,7 @@ from torch import nn
 from envs.accel_mode import check_action_mode, position_features
 from envs.channel import ChannelConfig, episode_uniforms
 from envs.errors import ConfigError
-from envs.params import OVM_ACTIONS, VALIDATION_SEEDS, PlatoonParams
+from envs.params import OVM_ACTIONS, VALIDATION_SEEDS, PlatoonParams, check_decision_seeds
 from envs.platoon import PlatoonEnv, PlatoonState
 from envs.scenarios import check_vehicles, make_scenario
 from marl.consensus import bdc, consensus_round
@@ -635,6 +635,7 @@ def validation_score(actor: SharedActor, scenario: str, n_vehicles: int,
                      seeds: tuple[int, ...] = VALIDATION_SEEDS) -> dict[str, float]:
     """Mean evaluation reward (sum over agents per step, as the benchmark's tables) and
     collisions on the validation seeds, actions sampled from the episodes' own uniforms."""
+    check_decision_seeds(seeds, "marl.ppo.validation_score")
     env = PlatoonEnv(scenario, n_vehicles, params, action_mode=config.action_mode,
                      channel=ChannelConfig(config.comm_delay_s, config.packet_loss, params.dt_s))
     seeds_arr = np.asarray(seeds)

@@ -124,8 +124,6 @@ def test_duty_refuses_to_choose_k_on_test_seeds() -> None:
             helper("catchup-v1", 2, 2, seeds=[TEST_SEEDS[5]])
 
 
-@pytest.mark.xfail(reason="marl/ppo.py is edited elsewhere: validation_score does not call "
-                          "envs.params.check_decision_seeds yet", strict=False)
 def test_ppo_validation_score_refuses_test_seeds() -> None:
     from marl.ppo import PPOConfig, SharedActor, validation_score
 
