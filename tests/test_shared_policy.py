@@ -404,6 +404,27 @@ def test_the_validation_table_of_the_docs_is_the_checkpoints() -> None:
                 assert f"{data['curve_summary']['best_reward']:.2f}" in row, (algo, sc, seed)
 
 
+def test_the_residual_and_ippo_bdc_readings_of_the_docs_are_the_checkpoints() -> None:
+    """The kept validation rewards, snapshot steps and consensus bits docs/learned-control.md
+    gives for the residual variant and ippo-bdc are those the shipped checkpoints record."""
+    from controllers.policy import VARIANT_DIR, checkpoint_path
+    from marl.checkpoint import load_checkpoint
+
+    text = " ".join((Path(__file__).resolve().parent.parent / "docs" / "learned-control.md")
+                    .read_text().split())
+    for algo, folder, section in (("ippo", VARIANT_DIR / "residual-cacc", "## A learned residual"),
+                                  ("ippo-bdc", None, "## BDC's consensus")):
+        part = text[text.index(section):]
+        part = part[: part.index("## ", 3)]
+        for sc in ("catchup-v1", "slowdown-v1"):
+            for seed in (0, 1, 2):
+                summary = load_checkpoint(checkpoint_path(algo, sc, 8, seed, folder))["curve_summary"]
+                assert f"{summary['best_reward']:.2f}" in part, (algo, sc, seed)
+                if algo == "ippo-bdc":
+                    assert 7e5 <= summary["best_steps"] <= 9.1e5
+                    assert round(summary["consensus_bits_per_agent"] / 1e7, 1) in (3.2, 3.3)
+
+
 @pytest.mark.slow
 def test_the_string_stability_reading_of_the_docs(tmp_path: Path) -> None:
     import pandas as pd
