@@ -208,6 +208,27 @@ def _sentence(row: Any) -> str:
             f"{_num(row['reward_other'])}: difference {diff}, **{row['verdict']}**.")
 
 
+#: The terms of the gap ``ippo (OVM-gain) - mpc``: (name, ours, other).
+DECOMPOSITION: tuple[tuple[str, str, str], ...] = (
+    ("action set and information", "ippo (OVM-gain)", "ippo"),
+    ("reinforcement learning against imitation", "ippo", "distill"),
+    ("imitation against its expert", "distill", "mpc"),
+)
+
+
+def _decomposition(comp: Any) -> list[str]:
+    """The gap of one scenario as the sum of :data:`DECOMPOSITION`'s terms (their means add up
+    exactly; each keeps its own interval), or nothing when a term did not run."""
+    diff = {(r["ours"], r["other"]): r for _, r in comp.iterrows() if r["setting"] == "ideal V2V"}
+    total = diff.get(("ippo (OVM-gain)", "mpc"))
+    terms = [(name, diff.get((a, b))) for name, a, b in DECOMPOSITION]
+    if total is None or any(t is None for _, t in terms):
+        return []
+    parts = " + ".join(f"{_num(t['difference'])} ({name}, [{_num(t['ci_low'])}, "
+                       f"{_num(t['ci_high'])}])" for name, t in terms)
+    return [f"The gap, {_num(total['difference'])}, is {parts}.", ""]
+
+
 def write_report(ep: Any, comp: Any, out: Path, command: str) -> Path:
     """Write ``report.md`` (policy table, the three questions with every comparison) in ``out``."""
     table = policy_table(ep)
@@ -255,6 +276,8 @@ def write_report(ep: Any, comp: Any, out: Path, command: str) -> Path:
             for _, r in grp.iterrows():
                 lines.append(f"- {_sentence(r)} ({r['meaning']})")
             lines.append("")
+            if question == "the gap":
+                lines += _decomposition(comp[comp["scenario"] == scenario])
     path = out / "report.md"
     from envs.atomic import write_text
 

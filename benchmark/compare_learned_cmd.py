@@ -101,8 +101,9 @@ def main(argv: list[str]) -> int:
                    for k in build_sweep(specs, scenarios, [args.vehicles], seeds, [delay], [loss])})
     out = writable_dir(args.out)
     shown = [a for i, a in enumerate(argv)  # the report names its own folder, not a path
-             if a != "--out" and not a.startswith("--out=") and (i == 0 or argv[i - 1] != "--out")]
-    command = "cacc-bench compare-learned " + " ".join(shlex.quote(a) for a in shown)
+             if a not in ("--out", "--resume") and not a.startswith("--out=")
+             and (i == 0 or argv[i - 1] != "--out")]
+    command = " ".join(["cacc-bench compare-learned", *(shlex.quote(a) for a in shown)])
     with folder_lock(out):
         print(f"compare-learned: {len(specs)} controllers x {len(scenarios)} scenarios x 2 V2V "
               f"settings x {len(seeds)} episodes = {len(keys)} runs", file=sys.stderr)

@@ -17,8 +17,11 @@ from analysis.learned_report import (
     LOWER,
     comparisons_frame,
     policy_name,
+    write_report,
 )
 from benchmark.cli import main
+
+DOCS = Path(__file__).resolve().parents[1] / "docs" / "compare-learned"
 
 
 def _episodes(policy: str, rewards: np.ndarray, setting: tuple[float, float] = IDEAL,
@@ -101,3 +104,62 @@ def test_the_command_in_small_form(tmp_path: Path, capsys: pytest.CaptureFixture
     assert main(["compare-learned", "--scenarios", "nope-v1", "--out", str(tmp_path / "x")]) == 2
     assert main(["compare-learned", "--vehicles", "1", "--out", str(tmp_path / "x")]) == 2
     assert "Traceback" not in capsys.readouterr().err
+
+
+def test_the_committed_report_is_its_episodes_read_again(tmp_path: Path) -> None:
+    """``docs/compare-learned/report.md`` and ``comparisons.csv`` are what the report code makes
+    of the committed ``episodes.csv`` (the runs themselves: ``cacc-bench compare-learned``)."""
+    ep = pd.read_csv(DOCS / "episodes.csv")
+    committed = (DOCS / "report.md").read_text()
+    command = committed.split("Made by `", 1)[1].split(" --out FOLDER`", 1)[0]
+    comp = comparisons_frame(ep)
+    write_report(ep, comp, tmp_path, command)
+    assert (tmp_path / "report.md").read_text() == committed
+    pd.testing.assert_frame_equal(comp, pd.read_csv(DOCS / "comparisons.csv"), check_dtype=False)
+
+
+@pytest.mark.parametrize(("policy", "scenario"), [
+    ("ippo (residual on cacc)", "catchup-v1"), ("ippo-bdc", "slowdown-v1"), ("cacc", "catchup-v1")])
+def test_the_committed_episodes_are_the_shipped_policies(policy: str, scenario: str) -> None:
+    """A few committed episodes rerun from the shipped checkpoints give the same rewards."""
+    from analysis.learned_report import POLICIES
+    from benchmark.rollout import rollout_batch
+    from controllers.registry import make_controller
+    from envs.scenarios import make_scenario
+
+    ep = pd.read_csv(DOCS / "episodes.csv")
+    ep = ep[(ep["policy"] == policy) & (ep["scenario"] == scenario) & (ep["comm_delay_s"] == 0)
+            & (ep["packet_loss"] == 0) & (ep["train_seed"] == 0)].sort_values("seed").head(3)
+    assert len(ep) == 3
+    ctrl, opts = POLICIES[policy]
+    opts = {**opts, "seed": "0"} if ctrl != "cacc" else opts
+    trajs = rollout_batch(make_controller(ctrl, **opts), make_scenario(scenario), 8,
+                          [int(s) for s in ep["seed"]])
+    np.testing.assert_allclose([t.reward.mean() for t in trajs], ep["reward"], rtol=1e-8)  # CSV digits
+
+
+def test_the_readme_answer_is_the_committed_report() -> None:
+    """Every number of the README's answer is in the committed report; its compute and
+    communication sentences hold on the committed tables."""
+    import re
+
+    readme = (DOCS.parents[1] / "README.md").read_text()
+    section = readme[readme.index("## Learned control"):readme.index("## Where the rest lives")]
+    report = (DOCS / "report.md").read_text()
+    numbers = re.findall(r"(?<![\d.])-?\d+\.\d\d(?!\d)", section)
+    assert len(numbers) >= 15
+    for x in numbers:
+        if x in ("0.43", "0.54"):
+            continue
+        assert x in report, x
+    pol = pd.read_csv(DOCS / "policies.csv")
+    ideal = pol[(pol["comm_delay_s"] == 0) & (pol["packet_loss"] == 0)].set_index(
+        ["scenario", "policy"])["compute_ms_p50"]
+    for sc in ("catchup-v1", "slowdown-v1"):
+        assert round(ideal[(sc, "distill")], 4) == 0.0008
+    assert (round(ideal[("catchup-v1", "mpc")], 2), round(ideal[("slowdown-v1", "mpc")], 2)) == (
+        0.43, 0.54)
+    comp = pd.read_csv(DOCS / "comparisons.csv")
+    comm = comp[(comp["question"] == "communication")
+                & comp["ours"].isin(["ippo", "ippo (OVM-gain)", "mappo", "ippo-bdc"])]
+    assert round(-comm["difference"].min(), 2) == 2.15
