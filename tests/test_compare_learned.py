@@ -163,3 +163,14 @@ def test_the_readme_answer_is_the_committed_report() -> None:
     comm = comp[(comp["question"] == "communication")
                 & comp["ours"].isin(["ippo", "ippo (OVM-gain)", "mappo", "ippo-bdc"])]
     assert round(-comm["difference"].min(), 2) == 2.15
+
+
+def test_what_docs_learned_control_says_is_left_reads_the_report() -> None:
+    import re
+
+    text = (DOCS.parent / "learned-control.md").read_text()
+    left = text[text.index("## Not done yet"):]
+    report = (DOCS / "report.md").read_text()
+    numbers = re.findall(r"(?<![\d.])-?\d+\.\d\d(?!\d)", left)
+    assert len(numbers) >= 6 and all(x in report for x in numbers)
+    assert round(100 * 5.02 / 432.37, 1) == 1.2
