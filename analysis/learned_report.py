@@ -221,8 +221,9 @@ def _decomposition(comp: Any) -> list[str]:
     exactly; each keeps its own interval), or nothing when a term did not run."""
     diff = {(r["ours"], r["other"]): r for _, r in comp.iterrows() if r["setting"] == "ideal V2V"}
     total = diff.get(("ippo (OVM-gain)", "mpc"))
-    terms = [(name, diff.get((a, b))) for name, a, b in DECOMPOSITION]
-    if total is None or any(t is None for _, t in terms):
+    found = [(name, diff.get((a, b))) for name, a, b in DECOMPOSITION]
+    terms = [(name, t) for name, t in found if t is not None]
+    if total is None or len(terms) < len(found):
         return []
     parts = " + ".join(f"{_num(t['difference'])} ({name}, [{_num(t['ci_low'])}, "
                        f"{_num(t['ci_high'])}])" for name, t in terms)

@@ -51,24 +51,33 @@ SHARED_POLICIES: tuple[str, ...] = ("ippo", "mappo", "distill", "ippo-bdc")
 PER_AGENT_POLICIES: tuple[str, ...] = ("ippo-bdc",)
 
 
+#: Fewest episodes' rows a per-agent actor (``ippo-bdc``, batched products ``(N, M, D) @ (N, D,
+#: H)``) is evaluated on: with 1 to 6 rows this torch build's batched product rounds otherwise
+#: than with more (measured on AMD EPYC); from 7 on, equal.
+PER_AGENT_MIN_LANES = 8
+
+
 @functools.cache
-def mlp_rows_are_batch_invariant(action_mode: str = "accel") -> bool:
-    """Whether a row of the shared actor gets the same numbers among 64 episodes' rows as among
-    :data:`controllers.policy.MIN_LANES` episodes' (random weights, once per process)."""
+def mlp_rows_are_batch_invariant(action_mode: str = "accel", algo: str = "ippo") -> bool:
+    """Whether a row of the actor gets the same numbers among 64 episodes' rows as among the
+    fewest lanes the controller pads to (:data:`controllers.policy.MIN_LANES`, or
+    :data:`PER_AGENT_MIN_LANES` for a per-agent actor; random weights, once per process)."""
     import torch
 
     from marl.ppo import PPOConfig, SharedActor
 
     torch.manual_seed(0)
-    actor = SharedActor(PPOConfig(action_mode=action_mode))
+    cfg = PPOConfig(action_mode=action_mode, algo=algo if algo == "ippo-bdc" else "ippo")
+    actor = SharedActor(cfg, n_agents=8 if cfg.per_agent else 0)
+    lanes = PER_AGENT_MIN_LANES if cfg.per_agent else MIN_LANES
     with torch.no_grad():
         for p in actor.body.parameters():
             p.add_(0.1 * torch.randn(p.shape))
-        obs = torch.randn(64, 8, PPOConfig(action_mode=action_mode).obs_dim,
+        obs = torch.randn(64, 8, cfg.obs_dim,
                           generator=torch.Generator().manual_seed(1), dtype=torch.float64)
         full = actor(obs)
         for row in (0, 31, 63):
-            sub = actor(obs[[row] * MIN_LANES].contiguous())
+            sub = actor(obs[[row] * lanes].contiguous())
             if not torch.equal(sub[0], full[row]):
                 return False
     return True
@@ -144,7 +153,7 @@ class SharedPolicyController(Controller):
     @staticmethod
     def batch_invariant_probe(algo: str, **_: Any) -> bool:
         """Whether the harness may batch this policy's episodes here."""
-        return mlp_rows_are_batch_invariant()
+        return mlp_rows_are_batch_invariant(algo=algo)
 
     # ---------------------------------------------------------------- loading
     def _path(self, source: str) -> Path:
@@ -204,7 +213,7 @@ class SharedPolicyController(Controller):
         self.seeds, self.t = ctx.seeds, 0
         self._u_block: np.ndarray | None = None
         self._u_start = 0
-        self._lanes = max(b, MIN_LANES)
+        self._lanes = max(b, PER_AGENT_MIN_LANES if self.actor.n_agents else MIN_LANES)
         if self.action_mode == "accel":
             self._pred_channel = ctx.channel(PRED_MESSAGE[0])
             self._leader_channel = ctx.channel(LEADER_MESSAGE[0])

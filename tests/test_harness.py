@@ -380,7 +380,7 @@ def _batch_invariant_names() -> list[str]:
 def test_the_batch_invariant_controllers_are_the_cheap_laws() -> None:
     assert _batch_invariant_names() == ["ovm", "duty", "acc", "cacc", "ia2c", "fprint", "dial",
                                         "commnet", "wac", "dcea", "bdc", "ippo", "mappo",
-                                        "distill"]
+                                        "ippo-bdc", "distill"]
 
 
 def _assert_each_record_equals_its_run_alone(keys, batched) -> None:

@@ -180,6 +180,21 @@ def test_ippo_bdc_trains_a_network_per_agent_and_counts_its_consensus_messages(
         ctrl.preflight(make_scenario("catchup-v1"), 4)
 
 
+def test_the_shipped_ippo_bdc_scores_an_episode_alike_alone_or_in_a_batch() -> None:
+    """Per-agent actors (batched products) are padded to
+    :data:`controllers.shared_policy.PER_AGENT_MIN_LANES` rows: one episode alone gets the
+    numbers it gets among ten."""
+    from benchmark.rollout import rollout_batch
+    from controllers.registry import make_controller
+    from envs.params import EVAL_SEEDS
+    from envs.scenarios import make_scenario
+
+    sc = make_scenario("catchup-v1")
+    ten = rollout_batch(make_controller("ippo-bdc"), sc, 8, list(EVAL_SEEDS[:10]))
+    one = rollout_batch(make_controller("ippo-bdc"), sc, 8, [EVAL_SEEDS[3]])
+    assert np.array_equal(one[0].reward, ten[3].reward)
+
+
 def test_a_residual_needs_acceleration_actions() -> None:
     with pytest.raises(ConfigError, match="needs action_mode=accel"):
         PPOConfig(prior="cacc", action_mode="ovm-gain")
