@@ -267,6 +267,87 @@ def _openacc_train(sc: Scenario, seeds: np.ndarray, u: np.ndarray, n: int) -> Ep
                         leader_speed_mps=leader)
 
 
+#: The disturbances ``mixed-v1`` draws from (its ``kinds`` option joins a subset with ``+``).
+MIXED_KINDS: tuple[str, ...] = ("catchup", "slowdown", "brake", "sine")
+
+
+def _mixed(sc: Scenario, seeds: np.ndarray, u: np.ndarray, n: int) -> EpisodeBatch:
+    """A distribution of episodes (domain randomisation): per episode, its own stream draws the
+    kind of disturbance and its parameters, then the followers' initial gaps and speeds are
+    spread around the kind's own. ``catchup`` and ``slowdown`` are the published builders (the
+    episode's ``U`` sets them); ``brake`` is a leader braking from ``v*`` at a random rate to a
+    random speed, holding, and recovering (``brake-v1`` and the OpenACC Dynamic Platform's
+    manoeuvre are members); ``sine`` has a random amplitude and frequency."""
+    o = sc.options
+    kinds = o["kinds"].split("+")
+    b = len(seeds)
+    leader = np.empty((b, sc.n_steps + 1))
+    gap0 = np.empty((b, n))
+    speed0 = np.empty((b, n))
+    t = np.arange(sc.n_steps + 1) * PlatoonParams().dt_s
+    for i, seed in enumerate(seeds):
+        rng = episode_stream(int(seed), "mixed")
+        kind = kinds[int(rng.integers(len(kinds)))]
+        one = (sc, seeds[i:i + 1], u[i:i + 1], n)
+        if kind == "catchup":
+            ep = _catchup(*one)
+        elif kind == "slowdown":
+            ep = _slowdown(*one)
+        elif kind == "brake":
+            v0 = sc.target_speed_mps
+            a_brake = 1.5 + (o["brake_rate_max_mps2"] - 1.5) * rng.random()
+            v_min = 3.0 + (v0 - 5.0) * rng.random()
+            profile = braking_profile_mps(t, v0, 3.0 + 12.0 * rng.random(), a_brake, v_min,
+                                          10.0 * rng.random(), 0.8 + 2.0 * rng.random())
+            ep = _equilibrium(sc, *one[1:], profile)
+        else:
+            amp = o["sine_amplitude_max_mps"] * rng.random()
+            freq = 0.02 + (o["sine_frequency_max_hz"] - 0.02) * rng.random()
+            profile = sc.target_speed_mps + amp * np.sin(2 * np.pi * freq * t)
+            ep = _equilibrium(sc, *one[1:], profile)
+        leader[i] = ep.leader_speed_mps[0]
+        spread = 1.0 + o["gap_spread"] * (2.0 * rng.random(n) - 1.0)
+        if kind == "catchup":
+            spread[0] = 1.0  # follower 1's gap is the disturbance
+        gap0[i] = ep.gap_m[0] * spread
+        speed0[i] = np.clip(ep.speed_mps[0] + o["speed_spread_mps"] * (2.0 * rng.random(n) - 1.0),
+                            0.0, None)
+    return EpisodeBatch(seeds=seeds, perturbation=u, gap_m=gap0, speed_mps=speed0,
+                        leader_speed_mps=leader)
+
+
+def braking_profile_mps(t_s: np.ndarray, v0_mps: float, t_brake_s: float, a_brake_mps2: float,
+                        v_min_mps: float, hold_s: float, a_up_mps2: float) -> np.ndarray:
+    """Cruise at ``v0``, from ``t_brake`` brake at ``a_brake`` to ``v_min``, hold ``hold``,
+    accelerate back to ``v0`` at ``a_up`` (speeds at the times ``t_s``)."""
+    t_low = t_brake_s + (v0_mps - v_min_mps) / a_brake_mps2
+    t_up = t_low + hold_s
+    v = np.full_like(t_s, v0_mps)
+    braking = (t_s > t_brake_s) & (t_s <= t_low)
+    v[braking] = v0_mps - a_brake_mps2 * (t_s[braking] - t_brake_s)
+    v[(t_s > t_low) & (t_s <= t_up)] = v_min_mps
+    rising = t_s > t_up
+    v[rising] = np.minimum(v_min_mps + a_up_mps2 * (t_s[rising] - t_up), v0_mps)
+    return v
+
+
+def _check_mixed(opts: dict[str, Any]) -> None:
+    kinds = opts["kinds"].split("+")
+    if not kinds or any(k not in MIXED_KINDS for k in kinds) or len(set(kinds)) != len(kinds):
+        raise ConfigError(f"mixed-v1 kinds must join distinct names of {', '.join(MIXED_KINDS)} "
+                          f"with '+', got {opts['kinds']!r}")
+    if not 1.5 <= opts["brake_rate_max_mps2"] <= 2.5:
+        raise ConfigError("mixed-v1 brake_rate_max_mps2 must lie in [1.5, 2.5] m/s^2 (a leader "
+                          "braking harder than the followers can is not survivable)")
+    if not 0 <= opts["sine_amplitude_max_mps"] <= 10:
+        raise ConfigError("mixed-v1 sine_amplitude_max_mps must lie in [0, 10] m/s")
+    if not 0.02 < opts["sine_frequency_max_hz"] < 5:
+        raise ConfigError("mixed-v1 sine_frequency_max_hz must lie in (0.02, 5) Hz")
+    if not (0 <= opts["gap_spread"] < 0.5 and 0 <= opts["speed_spread_mps"] <= 3):
+        raise ConfigError("mixed-v1 gap_spread must lie in [0, 0.5) and speed_spread_mps in "
+                          "[0, 3] m/s")
+
+
 def _openacc_train_spec(size: str, gap_m: float) -> ScenarioSpec:
     return ScenarioSpec(
         f"openacc-train-{size}-v1",
@@ -372,6 +453,17 @@ for _spec in (
         "stands in for the paper's dynamic_part9)",
     ),
     _openacc_spec("L", "real OpenACC leader (ZalaZONE dynamic_part2, 450..510 s, long ACC setting)"),
+    ScenarioSpec(
+        "mixed-v1",
+        "a training distribution: per episode catchup, slowdown, a random braking manoeuvre or "
+        "a random sine (options kinds, brake_rate_max_mps2, sine_amplitude_max_mps, "
+        "sine_frequency_max_hz, gap_spread, speed_spread_mps)",
+        20.0, 15.0, 600, _mixed,
+        defaults={"kinds": "+".join(MIXED_KINDS), "brake_rate_max_mps2": 2.5,
+                  "sine_amplitude_max_mps": 3.0, "sine_frequency_max_hz": 0.5,
+                  "gap_spread": 0.2, "speed_spread_mps": 0.5},
+        check=_check_mixed,
+    ),
     _openacc_train_spec("s", 12.0),
     _openacc_train_spec("m", 16.0),
     _openacc_train_spec("l", 20.0),

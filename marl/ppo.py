@@ -49,7 +49,7 @@ from envs.channel import ChannelConfig, episode_uniforms
 from envs.errors import ConfigError
 from envs.params import OVM_ACTIONS, VALIDATION_SEEDS, PlatoonParams, check_decision_seeds
 from envs.platoon import PlatoonEnv, PlatoonState
-from envs.scenarios import check_vehicles, make_scenario
+from envs.scenarios import Scenario, check_vehicles, make_scenario
 from marl.consensus import bdc, consensus_round
 from marl.quantize import ErrorFeedbackQSGD, qsgd_bits, ternary_bits
 
@@ -111,6 +111,14 @@ class PPOConfig:
     critic_warmup_updates : int
         Updates at the start that fit only the critic (so a random critic's advantages do not
         move a policy that starts from a good prior).
+    vehicles_min, vehicles_max : int
+        0, 0: every training episode has the run's N. Otherwise each batch of ``n_envs``
+        episodes draws its N uniformly from ``vehicles_min`` (or the run's N) to
+        ``vehicles_max`` (or the run's N) (domain randomisation; a rollout then ends where its
+        episodes end; validation stays at the run's N).
+    comm_delay_max_s, packet_loss_max : float
+        Above ``comm_delay_s`` and ``packet_loss``: each batch of episodes draws its V2V delay
+        (whole steps) and loss uniformly up to these (0: fixed).
     consensus_eps, qsgd_levels, qsgd_bucket : float, int, int
         ``ippo-bdc``: the consensus step (BDC's default), QSGD's levels on the critic gradients
         (0: off) and entries per QSGD bucket.
@@ -139,6 +147,10 @@ class PPOConfig:
     eval_every_steps: int = 100_000
     prior: str = ""
     critic_warmup_updates: int = 0
+    vehicles_min: int = 0
+    vehicles_max: int = 0
+    comm_delay_max_s: float = 0.0
+    packet_loss_max: float = 0.0
     consensus_eps: float = 0.001
     qsgd_levels: int = 1
     qsgd_bucket: int = 128
@@ -161,6 +173,22 @@ class PPOConfig:
         if not 0 <= self.critic_warmup_updates <= 10**6:
             raise ConfigError(f"critic_warmup_updates must lie in 0..1e6, got "
                               f"{self.critic_warmup_updates}")
+        for name in ("vehicles_min", "vehicles_max"):
+            if getattr(self, name) and not 2 <= getattr(self, name) <= 64:
+                raise ConfigError(f"{name} must be 0 or lie in 2..64, got {getattr(self, name)}")
+        if self.vehicles_min and self.vehicles_max and self.vehicles_min > self.vehicles_max:
+            raise ConfigError("vehicles_min must not exceed vehicles_max")
+        if self.randomised and self.per_agent:
+            raise ConfigError("ippo-bdc has a network per follower: it trains at one N and one "
+                              "V2V setting (vehicles_min, vehicles_max, comm_delay_max_s, packet_loss_max: 0)")
+        if self.comm_delay_max_s:
+            ChannelConfig(self.comm_delay_max_s, 0.0)
+            if self.comm_delay_max_s < self.comm_delay_s:
+                raise ConfigError("comm_delay_max_s must be 0 or >= comm_delay_s")
+        if self.packet_loss_max:
+            ChannelConfig(0.0, self.packet_loss_max)
+            if self.packet_loss_max < self.packet_loss:
+                raise ConfigError("packet_loss_max must be 0 or >= packet_loss")
         if not 0 < self.consensus_eps <= 0.5:
             raise ConfigError(f"consensus_eps must lie in (0, 0.5], got {self.consensus_eps}")
         if not (0 <= self.qsgd_levels <= 64 and 1 <= self.qsgd_bucket <= 10**6):
@@ -173,6 +201,12 @@ class PPOConfig:
         if not (0 < self.clip_coef < 1 and self.vf_coef >= 0 and self.ent_coef >= 0):
             raise ConfigError("clip_coef must lie in (0, 1); vf_coef and ent_coef must be >= 0")
         ChannelConfig(self.comm_delay_s, self.packet_loss)  # the channel's own checks
+
+    @property
+    def randomised(self) -> bool:
+        """Whether batches of training episodes draw their N or V2V setting."""
+        return bool(self.vehicles_min or self.vehicles_max or self.comm_delay_max_s
+                    or self.packet_loss_max)
 
     @property
     def per_agent(self) -> bool:
@@ -415,23 +449,45 @@ def train(
     bits = {"consensus": 0.0, "qsgd_local": 0.0}  # per agent, ippo-bdc
     qsgd = ErrorFeedbackQSGD(max(cfg.qsgd_levels, 1), gen, cfg.qsgd_bucket)
     opt = torch.optim.Adam([*actor.parameters(), *critic.parameters()], lr=cfg.lr, eps=1e-5)
-    env = PlatoonEnv(sc, n, params, training=True, action_mode=cfg.action_mode,
-                     channel=ChannelConfig(cfg.comm_delay_s, cfg.packet_loss, params.dt_s))
+    def make_env(n_b: int, delay_s: float, loss: float) -> PlatoonEnv:
+        return PlatoonEnv(sc, n_b, params, training=True, action_mode=cfg.action_mode,
+                          channel=ChannelConfig(delay_s, loss, params.dt_s))
+
+    env = make_env(n, cfg.comm_delay_s, cfg.packet_loss)
     targets = (sc.target_gap_m, sc.target_speed_mps)
     p0 = float(env.power(np.array([sc.target_speed_mps]), np.array([0.0]))[0])
     baseline = -env.weights.power * p0  # the cruise power's constant part, per running agent-step
     b, t_len = cfg.n_envs, cfg.rollout_steps
-    idx_n = torch.arange(n, dtype=torch.float32)
-    sharing = cfg.reward_alpha ** (idx_n[:, None] - idx_n[None, :]).abs()  # (N, N)
     episode = 0
 
+    def sharing_of(n_b: int) -> torch.Tensor:
+        idx_n = torch.arange(n_b, dtype=torch.float32)
+        return cfg.reward_alpha ** (idx_n[:, None] - idx_n[None, :]).abs()  # (N, N)
+
+    sharing = sharing_of(n)
+    n_now = n                                          # followers of the batch running now
     ret_acc = torch.zeros(b, n, dtype=torch.float64)   # discounted return so far, per agent
     ret_stats = [1e-4, 0.0, 1.0]                       # count, mean, var of those returns
 
     def new_episodes() -> torch.Tensor:
-        nonlocal episode
+        nonlocal episode, env, n_now, sharing, ret_acc
         seeds = 10_000_000 * (seed + 1) + episode + np.arange(b)
         episode += b
+        if cfg.randomised:  # this batch's N and V2V, from the run's generator
+            n_lo, n_hi = cfg.vehicles_min or n, cfg.vehicles_max or n
+            if n_lo > n_hi:
+                raise ConfigError(f"the vehicles range {n_lo}..{n_hi} is empty")
+            n_now = n_lo + int(torch.randint(n_hi - n_lo + 1, (1,), generator=gen))
+            steps_hi = round(max(cfg.comm_delay_max_s, cfg.comm_delay_s) / params.dt_s)
+            steps_lo = round(cfg.comm_delay_s / params.dt_s)
+            delay = params.dt_s * (steps_lo + int(torch.randint(
+                steps_hi - steps_lo + 1, (1,), generator=gen)))
+            loss_hi = max(cfg.packet_loss_max, cfg.packet_loss)
+            loss = cfg.packet_loss + (loss_hi - cfg.packet_loss) * float(
+                torch.rand(1, generator=gen, dtype=torch.float64))
+            env = make_env(n_now, delay, loss)
+            sharing = sharing_of(n_now)
+            ret_acc = torch.zeros(b, n_now, dtype=torch.float64)
         ret_acc.zero_()
         return torch.from_numpy(agent_inputs(env.reset(seeds), cfg.action_mode))
 
@@ -459,7 +515,7 @@ def train(
     while steps < total_steps:
         if validate and steps >= next_eval:
             shipped = as_shipped(actor)
-            score = validation_score(shipped, sc.id, n, params, cfg)
+            score = validation_score(shipped, sc, n, params, cfg)
             curve.append({"steps": float(steps), **score})
             if not best or (score["collisions"], -score["reward"]) <= (best["collisions"], -best["reward"]):
                 best = {"steps": float(steps), **score}
@@ -468,16 +524,17 @@ def train(
                 log(f"{cfg.algo} {sc.id} seed {seed}: {steps} steps, validation reward "
                     f"{score['reward']:.1f}, collisions {score['collisions']:.0f}")
             next_eval += cfg.eval_every_steps
-        # ---- rollout: T steps of B episodes
-        buf_obs = torch.zeros(t_len, b, n, d)
-        buf_cobs = torch.zeros(t_len, b, n, d * (2 if critic.central else 1))
-        buf_act = torch.zeros(t_len, b, n)
-        buf_logp = torch.zeros(t_len, b, n)
-        buf_val = torch.zeros(t_len + 1, b, n)
-        buf_rew = torch.zeros(t_len, b, n)
+        # ---- rollout: T steps of B episodes (fewer where a randomised batch ends)
+        n_r = n_now
+        buf_obs = torch.zeros(t_len, b, n_r, d)
+        buf_cobs = torch.zeros(t_len, b, n_r, d * (2 if critic.central else 1))
+        buf_act = torch.zeros(t_len, b, n_r)
+        buf_logp = torch.zeros(t_len, b, n_r)
+        buf_val = torch.zeros(t_len + 1, b, n_r)
+        buf_rew = torch.zeros(t_len, b, n_r)
         buf_live = torch.zeros(t_len, b)     # the step belongs to a running episode
         buf_cont = torch.zeros(t_len, b)     # the episode goes on after the step
-        buf_term_value = torch.zeros(t_len, b, n)  # value after an ending: absorbing or bootstrap
+        buf_term_value = torch.zeros(t_len, b, n_r)  # value after an ending: absorbing or bootstrap
         for t in range(t_len):
             s = env.state
             assert s is not None
@@ -524,26 +581,40 @@ def train(
                 buf_term_value[t] = term_value * ended[:, None]
             obs = next_obs
             steps += int(live.sum())
-        with torch.no_grad():
-            buf_val[t_len] = critic(actor.normalise(obs))
+            if cfg.randomised and res.done.all() and t + 1 < t_len:
+                t_len_r = t + 1  # the next batch may have another N: this rollout ends here
+                break
+        else:
+            t_len_r = t_len
+            if obs.shape[-2] == n_r:  # else every episode ended at the last step (unread)
+                with torch.no_grad():
+                    buf_val[t_len] = critic(actor.normalise(obs))
+        if t_len_r < t_len:  # every episode ended at the last step: no value after it is read
+            buf_obs, buf_cobs, buf_act, buf_logp, buf_rew, buf_live, buf_cont, buf_term_value = (
+                x[:t_len_r] for x in (buf_obs, buf_cobs, buf_act, buf_logp, buf_rew, buf_live,
+                                      buf_cont, buf_term_value))
+            buf_val = buf_val[: t_len_r + 1]
+            adv_len = t_len_r
+        else:
+            adv_len = t_len
         # ---- returns: GAE over the rollout, ended episodes closed by their terminal value
-        adv = torch.zeros(t_len, b, n)
-        last_gae = torch.zeros(b, n)
-        for t in reversed(range(t_len)):
+        adv = torch.zeros(adv_len, b, n_r)
+        last_gae = torch.zeros(b, n_r)
+        for t in reversed(range(adv_len)):
             cont = buf_cont[t][:, None]
             next_value = buf_val[t + 1] * cont + buf_term_value[t]
             delta = buf_rew[t] + cfg.gamma * next_value - buf_val[t]
             last_gae = delta + cfg.gamma * cfg.gae_lambda * cont * last_gae
             adv[t] = last_gae
-        ret = adv + buf_val[:t_len]
+        ret = adv + buf_val[:adv_len]
         # ---- PPO update on the live agent-steps (per agent: live episode-steps of N agents)
         if cfg.per_agent:
             keep = buf_live.bool().reshape(-1)
-            flat = [x.reshape(t_len * b, *x.shape[2:])[keep]
+            flat = [x.reshape(adv_len * b, *x.shape[2:])[keep]
                     for x in (buf_obs, buf_cobs, buf_act, buf_logp, adv, ret)]
             mb_rows = max(1, cfg.minibatch_rows // n)
         else:
-            keep = buf_live.bool()[:, :, None].expand(t_len, b, n).reshape(-1)
+            keep = buf_live.bool()[:, :, None].expand(adv_len, b, n_r).reshape(-1)
             flat = [x.reshape(-1, *x.shape[3:])[keep]
                     for x in (buf_obs, buf_cobs, buf_act, buf_logp, adv, ret)]
             mb_rows = cfg.minibatch_rows
@@ -583,7 +654,7 @@ def train(
     rate = steps / max(time.perf_counter() - t0, 1e-9)
     if validate:
         shipped = as_shipped(actor)
-        score = validation_score(shipped, sc.id, n, params, cfg)
+        score = validation_score(shipped, sc, n, params, cfg)
         curve.append({"steps": float(steps), **score})
         if (score["collisions"], -score["reward"]) <= (best["collisions"], -best["reward"]):
             best = {"steps": float(steps), **score}
@@ -630,7 +701,7 @@ def _absorbing(penalty: float, gamma: float, remaining: int) -> float:
 
 # ---------------------------------------------------------------------------- validation
 @torch.no_grad()
-def validation_score(actor: SharedActor, scenario: str, n_vehicles: int,
+def validation_score(actor: SharedActor, scenario: str | Scenario, n_vehicles: int,
                      params: PlatoonParams, config: PPOConfig,
                      seeds: tuple[int, ...] = VALIDATION_SEEDS) -> dict[str, float]:
     """Mean evaluation reward (sum over agents per step, as the benchmark's tables) and

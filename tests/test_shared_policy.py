@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -193,6 +194,37 @@ def test_the_shipped_ippo_bdc_scores_an_episode_alike_alone_or_in_a_batch() -> N
     ten = rollout_batch(make_controller("ippo-bdc"), sc, 8, list(EVAL_SEEDS[:10]))
     one = rollout_batch(make_controller("ippo-bdc"), sc, 8, [EVAL_SEEDS[3]])
     assert np.array_equal(one[0].reward, ten[3].reward)
+
+
+def test_training_on_a_distribution_of_sizes_and_channels_is_deterministic() -> None:
+    """``vehicles_min/max``, ``comm_delay_max_s`` and ``packet_loss_max`` draw each batch's N and
+    V2V from the run's generator: a seed gives the same weights; the batches see several N."""
+    import envs.platoon
+
+    cfg = dataclasses.replace(TINY, n_envs=2, vehicles_min=2, vehicles_max=6, comm_delay_max_s=0.2,
+                              packet_loss_max=0.3)
+    seen: list[tuple[int, float, float]] = []
+    real = envs.platoon.PlatoonEnv.__init__
+
+    def spy(self: Any, scenario: Any, n_vehicles: int, *args: Any, **kwargs: Any) -> None:
+        ch = kwargs.get("channel")
+        if kwargs.get("training"):
+            seen.append((n_vehicles, ch.delay_s, ch.packet_loss))
+        real(self, scenario, n_vehicles, *args, **kwargs)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(envs.platoon.PlatoonEnv, "__init__", spy)
+        a = train("mixed-v1", 3, 1, 7200, cfg, validate=False)
+    b = train("mixed-v1", 3, 1, 7200, cfg, validate=False)
+    assert all(torch.equal(v, _weights(b.actor)[k]) for k, v in _weights(a.actor).items())
+    sizes = {n for n, _, _ in seen[1:]}
+    assert len(sizes) >= 3 and sizes <= set(range(2, 7))
+    assert {d for _, d, _ in seen[1:]} <= {0.0, 0.1, 0.2} and len({d for _, d, _ in seen[1:]}) > 1
+    assert all(0 <= loss <= 0.3 for _, _, loss in seen[1:])
+    with pytest.raises(ConfigError, match="network per follower"):
+        PPOConfig(algo="ippo-bdc", vehicles_max=12)
+    with pytest.raises(ConfigError, match="vehicles_min must not exceed"):
+        PPOConfig(vehicles_min=9, vehicles_max=4)
 
 
 def test_a_residual_needs_acceleration_actions() -> None:
