@@ -85,7 +85,7 @@ def settings_for(families: list[str], scenarios: list[str], n_vehicles: int
     options."""
     from controllers.policy import VARIANT_DIR, checkpoint_path
     from controllers.registry import controller_label
-    from marl.a2c import ALGORITHM_NAMES
+    from marl.config import ALGORITHM_NAMES
 
     out: list[dict[str, Any]] = []
 

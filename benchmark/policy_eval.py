@@ -50,7 +50,7 @@ def evaluate_policy(
 def validation_evaluator(
     algo: str, scenario_id: str, n_vehicles: int, seeds: Sequence[int] = VALIDATION_SEEDS
 ) -> Callable[[Any, str], dict[str, float]]:
-    """The evaluator :func:`marl.a2c.run_training` takes: ``(net, mode) -> summary``.
+    """The evaluator :func:`marl.selection.run_training` takes: ``(net, mode) -> summary``.
 
     Its scores choose the kept snapshot (and, through ``cacc-bench tune``, the tuned configs):
     a decision, so test seeds are refused (:func:`envs.params.check_decision_seeds`).

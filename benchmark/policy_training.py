@@ -34,7 +34,7 @@ def tuned_config(algo: str, config_scenario: str, extra: dict[str, Any], label: 
     """The tuned options of ``algo`` on ``config_scenario`` with ``extra`` on top, checked."""
     from benchmark.train_cmd import tuned_options
     from controllers.registry import build_config
-    from marl.a2c import algorithm
+    from marl.config import algorithm
 
     options = {**tuned_options(algo, config_scenario), **extra}
     config = build_config(algorithm(algo).config_cls, options, f"{label} (tuned)")

@@ -175,7 +175,8 @@ def _holds_files(folder: Path) -> bool:
 def main(argv: list[str]) -> int:
     """Entry point of ``cacc-bench reproduce``."""
     from envs.scenarios import make_scenario
-    from marl.a2c import ALGORITHM_NAMES, training_device
+    from marl.a2c import training_device
+    from marl.config import ALGORITHM_NAMES
 
     t0 = time.perf_counter()
     args = _parser().parse_args(argv)

@@ -107,7 +107,7 @@ def plan(scenarios: list[str], knobs: list[str], seeds: list[int], steps: int,
     ``training`` holds the jobs until their summaries are read)."""
     from benchmark.policy_training import make_job, tuned_config
     from controllers.registry import controller_label
-    from marl.a2c import algorithm
+    from marl.config import algorithm
 
     jobs: list[dict[str, Any]] = []
     settings: list[dict[str, Any]] = []

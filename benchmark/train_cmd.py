@@ -28,7 +28,7 @@ DEFAULT_OUT = str(Path(__file__).resolve().parent.parent / "controllers" / "chec
 
 
 def _parser() -> argparse.ArgumentParser:
-    from marl.a2c import ALGORITHM_NAMES
+    from marl.config import ALGORITHM_NAMES
 
     p = argparse.ArgumentParser(
         prog="cacc-bench train",
@@ -119,7 +119,8 @@ def _train_job(job: dict) -> dict:
     from envs.atomic import StagedFiles, temporary_beside
     from envs.naming import checkpoint_stem
     from envs.params import VALIDATION_SEEDS
-    from marl.a2c import algorithm, run_population
+    from marl.config import algorithm
+    from marl.selection import run_population
 
     torch.set_num_threads(1)
     seeds = list(job.get("seeds", [job["seed"]]))
@@ -259,7 +260,7 @@ def job_config(job: dict) -> dict:
     """The whole resolved config a training job runs with (as recorded in its checkpoint)."""
     import dataclasses
 
-    from marl.a2c import algorithm
+    from marl.config import algorithm
 
     config = algorithm(job["algo"]).config_cls(**job["options"]).resolved(job["scenario"])
     return dataclasses.asdict(config)
@@ -301,7 +302,8 @@ def main(argv: list[str]) -> int:
     from benchmark.train_shared import SHARED_LEARNERS
     from controllers.registry import build_config
     from envs.scenarios import SCENARIOS, check_vehicles, make_scenario, parse_scenario_list
-    from marl.a2c import ALGORITHM_NAMES, algorithm, training_device
+    from marl.a2c import training_device
+    from marl.config import ALGORITHM_NAMES, algorithm
 
     args = _parser().parse_args(argv)
     from benchmark.executors import check_ray_address

@@ -93,7 +93,7 @@ def default_params(algo: str) -> dict[str, Any]:
         ppo = PPOConfig()
         return {"lr": ppo.lr, "init_log_std": ppo.init_log_std, "gamma": ppo.gamma,
                 "n_envs": ppo.n_envs, "reward_alpha": ppo.reward_alpha}
-    from marl.a2c import algorithm
+    from marl.config import algorithm
 
     cfg = algorithm(algo).config_cls()
     params: dict[str, Any] = {
@@ -115,7 +115,7 @@ def trial_score(summary: dict[str, float]) -> float:
 
 
 def _parser() -> argparse.ArgumentParser:
-    from marl.a2c import ALGORITHM_NAMES
+    from marl.config import ALGORITHM_NAMES
 
     p = argparse.ArgumentParser(
         prog="cacc-bench tune",
@@ -148,8 +148,9 @@ def _study_job(job: dict) -> list[dict]:
 
     from benchmark.policy_eval import validation_evaluator
     from controllers.registry import build_config
-    from marl.a2c import algorithm, run_training
     from marl.checkpoint import load_checkpoint
+    from marl.config import algorithm
+    from marl.selection import run_training
 
     torch.set_num_threads(1)
     optuna.logging.set_verbosity(optuna.logging.WARNING)
@@ -237,7 +238,7 @@ def main(argv: list[str]) -> int:
     from benchmark.executors import map_jobs
     from benchmark.progress import Progress
     from envs.scenarios import check_vehicles, make_scenario
-    from marl.a2c import ALGORITHM_NAMES
+    from marl.config import ALGORITHM_NAMES
 
     args = _parser().parse_args(argv)
     from benchmark.executors import check_ray_address

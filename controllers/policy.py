@@ -50,7 +50,7 @@ def rows_are_batch_invariant(algo: str, n_agents: int = 8) -> bool:
     harness runs policy episodes one at a time instead of batching them (still exact)."""
     import torch
 
-    from marl.a2c import algorithm, exchange
+    from marl.acting import algorithm, exchange
 
     spec = algorithm(algo)
     with torch.no_grad():
@@ -115,7 +115,6 @@ class PolicyController(Controller):
 
     family = "marl"
     deterministic = False
-    batch_invariant = True
     needs_observation = True
 
     def __init__(
@@ -131,7 +130,7 @@ class PolicyController(Controller):
         **options: Any,
     ) -> None:
         super().__init__()
-        from marl.a2c import ALGORITHM_NAMES
+        from marl.config import ALGORITHM_NAMES
 
         if options:
             raise ConfigError(
@@ -160,8 +159,6 @@ class PolicyController(Controller):
                 )
         self.variant = variant
         self.algo = algo
-        # batched episodes equal lone ones where the probe says rows do not depend on the batch
-        self.batch_invariant = rows_are_batch_invariant(algo)
         self.name = algo
         self.scenario = scenario
         self.checkpoint = checkpoint
@@ -189,6 +186,12 @@ class PolicyController(Controller):
         self.net: Any = None
         self.loaded: dict[str, Any] = {}
 
+    @property
+    def batch_invariant(self) -> bool:  # type: ignore[override]
+        """Batched episodes equal lone ones where the probe says rows do not depend on the batch
+        (:func:`rows_are_batch_invariant`, run when first asked, then cached per algorithm)."""
+        return rows_are_batch_invariant(self.algo)
+
     @staticmethod
     def batch_invariant_probe(algo: str, **_: Any) -> bool:
         """Whether the harness may batch this algorithm's episodes here
@@ -211,16 +214,13 @@ class PolicyController(Controller):
     def _load(self, scenario_id: str, n_vehicles: int) -> Any:
         import torch
 
-        from marl.a2c import algorithm, config_from_dict
+        from marl.acting import acting_net, untrained_net
         from marl.checkpoint import load_checkpoint, train_command
 
         torch.set_num_threads(1)
-        algo = algorithm(self.algo)
         if self.untrained:
-            config = algo.config_cls()
-            gen = torch.Generator().manual_seed(self.seed)
             self.loaded = {"steps": 0, "scenario": scenario_id}
-            return algo.build_net(config, n_vehicles, with_critic=False, generator=gen)
+            return untrained_net(self.algo, n_vehicles, self.seed)
         source = self.scenario or scenario_id
         folder = VARIANT_DIR / self.variant if self.variant else self.checkpoint_dir
         path = (
@@ -242,10 +242,7 @@ class PolicyController(Controller):
                 f" (or pick another checkpoint with {self.algo}:scenario=ID or checkpoint=FILE)"
             )
         data = load_checkpoint(path, algo=self.algo, n_vehicles=n_vehicles, scenario=source)
-        config = config_from_dict(algo, data["config"])
-        net = algo.build_net(config, n_vehicles, with_critic=False)
-        net.load_state_dict(data["weights"], strict=True)
-        net.eval()
+        net = acting_net(self.algo, n_vehicles, data)
         self.loaded = data
         return net
 
@@ -307,7 +304,7 @@ class PolicyController(Controller):
     def act(self, state: PlatoonState, observation: np.ndarray | None) -> np.ndarray:
         import torch
 
-        from marl.a2c import policy_actions
+        from marl.acting import policy_actions
 
         if observation is None:
             raise ConfigError(f"{self.algo} needs the agent observations (needs_observation)")

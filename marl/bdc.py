@@ -30,25 +30,22 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
-from typing import ClassVar
-
-import torch
+from typing import TYPE_CHECKING
 
 from envs.errors import ConfigError
-from marl.a2c import (
-    A2CConfig,
-    AgentNet,
-    Algorithm,
-    Run,
-    SeparateActorCriticNet,
-)
-from marl.consensus import bdc, consensus_round
+from marl.config import Algorithm
+from marl.consensus import bdc
+from marl.consensus_family import ConsensusConfig, build_net, share_critics
+from marl.networks import AgentNet
 from marl.quantize import ErrorFeedbackQSGD, qsgd_bits, ternary_bits
+
+if TYPE_CHECKING:
+    from marl.a2c import Run
 
 
 @dataclass(frozen=True)
-class BDCConfig(A2CConfig):
-    """BDC-MARL hyper-parameters (IA2C family) plus the communication scheme.
+class BDCConfig(ConsensusConfig):
+    """BDC-MARL hyper-parameters: the consensus family's plus the communication scheme.
 
     Attributes
     ----------
@@ -64,34 +61,19 @@ class BDCConfig(A2CConfig):
         (measured to fail: ``docs/learner-options.md``).
     packed_bits : bool
         Count 2 bits per ternary weight (bit-packed) instead of ``log2 3``.
-    share_whole_critic : bool
-        Share the whole critic instead of its LSTM only (published consensus code: LSTM).
     """
 
-    reward_scale: float = 1.0 / 800.0
-    #: the published consensus configs share no reward (``coop_gamma = 0``) on every scenario
-    PUBLISHED_REWARD_ALPHA: ClassVar[dict[str, float]] = {"catchup": 0.0, "slowdown": 0.0}
-    DEFAULT_REWARD_ALPHA: ClassVar[float] = 0.0
     consensus_eps: float = 0.001
     qsgd_levels: int = 1
     qsgd_bucket: int | None = 128
     packed_bits: bool = False
-    share_whole_critic: bool = False
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        if not 0 < self.consensus_eps <= 0.5:
-            raise ConfigError(f"consensus_eps must lie in (0, 0.5], got {self.consensus_eps}")
         if self.qsgd_levels < 0:
             raise ConfigError(f"qsgd_levels must be >= 0, got {self.qsgd_levels}")
         if self.qsgd_bucket is not None and self.qsgd_bucket < 1:
             raise ConfigError(f"qsgd_bucket must be >= 1 or None, got {self.qsgd_bucket}")
-
-
-def build_net(config: BDCConfig, n_agents: int, with_critic: bool = True,
-              generator: torch.Generator | None = None) -> SeparateActorCriticNet:
-    """Separate actor and critic per agent."""
-    return SeparateActorCriticNet(n_agents, config.hidden, with_critic, generator)
 
 
 def setup_qsgd(run: Run) -> None:
@@ -119,10 +101,9 @@ def binary_consensus(run: Run, net: AgentNet) -> None:
     """After the optimiser step: one synchronous round of binary differential consensus on
     the shared critic weights (sign patterns sent)."""
     cfg = run.config
-    assert isinstance(cfg, BDCConfig) and isinstance(net, SeparateActorCriticNet)
-    shared = [p[run.rows] for p in net.shared_critic_parameters(cfg.share_whole_critic)]
-    n_weights = consensus_round(shared, functools.partial(bdc, eps=cfg.consensus_eps))
-    run.bits["consensus"] += ternary_bits(n_weights, cfg.packed_bits)
+    assert isinstance(cfg, BDCConfig)
+    share_critics(run, net, functools.partial(bdc, eps=cfg.consensus_eps),
+                  lambda n: ternary_bits(n, cfg.packed_bits))
 
 
 ALGORITHM = Algorithm("bdc", BDCConfig, build_net, setup=setup_qsgd,

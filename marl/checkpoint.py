@@ -257,10 +257,10 @@ _ANNOTATION_TYPES: dict[str, tuple[type, ...]] = {
 
 
 def _check_config_and_shapes(data: dict[str, Any], damaged: Any) -> None:
-    """For an algorithm of :mod:`marl.a2c`: the config's fields exist with the annotated
+    """For an algorithm of :mod:`marl.config`: the config's fields exist with the annotated
     types and build a valid config, and every stored weight is one of that network's acting
     weights with its shape (``(N, ...)``). Other algorithms are covered by the hash only."""
-    from marl.a2c import ALGORITHM_NAMES, algorithm, config_from_dict
+    from marl.config import ALGORITHM_NAMES, algorithm, config_from_dict
 
     if data["algo"] not in ALGORITHM_NAMES:
         return

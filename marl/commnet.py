@@ -20,9 +20,10 @@ from typing import ClassVar
 
 import torch
 
-from marl.a2c import A2CConfig, Algorithm, SharedTrunkNet
+from marl.config import A2CConfig, Algorithm
 from marl.consensus import degree
 from marl.layers import BatchedLinear
+from marl.networks import SharedTrunkNet
 
 
 @dataclass(frozen=True)

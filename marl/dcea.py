@@ -16,60 +16,37 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import TYPE_CHECKING
 
-import torch
+from marl.config import Algorithm
+from marl.consensus import dcea
+from marl.consensus_family import ConsensusConfig, build_net, share_critics
+from marl.networks import FLOAT_BITS, AgentNet
 
-from envs.errors import ConfigError
-from marl.a2c import (
-    FLOAT_BITS,
-    A2CConfig,
-    AgentNet,
-    Algorithm,
-    Run,
-    SeparateActorCriticNet,
-)
-from marl.consensus import consensus_round, dcea
+if TYPE_CHECKING:
+    from marl.a2c import Run
 
 
 @dataclass(frozen=True)
-class DCEAConfig(A2CConfig):
-    """DCEA hyper-parameters (IA2C family) plus the consensus step.
+class DCEAConfig(ConsensusConfig):
+    """DCEA hyper-parameters: the consensus family's plus the consensus step.
 
     Attributes
     ----------
     consensus_eps : float
         Step ``eps`` of the differential update (paper 0.001; at most 0.5 for stability).
-    share_whole_critic : bool
-        Share the whole critic instead of its LSTM only (published: LSTM).
     """
 
-    reward_scale: float = 1.0 / 800.0
-    #: the published consensus configs share no reward (``coop_gamma = 0``) on every scenario
-    PUBLISHED_REWARD_ALPHA: ClassVar[dict[str, float]] = {"catchup": 0.0, "slowdown": 0.0}
-    DEFAULT_REWARD_ALPHA: ClassVar[float] = 0.0
     consensus_eps: float = 0.001
-    share_whole_critic: bool = False
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        if not 0 < self.consensus_eps <= 0.5:
-            raise ConfigError(f"consensus_eps must lie in (0, 0.5], got {self.consensus_eps}")
-
-
-def build_net(config: DCEAConfig, n_agents: int, with_critic: bool = True,
-              generator: torch.Generator | None = None) -> SeparateActorCriticNet:
-    """Separate actor and critic per agent."""
-    return SeparateActorCriticNet(n_agents, config.hidden, with_critic, generator)
 
 
 def differential_consensus(run: Run, net: AgentNet) -> None:
-    """After every update: one synchronous differential round on the shared critic weights."""
+    """After every update: one synchronous differential round on the shared critic weights
+    (32-bit floats sent)."""
     cfg = run.config
-    assert isinstance(cfg, DCEAConfig) and isinstance(net, SeparateActorCriticNet)
-    shared = [p[run.rows] for p in net.shared_critic_parameters(cfg.share_whole_critic)]
-    rule = functools.partial(dcea, eps=cfg.consensus_eps)
-    run.bits["consensus"] += consensus_round(shared, rule) * FLOAT_BITS
+    assert isinstance(cfg, DCEAConfig)
+    share_critics(run, net, functools.partial(dcea, eps=cfg.consensus_eps),
+                  lambda n: n * FLOAT_BITS)
 
 
 ALGORITHM = Algorithm("dcea", DCEAConfig, build_net, after_step=differential_consensus)

@@ -22,8 +22,9 @@ from typing import ClassVar
 
 import torch
 
-from marl.a2c import A2CConfig, Algorithm, SharedTrunkNet
+from marl.config import A2CConfig, Algorithm
 from marl.layers import BatchedLinear
+from marl.networks import SharedTrunkNet
 
 
 @dataclass(frozen=True)

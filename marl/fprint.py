@@ -18,14 +18,9 @@ from dataclasses import dataclass
 
 import torch
 
-from marl.a2c import (
-    N_ACTIONS,
-    A2CConfig,
-    Algorithm,
-    SharedTrunkNet,
-    State,
-)
+from marl.config import A2CConfig, Algorithm
 from marl.layers import BatchedLinear
+from marl.networks import N_ACTIONS, SharedTrunkNet, State
 
 
 @dataclass(frozen=True)

@@ -4,7 +4,7 @@ Each agent sees its own and its neighbours' vehicle blocks (15 numbers), encodes
 64 (ReLU) layer and an LSTM 64, and reads 4 action logits and (with the neighbours' current
 actions, one-hot) a state value from the LSTM output. No learned communication: at execution an
 agent only sends its 5-float vehicle block to its neighbours. The learner is
-:class:`marl.a2c.Trainer` (n-step A2C with reward sharing); this file is the whole algorithm.
+:mod:`marl.a2c` (n-step A2C with reward sharing); this file is the whole algorithm.
 
 Messages (each received by the front and rear neighbours; counted in bits per agent):
 
@@ -19,16 +19,13 @@ from dataclasses import dataclass
 
 import torch
 
-from marl.a2c import (
-    A2CConfig,
-    Algorithm,
-    SharedTrunkNet,
-)
+from marl.config import A2CConfig, Algorithm
+from marl.networks import SharedTrunkNet
 
 
 @dataclass(frozen=True)
 class IA2CConfig(A2CConfig):
-    """IA2C hyper-parameters: those of :class:`marl.a2c.A2CConfig` (paper values).
+    """IA2C hyper-parameters: those of :class:`marl.config.A2CConfig` (paper values).
 
     ``reward_scale`` 1/800 (published IA2C family); ``reward_alpha`` None: the published
     configs' value per scenario (global reward on catchup, own reward on slowdown).

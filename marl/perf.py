@@ -32,7 +32,8 @@ def train_throughput(
     device : str
         Where the networks train (``cpu`` or ``cuda[:K]``; the environments stay on the CPU).
     """
-    from marl.a2c import algorithm, run_population
+    from marl.config import algorithm
+    from marl.selection import run_population
 
     torch.set_num_threads(1)
     a = algorithm(algo)

@@ -16,51 +16,27 @@ Messages (each received by the front and rear neighbours; counted in bits per ag
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import TYPE_CHECKING
 
-import torch
+from marl.config import Algorithm
+from marl.consensus import wac
+from marl.consensus_family import ConsensusConfig, build_net, share_critics
+from marl.networks import FLOAT_BITS, AgentNet
 
-from marl.a2c import (
-    FLOAT_BITS,
-    A2CConfig,
-    AgentNet,
-    Algorithm,
-    Run,
-    SeparateActorCriticNet,
-)
-from marl.consensus import consensus_round, wac
+if TYPE_CHECKING:
+    from marl.a2c import Run
 
 
 @dataclass(frozen=True)
-class WACConfig(A2CConfig):
-    """WAC hyper-parameters (IA2C family) plus what is shared.
-
-    Attributes
-    ----------
-    share_whole_critic : bool
-        Share the whole critic instead of its LSTM only (published: LSTM).
-    """
-
-    reward_scale: float = 1.0 / 800.0
-    #: the published consensus configs share no reward (``coop_gamma = 0``) on every scenario
-    PUBLISHED_REWARD_ALPHA: ClassVar[dict[str, float]] = {"catchup": 0.0, "slowdown": 0.0}
-    DEFAULT_REWARD_ALPHA: ClassVar[float] = 0.0
-    share_whole_critic: bool = False
-
-
-def build_net(config: WACConfig, n_agents: int, with_critic: bool = True,
-              generator: torch.Generator | None = None) -> SeparateActorCriticNet:
-    """Separate actor and critic per agent."""
-    return SeparateActorCriticNet(n_agents, config.hidden, with_critic, generator)
+class WACConfig(ConsensusConfig):
+    """WAC hyper-parameters: those of the consensus family
+    (:class:`marl.consensus_family.ConsensusConfig`), nothing else."""
 
 
 def average_critics(run: Run, net: AgentNet) -> None:
     """After every update: one synchronous averaging round of the shared critic weights with
     the front and rear neighbours (32-bit floats sent)."""
-    cfg = run.config
-    assert isinstance(cfg, WACConfig) and isinstance(net, SeparateActorCriticNet)
-    shared = [p[run.rows] for p in net.shared_critic_parameters(cfg.share_whole_critic)]
-    run.bits["consensus"] += consensus_round(shared, wac) * FLOAT_BITS
+    share_critics(run, net, wac, lambda n: n * FLOAT_BITS)
 
 
 ALGORITHM = Algorithm("wac", WACConfig, build_net, after_step=average_critics)

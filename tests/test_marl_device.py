@@ -11,7 +11,9 @@ import torch
 from benchmark.cli import main as cli
 from envs.dynamics import OBS_DIM
 from envs.errors import ConfigError
-from marl.a2c import ALGORITHM_NAMES, Trainer, algorithm, training_device
+from marl.a2c import training_device
+from marl.config import ALGORITHM_NAMES, algorithm
+from marl.population import Trainer
 
 N, SCENARIO = 3, "catchup-v1"
 NO_GPU = not torch.cuda.is_available()

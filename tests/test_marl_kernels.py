@@ -317,7 +317,8 @@ def test_segment_recompute_equals_step_by_step(name: str) -> None:
     """The networks that run their recurrence as one LSTM segment give the step-by-step
     recompute's logits, values and final state to the last bit, and its gradients to float
     rounding."""
-    from marl.a2c import AgentNet, algorithm
+    from marl.config import algorithm
+    from marl.networks import AgentNet
 
     algo = algorithm(name)
     net = algo.build_net(algo.config_cls(), 4, True, torch.Generator().manual_seed(0))
@@ -377,7 +378,7 @@ def test_per_agent_clip_norms_do_not_depend_on_the_stack() -> None:
     runs of 3 agents, or one run): a sum over the stacked per-tensor sums rounded otherwise for
     3 and 6 columns on an AVX-512 CPU, and a population of WAC runs then clipped differently
     from its runs alone."""
-    from marl.a2c import SeparateActorCriticNet
+    from marl.networks import SeparateActorCriticNet
 
     gen = torch.Generator().manual_seed(0)
     for _ in range(20):
@@ -542,7 +543,7 @@ def _draw_by_hand(probs: list[float], u: float) -> int:
 def test_sample_from_logits_draws_the_policy() -> None:
     """Inverse-CDF draws follow softmax(logits): 40,000 draws within 1 % of each probability,
     and u just below / at a cumulative boundary picks the action on each side."""
-    from marl.a2c import sample_from_logits
+    from marl.acting import sample_from_logits
 
     logits = torch.log(torch.tensor([0.1, 0.2, 0.3, 0.4])).reshape(1, 1, 4).expand(1, 40_000, 4)
     u = (np.arange(40_000) + 0.5).reshape(40_000, 1) / 40_000
@@ -558,7 +559,7 @@ def test_sample_from_logits_per_agent_and_episode_by_hand() -> None:
     """Logits ``(N, B, A)`` with a different policy for every agent and episode, uniforms
     ``(B, N)``: each action is the hand-drawn one of its own agent and episode; a uniform
     exactly on a cumulative boundary takes the next action."""
-    from marl.a2c import sample_from_logits
+    from marl.acting import sample_from_logits
 
     n, b = 3, 2
     logits = torch.tensor([[[0.1 * (i + 1) * (k - 1.5) + 0.3 * j for k in range(4)]
@@ -580,7 +581,7 @@ def test_sample_from_logits_uses_double_precision_probabilities() -> None:
     """The cumulative probabilities are computed in float64: for these logits float32's
     softmax puts the first boundary 7e-9 higher, and a uniform on the float64 boundary takes
     action 1 (float32 would take action 0)."""
-    from marl.a2c import sample_from_logits
+    from marl.acting import sample_from_logits
 
     logits = torch.tensor([3 / 37.0, 0.0, -0.5, 0.3], dtype=torch.float32)
     p64 = torch.softmax(logits.double(), -1)
@@ -595,7 +596,7 @@ def test_two_runs_stacked_as_one_agent_stack_act_and_learn_as_alone() -> None:
     run, to the last bit, the actor's logits, next state and gradients it has alone. (What
     would mix runs is everything that shifts along the agent axis: the critic's neighbour
     actions, messages, consensus; those need the run axis kept apart.)"""
-    from marl.a2c import algorithm
+    from marl.config import algorithm
 
     spec = algorithm("ia2c")
     cfg = spec.config_cls()

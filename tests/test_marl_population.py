@@ -8,7 +8,9 @@ import pytest
 import torch
 
 from envs.errors import ConfigError, TrainingDivergedError
-from marl.a2c import ALGORITHM_NAMES, Trainer, algorithm, run_population, run_training
+from marl.config import ALGORITHM_NAMES, algorithm
+from marl.population import Trainer
+from marl.selection import run_population, run_training
 
 #: N = 3 on catchup-v1 with B = 2 and 7-step segments: the untrained policies collide, so runs
 #: end their batches at different steps and mid-segment (updates of part of the stack)

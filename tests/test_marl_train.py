@@ -7,8 +7,10 @@ import math
 import pytest
 import torch
 
-from marl.a2c import ALGORITHM_NAMES, Trainer, algorithm, run_training
+from marl.config import ALGORITHM_NAMES, algorithm
+from marl.population import Trainer
 from marl.quantize import qsgd_bits, ternary_bits
+from marl.selection import run_training
 
 
 @pytest.mark.parametrize("algo", ALGORITHM_NAMES)
@@ -103,8 +105,8 @@ def test_ia2c_learns_catchup(tmp_path) -> None:
     collision-free on catchup-v1."""
     from benchmark.policy_eval import evaluate_policy, validation_evaluator
     from envs.params import VALIDATION_SEEDS
-    from marl.a2c import run_population
     from marl.checkpoint import load_checkpoint
+    from marl.selection import run_population
 
     a = algorithm("ia2c")
     results = run_population(a, [a.config_cls()] * 3, "catchup-v1", 8, 70_000, [0, 1, 2],
@@ -414,7 +416,7 @@ def test_qsgd_is_counted_as_local_not_sent(tmp_path) -> None:
 def test_training_messages_per_algorithm() -> None:
     """Per agent and step in training: the execution messages, the 2-bit action for the
     neighbours' critics, and for DIAL/CommNet the message gradients back to both neighbours."""
-    from marl.a2c import training_step_bits_per_agent
+    from marl.networks import training_step_bits_per_agent
 
     want = {"ia2c": 160 + 2, "fprint": 288 + 2, "dial": 2208 + 2 + 4096,
             "commnet": 2208 + 2 + 4096, "wac": 162, "dcea": 162, "bdc": 162}

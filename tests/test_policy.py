@@ -16,8 +16,8 @@ from controllers.base import EpisodeContext, reset_controller
 from controllers.policy import PolicyController
 from envs.errors import ConfigError, UnknownNameError
 from envs.platoon import PlatoonEnv
-from marl.a2c import ALGORITHM_NAMES, algorithm
 from marl.checkpoint import save_checkpoint
+from marl.config import ALGORITHM_NAMES, algorithm
 
 
 def _ckpt(tmp_path, algo="ia2c", n=4, scenario="catchup-v1"):
@@ -173,17 +173,17 @@ def test_policies_run_one_at_a_time_where_the_probe_fails(monkeypatch) -> None:
 
 
 def test_a_lone_episode_gives_the_network_min_lanes_rows(monkeypatch) -> None:
-    import marl.a2c
+    import marl.acting
     from controllers.policy import MIN_LANES
 
     rows = []
-    real = marl.a2c.policy_actions
+    real = marl.acting.policy_actions
 
     def spy(net, obs, *args):
         rows.append(obs.shape[0])
         return real(net, obs, *args)
 
-    monkeypatch.setattr(marl.a2c, "policy_actions", spy)
+    monkeypatch.setattr(marl.acting, "policy_actions", spy)
     from envs.scenarios import make_scenario
 
     rollout(PolicyController("ia2c", untrained="true"), make_scenario("catchup-v1"), 3, 2000)
@@ -310,8 +310,8 @@ def pooled_evaluation(algo: str, scenario: str, mode: str = "sampled") -> dict[s
     mean over all episodes (what ``cacc-bench run --pool-seeds`` reports)."""
     from controllers.policy import checkpoint_path
     from envs.params import EVAL_SEEDS
-    from marl.a2c import config_from_dict
     from marl.checkpoint import load_checkpoint
+    from marl.config import config_from_dict
 
     a = algorithm(algo)
     out = []

@@ -105,7 +105,7 @@ def test_tuned_options(tmp_path: Path, capsys) -> None:
         tuned_options("ia2c", "catchup-v1", tmp_path / "none.json")
     # every shipped entry builds a valid config of its algorithm; BDC is tuned on both
     from controllers.registry import build_config
-    from marl.a2c import algorithm
+    from marl.config import algorithm
 
     shipped = json.loads(TUNED_CONFIGS.read_text())
     assert shipped["budget"] == {"trials": 8, "steps_per_trial": 200_000, "seed": 0, "vehicles": 8}

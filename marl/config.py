@@ -1,0 +1,252 @@
+"""What an algorithm is: the learners' shared config (:class:`A2CConfig`) and the
+:class:`Algorithm` record each algorithm file fills, with the registry that finds them.
+
+Every algorithm file (``ia2c.py``, ``fprint.py``, ``dial.py``, ``commnet.py``, ``wac.py``,
+``dcea.py``, ``bdc.py``) defines its config (a frozen subclass of :class:`A2CConfig`), its
+network (a subclass of :class:`marl.networks.AgentNet`) and what it does around the update as
+plain functions, gathered in its ``ALGORITHM`` (an :class:`Algorithm`). This module imports
+neither the learner nor torch's training code, so acting from a checkpoint
+(:mod:`marl.acting`, :mod:`controllers.policy`) loads only configs and networks; the learner
+that trains them is :mod:`marl.a2c`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, ClassVar
+
+import numpy as np
+
+from envs.errors import ConfigError, UnknownNameError
+from envs.params import EVAL_MODES, MARL_ALGORITHMS, RewardWeights
+from envs.scenarios import make_scenario
+
+if TYPE_CHECKING:
+    from marl.a2c import Run
+    from marl.networks import AgentNet
+
+COLLISION_VALUES: tuple[str, ...] = ("absorbing", "published")
+ALGORITHM_NAMES: tuple[str, ...] = MARL_ALGORITHMS
+
+
+# ---------------------------------------------------------------------------- config
+@dataclass(frozen=True)
+class A2CConfig:
+    """Hyper-parameters shared by every learner (paper values; published code's where silent).
+
+    Attributes
+    ----------
+    n_step : int
+        Steps per update segment (published 60).
+    gamma : float
+        Discount (paper 0.99).
+    hidden : int
+        Width of the FC encoder and the LSTM (paper 64).
+    actor_lr, critic_lr : float
+        RMSprop learning rates of actor and critic parameters (paper 5e-4 and 2.5e-4; a shared
+        trunk learns at the actor rate).
+    rmsprop_alpha, rmsprop_eps : float
+        RMSprop smoothing and epsilon (published 0.99, 1e-5).
+    entropy_coef, value_coef : float
+        Loss weights (published 0.05 and 0.5).
+    grad_clip : float
+        Global grad-norm clip per agent (published 40).
+    reward_scale : float
+        Rewards are multiplied by this for learning (published 1/800 IA2C family, 1/5000
+        DIAL/CommNet).
+    reward_alpha : float or None
+        Reward sharing: agent i learns from ``sum_j alpha^|i-j| r_j`` (0 local, 1 global). None
+        (default): the published config's value for the scenario family and the algorithm's
+        family (:attr:`PUBLISHED_REWARD_ALPHA`; the IA2C family uses 1 on catchup and 0 on
+        slowdown, DIAL and CommNet 1 everywhere, the consensus family WAC, DCEA and BDC 0
+        everywhere), resolved when training starts and recorded in
+        the checkpoint.
+    entropy_coef_final : float or None
+        Entropy coefficient reached at the end of the run, linearly from ``entropy_coef``
+        (None: constant, as published; default 0.005, a departure).
+    return_norm : bool
+        Divide the (scaled, shared) rewards by the running standard deviation of the discounted
+        return before the update (off by default, as published).
+    collision_value : {"absorbing", "published"}
+        What an episode ended early by the published collision rule is worth afterwards:
+        ``published`` 0 (terminal); ``absorbing`` (default, a departure) the collision penalty at
+        every step to the scheduled end, folded into the last step's return.
+    advantage_norm : bool
+        Standardise each agent's advantages over the running entries of every segment before
+        the policy loss (:func:`marl.a2c.normalise_advantages`; off by default, as published).
+    episodes_parallel : int
+        B episodes stepped together (sample budget counts all of them).
+    lr_scale : float
+        Multiplier on both learning rates (4.0 with B = 8; 1.0: the paper's per-update rates).
+    eval_every_steps : int
+        Environment steps between evaluations on the validation seeds, in both modes (learning
+        curve and checkpoint selection: the kept snapshot is the evaluated one with the fewest
+        collisions, then the best reward, in ``selection_mode``; a tie goes to the later one).
+    selection_mode : {"sampled", "greedy"}
+        Evaluation mode in which the kept snapshot is chosen on the validation seeds (the mode
+        the policy controller is evaluated in; default ``sampled``, the policy as trained).
+    reward_w_gap, reward_w_speed, reward_w_accel, reward_w_safety, reward_w_power : float
+        Weights w1..w5 of the **training** reward (paper: -1, -1, -0.1, -5, -10; power in kW).
+        The benchmark always scores with the paper's weights; other values are a documented
+        shaping of the learning signal, recorded in the checkpoint.
+    power_baseline_kw : float or None
+        Constant power subtracted from every running agent's power for learning: the power term
+        becomes ``w5 (P - P0)``. 0 (default): the paper's term. None: the cruise power
+        ``P(v*, 0)`` at the scenario's target speed, resolved when training starts and recorded.
+    min_active_fraction : float
+        At an n-step boundary, when fewer than this fraction of the B episodes are still running,
+        the rest are truncated (bootstrapped) and a new batch starts (0, default: never).
+
+    Why each departure exists and what the options measured: ``docs/learner-options.md``.
+    """
+
+    n_step: int = 60
+    gamma: float = 0.99
+    hidden: int = 64
+    actor_lr: float = 5e-4
+    critic_lr: float = 2.5e-4
+    rmsprop_alpha: float = 0.99
+    rmsprop_eps: float = 1e-5
+    entropy_coef: float = 0.05
+    value_coef: float = 0.5
+    grad_clip: float = 40.0
+    reward_scale: float = 1.0 / 800.0
+    reward_alpha: float | None = None
+    entropy_coef_final: float | None = 0.005
+    return_norm: bool = False
+    collision_value: str = "absorbing"
+    advantage_norm: bool = False
+    episodes_parallel: int = 8
+    lr_scale: float = 4.0
+    eval_every_steps: int = 20_000
+    selection_mode: str = "sampled"
+    reward_w_gap: float = -1.0
+    reward_w_speed: float = -1.0
+    reward_w_accel: float = -0.1
+    reward_w_safety: float = -5.0
+    reward_w_power: float = -10.0
+    power_baseline_kw: float | None = 0.0
+    min_active_fraction: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.n_step < 1 or self.hidden < 1 or self.episodes_parallel < 1:
+            raise ConfigError("n_step, hidden and episodes_parallel must be >= 1")
+        if not 0 < self.gamma <= 1:
+            raise ConfigError(f"gamma must lie in (0, 1], got {self.gamma}")
+        if self.reward_alpha is not None and not 0 <= self.reward_alpha <= 1:
+            raise ConfigError(f"reward_alpha must lie in [0, 1], got {self.reward_alpha}")
+        if self.entropy_coef_final is not None and self.entropy_coef_final < 0:
+            raise ConfigError(f"entropy_coef_final must be >= 0, got {self.entropy_coef_final}")
+        if self.collision_value not in COLLISION_VALUES:
+            raise ConfigError(
+                f"collision_value must be one of {', '.join(COLLISION_VALUES)}, "
+                f"got {self.collision_value!r}"
+            )
+        if self.selection_mode not in EVAL_MODES:
+            raise ConfigError(
+                f"selection_mode must be one of {', '.join(EVAL_MODES)}, got {self.selection_mode!r}"
+            )
+        for name in ("reward_w_gap", "reward_w_speed", "reward_w_accel", "reward_w_safety",
+                     "reward_w_power"):
+            if getattr(self, name) > 0:
+                raise ConfigError(f"{name} is a cost weight and must be <= 0, got {getattr(self, name)}")
+        if self.power_baseline_kw is not None and not math.isfinite(self.power_baseline_kw):
+            raise ConfigError(f"power_baseline_kw must be finite, got {self.power_baseline_kw}")
+        for name in ("actor_lr", "critic_lr", "reward_scale", "grad_clip", "lr_scale"):
+            if not getattr(self, name) > 0:
+                raise ConfigError(f"{name} must be > 0, got {getattr(self, name)}")
+
+    #: Published reward sharing (``coop_gamma`` of the published configs) by scenario family
+    #: (the scenario id up to its first ``-``); other scenarios use :attr:`DEFAULT_REWARD_ALPHA`.
+    PUBLISHED_REWARD_ALPHA: ClassVar[dict[str, float]] = {"catchup": 1.0, "slowdown": 0.0}
+    DEFAULT_REWARD_ALPHA: ClassVar[float] = 1.0
+
+    def resolved(self, scenario_id: str) -> A2CConfig:
+        """This config with ``reward_alpha`` and ``power_baseline_kw`` filled in for
+        ``scenario_id`` (where they were None)."""
+        out: A2CConfig = self
+        if out.reward_alpha is None:
+            family = scenario_id.split("-")[0]
+            alpha = self.PUBLISHED_REWARD_ALPHA.get(family, self.DEFAULT_REWARD_ALPHA)
+            out = dataclasses.replace(out, reward_alpha=alpha)
+        if out.power_baseline_kw is None:
+            from envs.energy import load_power_polynomial
+
+            v_star = make_scenario(scenario_id).target_speed_mps
+            p0 = float(load_power_polynomial()(np.array([v_star]), np.array([0.0]))[0])
+            out = dataclasses.replace(out, power_baseline_kw=round(p0, 6))
+        return out
+
+    def reward_weights(self) -> RewardWeights:
+        """The training reward's weights (the benchmark scores with ``RewardWeights()``)."""
+        return RewardWeights(
+            gap=self.reward_w_gap,
+            speed=self.reward_w_speed,
+            accel=self.reward_w_accel,
+            safety=self.reward_w_safety,
+            power=self.reward_w_power,
+        )
+
+    def entropy_at(self, fraction: float) -> float:
+        """Entropy coefficient after ``fraction`` (0..1) of the run."""
+        if self.entropy_coef_final is None:
+            return self.entropy_coef
+        f = min(max(fraction, 0.0), 1.0)
+        return self.entropy_coef + (self.entropy_coef_final - self.entropy_coef) * f
+
+
+# ---------------------------------------------------------------------------- algorithms
+def _nothing(*_: object) -> None:
+    """No hook."""
+
+
+@dataclass
+class Algorithm:
+    """An algorithm's distinctive parts as plain functions: its network and what it does around
+    the update (each algorithm file builds one as its ``ALGORITHM``).
+
+    Attributes
+    ----------
+    name : str
+        Registered name.
+    config_cls : type
+        Its config, a frozen subclass of :class:`A2CConfig`.
+    build_net : callable(config, n_agents, with_critic=True, generator=None) -> AgentNet
+        The batched network of N agents.
+    setup : callable(run)
+        Once per run after the network exists; the run's own state of the algorithm goes into
+        ``run.hook_state``.
+    before_step : callable(run, net)
+        After backward and per-agent clipping, before the optimiser step (e.g. QSGD), on the
+        run's rows ``run.rows`` of ``net``.
+    after_step : callable(run, net)
+        After the optimiser step (e.g. a consensus round), on the run's rows of ``net``.
+    """
+
+    name: str
+    config_cls: type[A2CConfig]
+    build_net: Callable[..., AgentNet]
+    setup: Callable[[Run], None] = _nothing
+    before_step: Callable[[Run, AgentNet], None] = _nothing
+    after_step: Callable[[Run, AgentNet], None] = _nothing
+
+
+def algorithm(name: str) -> Algorithm:
+    """The :class:`Algorithm` of a registered name (module ``marl.<name>``)."""
+    if name not in ALGORITHM_NAMES:
+        raise UnknownNameError("algorithm", name, ALGORITHM_NAMES)
+    module = importlib.import_module(f"marl.{name}")
+    return module.ALGORITHM
+
+
+def config_from_dict(algo: Algorithm, values: dict[str, Any]) -> A2CConfig:
+    """Rebuild an algorithm's config from a checkpoint's dict (unknown keys are an error)."""
+    names = {f.name for f in dataclasses.fields(algo.config_cls)}
+    extra = set(values) - names
+    if extra:
+        raise ConfigError(f"{algo.name} config has no fields {sorted(extra)}")
+    return algo.config_cls(**values)
