@@ -176,7 +176,6 @@ class Run:
         return penalty * (1.0 - g**remaining_steps) / (1.0 - g)
 
 
-
 @dataclass
 class Segment:
     """One run's part of an n-step segment: per step its rewards ``(B, N)``, running mask,
@@ -187,7 +186,6 @@ class Segment:
     terms: list[np.ndarray] = field(default_factory=list)
     absorbed: list[np.ndarray] = field(default_factory=list)
     bootstrap: torch.Tensor | None = None
-
 
 
 # ---------------------------------------------------------------------------- returns and loss
@@ -316,7 +314,6 @@ def normalise_advantages(adv: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     mean = (adv * m).sum((0, 1)) / count
     var = ((adv - mean).square() * m).sum((0, 1)) / count
     return (adv - mean) / (var.sqrt() + 1e-8)
-
 
 
 # ---------------------------------------------------------------------------- update

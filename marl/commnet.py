@@ -16,33 +16,26 @@ Messages (each received by the front and rear neighbours; counted in bits per ag
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import ClassVar
 
 import torch
 
-from marl.config import A2CConfig, Algorithm
+from marl.config import Algorithm
 from marl.consensus import degree
 from marl.layers import BatchedLinear
-from marl.networks import SharedTrunkNet
+from marl.message_family import MessageConfig, MessageNet
 
 
 @dataclass(frozen=True)
-class CommNetConfig(A2CConfig):
-    """CommNet hyper-parameters: reward scale 1/5000; global reward (alpha = 1) on catchup and
-    slowdown, as its published configs."""
-
-    reward_scale: float = 1.0 / 5000.0
-    PUBLISHED_REWARD_ALPHA: ClassVar[dict[str, float]] = {"catchup": 1.0, "slowdown": 1.0}
+class CommNetConfig(MessageConfig):
+    """CommNet hyper-parameters: those of the learned-message family
+    (:class:`marl.message_family.MessageConfig`: reward scale 1/5000, global reward)."""
 
 
-class CommNetNet(SharedTrunkNet):
+class CommNetNet(MessageNet):
     """IA2C trunk plus the communication layer ``C mean_j h_j``."""
 
-    differentiable_messages = True
-
     def __init__(self, n_agents, hidden=64, with_critic=True, generator=None):
-        super().__init__(n_agents, hidden, with_critic, generator=generator)
-        self.msg_width = hidden
+        super().__init__(n_agents, hidden, with_critic, generator)
         self.comm = BatchedLinear(n_agents, hidden, hidden, 1.0, generator)
         deg = degree(n_agents, torch.zeros(n_agents, 1, 1)).clamp(min=1.0)
         self.register_buffer("inv_degree", 1.0 / deg, persistent=False)

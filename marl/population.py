@@ -44,7 +44,6 @@ def stack_nets(algo: Algorithm, config: A2CConfig, nets: Sequence[AgentNet]) -> 
     return big
 
 
-
 @dataclass
 class _Batch:
     """A run's batch in progress: the batched env its B episodes run in (rows ``rows``, shared
@@ -79,7 +78,6 @@ def _merge_rows(base: dict[str, Any], new: dict[str, Any], runs: Sequence[Run]) 
         return out
 
     return {k: merge(base[k], new[k]) for k in base}
-
 
 
 class Trainer(Learner):
