@@ -37,7 +37,6 @@ from torch import nn
 
 from envs.errors import ConfigError
 from envs.platoon import PlatoonEnv
-from marl.config import ALGORITHM_NAMES as ALGORITHM_NAMES  # re-exported for older callers
 from marl.config import A2CConfig, Algorithm
 from marl.layers import per_agent_clip_
 from marl.networks import AgentNet, State, neighbour_action_onehot
