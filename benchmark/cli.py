@@ -31,6 +31,8 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "sensitivity": ("benchmark.sensitivity_cmd", "BDC-MARL's knobs one at a time and its V2V tolerance"),
     "compare-learned": ("benchmark.compare_learned_cmd",
                         "learned control against MPC: action set, learning, V2V, one report"),
+    "generalise": ("benchmark.generalise_cmd",
+                   "learned controllers off their training scenario: a matrix on the test seeds"),
     "fit-power": ("benchmark.fit_power", "re-fit the energy polynomial and print its quality"),
     "perf": ("benchmark.perf", "environment, controller and training throughput"),
 }

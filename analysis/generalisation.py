@@ -1,0 +1,218 @@
+"""The generalisation matrix: every learned controller (per training scenario or family, training
+seeds pooled), with and without the safety filter, beside the model-based controllers, on
+scenarios, platoon sizes and V2V settings it was not trained on, on the test seeds.
+
+:data:`COLUMNS` are the test conditions; :func:`matrix_rows` the controllers; a cell holds the
+colliding episodes, the mean reward with its two-stage interval over training seeds and
+episodes, and the gap RMSE. A controller that cannot act in a column (a per-agent policy at
+another N) is "not applicable" there, never silently skipped.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from analysis.statistics import hierarchical_bootstrap_ci
+
+
+@dataclass(frozen=True)
+class Column:
+    """One test condition: scenario (with options), N and V2V."""
+
+    name: str
+    scenario: str
+    n_vehicles: int = 8
+    comm_delay_s: float = 0.0
+    packet_loss: float = 0.0
+
+
+COLUMNS: tuple[Column, ...] = (
+    Column("catchup", "catchup-v1"),
+    Column("slowdown", "slowdown-v1"),
+    Column("brake", "brake-v1"),
+    Column("sine", "sine-v1"),
+    Column("sine 3 m/s 0.1 Hz", "sine-v1:amplitude_mps=3,frequency_hz=0.1"),
+    Column("OpenACC S", "openacc-s-v1"),
+    Column("OpenACC M", "openacc-m-v1"),
+    Column("OpenACC L", "openacc-l-v1"),
+    Column("catchup N=4", "catchup-v1", n_vehicles=4),
+    Column("catchup N=12", "catchup-v1", n_vehicles=12),
+    Column("catchup 0.2 s 30 %", "catchup-v1", comm_delay_s=0.2, packet_loss=0.3),
+)
+
+#: Model-based controllers (one row each, no training seed).
+MODEL_BASED: tuple[str, ...] = ("cacc", "mpc-qp", "mpc", "acc", "ovm", "duty")
+#: Training scenarios of the shipped learned policies at N = 8.
+TRAINED_ON: tuple[str, ...] = ("catchup-v1", "slowdown-v1")
+#: Training seeds pooled in a learned row.
+TRAIN_SEEDS: tuple[int, ...] = (0, 1, 2)
+
+
+@dataclass(frozen=True)
+class Row:
+    """A matrix row: label, registered controller, options (without the training seed), whether
+    it is learned (pooled over :data:`TRAIN_SEEDS`) and the N it acts at (None: any)."""
+
+    label: str
+    controller: str
+    options: tuple[tuple[str, str], ...]
+    learned: bool
+    only_n: int | None = None
+
+    def specs(self) -> list[tuple[str, dict[str, str]]]:
+        """The controller specs the row runs (one per training seed for a learned row)."""
+        opts = dict(self.options)
+        if not self.learned:
+            return [(self.controller, opts)]
+        return [(self.controller, {**opts, "seed": str(s)}) for s in TRAIN_SEEDS]
+
+    def applies(self, column: Column) -> bool:
+        """Whether the controller can act in ``column`` (a per-agent policy at its N only)."""
+        return self.only_n is None or self.only_n == column.n_vehicles
+
+
+def learned_rows(available: Any) -> list[Row]:
+    """Every shipped learned policy, per training scenario or family: the paper's seven (one
+    network per follower, N = 8 only), the shared policies (any N), ``ippo-bdc`` (N = 8), the
+    residual variant and ``ippo`` trained on ``mixed-v1``; ``available(controller, options,
+    seed)`` says whether a checkpoint exists (rows lacking one are left out by the caller)."""
+    from controllers.shared_policy import PER_AGENT_POLICIES, SHARED_POLICIES
+    from marl.config import ALGORITHM_NAMES
+
+    rows: list[Row] = []
+    for algo in (*ALGORITHM_NAMES, *SHARED_POLICIES):
+        shared = algo in SHARED_POLICIES and algo not in PER_AGENT_POLICIES
+        for sc in TRAINED_ON:
+            rows.append(Row(f"{algo} ({sc})", algo, (("scenario", sc),), True,
+                            None if shared else 8))
+    rows.append(Row("ippo (mixed-v1)", "ippo", (("scenario", "mixed-v1"),), True))
+    for sc in TRAINED_ON:
+        rows.append(Row(f"ippo residual-cacc ({sc})", "ippo",
+                        (("scenario", sc), ("variant", "residual-cacc")), True))
+    return [r for r in rows if all(available(c, o) for c, o in r.specs())]
+
+
+def with_safety_filter(row: Row) -> Row:
+    """The same controller behind the safety filter (``safe:<controller>``)."""
+    return Row(f"safe:{row.label}", f"safe:{row.controller}", row.options, row.learned,
+               row.only_n)
+
+
+def cell_frame(runs: Any, rows: list[Row], columns: Sequence[Column] = COLUMNS) -> Any:
+    """One row per matrix row and column: applicable, episodes, collisions, reward mean and
+    interval (two-stage over training seeds, then episodes), gap RMSE."""
+    import pandas as pd
+
+    from controllers.registry import controller_label
+    from envs.scenarios import scenario_label
+
+    ok = runs[runs["status"] == "ok"]
+    out = []
+    for row in rows:
+        labels = {controller_label(c, o): int(o.get("seed", 0)) for c, o in row.specs()}
+        for col in columns:
+            rec: dict[str, Any] = {"row": row.label, "column": col.name, "applicable": row.applies(col)}
+            if not rec["applicable"]:
+                out.append(rec)
+                continue
+            sel = ok[ok["controller"].isin(list(labels)) & (ok["scenario"] == scenario_label(col.scenario))
+                     & (ok["n_vehicles"] == col.n_vehicles)
+                     & np.isclose(ok["comm_delay_s"], col.comm_delay_s)
+                     & np.isclose(ok["packet_loss"], col.packet_loss)]
+            groups = [sel[sel["controller"] == lab]["reward"].to_numpy(float) for lab in labels]
+            mean, lo, hi = hierarchical_bootstrap_ci(groups, seed=20240601)
+            rec.update(episodes=int(len(sel)), collisions=int(sel["collision"].astype(bool).sum()),
+                       reward=mean, reward_ci_low=lo, reward_ci_high=hi,
+                       gap_rmse_m=float(sel["gap_rmse_m"].mean()) if len(sel) else math.nan,
+                       safety_interventions=float(sel["safety_interventions"].mean())
+                       if "safety_interventions" in sel and len(sel) else math.nan)
+            out.append(rec)
+    return pd.DataFrame(out)
+
+
+def plot_heatmap(cells: Any, out: Path, columns: Sequence[Column] = COLUMNS) -> list[Path]:
+    """Collision share per cell (colour; grey: not applicable), mean reward as the cell's text."""
+    from analysis.plots import _plt, savefig_atomic
+
+    plt = _plt()
+    rows = list(dict.fromkeys(cells["row"]))
+    cols = [c.name for c in columns]
+    share = np.full((len(rows), len(cols)), np.nan)
+    text = [["n/a"] * len(cols) for _ in rows]
+    for _, c in cells.iterrows():
+        i, j = rows.index(c["row"]), cols.index(c["column"])
+        if c["applicable"] and c.get("episodes", 0):
+            share[i, j] = c["collisions"] / c["episodes"]
+            text[i][j] = f"{c['reward']:.0f}"
+    fig, ax = plt.subplots(figsize=(1.0 * len(cols) + 3, 0.28 * len(rows) + 1.5))
+    cmap = plt.get_cmap("Reds").copy()
+    cmap.set_bad("#dddddd")
+    im = ax.imshow(np.ma.masked_invalid(share), cmap=cmap, vmin=0, vmax=1, aspect="auto")
+    ax.set_xticks(range(len(cols)), cols, rotation=40, ha="right", fontsize=7)
+    ax.set_yticks(range(len(rows)), rows, fontsize=6)
+    for i in range(len(rows)):
+        for j in range(len(cols)):
+            ax.text(j, i, text[i][j], ha="center", va="center", fontsize=5)
+    fig.colorbar(im, ax=ax, label="colliding share of episodes")
+    ax.set_title("reward (text) and collisions (colour) on the test seeds", fontsize=8)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = [savefig_atomic(fig, out / f"generalisation.{ext}", dpi=150, bbox_inches="tight")
+             for ext in ("png", "pdf")]
+    plt.close(fig)
+    return paths
+
+
+def write_report(cells: Any, out: Path, command: str, episodes: int,
+                 columns: Sequence[Column] = COLUMNS) -> Path:
+    """``report.md``: the matrix (collisions / episodes, reward [interval], gap RMSE per cell)."""
+    from envs.atomic import write_text
+
+    cols = [c.name for c in columns]
+    lines = [
+        "# Generalisation matrix",
+        "",
+        f"Made by `{command} --out FOLDER` on the first {episodes} test seeds "
+        "(`envs.params.TEST_SEEDS`, which no training, tuning or selection reads). Rows: "
+        "learned controllers by training scenario or family, three training seeds pooled, "
+        "actions sampled as trained, with and without the safety filter (`safe:`), then the "
+        "model-based controllers. A cell: colliding episodes / episodes, mean reward [95 % "
+        "two-stage interval], gap RMSE in m; \"n/a\": the controller cannot act at that N. "
+        "Columns use N = 8 unless named. Tables: `matrix.csv`; figure: "
+        "`figures/generalisation.png`.",
+        "",
+        "![matrix](figures/generalisation.png)",
+        "",
+        "| controller | " + " | ".join(cols) + " |",
+        "|---|" + "---|" * len(cols),
+    ]
+    for row, grp in cells.groupby("row", sort=False):
+        by = {r["column"]: r for _, r in grp.iterrows()}
+        parts = []
+        for c in cols:
+            r = by[c]
+            if not r["applicable"]:
+                parts.append("n/a")
+            elif not r.get("episodes", 0):
+                parts.append("not run")
+            else:
+                parts.append(f"{int(r['collisions'])}/{int(r['episodes'])}, {r['reward']:.1f} "
+                             f"[{r['reward_ci_low']:.1f}, {r['reward_ci_high']:.1f}], "
+                             f"{r['gap_rmse_m']:.2f}")
+        lines.append(f"| `{row}` | " + " | ".join(parts) + " |")
+    path = out / "report.md"
+    write_text(path, "\n".join(lines) + "\n")
+    return path
+
+
+def rows_json(rows: list[Row]) -> str:
+    """The rows as JSON (what the command ran), for the report folder."""
+    return json.dumps([{"label": r.label, "controller": r.controller,
+                        "options": dict(r.options), "learned": r.learned,
+                        "only_n": r.only_n} for r in rows], indent=1)

@@ -1,0 +1,122 @@
+"""``cacc-bench generalise``: the generalisation matrix on the test seeds, in one report.
+
+Every shipped learned policy (per training scenario or family, three training seeds), with and
+without the safety filter, and the model-based controllers, on the columns of
+:data:`analysis.generalisation.COLUMNS` (other scenarios, the OpenACC windows, N = 4 and 12,
+degraded V2V), through the results store (resumable, ``--resume``); writes ``report.md``,
+``matrix.csv``, ``rows.json`` and ``figures/generalisation.{png,pdf}`` into ``--out``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import shlex
+import sys
+
+from benchmark.cli import plain
+from benchmark.executors import add_executor_options
+from envs.errors import ConfigError
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="cacc-bench generalise",
+                                description=plain(__doc__.split("\n")[0]))
+    p.add_argument("--episodes", type=int, default=10,
+                   help="first K test seeds per cell and training seed (default: %(default)s)")
+    p.add_argument("--no-safety-filter", action="store_true",
+                   help="leave out the learned rows behind the safety filter")
+    p.add_argument("--controllers", default=None,
+                   help="only the rows of these controllers (comma list, e.g. cacc,ippo,safe:ippo;"
+                        " default: every row)")
+    p.add_argument("--columns", default=None,
+                   help="only these columns (comma list of their names; default: all)")
+    p.add_argument("--out", default="results/generalise",
+                   help="output folder (default: %(default)s)")
+    p.add_argument("--resume", action="store_true", help="complete a matrix in --out")
+    add_executor_options(p, default="process")
+    return p
+
+
+def _available(controller: str, options: dict[str, str]) -> bool:
+    """Whether the shipped checkpoint of a learned spec exists."""
+    from controllers.policy import VARIANT_DIR, checkpoint_path
+
+    folder = VARIANT_DIR / options["variant"] if "variant" in options else None
+    return checkpoint_path(controller, options["scenario"], 8, int(options["seed"]),
+                           folder).exists()
+
+
+def main(argv: list[str]) -> int:
+    """Entry point of ``cacc-bench generalise``."""
+    import pandas as pd
+
+    from analysis.generalisation import (
+        COLUMNS,
+        MODEL_BASED,
+        Row,
+        cell_frame,
+        learned_rows,
+        plot_heatmap,
+        rows_json,
+        with_safety_filter,
+        write_report,
+    )
+    from benchmark.export import write_csv
+    from benchmark.folder_lock import folder_lock
+    from benchmark.paths import writable_dir
+    from benchmark.run_cmd import execute_sweep
+    from benchmark.suite import build_sweep, seeds_from_set
+    from envs.atomic import write_text
+    from envs.scenarios import scenario_label
+
+    args = _parser().parse_args(argv)
+    from benchmark.executors import check_ray_address
+
+    check_ray_address(args.ray_address)
+    if args.workers < 1:
+        raise ConfigError(f"--workers must be >= 1, got {args.workers}")
+    seeds = seeds_from_set("test", args.episodes)
+    learned = learned_rows(_available)
+    rows = [*learned, *([] if args.no_safety_filter else [with_safety_filter(r) for r in learned]),
+            *(Row(name, name, (), False) for name in MODEL_BASED)]
+    if args.controllers is not None:
+        wanted = {c.strip() for c in args.controllers.split(",") if c.strip()}
+        unknown = wanted - {r.controller for r in rows}
+        if unknown or not wanted:
+            raise ConfigError(f"--controllers: no row of {', '.join(sorted(unknown)) or 'nothing'};"
+                              f" rows are of {', '.join(sorted({r.controller for r in rows}))}")
+        rows = [r for r in rows if r.controller in wanted]
+    columns = list(COLUMNS)
+    if args.columns is not None:
+        names = [c.strip() for c in args.columns.split(",") if c.strip()]
+        known = {c.name: c for c in COLUMNS}
+        bad = [c for c in names if c not in known]
+        if bad or not names:
+            raise ConfigError(f"--columns: unknown {', '.join(bad) or 'nothing named'}; the "
+                              f"columns are {', '.join(known)}")
+        columns = [known[c] for c in names]
+    keys = set()
+    for row in rows:
+        for col in columns:
+            if row.applies(col):
+                keys.update(build_sweep(row.specs(), [scenario_label(col.scenario)],
+                                        [col.n_vehicles], seeds, [col.comm_delay_s],
+                                        [col.packet_loss]))
+    out = writable_dir(args.out)
+    shown = [a for i, a in enumerate(argv)
+             if a not in ("--out", "--resume") and not a.startswith("--out=")
+             and (i == 0 or argv[i - 1] != "--out")]
+    command = " ".join(["cacc-bench generalise", *(shlex.quote(a) for a in shown)])
+    with folder_lock(out):
+        print(f"generalise: {len(rows)} rows x {len(columns)} columns x {len(seeds)} test "
+              f"episodes = {len(keys)} runs", file=sys.stderr)
+        rc = execute_sweep(sorted(keys), out / "runs", resume=args.resume,
+                           executor=args.executor, workers=args.workers,
+                           ray_address=args.ray_address, quiet=True, first_seed=seeds[0])
+        cells = cell_frame(pd.read_csv(out / "runs" / "runs.csv"), rows, columns)
+        write_csv(cells, out / "matrix.csv")
+        write_text(out / "rows.json", rows_json(rows) + "\n")
+        plot_heatmap(cells, out / "figures", columns)
+        report = write_report(cells, out, command, len(seeds), columns)
+    print(f"wrote {report} and the matrix beside it")
+    return rc
