@@ -174,7 +174,7 @@ def main(argv: list[str]) -> int:
         if args.controllers:
             for name, opts in specs:
                 make_controller(name, **opts)  # checks the name and every option
-    from marl.ppo import SHARED_ALGORITHMS
+    from marl.ppo_nets import SHARED_ALGORITHMS
 
     algos = ([a.strip() for a in args.algos.split(",") if a.strip()] if args.algos
              else [*MARL_ALGORITHMS, *SHARED_ALGORITHMS])

@@ -31,7 +31,7 @@ def shared_config(algo: str, overrides: Sequence[str], tuned: dict[str, Any] | N
     (typed and checked by :func:`controllers.registry.build_config`, the one option rule)."""
     from controllers.registry import build_config
     from marl.distill import DistillConfig
-    from marl.ppo import PPOConfig
+    from marl.ppo_nets import PPOConfig
 
     values: dict[str, Any] = dict(tuned or {})
     for item in overrides:

@@ -88,7 +88,7 @@ def search_space(trial: Any, algo: str) -> dict[str, Any]:
 def default_params(algo: str) -> dict[str, Any]:
     """The search-space point of the algorithm's default config (every study's first trial)."""
     if algo in SHARED_TUNED:
-        from marl.ppo import PPOConfig
+        from marl.ppo_nets import PPOConfig
 
         ppo = PPOConfig()
         return {"lr": ppo.lr, "init_log_std": ppo.init_log_std, "gamma": ppo.gamma,

@@ -64,7 +64,7 @@ def mlp_rows_are_batch_invariant(action_mode: str = "accel", algo: str = "ippo")
     :data:`PER_AGENT_MIN_LANES` for a per-agent actor; random weights, once per process)."""
     import torch
 
-    from marl.ppo import PPOConfig, SharedActor
+    from marl.ppo_nets import PPOConfig, SharedActor
 
     torch.manual_seed(0)
     cfg = PPOConfig(action_mode=action_mode, algo=algo if algo == "ippo-bdc" else "ippo")
@@ -173,7 +173,7 @@ class SharedPolicyController(Controller):
         import torch
 
         from marl.checkpoint import load_checkpoint
-        from marl.ppo import load_actor
+        from marl.ppo_eval import load_actor
 
         torch.set_num_threads(1)
         path = self._path(source)
@@ -230,7 +230,7 @@ class SharedPolicyController(Controller):
                 state.realised_accel_mps2, self._pred_held, self._leader_held,
                 ctx.target_gap_m, ctx.target_speed_mps, p)
         from envs.dynamics import vehicle_blocks
-        from marl.ppo import agent_inputs
+        from marl.ppo_eval import agent_inputs
 
         own = vehicle_blocks(state.gap_m, state.speed_mps, state.pred_speed_mps,
                              state.applied_accel_mps2, ctx.target_gap_m, ctx.target_speed_mps,
@@ -247,7 +247,7 @@ class SharedPolicyController(Controller):
     def act(self, state: PlatoonState, observation: np.ndarray | None) -> np.ndarray:
         import torch
 
-        from marl.ppo import ACTION_STREAM, sample_with_uniforms, to_command
+        from marl.ppo_eval import ACTION_STREAM, sample_with_uniforms, to_command
 
         obs = self._observation(state)
         b, n = obs.shape[:2]

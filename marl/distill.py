@@ -37,7 +37,9 @@ from envs.errors import ConfigError
 from envs.params import PlatoonParams
 from envs.platoon import PlatoonEnv, PlatoonState
 from envs.scenarios import check_vehicles, make_scenario
-from marl.ppo import PPOConfig, PPOResult, SharedActor, agent_inputs, as_shipped, validation_score
+from marl.ppo import PPOResult
+from marl.ppo_eval import agent_inputs, as_shipped, validation_score
+from marl.ppo_nets import PPOConfig, SharedActor
 
 #: ``make_expert(env)`` after ``env.reset(seeds)``: the expert's ``act(state) -> (B, N)``.
 ExpertFactory = Callable[[PlatoonEnv], Callable[[PlatoonState], np.ndarray]]

@@ -125,7 +125,8 @@ def test_duty_refuses_to_choose_k_on_test_seeds() -> None:
 
 
 def test_ppo_validation_score_refuses_test_seeds() -> None:
-    from marl.ppo import PPOConfig, SharedActor, validation_score
+    from marl.ppo_eval import validation_score
+    from marl.ppo_nets import PPOConfig, SharedActor
 
     fake: SharedActor = None  # type: ignore[assignment]  # refused before the actor is used
     with pytest.raises(ConfigError, match="test seeds"):

@@ -13,16 +13,9 @@ import torch
 
 from envs.errors import ConfigError
 from envs.params import PlatoonParams
-from marl.ppo import (
-    Critic,
-    PPOConfig,
-    SharedActor,
-    as_shipped,
-    load_actor,
-    sample_with_uniforms,
-    train,
-    validation_score,
-)
+from marl.ppo import train
+from marl.ppo_eval import as_shipped, load_actor, sample_with_uniforms, validation_score
+from marl.ppo_nets import Critic, PPOConfig, SharedActor
 
 TINY = PPOConfig(n_envs=4, rollout_steps=16, epochs=2, minibatch_rows=64, eval_every_steps=10**6)
 
@@ -322,7 +315,7 @@ def test_distill_copies_a_linear_law_and_a_seed_gives_the_same_weights() -> None
     for _ in range(300):
         label = expert(env.state)
         with torch.no_grad():
-            from marl.ppo import agent_inputs
+            from marl.ppo_eval import agent_inputs
 
             mine = res.actor.command(res.actor(torch.from_numpy(agent_inputs(obs, "accel"))))
         errors.append(mine.numpy() - label)

@@ -1,0 +1,317 @@
+"""The shared learners' config and networks (:mod:`marl.ppo`): :class:`PPOConfig` with the
+hyper-parameters, the actor every follower shares (or one per follower, ``ippo-bdc``) and the
+critic. Acting and validation read these without the trainer (:mod:`marl.ppo_eval`)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from envs.accel_mode import check_action_mode
+from envs.channel import ChannelConfig
+from envs.errors import ConfigError
+from envs.params import OVM_ACTIONS, PlatoonParams
+
+#: The learners of this file: one shared policy (``ippo``, ``mappo``), or one actor and critic
+#: per agent whose critics agree by binary differential consensus (``ippo-bdc``).
+SHARED_ALGORITHMS: tuple[str, ...] = ("ippo", "mappo", "ippo-bdc")
+#: Model-based priors a residual policy can add to (``PPOConfig.prior``).
+PRIORS: tuple[str, ...] = ("", "cacc")
+#: Uniform stream of sampled evaluation actions (per episode, step and agent).
+
+# ---------------------------------------------------------------------------- config
+@dataclass(frozen=True)
+class PPOConfig:
+    """Hyper-parameters (CleanRL's continuous-action PPO where the platoon does not differ).
+
+    Attributes
+    ----------
+    algo : {"ippo", "mappo", "ippo-bdc"}
+        Local critic or centralised (agent + platoon-mean observation) critic, one policy
+        shared by all; or (``ippo-bdc``) BDC-MARL's scheme on this learner: an actor and a local
+        critic per agent, the critics' weights brought together after every update by binary
+        differential consensus with the front and rear neighbours, their gradients compressed
+        by QSGD with error feedback (:mod:`marl.bdc`), so the policy is trained for one N.
+    action_mode : {"accel", "ovm-gain"}
+        The env's action mode (:mod:`envs.accel_mode`).
+    n_envs : int
+        Episodes stepped together (B).
+    rollout_steps : int
+        Steps per episode between updates (T); an update learns from ``B T N`` agent-steps.
+    epochs, minibatch_rows : int
+        Passes over a rollout, and agent-steps per gradient step.
+    lr : float
+        Adam learning rate, annealed linearly to 0 over the run.
+    gamma, gae_lambda : float
+        Discount and GAE's lambda.
+    clip_coef, vf_coef, ent_coef, max_grad_norm : float
+        PPO's ratio clip, value-loss weight, entropy bonus, global grad-norm clip.
+    hidden : int
+        Width of the two ReLU layers of actor and critic.
+    init_log_std : float
+        Initial log standard deviation of the Gaussian ``z`` (``accel``).
+    reward_alpha : float
+        Reward sharing: agent i learns from ``sum_j alpha^|i-j| r_j`` (0: its own reward, the
+        default; 1: the platoon's), as the paper's learners' ``reward_alpha``.
+    reward_clip, obs_clip : float
+        Clip of the normalised reward and observation.
+    comm_delay_s, packet_loss : float
+        V2V of the training episodes (``accel``).
+    eval_every_steps : int
+        Environment steps between validations (the kept snapshot: fewest collisions on the
+        validation seeds, then best reward, actions sampled as trained).
+    prior : {"", "cacc"}
+        ``"cacc"``: residual policy learning (Silver et al. 2018; Johannink et al., ICRA 2019):
+        the command is ``clip(cacc(obs) + h tanh(z))``, Ploeg's CACC computed from the same
+        observation (:func:`envs.accel_mode.cacc_from_observation`) plus the learned residual,
+        which starts near zero; ``""``: ``c + h tanh(z)`` (``accel`` only).
+    critic_warmup_updates : int
+        Updates at the start that fit only the critic (so a random critic's advantages do not
+        move a policy that starts from a good prior).
+    vehicles_min, vehicles_max : int
+        0, 0: every training episode has the run's N. Otherwise each batch of ``n_envs``
+        episodes draws its N uniformly from ``vehicles_min`` (or the run's N) to
+        ``vehicles_max`` (or the run's N) (domain randomisation; a rollout then ends where its
+        episodes end; validation stays at the run's N).
+    comm_delay_max_s, packet_loss_max : float
+        Above ``comm_delay_s`` and ``packet_loss``: each batch of episodes draws its V2V delay
+        (whole steps) and loss uniformly up to these (0: fixed).
+    consensus_eps, qsgd_levels, qsgd_bucket : float, int, int
+        ``ippo-bdc``: the consensus step (BDC's default), QSGD's levels on the critic gradients
+        (0: off) and entries per QSGD bucket.
+    """
+
+    algo: str = "ippo"
+    action_mode: str = "accel"
+    n_envs: int = 64
+    rollout_steps: int = 64
+    epochs: int = 4
+    minibatch_rows: int = 8192
+    lr: float = 1e-3
+    gamma: float = 0.99
+    gae_lambda: float = 0.95
+    clip_coef: float = 0.2
+    vf_coef: float = 0.5
+    ent_coef: float = 0.0
+    max_grad_norm: float = 0.5
+    hidden: int = 64
+    init_log_std: float = -1.5
+    reward_alpha: float = 0.0
+    reward_clip: float = 10.0
+    obs_clip: float = 10.0
+    comm_delay_s: float = 0.0
+    packet_loss: float = 0.0
+    eval_every_steps: int = 100_000
+    prior: str = ""
+    critic_warmup_updates: int = 0
+    vehicles_min: int = 0
+    vehicles_max: int = 0
+    comm_delay_max_s: float = 0.0
+    packet_loss_max: float = 0.0
+    consensus_eps: float = 0.001
+    qsgd_levels: int = 1
+    qsgd_bucket: int = 128
+
+    def __post_init__(self) -> None:
+        if self.algo not in SHARED_ALGORITHMS:
+            raise ConfigError(f"algo must be one of {', '.join(SHARED_ALGORITHMS)}, got {self.algo!r}")
+        check_action_mode(self.action_mode)
+        for name in ("n_envs", "rollout_steps", "epochs", "minibatch_rows", "hidden",
+                     "eval_every_steps"):
+            if not 1 <= getattr(self, name) <= 10**7:
+                raise ConfigError(f"{name} must lie in 1..1e7, got {getattr(self, name)}")
+        for name in ("lr", "reward_clip", "obs_clip", "max_grad_norm"):
+            if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0):
+                raise ConfigError(f"{name} must be a finite number > 0, got {getattr(self, name)}")
+        if self.prior not in PRIORS:
+            raise ConfigError(f"prior must be one of {PRIORS} ('' for none), got {self.prior!r}")
+        if self.prior and self.action_mode != "accel":
+            raise ConfigError("prior: a residual on an acceleration prior needs action_mode=accel")
+        if not 0 <= self.critic_warmup_updates <= 10**6:
+            raise ConfigError(f"critic_warmup_updates must lie in 0..1e6, got "
+                              f"{self.critic_warmup_updates}")
+        for name in ("vehicles_min", "vehicles_max"):
+            if getattr(self, name) and not 2 <= getattr(self, name) <= 64:
+                raise ConfigError(f"{name} must be 0 or lie in 2..64, got {getattr(self, name)}")
+        if self.vehicles_min and self.vehicles_max and self.vehicles_min > self.vehicles_max:
+            raise ConfigError("vehicles_min must not exceed vehicles_max")
+        if self.randomised and self.per_agent:
+            raise ConfigError("ippo-bdc has a network per follower: it trains at one N and one "
+                              "V2V setting (vehicles_min, vehicles_max, comm_delay_max_s, packet_loss_max: 0)")
+        if self.comm_delay_max_s:
+            ChannelConfig(self.comm_delay_max_s, 0.0)
+            if self.comm_delay_max_s < self.comm_delay_s:
+                raise ConfigError("comm_delay_max_s must be 0 or >= comm_delay_s")
+        if self.packet_loss_max:
+            ChannelConfig(0.0, self.packet_loss_max)
+            if self.packet_loss_max < self.packet_loss:
+                raise ConfigError("packet_loss_max must be 0 or >= packet_loss")
+        if not 0 < self.consensus_eps <= 0.5:
+            raise ConfigError(f"consensus_eps must lie in (0, 0.5], got {self.consensus_eps}")
+        if not (0 <= self.qsgd_levels <= 64 and 1 <= self.qsgd_bucket <= 10**6):
+            raise ConfigError("qsgd_levels must lie in 0..64 and qsgd_bucket in 1..1e6")
+        if not 0 <= self.reward_alpha <= 1:
+            raise ConfigError(f"reward_alpha must lie in [0, 1], got {self.reward_alpha}")
+        for name in ("gamma", "gae_lambda"):
+            if not 0 < getattr(self, name) <= 1:
+                raise ConfigError(f"{name} must lie in (0, 1], got {getattr(self, name)}")
+        if not (0 < self.clip_coef < 1 and self.vf_coef >= 0 and self.ent_coef >= 0):
+            raise ConfigError("clip_coef must lie in (0, 1); vf_coef and ent_coef must be >= 0")
+        ChannelConfig(self.comm_delay_s, self.packet_loss)  # the channel's own checks
+
+    @property
+    def randomised(self) -> bool:
+        """Whether batches of training episodes draw their N or V2V setting."""
+        return bool(self.vehicles_min or self.vehicles_max or self.comm_delay_max_s
+                    or self.packet_loss_max)
+
+    @property
+    def per_agent(self) -> bool:
+        """One actor and critic per agent (``ippo-bdc``) instead of one shared by all."""
+        return self.algo == "ippo-bdc"
+
+    @property
+    def obs_dim(self) -> int:
+        """Floats per agent the networks read (the ``ovm-gain`` observation gets the position
+        features appended; the ``accel`` one has them)."""
+        return 12 if self.action_mode == "accel" else 15 + 3
+
+
+# ---------------------------------------------------------------------------- networks
+class StackedLinear(nn.Module):
+    """One linear layer per agent: ``(..., N, n_in) -> (..., N, n_out)``, weights ``(N, n_in,
+    n_out)`` (one batched product; the agent axis stays where the consensus rules want it)."""
+
+    def __init__(self, n_agents: int, n_in: int, n_out: int) -> None:
+        super().__init__()
+        self.weight = nn.Parameter(torch.empty(n_agents, n_in, n_out))
+        self.bias = nn.Parameter(torch.zeros(n_agents, n_out))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        n, d = x.shape[-2:]
+        rows = x.reshape(-1, n, d).transpose(0, 1)  # (N, M, n_in)
+        out = torch.baddbmm(self.bias[:, None, :], rows, self.weight)
+        return out.transpose(0, 1).reshape(*x.shape[:-1], -1)
+
+
+def _mlp(n_in: int, hidden: int, n_out: int, gain: float, n_agents: int = 0) -> nn.Sequential:
+    """Two ReLU layers, orthogonal init (CleanRL's ``layer_init``), shared (``n_agents`` 0) or
+    one per agent. ReLU, not CleanRL's tanh: this torch build's CPU tanh took 2.1 ms on a
+    (8192, 64) batch against ReLU's 0.07 ms (one thread), most of a training step."""
+    def linear(a: int, b: int) -> nn.Module:
+        return StackedLinear(n_agents, a, b) if n_agents else nn.Linear(a, b)
+
+    layers = [linear(n_in, hidden), nn.ReLU(), linear(hidden, hidden), nn.ReLU(),
+              linear(hidden, n_out)]
+    for layer, g in zip(layers[::2], (math.sqrt(2), math.sqrt(2), gain)):
+        if isinstance(layer, StackedLinear):
+            with torch.no_grad():  # each agent's (n_in, n_out) as nn.Linear's (out, in)
+                for i in range(layer.weight.shape[0]):
+                    nn.init.orthogonal_(layer.weight[i].T, g)
+            continue
+        assert isinstance(layer, nn.Linear)
+        nn.init.orthogonal_(layer.weight, g)
+        nn.init.zeros_(layer.bias)
+    return nn.Sequential(*layers)
+
+
+class SharedActor(nn.Module):
+    """The policy every follower shares: observation ``(..., D)`` -> action parameters.
+
+    ``accel``: the Gaussian mean of ``z`` and a state-independent log std; the command is
+    ``c + h tanh(z)`` with ``c, h`` the midpoint and half-range of the command bounds.
+    ``ovm-gain``: logits of the four OVM gain pairs.
+    """
+
+    centre: torch.Tensor
+    half_range: torch.Tensor
+    obs_mean: torch.Tensor
+    obs_var: torch.Tensor
+    obs_count: torch.Tensor
+
+    def __init__(self, config: PPOConfig, params: PlatoonParams = PlatoonParams(),
+                 n_agents: int = 0) -> None:
+        super().__init__()
+        self.continuous = config.action_mode == "accel"
+        self.prior = config.prior
+        self.n_agents = n_agents  # 0: shared by every follower, else one network per agent
+        n_out = 1 if self.continuous else len(OVM_ACTIONS)
+        self.body = _mlp(config.obs_dim, config.hidden, n_out, 0.01, n_agents)
+        self.log_std = nn.Parameter(torch.full((max(n_agents, 1),), float(config.init_log_std)))
+        self.obs_clip = float(config.obs_clip)
+        self.register_buffer("obs_mean", torch.zeros(config.obs_dim, dtype=torch.float64))
+        self.register_buffer("obs_var", torch.ones(config.obs_dim, dtype=torch.float64))
+        self.register_buffer("obs_count", torch.tensor(1e-4, dtype=torch.float64),
+                             persistent=False)  # training only
+        self.register_buffer("centre", torch.tensor((params.accel_max_mps2 + params.accel_min_mps2) / 2))
+        self.register_buffer("half_range", torch.tensor((params.accel_max_mps2 - params.accel_min_mps2) / 2))
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        """Gaussian mean of ``z`` ``(...)`` (``accel``) or logits ``(..., 4)`` of raw
+        observations."""
+        return self.policy(self.normalise(obs))
+
+    def policy(self, nobs: torch.Tensor) -> torch.Tensor:
+        """As :meth:`forward`, of normalised observations."""
+        out = self.body(nobs)
+        return out[..., 0] if self.continuous else out
+
+    def normalise(self, obs: torch.Tensor) -> torch.Tensor:
+        """``clip((obs - mean) / sqrt(var + 1e-8), -obs_clip, obs_clip)`` (float32)."""
+        scale = (self.obs_var + 1e-8).rsqrt()
+        return ((obs - self.obs_mean) * scale).float().clamp_(-self.obs_clip, self.obs_clip)
+
+    @torch.no_grad()
+    def update_obs_stats(self, obs: torch.Tensor) -> None:
+        """Merge the rows ``(..., D)`` into the running mean and variance (Chan et al.)."""
+        x = obs.reshape(-1, obs.shape[-1]).double()
+        if not len(x):
+            return
+        n_b, mean_b, var_b = float(len(x)), x.mean(0), x.var(0, unbiased=False)
+        n_a = float(self.obs_count)
+        n = n_a + n_b
+        delta = mean_b - self.obs_mean
+        self.obs_var.copy_((self.obs_var * n_a + var_b * n_b + delta**2 * n_a * n_b / n) / n)
+        self.obs_mean.add_(delta * n_b / n)
+        self.obs_count.fill_(n)
+
+    def command(self, z: torch.Tensor) -> torch.Tensor:
+        """Acceleration command of the pre-squash sample ``z`` (m/s^2), inside the bounds."""
+        return self.centre + self.half_range * torch.tanh(z)
+
+    def log_prob_entropy(self, out: torch.Tensor, action: torch.Tensor
+                         ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Log-probability of ``action`` (``z``, or the index) and the entropy (of ``z``'s
+        Gaussian: the squash's Jacobian cancels in PPO's ratio)."""
+        if self.continuous:
+            std = self.log_std.exp()
+            logp = -0.5 * ((action - out) / std) ** 2 - self.log_std - 0.5 * math.log(2 * math.pi)
+            ent = (0.5 + 0.5 * math.log(2 * math.pi) + self.log_std).expand_as(out)
+            return logp, ent
+        logp_all = torch.log_softmax(out, dim=-1)
+        logp = logp_all.gather(-1, action.long().unsqueeze(-1)).squeeze(-1)
+        ent = -(logp_all.exp() * logp_all).sum(-1)
+        return logp, ent
+
+
+class Critic(nn.Module):
+    """Value of each agent: its observation (IPPO), or with the platoon's mean beside it (MAPPO)."""
+
+    def __init__(self, config: PPOConfig, n_agents: int = 0) -> None:
+        super().__init__()
+        self.central = config.algo == "mappo"
+        self.body = _mlp(config.obs_dim * (2 if self.central else 1), config.hidden, 1, 1.0,
+                         n_agents)
+
+    def inputs(self, obs: torch.Tensor) -> torch.Tensor:
+        """What the critic reads of ``obs (..., N, D)``: ``(..., N, D)`` or ``(..., N, 2 D)``."""
+        if not self.central:
+            return obs
+        return torch.cat([obs, obs.mean(dim=-2, keepdim=True).expand_as(obs)], dim=-1)
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        """``obs (..., N, D)`` -> values ``(..., N)``."""
+        return self.body(self.inputs(obs))[..., 0]
