@@ -131,6 +131,8 @@ def cell_frame(runs: Any, rows: list[Row], columns: Sequence[Column] = COLUMNS) 
             rec.update(episodes=int(len(sel)), collisions=int(sel["collision"].astype(bool).sum()),
                        reward=mean, reward_ci_low=lo, reward_ci_high=hi,
                        gap_rmse_m=float(sel["gap_rmse_m"].mean()) if len(sel) else math.nan,
+                       energy_kwh_per_100km=float(sel["energy_kwh_per_100km"].mean())
+                       if len(sel) else math.nan,
                        safety_interventions=float(sel["safety_interventions"].mean())
                        if "safety_interventions" in sel and len(sel) else math.nan)
             out.append(rec)
@@ -163,7 +165,7 @@ def plot_heatmap(cells: Any, out: Path, columns: Sequence[Column] = COLUMNS) -> 
     fig.colorbar(im, ax=ax, label="colliding share of episodes")
     ax.set_title("reward (text) and collisions (colour) on the test seeds", fontsize=8)
     out.mkdir(parents=True, exist_ok=True)
-    paths = [savefig_atomic(fig, out / f"generalisation.{ext}", dpi=150, bbox_inches="tight")
+    paths = [savefig_atomic(fig, out / f"generalisation.{ext}", dpi=100, bbox_inches="tight")
              for ext in ("png", "pdf")]
     plt.close(fig)
     return paths
@@ -206,9 +208,44 @@ def write_report(cells: Any, out: Path, command: str, episodes: int,
                              f"[{r['reward_ci_low']:.1f}, {r['reward_ci_high']:.1f}], "
                              f"{r['gap_rmse_m']:.2f}")
         lines.append(f"| `{row}` | " + " | ".join(parts) + " |")
+    cost = filter_cost(cells)
+    if len(cost):
+        lines += ["", "## What the safety filter costs", "",
+                  "Per learned row: colliding episodes without and with the filter over the "
+                  "matrix, and, in the cells where the row collided in no episode without it, the "
+                  "mean change of reward and of energy (kWh/100 km) the filter makes. Table: "
+                  "`filter_cost.csv`.", "",
+                  "| controller | collisions without | with | clean cells | reward change | "
+                  "energy change kWh/100 km |", "|---|---|---|---|---|---|"]
+        for _, r in cost.iterrows():
+            lines.append(f"| `{r['row']}` | {r['collisions_without']} | {r['collisions_with']} | "
+                         f"{r['clean_cells']} | {r['reward_change']:+.1f} | "
+                         f"{r['energy_change_kwh_per_100km']:+.3f} |")
     path = out / "report.md"
     write_text(path, "\n".join(lines) + "\n")
     return path
+
+
+def filter_cost(cells: Any) -> Any:
+    """Per learned row: in the cells where it collided in no episode without the filter, the
+    mean change the safety filter makes to the reward and to the energy (kWh/100 km); and the
+    colliding episodes it removed elsewhere."""
+    import pandas as pd
+
+    c = cells[cells["applicable"]].set_index(["row", "column"])
+    out = []
+    for row in dict.fromkeys(cells["row"]):
+        if row.startswith("safe:") or f"safe:{row}" not in c.index.get_level_values(0):
+            continue
+        plain, safe = c.loc[row], c.loc[f"safe:{row}"]
+        clean = plain["collisions"] == 0
+        out.append({"row": row, "clean_cells": int(clean.sum()),
+                    "reward_change": float((safe["reward"] - plain["reward"])[clean].mean()),
+                    "energy_change_kwh_per_100km": float(
+                        (safe["energy_kwh_per_100km"] - plain["energy_kwh_per_100km"])[clean].mean()),
+                    "collisions_without": int(plain["collisions"].sum()),
+                    "collisions_with": int(safe["collisions"].sum())})
+    return pd.DataFrame(out)
 
 
 def rows_json(rows: list[Row]) -> str:

@@ -4,7 +4,7 @@ Every shipped learned policy (per training scenario or family, three training se
 without the safety filter, and the model-based controllers, on the columns of
 :data:`analysis.generalisation.COLUMNS` (other scenarios, the OpenACC windows, N = 4 and 12,
 degraded V2V), through the results store (resumable, ``--resume``); writes ``report.md``,
-``matrix.csv``, ``rows.json`` and ``figures/generalisation.{png,pdf}`` into ``--out``.
+``matrix.csv``, ``filter_cost.csv``, ``rows.json`` and ``figures/generalisation.{png,pdf}`` into ``--out``.
 """
 
 from __future__ import annotations
@@ -55,6 +55,7 @@ def main(argv: list[str]) -> int:
         MODEL_BASED,
         Row,
         cell_frame,
+        filter_cost,
         learned_rows,
         plot_heatmap,
         rows_json,
@@ -115,6 +116,7 @@ def main(argv: list[str]) -> int:
                            ray_address=args.ray_address, quiet=True, first_seed=seeds[0])
         cells = cell_frame(pd.read_csv(out / "runs" / "runs.csv"), rows, columns)
         write_csv(cells, out / "matrix.csv")
+        write_csv(filter_cost(cells), out / "filter_cost.csv")
         write_text(out / "rows.json", rows_json(rows) + "\n")
         plot_heatmap(cells, out / "figures", columns)
         report = write_report(cells, out, command, len(seeds), columns)
