@@ -96,3 +96,16 @@ def test_the_readme_reading_is_the_committed_matrix() -> None:
         assert f"{x:+.1f}".lstrip("+") in text
     for x in (cost["energy_change_kwh_per_100km"].min(), cost["energy_change_kwh_per_100km"].max()):
         assert f"{x:+.3f}".lstrip("+") in text
+
+
+def test_the_mixed_training_reading_of_the_docs_is_the_checkpoints() -> None:
+    from controllers.policy import checkpoint_path
+    from marl.checkpoint import load_checkpoint
+
+    text = (DOCS.parent / "learned-control.md").read_text()
+    part = text[text.index("## Training on a distribution"):text.index("## Equal tuning")]
+    for seed in (0, 1, 2):
+        data = load_checkpoint(checkpoint_path("ippo", "mixed-v1", 8, seed))
+        assert f"{data['curve_summary']['best_reward']:.2f}" in part
+        assert (data["config"]["vehicles_min"], data["config"]["vehicles_max"]) == (4, 12)
+        assert (data["config"]["comm_delay_max_s"], data["config"]["packet_loss_max"]) == (0.2, 0.3)
