@@ -1,7 +1,7 @@
 """Tables, figures and claim verdicts of the paper reproduction (``cacc-bench reproduce``).
 
 Pure functions of the training curves and the stored runs; the command that makes them is
-:mod:`benchmark.reproduce_cmd`. Every verdict follows the written rules of
+:mod:`commands.reproduce`. Every verdict follows the written rules of
 :mod:`analysis.claims` (``docs/claim-rules.md``); :func:`convergence_step` is theirs.
 """
 

@@ -21,7 +21,7 @@ from analysis.paper import (
     Budget,
 )
 from benchmark.export import write_csv
-from benchmark.policy_training import stem
+from commands.policy_training import stem
 
 
 def _curves(jobs: list[dict[str, Any]], study: str = "main",

@@ -18,7 +18,7 @@ command space over the squash's slope at zero, ``h`` (so "actions as trained" ar
 Gaussian; the maximum-likelihood value in ``z`` is dominated by the few labels at the bounds,
 where ``atanh`` diverges). It is the
 reference of what this network can represent, and of how fast a learned controller is beside
-the solver it copies. The expert comes from the layer above (:mod:`benchmark.train_shared`
+the solver it copies. The expert comes from the layer above (:mod:`commands.train_shared`
 builds ``mpc``): here it is any ``make_expert(env) -> act(state) -> (B, N) commands``.
 """
 

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from benchmark.cli import main as cli
+from commands.cli import main as cli
 from envs.limits import MAX_SEED, MAX_TRAIN_SEED
 
 TRAIN = ["train", "--algo", "bdc", "--scenario", "catchup-v1", "--vehicles", "2",
@@ -172,7 +172,7 @@ def test_a_closed_pipe_ends_list_quietly() -> None:
     read, write = os.pipe()
     os.close(read)
     try:
-        proc = subprocess.run([sys.executable, "-m", "benchmark", "list"], stdout=write,
+        proc = subprocess.run([sys.executable, "-m", "commands", "list"], stdout=write,
                               stderr=subprocess.PIPE, text=True, timeout=120,
                               cwd=Path(__file__).resolve().parent.parent)
     finally:

@@ -12,8 +12,8 @@ from typing import Any
 import pytest
 import torch
 
-from benchmark.cli import main as cli
 from benchmark.folder_lock import folder_lock
+from commands.cli import main as cli
 from envs import atomic
 from envs.errors import ConfigError
 from marl.checkpoint import (
@@ -209,7 +209,7 @@ def test_an_interrupted_train_leaves_the_finished_files_byte_identical(
         capsys: pytest.CaptureFixture[str]) -> None:
     """The issue's case: Ctrl-C after the first evaluation (which used to write a snapshot
     over the finished .pt, .curve.csv and .log) exits 130 and changes nothing."""
-    import benchmark.train_cmd as train_cmd
+    import commands.train as train_cmd
     from envs.interrupt import Interrupted
 
     out = _copy(finished, tmp_path / "out")
@@ -343,7 +343,7 @@ def test_sigint_after_an_evaluation_leaves_the_finished_files_byte_identical(
     out = _copy(finished, tmp_path / "out")
     before = _digests(out)
     argv = [*TRAIN[:-4], "--steps", "60000", "--set", "eval_every_steps=720"]
-    proc = subprocess.Popen([sys.executable, "-m", "benchmark", *argv, "--out", str(out)],
+    proc = subprocess.Popen([sys.executable, "-m", "commands", *argv, "--out", str(out)],
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
                             cwd=Path(__file__).resolve().parent.parent)
     try:

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from benchmark.cli import main as cli
+from commands.cli import main as cli
 
 #: command -> argument lists that must be refused before any work. ``{FILE}`` is an existing
 #: plain file (where a folder or checkpoint is expected), ``{EMPTY}`` an empty folder.

@@ -1,4 +1,4 @@
-"""Command-line conventions: a command is required, ``help CMD``, ``python -m benchmark``."""
+"""Command-line conventions: a command is required, ``help CMD``, ``python -m commands``."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import sys
 
 import pytest
 
-from benchmark.cli import SUBCOMMANDS, main
+from commands.cli import SUBCOMMANDS, main
 
 
 def test_bare_command_prints_usage_and_exits_2(capsys: pytest.CaptureFixture[str]) -> None:
@@ -32,10 +32,10 @@ def test_help_cmd_is_the_commands_help(cmd: str, capsys: pytest.CaptureFixture[s
 
 
 def test_python_dash_m_benchmark() -> None:
-    res = subprocess.run([sys.executable, "-m", "benchmark", "--version"], capture_output=True,
+    res = subprocess.run([sys.executable, "-m", "commands", "--version"], capture_output=True,
                          text=True, timeout=120)
     assert res.returncode == 0 and res.stdout.startswith("cacc-bench ")
-    res = subprocess.run([sys.executable, "-m", "benchmark", "nope"], capture_output=True,
+    res = subprocess.run([sys.executable, "-m", "commands", "nope"], capture_output=True,
                          text=True, timeout=120)
     assert res.returncode == 2 and "unknown command 'nope'" in res.stderr
 

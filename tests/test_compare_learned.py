@@ -19,7 +19,7 @@ from analysis.learned_report import (
     policy_name,
     write_report,
 )
-from benchmark.cli import main
+from commands.cli import main
 
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "compare-learned"
 

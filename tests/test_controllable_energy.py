@@ -237,7 +237,7 @@ def test_pareto_energy_objective_is_checked_and_an_old_runs_csv_has_no_points() 
 
 def test_the_pareto_command_takes_energy_controllable(tmp_path: Path) -> None:
     from analysis.pareto import pareto_columns
-    from benchmark.cli import main as cli
+    from commands.cli import main as cli
 
     out = tmp_path / "p"
     args = ["pareto", "--families", "points", "--episodes", "1", "--vehicles", "2", "--out",

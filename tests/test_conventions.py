@@ -7,7 +7,7 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from benchmark.cli import main as cli
+from commands.cli import main as cli
 from controllers.registry import canonical_options, controller_label, controller_options
 from envs.errors import ConfigError
 from envs.naming import format_label, parse_label, parse_named_list
@@ -125,7 +125,7 @@ def test_every_document_the_code_cites_is_in_the_repository() -> None:
 
     root = Path(__file__).resolve().parent.parent
     cited = set()
-    for pkg in ("envs", "controllers", "marl", "benchmark", "analysis"):
+    for pkg in ("envs", "controllers", "marl", "benchmark", "analysis", "commands"):
         for py in (root / pkg).rglob("*.py"):
             text = py.read_text()
             cited |= set(re.findall(r"docs/[\w./-]+\.md", text))

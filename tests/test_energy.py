@@ -312,7 +312,7 @@ def test_energy_kwh() -> None:
 
 
 def test_fit_power_main(capsys: pytest.CaptureFixture[str]) -> None:
-    from benchmark import fit_power
+    from commands import fit_power
 
     assert fit_power.main([]) == 0
     out = capsys.readouterr().out

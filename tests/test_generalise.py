@@ -11,7 +11,7 @@ import pandas as pd
 import pytest
 
 from analysis.generalisation import COLUMNS, Column, Row, cell_frame
-from benchmark.cli import main
+from commands.cli import main
 
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "generalise"
 

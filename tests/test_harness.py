@@ -15,10 +15,10 @@ import pandas as pd
 import pytest
 
 from analysis.stability import time_domain_string_gain as string_gain
-from benchmark.cli import main
 from benchmark.metrics import TIMING_COLUMNS
 from benchmark.rollout import rollout
 from benchmark.suite import build_sweep, execute_run
+from commands.cli import main
 from controllers.base import Controller
 from controllers.registry import (
     ControllerSpec,
@@ -52,7 +52,7 @@ def _no_timing(path: Path) -> pd.DataFrame:
 
 
 def _cli(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "benchmark.cli", *args], cwd=ROOT,
+    return subprocess.run([sys.executable, "-m", "commands.cli", *args], cwd=ROOT,
                           capture_output=True, text=True, timeout=600)
 
 
@@ -188,7 +188,7 @@ def test_unknown_command_and_help() -> None:
 
 
 def test_cli_starts_without_heavy_imports() -> None:
-    code = ("import sys, benchmark.cli as c, benchmark.list_cmd as l; l.main([]); "
+    code = ("import sys, commands.cli as c, commands.list as l; l.main([]); "
             "heavy = [m for m in ('torch', 'control', 'cvxpy', 'casadi', 'pandas', 'ray', 'osqp') "
             "if m in sys.modules]; print(heavy)")
     res = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
@@ -205,7 +205,7 @@ def test_sigkill_then_resume_equals_uninterrupted(tmp_path: Path) -> None:
     full = tmp_path / "full"
     assert _cli("run", *SWEEP, "--out", str(full), "--quiet").returncode == 0
     part = tmp_path / "part"
-    proc = subprocess.Popen([sys.executable, "-m", "benchmark.cli", "run", *SWEEP, "--out",
+    proc = subprocess.Popen([sys.executable, "-m", "commands.cli", "run", *SWEEP, "--out",
                              str(part), "--quiet"], cwd=ROOT, stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL)
     store = part / "store.sqlite"

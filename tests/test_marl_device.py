@@ -8,7 +8,7 @@ from collections.abc import Iterator
 import pytest
 import torch
 
-from benchmark.cli import main as cli
+from commands.cli import main as cli
 from envs.dynamics import OBS_DIM
 from envs.errors import ConfigError
 from marl.a2c import training_device

@@ -389,7 +389,7 @@ def test_batched_equals_one_by_one(name: str) -> None:
 
 
 def test_perf_timing_reports_per_vehicle_times() -> None:
-    from benchmark.perf import controller_timing
+    from commands.perf import controller_timing
 
     out = controller_timing("mpc-qp", n_steps=5, n_vehicles=3, options={"horizon": "10"})
     assert {"median_ms", "p95_ms", "first_ms"} <= set(out)

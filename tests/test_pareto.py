@@ -9,7 +9,7 @@ import pandas as pd
 import pytest
 
 from analysis.pareto import PARETO_COLUMNS, non_dominated
-from benchmark.cli import main as cli
+from commands.cli import main as cli
 
 
 def test_non_dominated_on_a_hand_made_set() -> None:
@@ -77,7 +77,7 @@ def test_pareto_bad_family_exits_2(capsys: pytest.CaptureFixture[str]) -> None:
 
 def test_marl_sweep_uses_the_shipped_w5_variants(tmp_path: Path, monkeypatch) -> None:
     import controllers.policy as policy
-    from benchmark.pareto_cmd import settings_for, w5_variant
+    from commands.pareto import settings_for, w5_variant
 
     assert [w5_variant(w) for w in (0.0, -1.0, -20.0, 2.5)] == ["w5_0", "w5_m1", "w5_m20",
                                                                  "w5_2.5"]

@@ -11,8 +11,8 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from benchmark.cli import main as cli
 from benchmark.work_folder import command_text
+from commands.cli import main as cli
 
 STUDY = ["sensitivity", "--scenarios", "catchup-v1", "--knobs", "v2v", "--steps", "1800",
          "--validation-episodes", "2", "--episodes", "2"]
@@ -47,7 +47,7 @@ def test_a_sensitivity_study_resumes_under_any_spelling_of_its_folder(
 def test_reproduction_labels_name_checkpoint_folders_relative_to_the_output() -> None:
     """reproduce plans inside its --out: labels read ``checkpoint_dir=checkpoints[/name]``."""
     from analysis.paper import BUDGETS, STUDIES
-    from benchmark.reproduce_cmd import _train_plan, eval_keys
+    from commands.reproduce import _train_plan, eval_keys
 
     jobs = _train_plan(["bdc"], ["catchup-v1"], BUDGETS["quick"], Path("."), set(STUDIES))
     keys, names = eval_keys(jobs, ["catchup-v1"], BUDGETS["quick"])

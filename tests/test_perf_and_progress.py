@@ -7,8 +7,8 @@ import json
 
 import pytest
 
-from benchmark.cli import main
 from benchmark.progress import Progress
+from commands.cli import main
 
 
 def test_perf_json_keys(capsys: pytest.CaptureFixture[str]) -> None:

@@ -261,7 +261,7 @@ def test_registry_builds_policy() -> None:
 
 
 def test_train_cmd_errors_and_tiny_run(tmp_path) -> None:
-    from benchmark.train_cmd import main
+    from commands.train import main
 
     with pytest.raises(UnknownNameError):
         main(["--algo", "nope", "--scenario", "catchup-v1"])

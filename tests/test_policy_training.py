@@ -7,14 +7,14 @@ from pathlib import Path
 import pytest
 
 import controllers.policy as policy
-from benchmark.policy_training import (
+from commands.policy_training import (
     copy_shipped,
     is_done,
     make_job,
     shipped_checkpoint,
     source_file,
 )
-from benchmark.train_cmd import job_config
+from commands.train import job_config
 from envs.errors import ConfigError
 from marl.checkpoint import energy_model_id, save_checkpoint
 

@@ -7,7 +7,7 @@ import pandas as pd
 import pytest
 
 from analysis.statistics import bootstrap_ci, hierarchical_bootstrap_ci
-from benchmark.cli import main
+from commands.cli import main
 
 
 def test_hierarchical_bootstrap_covers_seed_variation() -> None:

@@ -12,8 +12,8 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from benchmark.cli import main as cli
 from benchmark.store import ResultStore
+from commands.cli import main as cli
 from envs.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -26,7 +26,7 @@ def _sweep(out: Path, *extra: str) -> None:
 
 
 def _cli(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "benchmark.cli", *args], cwd=ROOT,
+    return subprocess.run([sys.executable, "-m", "commands.cli", *args], cwd=ROOT,
                           capture_output=True, text=True, timeout=300)
 
 
@@ -73,7 +73,7 @@ def test_a_second_writer_is_refused_naming_the_first(tmp_path: Path) -> None:
 
 def test_two_writers_racing_leave_one_consistent_store(tmp_path: Path) -> None:
     out = tmp_path / "race"
-    cmd = [sys.executable, "-m", "benchmark.cli", "run", "--controllers", "ovm,acc",
+    cmd = [sys.executable, "-m", "commands.cli", "run", "--controllers", "ovm,acc",
            "--scenarios", "catchup-v1,slowdown-v1", "--vehicles", "3", "--episodes", "4",
            "--out", str(out), "--resume", "--quiet"]
     procs = [subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
@@ -180,7 +180,7 @@ MPC = ["run", "--controllers", "mpc", "--scenarios", "catchup-v1", "--vehicles",
 
 
 def _start(out: Path, *extra: str) -> subprocess.Popen[str]:
-    return subprocess.Popen([sys.executable, "-m", "benchmark.cli", *MPC, "--out", str(out),
+    return subprocess.Popen([sys.executable, "-m", "commands.cli", *MPC, "--out", str(out),
                              *extra], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True, start_new_session=True)
 

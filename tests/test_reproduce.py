@@ -14,7 +14,7 @@ import pytest
 
 from analysis import reproduction as rp
 from analysis.paper import TABLE_I_REWARD, TABLE_II, TABLE_III
-from benchmark.cli import main as cli
+from commands.cli import main as cli
 
 VERDICTS = {"holds", "does not hold", "inconclusive", "not testable here"}
 

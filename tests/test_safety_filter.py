@@ -16,10 +16,10 @@ import pandas as pd
 import pytest
 
 from benchmark.check import check_controller
-from benchmark.cli import main as cli
 from benchmark.export import runs_frame
 from benchmark.rollout import Trajectory, rollout, rollout_batch
 from benchmark.suite import build_sweep, execute_batch, execute_run
+from commands.cli import main as cli
 from controllers.base import Controller, EpisodeContext, reset_controller
 from controllers.registry import (
     CONTROLLERS,

@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from benchmark.cli import main as cli
 from benchmark.suite import MAX_EPISODES, seeds_from_episodes, seeds_from_set
+from commands.cli import main as cli
 from envs.errors import ConfigError
 from envs.params import (
     EVAL_SEEDS,
@@ -78,7 +78,7 @@ def test_a_negative_training_seed_is_refused() -> None:
 def test_no_code_names_a_test_seed_outside_envs_params() -> None:
     literal = re.compile(r"\b900_?0\d\d\b")
     hits = [str(p.relative_to(ROOT))
-            for pkg in ("envs", "marl", "controllers", "benchmark", "analysis")
+            for pkg in ("envs", "marl", "controllers", "benchmark", "analysis", "commands")
             for p in sorted((ROOT / pkg).rglob("*.py"))
             if p.name != "params.py" and literal.search(p.read_text())]
     assert hits == []

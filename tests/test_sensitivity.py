@@ -11,8 +11,8 @@ import pytest
 import torch
 
 from analysis.sensitivity import SENSITIVITY_COLUMNS, knob_effects, training_bits
-from benchmark.cli import main as cli
-from benchmark.sensitivity_cmd import KNOBS, variants
+from commands.cli import main as cli
+from commands.sensitivity import KNOBS, variants
 
 TUNED = {"consensus_eps": 2e-4, "qsgd_levels": 1, "share_whole_critic": False, "gamma": 0.99}
 

@@ -105,7 +105,7 @@ def test_the_mappo_critic_sees_the_platoon_and_the_ippo_critic_does_not() -> Non
 @pytest.fixture(scope="module")
 def tiny_checkpoint(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """An IPPO checkpoint trained briefly at N = 4 on catchup-v1, written as `train` writes it."""
-    from benchmark.train_shared import train_shared
+    from commands.train_shared import train_shared
 
     out = tmp_path_factory.mktemp("shared")
     cfg = dataclasses.replace(TINY, eval_every_steps=256)
@@ -147,7 +147,7 @@ def test_ippo_bdc_trains_a_network_per_agent_and_counts_its_consensus_messages(
     import math
 
     from benchmark.rollout import rollout_batch
-    from benchmark.train_shared import train_shared
+    from commands.train_shared import train_shared
     from controllers.shared_policy import SharedPolicyController
     from envs.params import VALIDATION_SEEDS
     from envs.scenarios import make_scenario
@@ -254,7 +254,7 @@ def test_a_residual_checkpoint_scores_in_the_harness_what_validation_scored(
     """The controller passes the observation and the run's targets to the prior, as training
     and validation do: the harness gives the validation number to the last bit."""
     from benchmark.rollout import rollout_batch
-    from benchmark.train_shared import train_shared
+    from commands.train_shared import train_shared
     from controllers.shared_policy import SharedPolicyController
     from envs.params import VALIDATION_SEEDS
     from envs.scenarios import make_scenario
@@ -297,7 +297,7 @@ def test_distill_copies_a_linear_law_and_a_seed_gives_the_same_weights() -> None
     """Behaviour cloning then DAgger of ``cacc`` (cheap, smooth): the kept actor commands what
     cacc commands on the platoon's own states to within 0.1 m/s^2 RMS, collision-free on the
     validation seeds; the same seed gives the same weights."""
-    from benchmark.train_shared import model_expert
+    from commands.train_shared import model_expert
     from marl.distill import DistillConfig, distill
 
     cfg = DistillConfig(expert="cacc", rounds=2, episodes_per_round=4, grad_steps=1500)
@@ -469,7 +469,7 @@ def test_the_residual_and_ippo_bdc_readings_of_the_docs_are_the_checkpoints() ->
 def test_the_string_stability_reading_of_the_docs(tmp_path: Path) -> None:
     import pandas as pd
 
-    from benchmark.cli import main as cli
+    from commands.cli import main as cli
 
     assert cli(["stability", "--controllers", "ippo:scenario=slowdown-v1,"
                 "distill:scenario=slowdown-v1", "--empirical", "--out", str(tmp_path)]) == 0

@@ -6,7 +6,7 @@ import csv
 
 import pytest
 
-from benchmark.cli import main
+from commands.cli import main
 
 SUMMARY = [
     "controller",

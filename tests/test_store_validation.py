@@ -12,9 +12,9 @@ from pathlib import Path
 
 import pytest
 
-from benchmark.cli import main as cli
 from benchmark.export import RUN_COLUMNS
 from benchmark.record_schema import RunRecord, record_problem
+from commands.cli import main as cli
 
 SWEEP = ["--controllers", "ovm,cacc", "--scenarios", "catchup-v1", "--vehicles", "2",
          "--episodes", "2", "--quiet"]

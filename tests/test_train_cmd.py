@@ -8,7 +8,7 @@ import pandas as pd
 import pytest
 import torch
 
-from benchmark.cli import main
+from commands.cli import main
 
 
 def _tensors(obj: object, prefix: str = "") -> dict[str, torch.Tensor]:
@@ -88,7 +88,7 @@ def test_train_lists_and_resume(tmp_path: Path, capsys) -> None:
 def test_tuned_options(tmp_path: Path, capsys) -> None:
     import json
 
-    from benchmark.train_cmd import TUNED_CONFIGS, tuned_options
+    from commands.train import TUNED_CONFIGS, tuned_options
 
     path = tmp_path / "tuned.json"
     path.write_text(json.dumps({"configs": {"bdc/catchup-v1": {
@@ -110,7 +110,7 @@ def test_tuned_options(tmp_path: Path, capsys) -> None:
     shipped = json.loads(TUNED_CONFIGS.read_text())
     assert shipped["budget"] == {"trials": 8, "steps_per_trial": 200_000, "seed": 0, "vehicles": 8}
     assert {"bdc/catchup-v1", "bdc/slowdown-v1"} <= set(shipped["configs"])
-    from benchmark.train_shared import SHARED_LEARNERS, shared_config
+    from commands.train_shared import SHARED_LEARNERS, shared_config
 
     for key in shipped["configs"]:
         a, sc = key.split("/")
@@ -192,7 +192,7 @@ def test_a_population_of_seeds_equals_separate_processes(tmp_path: Path, capsys)
 
 
 def test_population_jobs_group_by_everything_but_the_seed() -> None:
-    from benchmark.train_cmd import population_jobs
+    from commands.train import population_jobs
 
     def job(algo: str, seed: int) -> dict:
         return {"algo": algo, "scenario": "catchup-v1", "vehicles": 8, "steps": 100, "seed": seed,

@@ -146,7 +146,7 @@ class PowerFit:
                 "vehicle_params": asdict(vehicle),
                 "fitted_on": date,
                 "generator": (
-                    "envs.energy.fit_power_polynomial, written by benchmark.fit_power "
+                    "envs.energy.fit_power_polynomial, written by commands.fit_power "
                     "(`cacc-bench fit-power --write`)"
                 ),
                 "cacc_bench_version": _package_version(),

@@ -299,7 +299,7 @@ def _finished(job: dict) -> bool:
 def main(argv: list[str]) -> int:
     """Entry point: ``cacc-bench train --algo NAME --scenario ID [...]``."""
     from benchmark.executors import map_jobs
-    from benchmark.train_shared import SHARED_LEARNERS
+    from commands.train_shared import SHARED_LEARNERS
     from controllers.registry import build_config
     from envs.scenarios import SCENARIOS, check_vehicles, make_scenario, parse_scenario_list
     from marl.a2c import training_device
@@ -355,7 +355,7 @@ def main(argv: list[str]) -> int:
     # training episode seeds derive from the run's seed in 32-bit generators: one bound
     check_seeds(seeds, "--seeds" if args.seeds is not None else "--seed", MAX_TRAIN_SEED)
     if shared:
-        from benchmark.train_shared import main_shared
+        from commands.train_shared import main_shared
 
         return main_shared(args, shared, scenarios, seeds)
     overrides: dict[str, object] = {}

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from benchmark.cli import plain
+from commands.cli import plain
 from controllers.registry import CONTROLLERS, controller_options
 from envs.params import PlatoonParams
 from envs.scenarios import list_scenarios

@@ -19,10 +19,10 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from benchmark.cli import plain
 from benchmark.executors import add_executor_options
 from benchmark.export import write_csv
-from benchmark.train_cmd import add_device_argument
+from commands.cli import plain
+from commands.train import add_device_argument
 from envs.atomic import write_text
 from envs.errors import ConfigError, UnknownNameError
 
@@ -105,7 +105,7 @@ def plan(scenarios: list[str], knobs: list[str], seeds: list[int], steps: int,
                                                       list[dict[str, Any]]]:
     """Training jobs and evaluation settings (see :func:`analysis.sensitivity.sensitivity_frame`;
     ``training`` holds the jobs until their summaries are read)."""
-    from benchmark.policy_training import make_job, tuned_config
+    from commands.policy_training import make_job, tuned_config
     from controllers.registry import controller_label
     from marl.config import algorithm
 
@@ -161,7 +161,7 @@ def _eval_keys(settings: list[dict[str, Any]], seeds: list[int]) -> list[Any]:
 def _summaries(settings: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """``settings`` with each training job replaced by its checkpoint's curve summary (each
     checkpoint verified, :func:`marl.checkpoint.load_checkpoint`)."""
-    from benchmark.policy_training import stem
+    from commands.policy_training import stem
     from marl.checkpoint import load_checkpoint
 
     cache: dict[str, dict[str, float]] = {}
@@ -200,9 +200,9 @@ def main(argv: list[str]) -> int:
     import pandas as pd
 
     from analysis.sensitivity import sensitivity_frame, write_report
-    from benchmark.policy_training import train_stage
-    from benchmark.run_cmd import execute_sweep
     from benchmark.suite import seeds_from_episodes
+    from commands.policy_training import train_stage
+    from commands.run import execute_sweep
     from envs.scenarios import make_scenario
     from marl.a2c import training_device
 

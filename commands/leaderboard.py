@@ -5,8 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from benchmark.cli import plain
 from benchmark.store import ResultStore
+from commands.cli import plain
 
 
 def main(argv: list[str]) -> int:

@@ -217,7 +217,7 @@ def _study_job(job: dict) -> list[dict]:
 def _shared_trial(job: dict, options: dict[str, Any], run_dir: Path) -> dict[str, float]:
     """Train one ``ippo``/``mappo`` trial (fixed ``--set`` fields, then the trial's) and return
     its kept snapshot's validation numbers under the paper learners' summary keys."""
-    from benchmark.train_shared import shared_config, train_shared
+    from commands.train_shared import shared_config, train_shared
     from marl.checkpoint import load_checkpoint
 
     fixed = [f"{key}={value}" for key, value in {**job["fixed"], **options}.items()]
@@ -254,7 +254,7 @@ def main(argv: list[str]) -> int:
         if not all(a in SHARED_TUNED for a in algos):
             raise ConfigError(f"--set fixes a field of {'/'.join(SHARED_TUNED)} only; tune "
                               "the paper's algorithms without it")
-        from benchmark.train_shared import shared_config
+        from commands.train_shared import shared_config
 
         for item in args.overrides:
             key, sep, value = item.partition("=")

@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from benchmark.cli import plain
+from commands.cli import plain
 
 PUBLISHED_ENV_VEHICLE_STEPS_PER_S = 32_000.0
 PUBLISHED_TRAIN_STEPS_PER_S = {"ia2c": 307.0, "bdc": 195.0}

@@ -14,9 +14,9 @@ import argparse
 import sys
 from typing import Any
 
-from benchmark.cli import plain
 from benchmark.executors import add_executor_options
 from benchmark.export import write_csv
+from commands.cli import plain
 from envs.errors import ConfigError, UnknownNameError
 
 #: family -> (controller, knob, values). The defaults sit inside each sweep (mpc 0.25, w_accel
@@ -124,8 +124,8 @@ def main(argv: list[str]) -> int:
     import pandas as pd
 
     from analysis.pareto import ENERGY_METRICS, pareto_frame, plot_pareto
-    from benchmark.run_cmd import execute_sweep
     from benchmark.suite import build_sweep, seeds_from_episodes
+    from commands.run import execute_sweep
     from envs.scenarios import check_vehicles, make_scenario
 
     args = _parser().parse_args(argv)

@@ -32,7 +32,7 @@ def make_job(name: str, algo: str, scenario: str, vehicles: int, seed: int, fold
 def tuned_config(algo: str, config_scenario: str, extra: dict[str, Any], label: str
                  ) -> dict[str, Any]:
     """The tuned options of ``algo`` on ``config_scenario`` with ``extra`` on top, checked."""
-    from benchmark.train_cmd import tuned_options
+    from commands.train import tuned_options
     from controllers.registry import build_config
     from marl.config import algorithm
 
@@ -53,7 +53,7 @@ def source_file(job: dict[str, Any]) -> Path:
 
 def is_done(job: dict[str, Any]) -> bool:
     """Finished in the output folder (trained there, or a shipped copy with the same config)."""
-    from benchmark.train_cmd import _finished, job_config
+    from commands.train import _finished, job_config
     from marl.checkpoint import same_energy_model
 
     src = source_file(job)
@@ -68,7 +68,7 @@ def is_done(job: dict[str, Any]) -> bool:
 def shipped_checkpoint(job: dict[str, Any]) -> Path | None:
     """The shipped checkpoint of ``job`` if it has the same config, budget and energy model
     (verified: a damaged shipped file is refused, :func:`marl.checkpoint.load_checkpoint`)."""
-    from benchmark.train_cmd import job_config
+    from commands.train import job_config
     from controllers.policy import CHECKPOINT_DIR
     from marl.checkpoint import load_checkpoint, same_energy_model
 
@@ -153,7 +153,7 @@ def train_stage(jobs: list[dict[str, Any]], args: Any, reuse_shipped: bool) -> N
     ``reuse_shipped``, copy shipped checkpoints of the same config and budget instead."""
     from benchmark.executors import map_jobs
     from benchmark.progress import Progress
-    from benchmark.train_cmd import _train_job, population_jobs
+    from commands.train import _train_job, population_jobs
 
     todo = []
     for job in jobs:

@@ -19,22 +19,22 @@ from envs.errors import CaccBenchError
 
 #: subcommand -> (module with ``main(argv) -> int``, one-line help)
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
-    "list": ("benchmark.list_cmd", "list scenarios and controllers"),
-    "run": ("benchmark.run_cmd", "run a sweep of controllers x scenarios x sizes x seeds"),
-    "leaderboard": ("benchmark.leaderboard_cmd", "rebuild runs.csv and leaderboard.csv"),
-    "plot": ("benchmark.plot_cmd", "figures from a results folder"),
-    "stability": ("benchmark.stability_cmd", "string stability, analytic and measured"),
-    "train": ("benchmark.train_cmd", "train a MARL algorithm"),
-    "tune": ("benchmark.tune_cmd", "tune every MARL algorithm with the same budget (Optuna)"),
-    "reproduce": ("benchmark.reproduce_cmd", "the paper's tables, curves and claims in one report"),
-    "pareto": ("benchmark.pareto_cmd", "energy against spacing error for every controller family"),
-    "sensitivity": ("benchmark.sensitivity_cmd", "BDC-MARL's knobs one at a time and its V2V tolerance"),
-    "compare-learned": ("benchmark.compare_learned_cmd",
+    "list": ("commands.list", "list scenarios and controllers"),
+    "run": ("commands.run", "run a sweep of controllers x scenarios x sizes x seeds"),
+    "leaderboard": ("commands.leaderboard", "rebuild runs.csv and leaderboard.csv"),
+    "plot": ("commands.plot", "figures from a results folder"),
+    "stability": ("commands.stability", "string stability, analytic and measured"),
+    "train": ("commands.train", "train a MARL algorithm"),
+    "tune": ("commands.tune", "tune every MARL algorithm with the same budget (Optuna)"),
+    "reproduce": ("commands.reproduce", "the paper's tables, curves and claims in one report"),
+    "pareto": ("commands.pareto", "energy against spacing error for every controller family"),
+    "sensitivity": ("commands.sensitivity", "BDC-MARL's knobs one at a time and its V2V tolerance"),
+    "compare-learned": ("commands.compare_learned",
                         "learned control against MPC: action set, learning, V2V, one report"),
-    "generalise": ("benchmark.generalise_cmd",
+    "generalise": ("commands.generalise",
                    "learned controllers off their training scenario: a matrix on the test seeds"),
-    "fit-power": ("benchmark.fit_power", "re-fit the energy polynomial and print its quality"),
-    "perf": ("benchmark.perf", "environment, controller and training throughput"),
+    "fit-power": ("commands.fit_power", "re-fit the energy polynomial and print its quality"),
+    "perf": ("commands.perf", "environment, controller and training throughput"),
 }
 
 USAGE = """usage: cacc-bench <command> [options]

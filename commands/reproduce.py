@@ -36,10 +36,10 @@ from analysis.paper import (
     STUDIES,
     Budget,
 )
-from benchmark.cli import plain
 from benchmark.executors import EXECUTORS
-from benchmark.policy_training import make_job, source_file, train_stage, tuned_config
-from benchmark.train_cmd import add_device_argument, add_population_argument, check_population
+from commands.cli import plain
+from commands.policy_training import make_job, source_file, train_stage, tuned_config
+from commands.train import add_device_argument, add_population_argument, check_population
 from envs.atomic import write_text
 from envs.errors import ConfigError, UnknownNameError
 
@@ -151,7 +151,7 @@ def eval_keys(jobs: list[dict[str, Any]], scenarios: list[str], budget: Budget) 
 def eval_stage(jobs: list[dict[str, Any]], scenarios: list[str], budget: Budget,
                args: argparse.Namespace, out: Path) -> dict[str, str]:
     """Run every policy and baseline on the evaluation seeds (resumable store)."""
-    from benchmark.run_cmd import execute_sweep
+    from commands.run import execute_sweep
 
     keys, names = eval_keys(jobs, scenarios, budget)
     print(f"evaluation: {len(keys)} runs", file=sys.stderr)

@@ -13,8 +13,8 @@ import argparse
 import shlex
 import sys
 
-from benchmark.cli import plain
 from benchmark.executors import add_executor_options
+from commands.cli import plain
 from envs.errors import ConfigError
 
 
@@ -65,8 +65,8 @@ def main(argv: list[str]) -> int:
     from benchmark.export import write_csv
     from benchmark.folder_lock import folder_lock
     from benchmark.paths import writable_dir
-    from benchmark.run_cmd import execute_sweep
     from benchmark.suite import build_sweep, seeds_from_set
+    from commands.run import execute_sweep
     from envs.atomic import write_text
     from envs.scenarios import scenario_label
 

@@ -1,7 +1,0 @@
-"""``python -m benchmark``: the ``cacc-bench`` command."""
-
-import sys
-
-from benchmark.cli import main
-
-sys.exit(main())
