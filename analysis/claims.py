@@ -8,7 +8,7 @@ One rule per kind of claim, each a pure function of hand-checkable inputs:
 * comparisons (:func:`compare`): safety first, read from the leaderboard's own rows
   (:func:`safety_of`, :func:`benchmark.export.leaderboard_frame`: no collision and no failed
   run ranks first), then a paired two-stage interval over training seeds and episodes
-  (:func:`analysis.statistics.paired_ci`); "inconclusive" whenever that interval covers 0;
+  (:func:`benchmark.statistics.paired_ci`); "inconclusive" whenever that interval covers 0;
 * a claim against several rivals (:func:`all_ahead`), a claim with two halves
   (:func:`both_halves`), "same performance" (:func:`not_worse`), a magnitude
   (:func:`magnitude`) and a rate bound such as "low or zero collisions" (:func:`rate_at_most`).
@@ -25,7 +25,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from analysis.statistics import hierarchical_bootstrap_ci, paired_ci
+from benchmark.statistics import hierarchical_bootstrap_ci, paired_ci
 
 HOLDS, DOES_NOT_HOLD, INCONCLUSIVE, NOT_TESTABLE = (
     "holds", "does not hold", "inconclusive", "not testable here")
@@ -223,7 +223,7 @@ def compare(ours: np.ndarray, other: np.ndarray, *, statistic: str = "difference
        first key; for convergence: every seed converged), that side is ahead, whatever the
        measure says.
     2. Otherwise the paired two-stage interval over training seeds and episodes
-       (:func:`analysis.statistics.paired_ci`) decides: the side it favours is ahead when it
+       (:func:`benchmark.statistics.paired_ci`) decides: the side it favours is ahead when it
        excludes 0; when it covers 0, neither is ("inconclusive").
     3. When both sides have flaws, the side the interval favours must not have more of them:
        otherwise neither is ahead (a rival with more collisions never wins a claim).
@@ -233,7 +233,7 @@ def compare(ours: np.ndarray, other: np.ndarray, *, statistic: str = "difference
     ours, other : (seeds, episodes) arrays
         The measure per training seed and episode, same episodes in the same order.
     statistic : {"difference", "saving"}
-        As :func:`analysis.statistics.paired_ci`: ``ours - other`` or ``100 (other - ours) /
+        As :func:`benchmark.statistics.paired_ci`: ``ours - other`` or ``100 (other - ours) /
         other`` in %.
     better : {"higher", "lower"}
         Which sign of the statistic favours ours ("saving" and a reward difference: higher;
@@ -406,7 +406,7 @@ def rate_interval(per_seed: Sequence[np.ndarray]) -> tuple[float, float, float]:
     Returns
     -------
     mean, low, high : float
-        :func:`analysis.statistics.hierarchical_bootstrap_ci` over training seeds, then
+        :func:`benchmark.statistics.hierarchical_bootstrap_ci` over training seeds, then
         episodes.
     """
     return hierarchical_bootstrap_ci([np.asarray(g, dtype=float) for g in per_seed])

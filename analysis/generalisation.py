@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from analysis.statistics import hierarchical_bootstrap_ci
+from benchmark.statistics import hierarchical_bootstrap_ci
 
 
 @dataclass(frozen=True)

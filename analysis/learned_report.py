@@ -3,7 +3,7 @@
 :func:`episodes_frame` reduces a results folder's ``runs.csv`` to one row per policy, training
 seed, V2V setting and episode; :func:`comparisons_frame` computes every comparison of
 :data:`COMPARISONS` (and, per controller, degraded against ideal V2V) as a paired difference of
-rewards over training seeds and episodes (:func:`analysis.statistics.paired_ci`); and
+rewards over training seeds and episodes (:func:`benchmark.statistics.paired_ci`); and
 :func:`write_report` writes ``report.md`` from them. The verdict of a comparison puts collisions
 first, as the leaderboard ranks: a side with fewer colliding episodes is better whatever its
 reward; otherwise the reward difference decides when its 95 % interval excludes zero, and the
@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from analysis.statistics import paired_ci
+from benchmark.statistics import paired_ci
 
 #: Report name -> (registered controller, options other than the training seed).
 POLICIES: dict[str, tuple[str, dict[str, str]]] = {

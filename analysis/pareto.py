@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from analysis.statistics import bootstrap_ci
+from benchmark.statistics import bootstrap_ci
 
 #: The two objectives, both minimised: energy per vehicle and spacing error.
 OBJECTIVES: tuple[str, str] = ("energy_kwh_per_100km", "gap_rmse_m")

@@ -352,7 +352,7 @@ def paired_ratio_saving_ci(ours: np.ndarray, other: np.ndarray, confidence: floa
                            n_resamples: int = 2000, seed: int = 0) -> tuple[float, float, float]:
     """Saving of ours against other in % of other's mean, ``100 (mean(other) - mean(ours)) /
     mean(other)``, with the two-stage percentile-bootstrap interval of
-    :func:`analysis.statistics.paired_ci` (training seeds drawn on each side, then the same
+    :func:`benchmark.statistics.paired_ci` (training seeds drawn on each side, then the same
     episodes for both sides).
 
     A ratio of means, not a mean of per-episode ratios: the controllable energy of an episode
@@ -442,7 +442,7 @@ def controllable_saving_text(runs: Any, labels: Mapping[str, str], scenario: str
         if math.isfinite(m):
             parts.append(f"vs {o} {m:+.1f} % [{lo:+.1f}, {hi:+.1f}]")
         else:
-            from analysis.statistics import paired_ci
+            from benchmark.statistics import paired_ci
 
             d, dlo, dhi = paired_ci(a, b)
             parts.append(f"vs {o}: {o}'s is not positive, no % ({ours} minus {o} "

@@ -21,7 +21,7 @@ from analysis.paper import (
     Budget,
 )
 from benchmark.export import write_csv
-from commands.policy_training import stem
+from envs.naming import checkpoint_stem
 
 
 def _curves(jobs: list[dict[str, Any]], study: str = "main",
@@ -31,7 +31,7 @@ def _curves(jobs: list[dict[str, Any]], study: str = "main",
     import pandas as pd
 
     return {(f"{j['name']} N={j['vehicles']}" if by_size else j["name"], j["scenario"], j["seed"]):
-            pd.read_csv(Path(j["out"]) / f"{stem(j)}.curve.csv")
+            pd.read_csv(Path(j["out"]) / f"{checkpoint_stem(j['algo'], j['scenario'], j['vehicles'], j['seed'])}.curve.csv")
             for j in jobs if j["study"] == study}
 
 

@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from analysis.statistics import hierarchical_bootstrap_ci
+from benchmark.statistics import hierarchical_bootstrap_ci
 
 #: Metrics with a 95 % interval in :data:`SENSITIVITY_COLUMNS`.
 METRICS: tuple[str, ...] = ("reward", "energy_kwh_per_100km", "gap_rmse_m")

@@ -24,7 +24,8 @@ Measured, for any registered controller:
   squares to every vehicle's acceleration: the amplitude ratio of consecutive vehicles is the
   empirical ``|Gamma(j w)|``.
 - :func:`time_domain_string_gain` (accelerations) and :func:`spacing_string_gain` (spacing errors)
-  work on any run.
+  work on any run; they live in :mod:`benchmark.string_gain` (the harness's metrics use them)
+  and are re-exported here.
 
 ``control`` (python-control) is imported inside the functions that need it (it costs > 1 s).
 """
@@ -39,14 +40,15 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from benchmark.string_gain import STRING_GAIN_TOL as STRING_GAIN_TOL
+from benchmark.string_gain import spacing_string_gain as spacing_string_gain
+from benchmark.string_gain import time_domain_string_gain as time_domain_string_gain
 from envs.errors import ConfigError
 from envs.interrupt import raise_if_interrupted
 
 if TYPE_CHECKING:  # pragma: no cover
     import control
 
-#: Tolerance of the time-domain and empirical string gains: string stable if gain <= 1 + tol.
-STRING_GAIN_TOL = 1e-2
 #: Tolerance of the analytic norm against the bound 1 (``Gamma(0) = 1`` exactly).
 ANALYTIC_TOL = 1e-9
 
@@ -356,43 +358,6 @@ def discrete_internally_stable(loop: PloegLoop, dt_s: float = 0.1) -> bool:
     """Whether the poles of the discrete loop lie strictly inside the unit circle."""
     tf = discrete_gamma_tf(loop, dt_s)
     return bool(np.all(np.abs(np.roots(np.asarray(tf.den[0][0]))) < 1.0))
-
-
-# ----------------------------------------------------------------------------- time domain
-
-
-def _norm_ratio(x: np.ndarray, min_norm: float) -> np.ndarray | float:
-    norms = np.linalg.norm(np.asarray(x, dtype=np.float64), axis=-2)  # (..., V)
-    num, den = norms[..., 1:], norms[..., :-1]
-    ok = den > min_norm
-    ratio = np.where(ok, num / np.where(ok, den, 1.0), -np.inf)
-    out = np.max(ratio, axis=-1)
-    out = np.where(np.isfinite(out), out, np.nan)
-    return float(out) if out.ndim == 0 else out
-
-
-def time_domain_string_gain(accel_mps2: np.ndarray, min_norm: float = 1e-9) -> np.ndarray | float:
-    """``max_i ||a_i||_2 / ||a_{i-1}||_2`` over the followers of a run.
-
-    Parameters
-    ----------
-    accel_mps2 : (..., T, N+1)
-        Accelerations over time, the leader in column 0 (leading batch axes allowed).
-    min_norm : float
-        Pairs whose predecessor's norm is at most this (e.g. a leader at constant speed) are
-        skipped; NaN if no pair is left.
-
-    Returns
-    -------
-    float or (...) array
-        String stable if ``<= 1 + STRING_GAIN_TOL``.
-    """
-    return _norm_ratio(accel_mps2, min_norm)
-
-
-def spacing_string_gain(spacing_error_m: np.ndarray, min_norm: float = 1e-9) -> np.ndarray | float:
-    """``max_{i>=2} ||e_i||_2 / ||e_{i-1}||_2`` on spacing errors ``(..., T, N)`` of followers."""
-    return _norm_ratio(spacing_error_m, min_norm)
 
 
 # ------------------------------------------------------------------------------- empirical

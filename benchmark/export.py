@@ -8,8 +8,8 @@ from typing import Any
 
 import numpy as np
 
-from analysis.statistics import bootstrap_ci, hierarchical_bootstrap_ci
 from benchmark.rollout import Trajectory
+from benchmark.statistics import bootstrap_ci, hierarchical_bootstrap_ci
 from benchmark.suite import KEY_COLUMNS
 from envs.errors import ConfigError
 
@@ -118,7 +118,7 @@ def leaderboard_frame(runs: Any, pool_seeds: bool = False) -> Any:
     failure first, then by mean reward (higher is better). With ``pool_seeds`` the runs of one
     MARL policy trained with several seeds form one row (:func:`pool_training_seeds`) whose
     interval is a two-stage bootstrap over training seeds, then episodes
-    (:func:`analysis.statistics.hierarchical_bootstrap_ci`); ``n_train_seeds`` says how many.
+    (:func:`benchmark.statistics.hierarchical_bootstrap_ci`); ``n_train_seeds`` says how many.
     """
     import pandas as pd
 

@@ -11,8 +11,8 @@ import math
 
 import numpy as np
 
-from analysis.stability import STRING_GAIN_TOL, spacing_string_gain, time_domain_string_gain
 from benchmark.rollout import Trajectory
+from benchmark.string_gain import STRING_GAIN_TOL, spacing_string_gain, time_domain_string_gain
 
 #: Columns of runs.csv that hold measured times (they differ between identical reruns).
 TIMING_COLUMNS: tuple[str, ...] = (

@@ -13,8 +13,8 @@ import pytest
 
 from analysis import claims as cl
 from analysis import reproduction as rp
-from analysis.statistics import paired_ci
 from benchmark.export import LEADERBOARD_METRICS, leaderboard_frame
+from benchmark.statistics import paired_ci
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -144,8 +144,8 @@ def test_pooled_intervals_are_the_two_stage_bootstrap_over_the_training_seeds(n_
 
     import numpy as np
 
-    from analysis.statistics import bootstrap_ci, hierarchical_bootstrap_ci
     from benchmark.export import BOOTSTRAP_SEED
+    from benchmark.statistics import bootstrap_ci, hierarchical_bootstrap_ci
 
     rows, groups = [], []
     rng = np.random.default_rng(7)

@@ -6,7 +6,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from analysis.statistics import bootstrap_ci, hierarchical_bootstrap_ci
+from benchmark.statistics import bootstrap_ci, hierarchical_bootstrap_ci
 from commands.cli import main
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from analysis.statistics import (
+from benchmark.statistics import (
     bootstrap_ci,
     hierarchical_bootstrap_ci,
     paired_ci,
@@ -67,7 +67,7 @@ def test_two_stage_resamples_count_every_drawn_group_with_few_resamples() -> Non
     first-stage picks are the generator's first draw; groups of constant values make the
     second stage irrelevant): the interval at confidence 1 spans exactly the smallest and
     largest of those means, even where a group is drawn by no resample at some position."""
-    from analysis.statistics import hierarchical_bootstrap_ci
+    from benchmark.statistics import hierarchical_bootstrap_ci
 
     values, sizes = (0.0, 10.0, 20.0), (1, 2, 3)
     groups = [np.full(n, v) for v, n in zip(values, sizes, strict=True)]

@@ -1,0 +1,48 @@
+"""String gains measured on any run, in the time domain (the harness's metrics and the analysis).
+
+- :func:`time_domain_string_gain`: ``max_i ||a_i||_2 / ||a_{i-1}||_2`` on accelerations.
+- :func:`spacing_string_gain`: the same ratio on the followers' spacing errors.
+
+:mod:`analysis.stability` re-exports both with the analytic and empirical gains.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: Tolerance of the time-domain and empirical string gains: string stable if gain <= 1 + tol.
+STRING_GAIN_TOL = 1e-2
+
+
+def _norm_ratio(x: np.ndarray, min_norm: float) -> np.ndarray | float:
+    norms = np.linalg.norm(np.asarray(x, dtype=np.float64), axis=-2)  # (..., V)
+    num, den = norms[..., 1:], norms[..., :-1]
+    ok = den > min_norm
+    ratio = np.where(ok, num / np.where(ok, den, 1.0), -np.inf)
+    out = np.max(ratio, axis=-1)
+    out = np.where(np.isfinite(out), out, np.nan)
+    return float(out) if out.ndim == 0 else out
+
+
+def time_domain_string_gain(accel_mps2: np.ndarray, min_norm: float = 1e-9) -> np.ndarray | float:
+    """``max_i ||a_i||_2 / ||a_{i-1}||_2`` over the followers of a run.
+
+    Parameters
+    ----------
+    accel_mps2 : (..., T, N+1)
+        Accelerations over time, the leader in column 0 (leading batch axes allowed).
+    min_norm : float
+        Pairs whose predecessor's norm is at most this (e.g. a leader at constant speed) are
+        skipped; NaN if no pair is left.
+
+    Returns
+    -------
+    float or (...) array
+        String stable if ``<= 1 + STRING_GAIN_TOL``.
+    """
+    return _norm_ratio(accel_mps2, min_norm)
+
+
+def spacing_string_gain(spacing_error_m: np.ndarray, min_norm: float = 1e-9) -> np.ndarray | float:
+    """``max_{i>=2} ||e_i||_2 / ||e_{i-1}||_2`` on spacing errors ``(..., T, N)`` of followers."""
+    return _norm_ratio(spacing_error_m, min_norm)
