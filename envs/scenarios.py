@@ -239,15 +239,7 @@ def dynamic_platform_profile_mps(
     hold = 4.0 * u[4]
     a_up = 0.8 + 2.0 * u[5]
     t = np.arange(n_steps + 1) * dt_s
-    t_low = t_brake + (v0 - v_min) / a_brake
-    t_up = t_low + hold
-    v = np.full_like(t, v0)
-    braking = (t > t_brake) & (t <= t_low)
-    v[braking] = v0 - a_brake * (t[braking] - t_brake)
-    v[(t > t_low) & (t <= t_up)] = v_min
-    rising = t > t_up
-    v[rising] = np.minimum(v_min + a_up * (t[rising] - t_up), v0)
-    return v
+    return braking_profile_mps(t, v0, t_brake, a_brake, v_min, hold, a_up)
 
 
 def _openacc_train(sc: Scenario, seeds: np.ndarray, u: np.ndarray, n: int) -> EpisodeBatch:
