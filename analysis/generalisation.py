@@ -48,7 +48,7 @@ COLUMNS: tuple[Column, ...] = (
 )
 
 #: Model-based controllers (one row each, no training seed).
-MODEL_BASED: tuple[str, ...] = ("cacc", "mpc-qp", "mpc", "acc", "ovm", "duty")
+MODEL_BASED: tuple[str, ...] = ("cacc", "mpc-qp", "mpc", "cmpc", "acc", "ovm", "duty")
 #: Training scenarios of the shipped learned policies at N = 8.
 TRAINED_ON: tuple[str, ...] = ("catchup-v1", "slowdown-v1")
 #: Training seeds pooled in a learned row.

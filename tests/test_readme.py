@@ -89,3 +89,31 @@ def test_the_readme_stays_a_short_guide() -> None:
     text = (ROOT / "README.md").read_text()
     assert len(text.splitlines()) <= 250
     assert not re.search(r"\b20\d\d-\d\d-\d\d\b", text)
+
+
+def test_the_main_table_on_the_test_seeds_is_what_the_controllers_score() -> None:
+    """The README's main table (the test seeds): the `cacc` row and the pooled rewards of the
+    learned rows, recomputed from the shipped checkpoints; the residual within 1 % of `cacc`."""
+    import numpy as np
+
+    from benchmark.rollout import rollout_batch
+    from controllers.registry import make_controller
+    from envs.params import TEST_SEEDS
+    from envs.scenarios import make_scenario
+
+    text = (ROOT / "README.md").read_text()
+    row = {m.group(1): m.group(2) for m in re.finditer(
+        r"^\| catchup-v1 \| \d+ \| `([^`]+)` \| \d+/\d+ \| (-?\d+\.\d\d) ", text, re.M)}
+    sc, seeds = make_scenario("catchup-v1"), list(TEST_SEEDS[:50])
+
+    def mean(name: str, **opts: str) -> float:
+        return float(np.mean([t.reward.mean() for t in rollout_batch(
+            make_controller(name, **opts), sc, 8, seeds)]))
+
+    cacc = mean("cacc")
+    assert f"{cacc:.2f}" == row["cacc"]
+    for label, opts in (("ippo[scenario=mixed-v1,seeds=0+1+2]", {"scenario": "mixed-v1"}),
+                        ("ippo[seeds=0+1+2,variant=residual-cacc]", {"variant": "residual-cacc"})):
+        pooled = np.mean([mean("ippo", **opts, seed=str(s)) for s in (0, 1, 2)])
+        assert f"{pooled:.2f}" == row[label], label
+    assert (cacc - float(row["ippo[seeds=0+1+2,variant=residual-cacc]"])) / -cacc < 0.01
