@@ -123,13 +123,12 @@ def _validate(args: argparse.Namespace) -> tuple[list[tuple[str, dict[str, str]]
             raise ConfigError(
                 f"--vehicles: a platoon needs {MIN_VEHICLES} to {MAX_VEHICLES} followers, got {n}"
             )
-    from envs.limits import check_delay
+    from envs.limits import check_delay, check_packet_loss
 
     for d in args.comm_delay:
         check_delay(d, "--comm-delay")  # one rule with stability's --delay
     for loss in args.packet_loss:
-        if not 0 <= loss <= 1:
-            raise ConfigError(f"--packet-loss must lie in [0, 1], got {loss}")
+        check_packet_loss(loss, "--packet-loss")  # one rule with the channel's
     for lag in args.lag:
         if lag < 0:
             raise ConfigError(f"--lag must be >= 0 s, got {lag}")

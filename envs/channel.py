@@ -76,8 +76,9 @@ class ChannelConfig:
     def __post_init__(self) -> None:
         if not (math.isfinite(self.delay_s) and self.delay_s >= 0):
             raise ConfigError(f"the V2V delay must be >= 0 s, got {self.delay_s}")
-        if not (math.isfinite(self.packet_loss) and 0 <= self.packet_loss <= 1):
-            raise ConfigError(f"the packet loss must lie in [0, 1], got {self.packet_loss}")
+        from envs.limits import check_packet_loss
+
+        check_packet_loss(self.packet_loss)
 
     @property
     def delay_steps(self) -> int:

@@ -31,6 +31,14 @@ def check_delay(value: float, flag: str) -> float:
     return float(value)
 
 
+def check_packet_loss(value: float, flag: str = "the packet loss") -> float:
+    """``value`` if it is a V2V packet-loss probability in [0, 1], else a ConfigError (the one
+    rule: :class:`envs.channel.ChannelConfig` and every command's ``--packet-loss``)."""
+    if not (math.isfinite(value) and 0 <= value <= 1):
+        raise ConfigError(f"{flag} must lie in [0, 1], got {value}")
+    return float(value)
+
+
 def check_seeds(seeds: list[int] | tuple[int, ...], flag: str, high: int = MAX_SEED
                 ) -> list[int]:
     """``seeds`` if each lies in 0..``high`` (:data:`MAX_SEED`; training seeds of the MARL

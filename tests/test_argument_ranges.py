@@ -179,3 +179,22 @@ def test_a_closed_pipe_ends_list_quietly() -> None:
         os.close(write)
     assert "Traceback" not in proc.stderr and "BrokenPipe" not in proc.stderr, proc.stderr
     assert proc.returncode == 128 + signal.SIGPIPE
+
+
+def test_a_packet_loss_is_checked_by_one_rule(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The channel and `run --packet-loss` both go through envs.limits.check_packet_loss."""
+    import envs.limits
+    from commands.cli import main as cli
+    from envs.channel import ChannelConfig
+
+    calls: list[str] = []
+    real = envs.limits.check_packet_loss
+
+    def spy(value: float, flag: str = "the packet loss") -> float:
+        calls.append(flag)
+        return real(value, flag)
+
+    monkeypatch.setattr(envs.limits, "check_packet_loss", spy)
+    ChannelConfig(0.0, 0.3)
+    assert cli(["run", "--packet-loss", "1.5", "--out", "/nonexistent/x"]) == 2
+    assert calls == ["the packet loss", "--packet-loss"]
