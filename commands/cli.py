@@ -61,6 +61,17 @@ def plain(text: str | None) -> str:
     return text.replace("``", "")
 
 
+def report_command(prog: str, argv: Sequence[str]) -> str:
+    """The command line a report prints: ``cacc-bench PROG`` and its options without ``--out``
+    (the report names its own folder, never a machine's path) and ``--resume``."""
+    import shlex
+
+    shown = [a for i, a in enumerate(argv)
+             if a not in ("--out", "--resume") and not a.startswith("--out=")
+             and (i == 0 or argv[i - 1] != "--out")]
+    return " ".join([f"cacc-bench {prog}", *(shlex.quote(a) for a in shown)])
+
+
 def fail(message: str) -> int:
     """Print a user error and return exit status 2."""
     print(f"cacc-bench: error: {message}", file=sys.stderr)

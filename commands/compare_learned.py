@@ -10,11 +10,10 @@ with 30 % loss, through the results store (resumable, ``--resume``), then writes
 from __future__ import annotations
 
 import argparse
-import shlex
 import sys
 
 from benchmark.executors import add_executor_options
-from commands.cli import plain
+from commands.cli import plain, report_command
 from envs.errors import ConfigError
 
 #: Training seeds of the shipped learned policies.
@@ -100,10 +99,7 @@ def main(argv: list[str]) -> int:
     keys = sorted({k for delay, loss in (IDEAL, DEGRADED)
                    for k in build_sweep(specs, scenarios, [args.vehicles], seeds, [delay], [loss])})
     out = writable_dir(args.out)
-    shown = [a for i, a in enumerate(argv)  # the report names its own folder, not a path
-             if a not in ("--out", "--resume") and not a.startswith("--out=")
-             and (i == 0 or argv[i - 1] != "--out")]
-    command = " ".join(["cacc-bench compare-learned", *(shlex.quote(a) for a in shown)])
+    command = report_command("compare-learned", argv)
     with folder_lock(out):
         print(f"compare-learned: {len(specs)} controllers x {len(scenarios)} scenarios x 2 V2V "
               f"settings x {len(seeds)} episodes = {len(keys)} runs", file=sys.stderr)

@@ -10,11 +10,10 @@ degraded V2V), through the results store (resumable, ``--resume``); writes ``rep
 from __future__ import annotations
 
 import argparse
-import shlex
 import sys
 
 from benchmark.executors import add_executor_options
-from commands.cli import plain
+from commands.cli import plain, report_command
 from envs.errors import ConfigError
 
 
@@ -104,10 +103,7 @@ def main(argv: list[str]) -> int:
                                         [col.n_vehicles], seeds, [col.comm_delay_s],
                                         [col.packet_loss]))
     out = writable_dir(args.out)
-    shown = [a for i, a in enumerate(argv)
-             if a not in ("--out", "--resume") and not a.startswith("--out=")
-             and (i == 0 or argv[i - 1] != "--out")]
-    command = " ".join(["cacc-bench generalise", *(shlex.quote(a) for a in shown)])
+    command = report_command("generalise", argv)
     with folder_lock(out):
         print(f"generalise: {len(rows)} rows x {len(columns)} columns x {len(seeds)} test "
               f"episodes = {len(keys)} runs", file=sys.stderr)

@@ -165,11 +165,16 @@ class SharedPolicyController(Controller):
                   ) -> None:
         """Load the policy now: a missing or damaged checkpoint fails before a sweep starts."""
         source = self.scenario or scenario.id
-        if self.actor is not None and self._source == source:
-            if self.actor.n_agents and n_vehicles != self.actor.n_agents:
-                self.actor = None  # checked again below, with the message
-            else:
-                return
+        if self.actor is None or self._source != source:
+            self._load(source)
+        if self.actor.n_agents and n_vehicles != self.actor.n_agents:
+            raise ConfigError(
+                f"{self.algo} has one network per follower, trained for N = "
+                f"{self.actor.n_agents}; run it with --vehicles {self.actor.n_agents} (the "
+                "shared policies ippo, mappo and distill act at any N)")
+
+    def _load(self, source: str) -> None:
+        """Load and verify the checkpoint trained on ``source``."""
         import torch
 
         from marl.checkpoint import load_checkpoint
@@ -186,11 +191,6 @@ class SharedPolicyController(Controller):
                 f"another with {self.algo}:scenario=ID")
         data = load_checkpoint(path, algo=self.algo, scenario=source)
         self.actor = load_actor(data)
-        if self.actor.n_agents and n_vehicles != self.actor.n_agents:
-            raise ConfigError(
-                f"{self.algo} has one network per follower, trained for N = "
-                f"{self.actor.n_agents}; run it with --vehicles {self.actor.n_agents} (the "
-                "shared policies ippo, mappo and distill act at any N)")
         self.action_mode = data["config"]["action_mode"]
         self.loaded, self._source = data, source
 
