@@ -81,6 +81,41 @@ def table_one(curves: Mapping[CurveKey, Any], algos: Sequence[str]) -> Any:
     return pd.DataFrame(rows)
 
 
+def budget_table(curves: Mapping[CurveKey, Any], algos: Sequence[str], scenario: str,
+                 budgets: Sequence[float]) -> Any:
+    """What the validation seeds alone say about a training budget: for each algorithm and
+    budget, the snapshot the trainer's rule would keep among the validations at or before that
+    many steps (fewest sampled collisions, then best sampled reward), per training seed.
+
+    Read from runs trained with the largest budget, so a smaller budget here is that run cut
+    short, not a run planned for it (the entropy schedule follows the planned length).
+    Returns a DataFrame: ``algo``, ``budget_steps``, ``n_seeds``, ``validation_reward_mean``
+    (over seeds), ``validation_reward_min``/``max`` and ``collisions`` (summed over seeds).
+    """
+    import pandas as pd
+
+    rows = []
+    for algo in algos:
+        per_seed = [c for (a, s, _), c in sorted(curves.items()) if a == algo and s == scenario]
+        if not per_seed:
+            continue
+        for budget in budgets:
+            kept = []
+            for c in per_seed:
+                v = c[c["eval_reward_sampled"].notna() & (c["steps"] <= budget)]
+                if v.empty:
+                    raise ValueError(f"{algo} {scenario}: no validation at or before {budget:g} steps")
+                best = min(zip(v["eval_collisions_sampled"], -v["eval_reward_sampled"]))
+                kept.append((float(best[0]), -float(best[1])))
+            reward = np.array([r for _, r in kept])
+            rows.append({"algo": algo, "budget_steps": float(budget), "n_seeds": len(kept),
+                         "validation_reward_mean": float(reward.mean()),
+                         "validation_reward_min": float(reward.min()),
+                         "validation_reward_max": float(reward.max()),
+                         "collisions": float(sum(c for c, _ in kept))})
+    return pd.DataFrame(rows)
+
+
 def table_two(runs: Any, labels: Mapping[str, str]) -> Any:
     """Table II in the paper's columns, with the paper's values beside.
 
