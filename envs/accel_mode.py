@@ -195,21 +195,28 @@ def cacc_from_observation(
     time_gap_s: float = 0.5,
     kp: float = 0.2,
     kd: float = 0.7,
+    relative_speed_mps: np.ndarray | None = None,
+    last_command_mps2: np.ndarray | None = None,
 ) -> np.ndarray:
     """Ploeg's CACC (the registered ``cacc`` controller's law and default gains) computed from
-    nothing but the ``accel`` observation ``(..., 12)``: the command ``(...)`` in m/s^2.
+    the ``accel`` observation ``(..., 12)``: the command ``(...)`` in m/s^2.
 
     The controller's filter state is its last command, which the observation carries (column 4,
     the last applied acceleration), so the law needs no memory: ``c = a c_prev + (1 - a) w``
     with ``a = exp(-dt / h)`` and ``w = kp (gap - r - h v) + kd (dv - h a_real) + u_pred``,
-    ``r = d* - h v*``. The sensed relative speed is clipped in the observation (+-10 m/s), so
-    the law is exact while ``|dv| <= 10`` m/s (tested against the controller's run).
+    ``r = d* - h v*``. Two things the observation only approximates: it clips the sensed
+    relative speed ``dv`` to +-10 m/s, and its last applied acceleration differs from the last
+    command where the speed bounds act (``slowdown-v1``'s initial speeds above the bound) or
+    the actuator lags. ``relative_speed_mps`` (the sensed ``v_pred - v`` unclipped) and
+    ``last_command_mps2`` (:attr:`envs.platoon.PlatoonState.command_mps2`), both ``(...)``, make
+    the law the controller's everywhere (tested against its runs).
     """
     a_max = params.accel_max_mps2
     x = np.asarray(obs, dtype=np.float64)
-    dv = x[..., 1] * 5.0
+    dv = x[..., 1] * 5.0 if relative_speed_mps is None else np.asarray(relative_speed_mps, np.float64)
     # gap - r - h v, with gap = d* (1 + col3) - dv dt and v = v* (1 + col0)
     spacing = x[..., 3] * target_gap_m - dv * params.dt_s - time_gap_s * target_speed_mps * x[..., 0]
     w = kp * spacing + kd * (dv - time_gap_s * x[..., 5] * a_max) + x[..., 6] * a_max
     alpha = np.exp(-params.dt_s / time_gap_s)
-    return np.clip(alpha * x[..., 4] * a_max + (1 - alpha) * w, params.accel_min_mps2, a_max)
+    last = x[..., 4] * a_max if last_command_mps2 is None else np.asarray(last_command_mps2)
+    return np.clip(alpha * last + (1 - alpha) * w, params.accel_min_mps2, a_max)

@@ -48,6 +48,9 @@ class PlatoonState:
         Lag state: the realised acceleration (equal to the clipped command without lag).
     applied_accel_mps2 : (B, N)
         Applied acceleration of the last step ``(v_t - v_{t-1})/dt``, 0 at reset (``u_last``).
+    command_mps2 : (B, N)
+        The last step's command clipped to the acceleration bounds, 0 at reset (what a
+        controller whose state is its own last command, as ``cacc``'s filter, remembers).
     leader_speed_mps : (B, T+1)
         Leader profile of each episode.
     collided : (B,) bool
@@ -63,6 +66,7 @@ class PlatoonState:
     speed_mps: np.ndarray
     realised_accel_mps2: np.ndarray
     applied_accel_mps2: np.ndarray
+    command_mps2: np.ndarray
     leader_speed_mps: np.ndarray
     collided: np.ndarray
     done: np.ndarray
@@ -237,6 +241,7 @@ class PlatoonEnv:
             speed_mps=np.asfortranarray(ep.speed_mps, dtype=np.float64).copy(order="F"),
             realised_accel_mps2=np.zeros((b, n), order="F"),
             applied_accel_mps2=np.zeros((b, n), order="F"),
+            command_mps2=np.zeros((b, n), order="F"),
             leader_speed_mps=ep.leader_speed_mps.astype(np.float64),
             collided=np.zeros(b, dtype=bool),
             done=np.zeros(b, dtype=bool),
@@ -346,7 +351,11 @@ class PlatoonEnv:
                 s.done |= s.collided
             else:
                 s.done |= s.collided & ((t + 1) % 60 == 0)
+        command = np.clip(command_mps2, self.params.accel_min_mps2, self.params.accel_max_mps2)
+        if frozen.any():
+            command = np.where(frozen[:, None], s.command_mps2, command)
         s.gap_m, s.speed_mps, s.realised_accel_mps2, s.applied_accel_mps2 = gap, v, a, applied
+        s.command_mps2 = command
         s.step = t + 1
         if s.step >= self.n_steps:
             s.done[:] = True

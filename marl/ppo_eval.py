@@ -49,7 +49,13 @@ def to_command(actor: SharedActor, action: torch.Tensor, state: PlatoonState | N
             raise ValueError("an actor with a prior acts on the observation and the targets")
         from envs.accel_mode import cacc_from_observation
 
-        base = cacc_from_observation(obs, targets[0], targets[1], params)
+        exact = {}
+        if actor.prior == "cacc-exact":  # the unclipped dv and the last command of the state
+            if state is None:
+                raise ValueError("the cacc-exact prior reads the platoon's state")
+            exact = {"relative_speed_mps": state.pred_speed_mps - state.speed_mps,
+                     "last_command_mps2": state.command_mps2}
+        base = cacc_from_observation(obs, targets[0], targets[1], params, **exact)
         residual = (actor.half_range * torch.tanh(action)).numpy().astype(np.float64)
         return np.clip(base + residual, params.accel_min_mps2, params.accel_max_mps2)
     from envs.dynamics import action_to_command_mps2

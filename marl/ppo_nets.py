@@ -19,7 +19,7 @@ from envs.params import OVM_ACTIONS, PlatoonParams
 #: per agent whose critics agree by binary differential consensus (``ippo-bdc``).
 SHARED_ALGORITHMS: tuple[str, ...] = ("ippo", "mappo", "ippo-bdc")
 #: Model-based priors a residual policy can add to (``PPOConfig.prior``).
-PRIORS: tuple[str, ...] = ("", "cacc")
+PRIORS: tuple[str, ...] = ("", "cacc", "cacc-exact")
 #: Uniform stream of sampled evaluation actions (per episode, step and agent).
 
 # ---------------------------------------------------------------------------- config
@@ -63,11 +63,14 @@ class PPOConfig:
     eval_every_steps : int
         Environment steps between validations (the kept snapshot: fewest collisions on the
         validation seeds, then best reward, actions sampled as trained).
-    prior : {"", "cacc"}
+    prior : {"", "cacc", "cacc-exact"}
         ``"cacc"``: residual policy learning (Silver et al. 2018; Johannink et al., ICRA 2019):
         the command is ``clip(cacc(obs) + h tanh(z))``, Ploeg's CACC computed from the same
         observation (:func:`envs.accel_mode.cacc_from_observation`) plus the learned residual,
-        which starts near zero; ``""``: ``c + h tanh(z)`` (``accel`` only).
+        which starts near zero (the shipped ``residual-cacc``); ``"cacc-exact"``: the same law
+        given the state's unclipped relative speed and last command, so that it is the ``cacc``
+        controller also where the observation's clip or the speed bound acts; ``""``:
+        ``c + h tanh(z)`` (``accel`` only).
     critic_warmup_updates : int
         Updates at the start that fit only the critic (so a random critic's advantages do not
         move a policy that starts from a good prior).

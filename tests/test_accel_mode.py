@@ -147,12 +147,17 @@ def test_cacc_written_on_the_observation_drives_the_platoon_as_the_cacc_controll
     np.testing.assert_allclose(np.array(gaps), ref.gap_m, atol=1e-8)
 
 
-@pytest.mark.parametrize("scenario", ["catchup-v1", "slowdown-v1", "openacc-s-v1"])
+@pytest.mark.parametrize(("scenario", "n", "seed", "exact"), [
+    ("catchup-v1", 5, 2001, False), ("slowdown-v1", 5, 2001, False),
+    ("openacc-s-v1", 5, 2001, False), ("slowdown-v1", 8, 2000, True),
+    ("slowdown-v1", 8, 3, True), ("catchup-v1", 8, 2001, True)])
 def test_memoryless_cacc_law_of_the_observation_is_the_cacc_controller(
-        scenario: str, monkeypatch: pytest.MonkeyPatch) -> None:
+        scenario: str, n: int, seed: int, exact: bool, monkeypatch: pytest.MonkeyPatch) -> None:
     """:func:`envs.accel_mode.cacc_from_observation` (the prior of the residual learners) reads
     its filter state from the observation's last applied command: it drives the platoon as the
-    registered ``cacc`` controller does, with 0.2 s delay and 30 % loss."""
+    registered ``cacc`` controller does, with 0.2 s delay and 30 % loss; given the state's
+    unclipped relative speed and last command, also where the speed bound acts (slowdown-v1
+    seeds whose initial speed is above it)."""
     import envs.accel_mode
     from benchmark.rollout import rollout
     from controllers.registry import make_controller
@@ -161,15 +166,41 @@ def test_memoryless_cacc_law_of_the_observation_is_the_cacc_controller(
     monkeypatch.setattr(envs.accel_mode, "PRED_MESSAGE", ("cacc_u", 1))
     channel = ChannelConfig(delay_s=0.2, packet_loss=0.3)
     sc = make_scenario(scenario)
-    ref = rollout(make_controller("cacc"), sc, 5, 2001, PlatoonParams(), channel)
-    env = PlatoonEnv(sc, 5, action_mode="accel", channel=channel, dtype=np.float64)
-    obs = env.reset([2001])
+    ref = rollout(make_controller("cacc"), sc, n, seed, PlatoonParams(), channel)
+    env = PlatoonEnv(sc, n, action_mode="accel", channel=channel, dtype=np.float64)
+    obs = env.reset([seed])
     gaps = [env.state.gap_m[0].copy()]  # type: ignore[union-attr]
     for _ in range(ref.steps):
-        res = env.step(cacc_from_observation(obs, sc.target_gap_m, sc.target_speed_mps))
+        st = env.state
+        assert st is not None
+        exact_state = {"relative_speed_mps": st.pred_speed_mps - st.speed_mps,
+                       "last_command_mps2": st.command_mps2} if exact else {}
+        res = env.step(cacc_from_observation(obs, sc.target_gap_m, sc.target_speed_mps,
+                                             **exact_state))
         obs = res.observation
         gaps.append(env.state.gap_m[0].copy())  # type: ignore[union-attr]
     np.testing.assert_allclose(np.array(gaps), ref.gap_m, atol=1e-8)
+
+
+def test_the_observation_alone_is_not_cacc_where_the_speed_bound_acts() -> None:
+    """Why the prior reads the state: on a slowdown-v1 episode that starts above the speed bound
+    (seed 2000, 31.1 m/s) the applied acceleration is not the command, and the law of the
+    observation alone drifts from the ``cacc`` controller's run by a metre."""
+    from benchmark.rollout import rollout
+    from controllers.registry import make_controller
+    from envs.accel_mode import cacc_from_observation
+
+    sc = make_scenario("slowdown-v1")
+    ref = rollout(make_controller("cacc"), sc, 8, 2000, PlatoonParams(), ChannelConfig())
+    env = PlatoonEnv(sc, 8, action_mode="accel", dtype=np.float64)
+    obs = env.reset([2000])
+    assert env.state is not None
+    assert env.state.speed_mps.min() > PlatoonParams().speed_max_mps
+    gaps = [env.state.gap_m[0].copy()]
+    for _ in range(ref.steps):
+        obs = env.step(cacc_from_observation(obs, sc.target_gap_m, sc.target_speed_mps)).observation
+        gaps.append(env.state.gap_m[0].copy())
+    assert np.abs(np.array(gaps) - ref.gap_m).max() > 0.5
 
 
 def test_pettingzoo_parallel_api_in_the_accel_mode() -> None:
@@ -191,3 +222,31 @@ def test_gymnasium_checker_in_the_accel_mode() -> None:
         # the one recommendation it makes: a [-1, 1] Box; ours is in m/s^2, the MPC's bounds
         warnings.filterwarnings("ignore", message=".*symmetric and normalized")
         check_env(env, skip_render_check=True)
+
+
+@pytest.mark.parametrize(("prior", "exact"), [("cacc-exact", True), ("cacc", False)])
+def test_a_zero_residual_on_the_exact_prior_is_the_cacc_controller(prior: str, exact: bool) -> None:
+    """``PPOConfig.prior = "cacc-exact"``: with a zero residual the learner's command is the
+    ``cacc`` controller's on slowdown-v1 seed 2000 (above the speed bound at the start); the
+    shipped ``"cacc"`` prior, the observation's law alone, is not there."""
+    import torch
+
+    from benchmark.rollout import rollout
+    from controllers.registry import make_controller
+    from marl.ppo_eval import agent_inputs, to_command
+    from marl.ppo_nets import PPOConfig, SharedActor
+
+    params = PlatoonParams()
+    actor = SharedActor(PPOConfig(action_mode="accel", prior=prior), params, 0)
+    sc = make_scenario("slowdown-v1")
+    ref = rollout(make_controller("cacc"), sc, 8, 2000, params, ChannelConfig())
+    env = PlatoonEnv(sc, 8, params, action_mode="accel", dtype=np.float64)
+    obs = env.reset([2000])
+    gaps = [env.state.gap_m[0].copy()]  # type: ignore[union-attr]
+    for _ in range(ref.steps):
+        x = agent_inputs(obs, "accel")
+        obs = env.step(to_command(actor, torch.zeros(x.shape[:2]), env.state, params, x,
+                                  (sc.target_gap_m, sc.target_speed_mps))).observation
+        gaps.append(env.state.gap_m[0].copy())  # type: ignore[union-attr]
+    error = np.abs(np.array(gaps) - ref.gap_m).max()
+    assert (error < 1e-4) if exact else (error > 0.5)
