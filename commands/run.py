@@ -25,6 +25,7 @@ from benchmark.suite import (
     seeds_from_set,
     unique,
 )
+from commands.cli import scenarios_argument
 from controllers.registry import default_controllers, parse_controller_list
 from envs.errors import ConfigError
 from envs.interrupt import raise_if_interrupted
@@ -34,7 +35,6 @@ from envs.scenarios import (
     MAX_VEHICLES,
     MIN_VEHICLES,
     Scenario,
-    parse_scenarios,
 )
 
 
@@ -117,10 +117,7 @@ def build_parser() -> argparse.ArgumentParser:
 def _validate(args: argparse.Namespace
               ) -> tuple[list[tuple[str, dict[str, str]]], list[Scenario], list[int]]:
     controllers = parse_controller_list(args.controllers)
-    if not args.scenarios.strip(" ,"):
-        raise ConfigError("--scenarios: no scenario named")
-    # each item built (and checked) once, here; one scenario per canonical label
-    scenarios = list({sc.label: sc for sc in parse_scenarios(args.scenarios)}.values())
+    scenarios = scenarios_argument(args.scenarios)  # each built and checked once, here
     for n in args.vehicles or ():
         if not MIN_VEHICLES <= n <= MAX_VEHICLES:
             raise ConfigError(
