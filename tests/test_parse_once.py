@@ -127,3 +127,17 @@ def test_a_bad_scenario_exits_2_with_one_message_on_every_command(
     assert cli([*argv, item, "--out", str(tmp_path / "out")]) == 2
     assert capsys.readouterr().err == message
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("name, key, value, kind", [
+    ("bdc", "untrained", "maybe", "bool"), ("bdc", "seed", "x", "int"),
+    ("ippo", "seed", "1.5", "int"), ("ippo", "vehicles", "x", "int"),
+])
+def test_learned_controllers_coerce_options_by_the_one_rule(name: str, key: str, value: str,
+                                                            kind: str) -> None:
+    from controllers.registry import make_controller
+
+    with pytest.raises(ConfigError,
+                       match=rf"^option {key} of {name} must be of type {kind}, got '{value}'$"):
+        make_controller(name, **{key: value})
+    assert make_controller("bdc", untrained="yes", seed="2").untrained is True
