@@ -321,13 +321,13 @@ def main(argv: list[str]) -> int:
         if a not in ALGORITHM_NAMES and not shared:
             raise UnknownNameError("algorithm", a, (*ALGORITHM_NAMES, *SHARED_LEARNERS))
     built = scenarios_argument(args.scenario, "--scenario")  # each built and checked once
-    for sc in built:
-        if sc.label != sc.id:
+    for one in built:
+        if one.label != one.id:
             raise ConfigError(
-                f"--scenario {sc.label}: training takes plain scenario ids (checkpoints are named "
-                f"and loaded by id, so a policy trained with options would be read as trained on "
-                f"{sc.id}); train on {sc.id} and evaluate on {sc.label} with run")
-    scenarios = [sc.id for sc in built]  # the trainers take the id: checkpoints are named by it
+                f"--scenario {one.label}: training takes plain scenario ids (checkpoints are "
+                f"named and loaded by id, so a policy trained with options would be read as "
+                f"trained on {one.id}); train on {one.id} and evaluate on {one.label} with run")
+    scenarios = [one.id for one in built]  # the trainers take the id: checkpoints are named by it
     check_vehicles(args.vehicles)
     from envs.limits import (
         MAX_EPISODES_PARALLEL,
