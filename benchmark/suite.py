@@ -1,10 +1,10 @@
 """The suite: controllers x scenarios x sizes x seeds (x V2V and lag settings), one run each.
 
 A run is fully described by its :class:`RunKey`; :func:`execute_run` depends on nothing else, so
-every executor (serial, process pool, Ray) gives the same numbers. Scenarios come in built (the
-command layer parses them once); a key carries its scenario to the executors' workers. The harness hands the
+every executor (serial, process pool, Ray) gives the same numbers. The harness hands the
 executors batches of runs that differ only in their seed (:func:`batch_keys`,
-:func:`execute_batch`), which batch-invariant controllers step together.
+:func:`execute_batch`), which batch-invariant controllers step together. Scenarios come in built
+(the command layer parses them once), and a key carries its scenario to the workers.
 """
 
 from __future__ import annotations
