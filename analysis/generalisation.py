@@ -14,12 +14,16 @@ import json
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from benchmark.statistics import hierarchical_bootstrap_ci
+
+if TYPE_CHECKING:
+    from envs.scenarios import Scenario
 
 
 @dataclass(frozen=True)
@@ -31,6 +35,13 @@ class Column:
     n_vehicles: int = 8
     comm_delay_s: float = 0.0
     packet_loss: float = 0.0
+
+    @cached_property
+    def built(self) -> Scenario:
+        """The column's scenario, built once (its ``label`` names the column's runs)."""
+        from envs.scenarios import make_scenario
+
+        return make_scenario(self.scenario)
 
 
 COLUMNS: tuple[Column, ...] = (
@@ -111,7 +122,6 @@ def cell_frame(runs: Any, rows: list[Row], columns: Sequence[Column] = COLUMNS) 
     import pandas as pd
 
     from controllers.registry import controller_label
-    from envs.scenarios import scenario_label
 
     ok = runs[runs["status"] == "ok"]
     out = []
@@ -122,7 +132,7 @@ def cell_frame(runs: Any, rows: list[Row], columns: Sequence[Column] = COLUMNS) 
             if not rec["applicable"]:
                 out.append(rec)
                 continue
-            sel = ok[ok["controller"].isin(list(labels)) & (ok["scenario"] == scenario_label(col.scenario))
+            sel = ok[ok["controller"].isin(list(labels)) & (ok["scenario"] == col.built.label)
                      & (ok["n_vehicles"] == col.n_vehicles)
                      & np.isclose(ok["comm_delay_s"], col.comm_delay_s)
                      & np.isclose(ok["packet_loss"], col.packet_loss)]

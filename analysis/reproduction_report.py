@@ -7,6 +7,7 @@ import dataclasses
 import json
 import os
 import platform
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -22,6 +23,7 @@ from analysis.paper import (
 )
 from benchmark.export import write_csv
 from envs.naming import checkpoint_stem
+from envs.scenarios import Scenario
 
 
 def _curves(jobs: list[dict[str, Any]], study: str = "main",
@@ -40,9 +42,10 @@ def _machine() -> str:
             f"Python {platform.python_version()}")
 
 
-def write_report(jobs: list[dict[str, Any]], names: dict[str, str], scenarios: list[str],
+def write_report(jobs: list[dict[str, Any]], names: dict[str, str], built: Sequence[Scenario],
                  budget: Budget, out: Path, manifest: dict[str, Any]) -> Path:
-    """``OUT/report.md``, its figures (``OUT/figures``) and CSVs."""
+    """``OUT/report.md``, its figures (``OUT/figures``) and CSVs, on the scenarios ``built``
+    (parsed by the command)."""
     import pandas as pd
 
     from analysis import reproduction as rp
@@ -51,8 +54,9 @@ def write_report(jobs: list[dict[str, Any]], names: dict[str, str], scenarios: l
     from benchmark.export import leaderboard_frame, pool_training_seeds, runs_frame
     from benchmark.provenance import git_sha
     from benchmark.store import ResultStore
-    from envs.scenarios import make_scenario
 
+    by_label = {sc.label: sc for sc in built}
+    scenarios = list(by_label)
     fig_dir = out / "figures"
     curves = _curves(jobs)
     policy_names = list(dict.fromkeys(j["name"] for j in jobs if j["study"] == "main"))
@@ -123,7 +127,7 @@ def write_report(jobs: list[dict[str, Any]], names: dict[str, str], scenarios: l
                                      if sc == TABLE_II_SCENARIO else ""), ""]
             lines.append(rp.format_table(t2[t2["scenario"] == sc], cols))
             lines.append("")
-        lines += _power_basis_section(t2, scenarios, out)
+        lines += _power_basis_section(t2, by_label, out)
         # figures
         lines += ["## Learning curves (Figs. 2 and 4)", "",
                   f"Validation reward (benchmark score, actions sampled, "
@@ -156,7 +160,7 @@ def write_report(jobs: list[dict[str, Any]], names: dict[str, str], scenarios: l
         with_traj = store.trajectory_ids()
         shown = [n for n in ("ia2c", "commnet", "bdc", "wac", "dcea") if n in policy_names]
         for sc in scenarios:
-            sc_obj = make_scenario(sc)
+            sc_obj = by_label[sc]
             for name in shown:
                 ids = [r["id"] for r in records if names.get(r["controller"]) == name
                        and r["scenario"] == sc and r["id"] in with_traj
@@ -205,17 +209,15 @@ def write_report(jobs: list[dict[str, Any]], names: dict[str, str], scenarios: l
     return path
 
 
-def _power_basis_section(t2: Any, scenarios: list[str], out: Path) -> list[str]:
+def _power_basis_section(t2: Any, scenarios: dict[str, Scenario], out: Path) -> list[str]:
     """Table II's platoon powers beside ours per vehicle and relative to each model's cruise
     power, with BDC's savings on total and controllable power (``OUT/power_basis.csv``)."""
     import math
 
     from analysis import reproduction as rp
     from analysis.paper import TABLE_II, TABLE_II_SCENARIO
-    from envs.scenarios import make_scenario
-
-    sc = TABLE_II_SCENARIO if TABLE_II_SCENARIO in scenarios else scenarios[0]
-    target = make_scenario(sc).target_speed_mps
+    sc = TABLE_II_SCENARIO if TABLE_II_SCENARIO in scenarios else next(iter(scenarios))
+    target = scenarios[sc].target_speed_mps
     basis = rp.power_basis_table(t2, sc, N_VEHICLES, target)
     if basis.empty:
         return []

@@ -16,15 +16,14 @@ from controllers.registry import make_controller, resolve
 from envs.channel import ChannelConfig
 from envs.errors import ControllerContractError
 from envs.params import PlatoonParams
-from envs.scenarios import make_scenario
+from envs.scenarios import Scenario, as_scenario
 
 
-def _episode(ctrl: Controller, scenario_id: str, n: int, seed: int, steps: int,
+def _episode(ctrl: Controller, scenario: Scenario, n: int, seed: int, steps: int,
              channel: ChannelConfig) -> tuple[np.ndarray, int]:
     """The commands and V2V bits of the first ``steps`` steps of one episode, run by the
     harness's own loop (which refuses commands of the wrong shape or not finite)."""
-    sc = make_scenario(scenario_id)
-    sc = dataclasses.replace(sc, n_steps=min(steps, sc.n_steps))
+    sc = dataclasses.replace(scenario, n_steps=min(steps, scenario.n_steps))
     try:
         traj = rollout(ctrl, sc, n, seed, PlatoonParams(), channel)
     except ControllerContractError as exc:
@@ -32,7 +31,7 @@ def _episode(ctrl: Controller, scenario_id: str, n: int, seed: int, steps: int,
     return traj.command_mps2, traj.bits_sent
 
 
-def check_controller(name: str, scenario_id: str = "catchup-v1", n_vehicles: int = 8,
+def check_controller(name: str, scenario_id: str | Scenario = "catchup-v1", n_vehicles: int = 8,
                      steps: int = 40, **options: object) -> None:
     """Raise ``AssertionError`` if a registered controller breaks the harness's contract.
 
@@ -47,10 +46,10 @@ def check_controller(name: str, scenario_id: str = "catchup-v1", n_vehicles: int
     ctrl = make_controller(name, **options)
     if spec.family not in FAMILIES or ctrl.family != spec.family:
         raise AssertionError(f"{name}: family {ctrl.family!r} does not match the registry")
-    make_scenario(scenario_id)
+    scenario = as_scenario(scenario_id)
     channel = ChannelConfig(0.1, 0.1)
-    u1, bits1 = _episode(ctrl, scenario_id, n_vehicles, 2000, steps, channel)
-    u2, bits2 = _episode(make_controller(name, **options), scenario_id, n_vehicles, 2000, steps,
+    u1, bits1 = _episode(ctrl, scenario, n_vehicles, 2000, steps, channel)
+    u2, bits2 = _episode(make_controller(name, **options), scenario, n_vehicles, 2000, steps,
                          channel)
     if not np.array_equal(u1, u2):
         raise AssertionError(
@@ -61,7 +60,7 @@ def check_controller(name: str, scenario_id: str = "catchup-v1", n_vehicles: int
         raise AssertionError(f"{name}: V2V bits differ between identical episodes")
     if spec.v2v.startswith("none") and bits1 != 0:
         raise AssertionError(f"{name}: declares no V2V but sent {bits1} bits")
-    ctx = EpisodeContext(make_scenario(scenario_id), n_vehicles, np.array([2000]))
+    ctx = EpisodeContext(scenario, n_vehicles, np.array([2000]))
     declared = ctrl.messages(ctx)
     if not options and bool(declared) == spec.v2v.startswith("none"):
         raise AssertionError(f"{name}: the registry says its V2V is {spec.v2v!r}, but it "

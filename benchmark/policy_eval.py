@@ -15,18 +15,19 @@ import numpy as np
 
 from benchmark.rollout import rollout_batch
 from envs.params import VALIDATION_SEEDS, check_decision_seeds
-from envs.scenarios import make_scenario
+from envs.scenarios import Scenario, as_scenario
 
 
 def evaluate_policy(
     algo: str,
     net: Any,
-    scenario_id: str,
+    scenario: str | Scenario,
     n_vehicles: int,
     seeds: Sequence[int],
     mode: str = "sampled",
 ) -> dict[str, float]:
-    """Episodes of an in-memory policy network in the benchmark's closed loop.
+    """Episodes of an in-memory policy network in the benchmark's closed loop (on ``scenario``,
+    built or a label: :func:`envs.scenarios.as_scenario`).
 
     Returns
     -------
@@ -37,8 +38,9 @@ def evaluate_policy(
     """
     from controllers.policy import PolicyController
 
-    ctrl = PolicyController.from_net(algo, net, scenario_id, n_vehicles, mode)
-    trajs = rollout_batch(ctrl, make_scenario(scenario_id), n_vehicles, seeds)
+    sc = as_scenario(scenario)
+    ctrl = PolicyController.from_net(algo, net, sc.id, n_vehicles, mode)
+    trajs = rollout_batch(ctrl, sc, n_vehicles, seeds)
     return {
         "reward": float(np.mean([t.reward.mean() for t in trajs])),
         "tracking_reward": float(np.mean([t.tracking_reward.mean() for t in trajs])),
@@ -48,7 +50,8 @@ def evaluate_policy(
 
 
 def validation_evaluator(
-    algo: str, scenario_id: str, n_vehicles: int, seeds: Sequence[int] = VALIDATION_SEEDS
+    algo: str, scenario: str | Scenario, n_vehicles: int,
+    seeds: Sequence[int] = VALIDATION_SEEDS,
 ) -> Callable[[Any, str], dict[str, float]]:
     """The evaluator :func:`marl.selection.run_training` takes: ``(net, mode) -> summary``.
 
@@ -62,8 +65,9 @@ def validation_evaluator(
     """
     check_decision_seeds(seeds, "benchmark.policy_eval.validation_evaluator")
     seeds = tuple(int(s) for s in seeds)
+    sc = as_scenario(scenario)  # built once, for every snapshot it scores
 
     def evaluate(net: Any, mode: str) -> dict[str, float]:
-        return evaluate_policy(algo, net, scenario_id, n_vehicles, seeds, mode)
+        return evaluate_policy(algo, net, sc, n_vehicles, seeds, mode)
 
     return evaluate

@@ -3,7 +3,8 @@
 A run is fully described by its :class:`RunKey`; :func:`execute_run` depends on nothing else, so
 every executor (serial, process pool, Ray) gives the same numbers. The harness hands the
 executors batches of runs that differ only in their seed (:func:`batch_keys`,
-:func:`execute_batch`), which batch-invariant controllers step together.
+:func:`execute_batch`), which batch-invariant controllers step together. Scenarios come in built
+(the command layer parses them once), and a key carries its scenario to the workers.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ import math
 import time
 import traceback
 from collections.abc import Iterable, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 from controllers.registry import canonical_options, controller_label, resolve
@@ -22,7 +23,7 @@ from envs.channel import ChannelConfig
 from envs.errors import ConfigError
 from envs.interrupt import raise_if_interrupted
 from envs.params import PlatoonParams
-from envs.scenarios import make_scenario
+from envs.scenarios import Scenario, as_scenario
 
 #: Columns that identify a run (runs.csv is sorted by them).
 KEY_COLUMNS: tuple[str, ...] = (
@@ -32,7 +33,12 @@ KEY_COLUMNS: tuple[str, ...] = (
 
 @dataclass(frozen=True, order=True)
 class RunKey:
-    """Everything that defines one run. ``options`` is the controller's options as sorted JSON."""
+    """Everything that defines one run. ``options`` is the controller's options as sorted JSON.
+
+    ``scenario`` is the scenario's canonical label (the store's key); ``built`` is the scenario
+    itself, as :func:`build_sweep` was given it (not part of the key, never stored). A key read
+    back from a record has none, and :func:`execute_run` builds it from the label.
+    """
 
     controller: str
     scenario: str
@@ -43,6 +49,7 @@ class RunKey:
     seed: int
     name: str = ""
     options: str = "{}"
+    built: Scenario | None = field(default=None, compare=False, repr=False)
 
     @property
     def id(self) -> str:
@@ -63,31 +70,34 @@ class RunKey:
 
 def build_sweep(
     controllers: Sequence[tuple[str, dict[str, str]]],
-    scenarios: Sequence[str],
+    scenarios: Sequence[Scenario | str],
     vehicles: Sequence[int],
     seeds: Sequence[int],
     comm_delays_s: Sequence[float] = (0.0,),
     packet_losses: Sequence[float] = (0.0,),
     lags_s: Sequence[float] = (0.0,),
 ) -> list[RunKey]:
-    """All run keys of the product, sorted; validates names (unknown ones raise)."""
-    for sc in scenarios:
-        make_scenario(sc)
+    """All run keys of the product, sorted; validates controller names (unknown ones raise).
+
+    ``scenarios`` are built ones (:func:`envs.scenarios.parse_scenarios`); a label is built by
+    :func:`envs.scenarios.as_scenario`. Each key names its scenario by the canonical label.
+    """
+    built = [as_scenario(sc) for sc in scenarios]
     keys = []
     for name, given in controllers:
         resolve(name)
         opts = canonical_options(name, given)
         label = controller_label(name, opts)
         opt_json = json.dumps(opts, sort_keys=True)
-        for sc in scenarios:
+        for sc in built:
             for n in vehicles:
                 for d in comm_delays_s:
                     for loss in packet_losses:
                         for lag in lags_s:
                             for seed in seeds:
                                 keys.append(
-                                    RunKey(label, sc, int(n), float(d), float(loss), float(lag),
-                                           int(seed), name, opt_json)
+                                    RunKey(label, sc.label, int(n), float(d), float(loss),
+                                           float(lag), int(seed), name, opt_json, sc)
                                 )
     return sorted(set(keys))
 
@@ -98,13 +108,18 @@ def _record(key: RunKey) -> dict:
 
     return {
         "id": key.id,
-        **asdict(key),
+        **{f.name: getattr(key, f.name) for f in dataclasses.fields(key) if f.compare},
         "family": resolve(key.name).family,
         "status": "ok",
         "error": "",
         "version": version(),
         "git_sha": git_sha(),
     }
+
+
+def _scenario(key: RunKey) -> Scenario:
+    """The key's scenario: the one it carries, else built from its label (a key read back)."""
+    return key.built if key.built is not None else as_scenario(key.scenario)
 
 
 def _setting(key: RunKey) -> tuple[PlatoonParams, ChannelConfig]:
@@ -133,7 +148,7 @@ def execute_run(key: RunKey, keep_trajectory: bool = False) -> dict:
     record = _record(key)
     t0 = time.perf_counter()
     try:
-        scenario = make_scenario(key.scenario)
+        scenario = _scenario(key)
         controller = make_controller(key.name, **json.loads(key.options))
         record["deterministic"] = bool(getattr(controller, "deterministic", True))
         params, channel = _setting(key)
@@ -167,7 +182,7 @@ def execute_batch(keys: Sequence[RunKey], keep_trajectory: bool = False) -> list
     head = keys[0]
     t0 = time.perf_counter()
     try:
-        scenario = make_scenario(head.scenario)
+        scenario = _scenario(head)
         controller = make_controller(head.name, **json.loads(head.options))
         if not getattr(controller, "batch_invariant", False):
             return [execute_run(k, keep_trajectory) for k in keys]

@@ -14,8 +14,12 @@ import signal
 import sys
 import threading
 from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING
 
 from envs.errors import CaccBenchError
+
+if TYPE_CHECKING:
+    from envs.scenarios import Scenario
 
 #: subcommand -> (module with ``main(argv) -> int``, one-line help)
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
@@ -70,6 +74,24 @@ def report_command(prog: str, argv: Sequence[str]) -> str:
              if a not in ("--out", "--resume") and not a.startswith("--out=")
              and (i == 0 or argv[i - 1] != "--out")]
     return " ".join([f"cacc-bench {prog}", *(shlex.quote(a) for a in shown)])
+
+
+def scenarios_argument(text: str, option: str = "--scenarios") -> list[Scenario]:
+    """The scenarios a ``--scenarios`` (or ``--scenario``) argument names, each built and checked
+    once, here (:func:`envs.scenarios.parse_scenarios`), one per canonical label, in order. The
+    layers below take these objects and never parse the text again.
+
+    Raises
+    ------
+    ConfigError
+        For an empty list; as :func:`envs.scenarios.make_scenario` for a bad item.
+    """
+    from envs.errors import ConfigError
+    from envs.scenarios import parse_scenarios
+
+    if not text.strip(" ,"):
+        raise ConfigError(f"{option}: no scenario named")
+    return list({sc.label: sc for sc in parse_scenarios(text)}.values())
 
 
 def fail(message: str) -> int:

@@ -79,23 +79,20 @@ def main(argv: list[str]) -> int:
     from benchmark.folder_lock import folder_lock
     from benchmark.paths import writable_dir
     from benchmark.suite import build_sweep, seeds_from_episodes
+    from commands.cli import scenarios_argument
     from commands.run import execute_sweep
-    from envs.scenarios import check_vehicles, make_scenario
+    from envs.scenarios import check_vehicles
 
     args = _parser().parse_args(argv)
     from benchmark.executors import check_ray_address
 
     check_ray_address(args.ray_address)
-    scenarios = list(dict.fromkeys(s.strip() for s in args.scenarios.split(",") if s.strip()))
-    if not scenarios:
-        raise ConfigError("--scenarios: nothing named")
-    for sc in scenarios:
-        make_scenario(sc)
+    scenarios = scenarios_argument(args.scenarios)
     check_vehicles(args.vehicles)
     if args.workers < 1:
         raise ConfigError(f"--workers must be >= 1, got {args.workers}")
     seeds = seeds_from_episodes(args.episodes)
-    specs = controller_specs(scenarios, args.vehicles)
+    specs = controller_specs([sc.label for sc in scenarios], args.vehicles)
     keys = sorted({k for delay, loss in (IDEAL, DEGRADED)
                    for k in build_sweep(specs, scenarios, [args.vehicles], seeds, [delay], [loss])})
     out = writable_dir(args.out)

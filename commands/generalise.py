@@ -67,7 +67,6 @@ def main(argv: list[str]) -> int:
     from benchmark.suite import build_sweep, seeds_from_set
     from commands.run import execute_sweep
     from envs.atomic import write_text
-    from envs.scenarios import scenario_label
 
     args = _parser().parse_args(argv)
     from benchmark.executors import check_ray_address
@@ -99,7 +98,7 @@ def main(argv: list[str]) -> int:
     for row in rows:
         for col in columns:
             if row.applies(col):
-                keys.update(build_sweep(row.specs(), [scenario_label(col.scenario)],
+                keys.update(build_sweep(row.specs(), [col.built],
                                         [col.n_vehicles], seeds, [col.comm_delay_s],
                                         [col.packet_loss]))
     out = writable_dir(args.out)

@@ -125,18 +125,16 @@ def main(argv: list[str]) -> int:
 
     from analysis.pareto import ENERGY_METRICS, pareto_frame, plot_pareto
     from benchmark.suite import build_sweep, seeds_from_episodes
+    from commands.cli import scenarios_argument
     from commands.run import execute_sweep
-    from envs.scenarios import check_vehicles, make_scenario
+    from envs.scenarios import check_vehicles
 
     args = _parser().parse_args(argv)
     from benchmark.executors import check_ray_address
 
     check_ray_address(args.ray_address)  # an address that does not answer: refused before work
-    scenarios = list(dict.fromkeys(s.strip() for s in args.scenarios.split(",") if s.strip()))
-    if not scenarios:
-        raise ConfigError("--scenarios: nothing named")
-    for sc in scenarios:
-        make_scenario(sc)
+    scenarios = scenarios_argument(args.scenarios)
+    labels = [sc.label for sc in scenarios]
     families = list(dict.fromkeys(f.strip() for f in args.families.split(",") if f.strip()))
     if not families:
         raise ConfigError("--families: nothing named")
@@ -148,7 +146,7 @@ def main(argv: list[str]) -> int:
     check_vehicles(args.vehicles)
     if args.workers < 1:
         raise ConfigError(f"--workers must be >= 1, got {args.workers}")
-    settings = settings_for(families, scenarios, args.vehicles)
+    settings = settings_for(families, labels, args.vehicles)
     if not settings:
         raise ConfigError("nothing to run: no shipped MARL policy for these scenarios and N")
     seeds = seeds_from_episodes(args.episodes)
@@ -177,7 +175,7 @@ def main(argv: list[str]) -> int:
         suffix = "" if args.energy == "total" else f"-{args.energy}"
         csv_path = out / f"pareto{suffix}.csv"
         write_csv(df, csv_path)
-        for sc in scenarios:
+        for sc in labels:
             plot_pareto(df, sc, out / "figures", f"pareto{suffix}__{sc}__n{args.vehicles}",
                         args.energy)
     front = df[df["non_dominated"]]

@@ -43,10 +43,12 @@ def main(argv: list[str]) -> int:
             if key not in chosen and r["id"] in with_traj:
                 chosen[key] = r
         written: list[Path] = []
+        # a stored label is built once (read back from the store, not given on the command line)
+        built = {label: make_scenario(label) for label in {r["scenario"] for r in chosen.values()}}
         for r in chosen.values():
             arrays = store.trajectory(r["id"])
             assert arrays is not None
-            sc = make_scenario(r["scenario"])
+            sc = built[r["scenario"]]
             stem = "timeseries__" + r["id"].replace("|", "__").replace("/", "_")
             title = (f"{r['controller']} on {r['scenario']}, N={r['n_vehicles']}, seed {r['seed']}"
                      f" (V2V delay {r['comm_delay_s']:g} s, loss {r['packet_loss']:g})")

@@ -18,6 +18,7 @@ import argparse
 import json
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -37,11 +38,12 @@ from analysis.paper import (
     Budget,
 )
 from benchmark.executors import EXECUTORS
-from commands.cli import plain
+from commands.cli import plain, scenarios_argument
 from commands.policy_training import make_job, source_file, train_stage, tuned_config
 from commands.train import add_device_argument, add_population_argument, check_population
 from envs.atomic import write_text
 from envs.errors import ConfigError, UnknownNameError
+from envs.scenarios import Scenario
 
 MANIFEST = "reproduce.json"
 
@@ -111,7 +113,8 @@ def _policy(job: dict[str, Any]) -> tuple[str, dict[str, str]]:
     return job["algo"], opts
 
 
-def eval_keys(jobs: list[dict[str, Any]], scenarios: list[str], budget: Budget) -> tuple[list[Any], dict[str, str]]:
+def eval_keys(jobs: list[dict[str, Any]], scenarios: Sequence[Scenario | str], budget: Budget
+              ) -> tuple[list[Any], dict[str, str]]:
     """The evaluation runs of every study and the map label -> name shown in the tables."""
     from benchmark.suite import build_sweep, seeds_from_episodes
     from controllers.registry import controller_label
@@ -120,7 +123,7 @@ def eval_keys(jobs: list[dict[str, Any]], scenarios: list[str], budget: Budget) 
     names: dict[str, str] = {}
     keys: set[Any] = set()
 
-    def add(ctrls: list[tuple[str, dict[str, str]]], scs: list[str], ns: list[int],
+    def add(ctrls: list[tuple[str, dict[str, str]]], scs: Sequence[Scenario | str], ns: list[int],
             shown: list[str]) -> None:
         keys.update(build_sweep(ctrls, scs, ns, seeds))
         for (algo, opts), name in zip(ctrls, shown, strict=True):
@@ -148,7 +151,7 @@ def eval_keys(jobs: list[dict[str, Any]], scenarios: list[str], budget: Budget) 
     return sorted(keys), names
 
 
-def eval_stage(jobs: list[dict[str, Any]], scenarios: list[str], budget: Budget,
+def eval_stage(jobs: list[dict[str, Any]], scenarios: Sequence[Scenario], budget: Budget,
                args: argparse.Namespace, out: Path) -> dict[str, str]:
     """Run every policy and baseline on the evaluation seeds (resumable store)."""
     from commands.run import execute_sweep
@@ -174,7 +177,6 @@ def _holds_files(folder: Path) -> bool:
 
 def main(argv: list[str]) -> int:
     """Entry point of ``cacc-bench reproduce``."""
-    from envs.scenarios import make_scenario
     from marl.a2c import training_device
     from marl.config import ALGORITHM_NAMES
 
@@ -192,11 +194,8 @@ def main(argv: list[str]) -> int:
     for a in algos:
         if a not in ALGORITHM_NAMES:
             raise UnknownNameError("algorithm", a, ALGORITHM_NAMES)
-    scenarios = list(dict.fromkeys(s.strip() for s in args.scenarios.split(",") if s.strip()))
-    if not scenarios:
-        raise ConfigError("--scenarios: nothing named")
-    for sc in scenarios:
-        make_scenario(sc)
+    built = scenarios_argument(args.scenarios)
+    scenarios = [sc.label for sc in built]  # names of checkpoints, report sections, the manifest
     if args.workers < 1:
         raise ConfigError(f"--workers must be >= 1, got {args.workers}")
     check_population(args.population)
@@ -234,7 +233,7 @@ def main(argv: list[str]) -> int:
                                     "command": command_text("cacc-bench reproduce", argv)}
         write_text(here / MANIFEST, json.dumps({**manifest, "status": "started"}, indent=1))
         train_stage(jobs, args, reuse_shipped=budget.name == "paper")
-        names = eval_stage(jobs, scenarios, budget, args, here)
+        names = eval_stage(jobs, built, budget, args, here)
         train_wall = sum(float(json.loads(source_file(j).read_text()).get("wall_s") or 0.0)
                          for j in jobs)
         import pandas as pd
@@ -244,7 +243,7 @@ def main(argv: list[str]) -> int:
                          "eval_wall_s": float(runs["wall_s"].sum())})
         from analysis.reproduction_report import write_report
 
-        report = out / write_report(jobs, names, scenarios, budget, here, manifest)
+        report = out / write_report(jobs, names, built, budget, here, manifest)
         write_text(here / MANIFEST, json.dumps({**manifest, "status": "done"}, indent=1))
     print(f"wrote {report}")
     return 0

@@ -17,6 +17,7 @@ from benchmark.executors import (
 )
 from benchmark.progress import Progress
 from benchmark.suite import (
+    KEY_COLUMNS,
     MAX_SEED,
     RunKey,
     build_sweep,
@@ -24,6 +25,7 @@ from benchmark.suite import (
     seeds_from_set,
     unique,
 )
+from commands.cli import scenarios_argument
 from controllers.registry import default_controllers, parse_controller_list
 from envs.errors import ConfigError
 from envs.interrupt import raise_if_interrupted
@@ -32,8 +34,7 @@ from envs.scenarios import (
     DEFAULT_SCENARIOS,
     MAX_VEHICLES,
     MIN_VEHICLES,
-    make_scenario,
-    parse_scenario_list,
+    Scenario,
 )
 
 
@@ -113,11 +114,10 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _validate(args: argparse.Namespace) -> tuple[list[tuple[str, dict[str, str]]], list[str], list[int]]:
+def _validate(args: argparse.Namespace
+              ) -> tuple[list[tuple[str, dict[str, str]]], list[Scenario], list[int]]:
     controllers = parse_controller_list(args.controllers)
-    if not args.scenarios.strip(" ,"):
-        raise ConfigError("--scenarios: no scenario named")
-    scenarios = unique(parse_scenario_list(args.scenarios))  # each checked once, there
+    scenarios = scenarios_argument(args.scenarios)  # each built and checked once, here
     for n in args.vehicles or ():
         if not MIN_VEHICLES <= n <= MAX_VEHICLES:
             raise ConfigError(
@@ -152,7 +152,7 @@ def _validate(args: argparse.Namespace) -> tuple[list[tuple[str, dict[str, str]]
     return controllers, scenarios, seed_list
 
 
-def _preflight(controllers: list[tuple[str, dict[str, str]]], scenarios: list[str],
+def _preflight(controllers: list[tuple[str, dict[str, str]]], scenarios: list[Scenario],
                vehicles: list[int], lags_s: list[float]) -> None:
     """Build each controller once and check it against every setting, so bad options, missing
     checkpoints or a loop unstable with the lag fail before any run."""
@@ -164,7 +164,7 @@ def _preflight(controllers: list[tuple[str, dict[str, str]]], scenarios: list[st
         for sc in scenarios:
             for n in vehicles:
                 for lag in lags_s:
-                    ctrl.preflight(make_scenario(sc), n, PlatoonParams(lag_s=lag))
+                    ctrl.preflight(sc, n, PlatoonParams(lag_s=lag))
 
 
 def main(argv: list[str]) -> int:
@@ -185,7 +185,7 @@ def main(argv: list[str]) -> int:
     writable_dir(args.out)
     keys: list[RunKey] = []
     for sc in scenarios:
-        vehicles = args.vehicles or [make_scenario(sc).default_vehicles]
+        vehicles = args.vehicles or [sc.default_vehicles]
         keys += build_sweep(controllers, [sc], vehicles, seeds, args.comm_delay,
                             args.packet_loss, args.lag)
         _preflight(controllers, [sc], vehicles, args.lag)
@@ -243,7 +243,7 @@ def execute_sweep(
                 traj = rec.pop("_trajectory", None)
                 arrays = trajectory_arrays(traj) if traj is not None else None
                 if arrays is not None and trajectories:
-                    stem = RunKey(**{f: rec[f] for f in RunKey.__dataclass_fields__}).file_stem
+                    stem = RunKey(**{f: rec[f] for f in KEY_COLUMNS}).file_stem
                     write_trajectory_csv(out / "trajectories" / f"{stem}.csv", arrays)
                 keep = arrays if (arrays is not None and rec["seed"] == first_seed) else None
                 finished.append((rec, keep))

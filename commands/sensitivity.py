@@ -16,15 +16,17 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 from benchmark.executors import add_executor_options
 from benchmark.export import write_csv
-from commands.cli import plain
+from commands.cli import plain, scenarios_argument
 from commands.train import add_device_argument
 from envs.atomic import write_text
 from envs.errors import ConfigError, UnknownNameError
+from envs.scenarios import Scenario
 
 #: Multiples of the tuned consensus eps tried (two decades and more around it).
 EPS_FACTORS: tuple[float, ...] = (0.01, 0.1, 1.0, 10.0)
@@ -149,12 +151,15 @@ def plan(scenarios: list[str], knobs: list[str], seeds: list[int], steps: int,
     return jobs, settings
 
 
-def _eval_keys(settings: list[dict[str, Any]], seeds: list[int]) -> list[Any]:
+def _eval_keys(settings: list[dict[str, Any]], seeds: list[int],
+               built: Sequence[Scenario]) -> list[Any]:
+    """The evaluation runs of ``settings``, on the scenarios the command built (by label)."""
     from benchmark.suite import build_sweep
 
+    by_label = {sc.label: sc for sc in built}
     keys = {k for s in settings
-            for k in build_sweep(s["controllers"], [s["scenario"]], [N_VEHICLES], seeds,
-                                 [s["comm_delay_s"]], [s["packet_loss"]])}
+            for k in build_sweep(s["controllers"], [by_label[s["scenario"]]], [N_VEHICLES],
+                                 seeds, [s["comm_delay_s"]], [s["packet_loss"]])}
     return sorted(keys, key=lambda k: k.id)
 
 
@@ -203,16 +208,14 @@ def main(argv: list[str]) -> int:
     from benchmark.suite import seeds_from_episodes
     from commands.policy_training import train_stage
     from commands.run import execute_sweep
-    from envs.scenarios import make_scenario
     from marl.a2c import training_device
 
     args = _parser().parse_args(argv)
     from benchmark.executors import check_ray_address
 
     check_ray_address(args.ray_address)  # an address that does not answer: refused before work
-    scenarios = _names(args.scenarios, "--scenarios")
-    for sc in scenarios:
-        make_scenario(sc)
+    built = scenarios_argument(args.scenarios)
+    scenarios = [sc.label for sc in built]  # names of checkpoints, settings and the manifest
     knobs = _names(args.knobs, "--knobs", KNOBS)
     try:
         seeds = [int(x) for x in _names(args.seeds, "--seeds")]
@@ -258,7 +261,7 @@ def main(argv: list[str]) -> int:
               file=sys.stderr)
         train_stage(jobs, args, reuse_shipped=True)
         eval_seeds = seeds_from_episodes(args.episodes)
-        keys = _eval_keys(settings, eval_seeds)
+        keys = _eval_keys(settings, eval_seeds, built)
         print(f"evaluation: {len(keys)} runs", file=sys.stderr)
         rc = execute_sweep(keys, here / "runs", resume=True, executor=args.executor,
                            workers=args.workers, ray_address=args.ray_address, quiet=True,

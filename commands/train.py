@@ -299,9 +299,10 @@ def _finished(job: dict) -> bool:
 def main(argv: list[str]) -> int:
     """Entry point: ``cacc-bench train --algo NAME --scenario ID [...]``."""
     from benchmark.executors import map_jobs
+    from commands.cli import scenarios_argument
     from commands.train_shared import SHARED_LEARNERS
     from controllers.registry import build_config
-    from envs.scenarios import SCENARIOS, check_vehicles, make_scenario, parse_scenario_list
+    from envs.scenarios import check_vehicles
     from marl.a2c import training_device
     from marl.config import ALGORITHM_NAMES, algorithm
 
@@ -319,16 +320,14 @@ def main(argv: list[str]) -> int:
     for a in algos:
         if a not in ALGORITHM_NAMES and not shared:
             raise UnknownNameError("algorithm", a, (*ALGORITHM_NAMES, *SHARED_LEARNERS))
-    scenarios = parse_scenario_list(args.scenario)  # UnknownNameError for an unknown id
-    if not scenarios:
-        raise ConfigError("--scenario: no scenario named")
-    for sc in scenarios:
-        if sc not in SCENARIOS:
+    built = scenarios_argument(args.scenario, "--scenario")  # each built and checked once
+    for one in built:
+        if one.label != one.id:
             raise ConfigError(
-                f"--scenario {sc}: training takes plain scenario ids (checkpoints are named and "
-                f"loaded by id, so a policy trained with options would be read as trained on "
-                f"{sc.split('[')[0]}); train on {sc.split('[')[0]} and evaluate on {sc} with run")
-        make_scenario(sc)
+                f"--scenario {one.label}: training takes plain scenario ids (checkpoints are "
+                f"named and loaded by id, so a policy trained with options would be read as "
+                f"trained on {one.id}); train on {one.id} and evaluate on {one.label} with run")
+    scenarios = [one.id for one in built]  # the trainers take the id: checkpoints are named by it
     check_vehicles(args.vehicles)
     from envs.limits import (
         MAX_EPISODES_PARALLEL,

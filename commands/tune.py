@@ -237,7 +237,8 @@ def main(argv: list[str]) -> int:
 
     from benchmark.executors import map_jobs
     from benchmark.progress import Progress
-    from envs.scenarios import check_vehicles, make_scenario
+    from commands.cli import scenarios_argument
+    from envs.scenarios import check_vehicles
     from marl.config import ALGORITHM_NAMES
 
     args = _parser().parse_args(argv)
@@ -245,7 +246,6 @@ def main(argv: list[str]) -> int:
 
     check_ray_address(args.ray_address)  # an address that does not answer: refused before work
     algos = [a.strip() for a in args.algos.split(",") if a.strip()]
-    scenarios = [s.strip() for s in args.scenarios.split(",") if s.strip()]
     for a in algos:
         if a not in (*ALGORITHM_NAMES, *SHARED_TUNED):
             raise UnknownNameError("algorithm", a, (*ALGORITHM_NAMES, *SHARED_TUNED))
@@ -264,9 +264,9 @@ def main(argv: list[str]) -> int:
         for a in algos:  # typed and checked now, before any trial
             shared_config(a, [f"{k}={v}" for k, v in fixed.items()])
     args.fixed = fixed
-    for s in scenarios:
-        make_scenario(s)
-    if not algos or not scenarios:
+    # each built and checked once, here; the studies train by label (their files' names)
+    scenarios = [sc.label for sc in scenarios_argument(args.scenarios)]
+    if not algos:
         raise ConfigError("--algos and --scenarios must name at least one each")
     check_vehicles(args.vehicles)
     from envs.limits import MAX_TRAIN_SEED, MAX_TRAIN_STEPS, check_range, check_seeds

@@ -22,7 +22,7 @@ from envs.dynamics import action_to_command_mps2
 from envs.errors import ConfigError
 from envs.params import VALIDATION_SEEDS, PlatoonParams, check_decision_seeds
 from envs.platoon import PlatoonState
-from envs.scenarios import Scenario, make_scenario
+from envs.scenarios import Scenario, as_scenario
 
 
 @dataclass(frozen=True)
@@ -82,7 +82,7 @@ def duty_scores(
     """
     check_decision_seeds(seeds, "duty (choosing k)")
     seed_list = [int(s) for s in seeds]
-    sc = make_scenario(scenario) if isinstance(scenario, str) else scenario
+    sc = as_scenario(scenario)
     # the length is part of the key: a shortened copy of a scenario (perf timing) has the same id
     key = (sc.id, repr(sorted(sc.options.items())), sc.n_steps, n_vehicles, k_max, params,
            tuple(seed_list))

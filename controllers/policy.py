@@ -25,7 +25,7 @@ from controllers.base import Controller, EpisodeContext, Message
 from envs.channel import episode_uniforms
 from envs.dynamics import OBS_DIM, action_to_command_mps2
 from envs.errors import ConfigError
-from envs.naming import checkpoint_stem
+from envs.naming import checkpoint_stem, coerce_option
 from envs.params import EVAL_MODES
 from envs.platoon import PlatoonState
 
@@ -139,10 +139,7 @@ class PolicyController(Controller):
             )
         if mode not in EVAL_MODES:
             raise ConfigError(f"{algo}: mode must be one of {', '.join(EVAL_MODES)}, got {mode!r}")
-        try:
-            seed = int(seed)
-        except ValueError:
-            raise ConfigError(f"{algo}: seed must be an integer, got {seed!r}") from None
+        seed = int(coerce_option(seed, int, "seed", algo))  # the one rule for option values
         if seed < 0:
             raise ConfigError(f"{algo}: seed must be >= 0, got {seed}")
         if algo not in ALGORITHM_NAMES:
@@ -166,10 +163,7 @@ class PolicyController(Controller):
         self.seed = seed
         self.mode = mode
         self.deterministic = mode == "greedy"
-        flag = str(untrained).strip().lower()
-        if flag not in ("1", "true", "yes", "on", "0", "false", "no", "off"):
-            raise ConfigError(f"{algo}: untrained must be true or false, got {untrained!r}")
-        self.untrained = flag in ("1", "true", "yes", "on")
+        self.untrained = bool(coerce_option(untrained, bool, "untrained", algo))
         self.options = {
             k: v
             for k, v in {

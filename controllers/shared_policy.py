@@ -41,6 +41,7 @@ from envs.accel_mode import (
 from envs.channel import episode_uniforms
 from envs.dynamics import agent_observations
 from envs.errors import ConfigError
+from envs.naming import coerce_option
 from envs.params import EVAL_MODES, PlatoonParams
 from envs.platoon import PlatoonState
 from envs.scenarios import Scenario
@@ -123,10 +124,8 @@ class SharedPolicyController(Controller):
                               f"{', '.join(SHARED_POLICIES)}")
         if mode not in EVAL_MODES:
             raise ConfigError(f"{algo}: mode must be one of {', '.join(EVAL_MODES)}, got {mode!r}")
-        try:
-            seed, vehicles = int(seed), int(vehicles)
-        except ValueError:
-            raise ConfigError(f"{algo}: seed and vehicles must be integers") from None
+        seed = int(coerce_option(seed, int, "seed", algo))  # the one rule for option values
+        vehicles = int(coerce_option(vehicles, int, "vehicles", algo))
         if seed < 0 or not 2 <= vehicles <= 64:
             raise ConfigError(f"{algo}: seed must be >= 0 and vehicles in 2..64")
         if variant is not None:

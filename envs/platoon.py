@@ -29,7 +29,7 @@ from envs.dynamics import (
 )
 from envs.errors import ConfigError
 from envs.params import PlatoonParams, RewardWeights
-from envs.scenarios import Scenario, check_vehicles, make_scenario
+from envs.scenarios import Scenario, as_scenario, check_vehicles
 
 COLLISION_MODES = ("terminate", "published")
 
@@ -173,7 +173,7 @@ class PlatoonEnv:
     ) -> None:
         self.action_mode = check_action_mode(action_mode)
         self.channel_config = channel
-        self.scenario = make_scenario(scenario) if isinstance(scenario, str) else scenario
+        self.scenario = as_scenario(scenario)
         self.n_vehicles = check_vehicles(n_vehicles)
         if collision_mode not in COLLISION_MODES:
             raise ConfigError(

@@ -63,7 +63,14 @@ class EpisodeBatch:
 class Scenario:
     """A scenario: targets, length, and a generator of initial conditions and leader profiles.
 
-    Use :func:`make_scenario` to build one from its id and options.
+    Use :func:`make_scenario` to build one from its id and options (it alone checks them). It
+    pickles (its builder is a module-level function), so executors hand it to workers as is.
+
+    Attributes
+    ----------
+    label : str
+        The canonical label (``sine-v1[amplitude_mps=2.0]``): the id and the options set away
+        from their defaults; the name of its runs in the store and in ``runs.csv``.
     """
 
     id: str
@@ -77,6 +84,7 @@ class Scenario:
     _builder: Callable[[Scenario, np.ndarray, np.ndarray, int], EpisodeBatch] | None = field(
         default=None, repr=False, compare=False
     )
+    label: str = field(default="", repr=False, compare=False)
 
     def episodes(
         self,
@@ -466,9 +474,12 @@ for _spec in (
 DEFAULT_SCENARIOS: tuple[str, ...] = ("catchup-v1", "slowdown-v1")
 
 
-def make_scenario(scenario_id: str, **options: Any) -> Scenario:
+def make_scenario(scenario_id: str, /, **options: Any) -> Scenario:
     """Build a registered scenario by id, with options (e.g. ``frequency_hz`` of ``sine-v1``);
     the id may carry them as a label (``sine-v1[amplitude_mps=2]`` or ``sine-v1:amplitude_mps=2``).
+
+    The one rule for scenario input: every other way in (:func:`as_scenario`,
+    :func:`parse_scenarios`, :func:`scenario_label`) comes through here.
 
     Raises
     ------
@@ -495,6 +506,9 @@ def make_scenario(scenario_id: str, **options: Any) -> Scenario:
                                   scenario_id)
     if spec.check is not None:
         spec.check(opts)
+    # options at their default value are left out, so they never make a second leaderboard row
+    changed = {k: repr(opts[k]) if isinstance(opts[k], float) else str(opts[k])
+               for k in options if opts[k] != spec.defaults[k]}
     opts.update(spec.fixed)
     return Scenario(
         id=scenario_id,
@@ -506,25 +520,41 @@ def make_scenario(scenario_id: str, **options: Any) -> Scenario:
         default_vehicles=spec.default_vehicles,
         note=spec.note,
         _builder=spec.builder,
+        label=format_label(scenario_id, changed),
     )
+
+
+def as_scenario(scenario: str | Scenario) -> Scenario:
+    """``scenario`` itself, or the scenario a label or id names (built by :func:`make_scenario`).
+
+    For functions that also take a label: the command layer hands the layers below built
+    :class:`Scenario` objects, which pass through unchanged.
+    """
+    return scenario if isinstance(scenario, Scenario) else make_scenario(scenario)
 
 
 def scenario_label(text: str) -> str:
     """The canonical label of a scenario with options (``sine-v1:amplitude_mps=2.0`` ->
     ``sine-v1[amplitude_mps=2.0]``); options at their default value are left out, so they never
     make a second leaderboard row. Checks the id and the options."""
-    sc = make_scenario(text)
-    spec = SCENARIOS[sc.id]
-    _, given = parse_label(text, "scenario")
-    changed = {k: repr(sc.options[k]) if isinstance(sc.options[k], float) else str(sc.options[k])
-               for k in given if sc.options[k] != spec.defaults[k]}
-    return format_label(sc.id, changed)
+    return make_scenario(text).label
+
+
+def parse_scenarios(text: str) -> list[Scenario]:
+    """The scenarios of a ``--scenarios`` list (``catchup-v1,sine-v1:amplitude_mps=2``), one per
+    item, in order, each built once by :func:`make_scenario`.
+
+    Raises
+    ------
+    UnknownNameError, ConfigError
+        As :func:`make_scenario`; ConfigError also for an empty list or a malformed item.
+    """
+    return [make_scenario(name, **opts) for name, opts in parse_named_list(text, "scenario")]
 
 
 def parse_scenario_list(text: str) -> list[str]:
     """Canonical labels of a ``--scenarios`` list (``catchup-v1,sine-v1:amplitude_mps=2``)."""
-    return [scenario_label(format_label(name, opts))
-            for name, opts in parse_named_list(text, "scenario")]
+    return [sc.label for sc in parse_scenarios(text)]
 
 
 def list_scenarios() -> list[ScenarioSpec]:

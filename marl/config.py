@@ -23,7 +23,7 @@ import numpy as np
 
 from envs.errors import ConfigError, UnknownNameError
 from envs.params import EVAL_MODES, MARL_ALGORITHMS, RewardWeights
-from envs.scenarios import make_scenario
+from envs.scenarios import Scenario, as_scenario
 
 if TYPE_CHECKING:
     from marl.a2c import Run
@@ -165,18 +165,18 @@ class A2CConfig:
     PUBLISHED_REWARD_ALPHA: ClassVar[dict[str, float]] = {"catchup": 1.0, "slowdown": 0.0}
     DEFAULT_REWARD_ALPHA: ClassVar[float] = 1.0
 
-    def resolved(self, scenario_id: str) -> A2CConfig:
+    def resolved(self, scenario: str | Scenario) -> A2CConfig:
         """This config with ``reward_alpha`` and ``power_baseline_kw`` filled in for
-        ``scenario_id`` (where they were None)."""
+        ``scenario`` (an id, or a built one; where they were None)."""
         out: A2CConfig = self
         if out.reward_alpha is None:
-            family = scenario_id.split("-")[0]
+            family = (scenario if isinstance(scenario, str) else scenario.id).split("-")[0]
             alpha = self.PUBLISHED_REWARD_ALPHA.get(family, self.DEFAULT_REWARD_ALPHA)
             out = dataclasses.replace(out, reward_alpha=alpha)
         if out.power_baseline_kw is None:
             from envs.energy import load_power_polynomial
 
-            v_star = make_scenario(scenario_id).target_speed_mps
+            v_star = as_scenario(scenario).target_speed_mps
             p0 = float(load_power_polynomial()(np.array([v_star]), np.array([0.0]))[0])
             out = dataclasses.replace(out, power_baseline_kw=round(p0, 6))
         return out

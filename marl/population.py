@@ -21,7 +21,7 @@ from envs.dynamics import OBS_DIM
 from envs.errors import ConfigError, TrainingDivergedError
 from envs.params import RewardWeights
 from envs.platoon import PlatoonEnv, StepResult
-from envs.scenarios import make_scenario
+from envs.scenarios import Scenario, make_scenario
 from marl.a2c import Learner, Run, Segment, training_device
 from marl.config import A2CConfig, Algorithm
 from marl.networks import AgentNet, State, exchange, neighbour_action_onehot
@@ -98,6 +98,7 @@ class Trainer(Learner):
     config : A2CConfig or sequence of them
         One config for every run, or one per run (equal in :data:`POPULATION_SHARED_FIELDS`).
     scenario_id : str
+        The scenario's id (it names the checkpoints).
     n_vehicles : int
     seed : int or sequence of int
         The runs' seeds (one int: one run).
@@ -115,6 +116,7 @@ class Trainer(Learner):
         n_vehicles: int,
         seed: int | Sequence[int],
         device: str | torch.device = "cpu",
+        scenario: Scenario | None = None,
     ) -> None:
         torch.set_num_threads(1)
         self.device = training_device(device)
@@ -128,8 +130,10 @@ class Trainer(Learner):
                 f"{len(seeds)} seeds)")
         self.algo = algo
         self.scenario_id = scenario_id
+        # built once (or by the caller), for the config and every env of every run
+        self.scenario = make_scenario(scenario_id) if scenario is None else scenario
         self.n_vehicles = n = n_vehicles
-        resolved = [c.resolved(scenario_id) for c in configs]
+        resolved = [c.resolved(self.scenario) for c in configs]
         for f in POPULATION_SHARED_FIELDS:
             values = {getattr(c, f) for c in resolved}
             if len(values) > 1:
@@ -391,7 +395,7 @@ class Trainer(Learner):
 
     def _make_env(self, weights: RewardWeights) -> PlatoonEnv:
         """A batched training env of the scenario (published collision rule, ``weights``)."""
-        return PlatoonEnv(make_scenario(self.scenario_id), self.n_vehicles, training=True,
+        return PlatoonEnv(self.scenario, self.n_vehicles, training=True,
                           collision_mode="published", weights=weights)
 
     def _start_batches(self, runs: list[Run], obs: list[torch.Tensor], tick: int

@@ -128,7 +128,7 @@ def run_population(
     ``logs[k]`` receives run k's lines; ``progress`` is called per run and batch. Wall time and
     throughput of each result are the population's (its steps over the population's time).
     """
-    make_scenario(scenario_id)  # fail early on an unknown id
+    scenario = make_scenario(scenario_id)  # fail early on an unknown id; built once, here
     if out_dir is not None and evaluate is None:
         raise ConfigError(
             "run_training with an output folder needs a validation evaluator: pass "
@@ -136,7 +136,8 @@ def run_population(
         )
     if len({int(s) for s in seeds}) != len(seeds):
         raise ConfigError(f"the runs of a population need distinct seeds, got {list(seeds)}")
-    trainer = Trainer(algo, list(configs), scenario_id, n_vehicles, list(seeds), device)
+    trainer = Trainer(algo, list(configs), scenario_id, n_vehicles, list(seeds), device,
+                      scenario)
     runs = trainer.runs
     log_of = list(logs) if logs is not None else [None] * len(runs)
     for r in runs:
