@@ -30,6 +30,14 @@ CASES: list[list[str]] = [
     ["run", "--controllers", "distill:nope=1", "--episodes", "1", "--out", "{OUT}"],
     ["run", "--controllers", "ippo-bdc:nope=1", "--episodes", "1", "--out", "{OUT}"],
     ["perf", "--quick", "--controllers", "ippo:bogus=1"],
+    # a field tune searches itself: the trial's value silently replaced the one given
+    ["tune", "--algos", "ippo", "--scenarios", "catchup-v1", "--vehicles", "2", "--trials", "1",
+     "--steps", "200", "--out", "{OUT}", "--set", "lr=1e308"],
+    ["tune", "--algos", "ippo,mappo", "--out", "{OUT}", "--set", "gamma=0.9"],
+    # a learning rate whose first update makes the weights NaN: the NaN policy (collisions 0)
+    # was kept as the best snapshot and written as a finished checkpoint
+    ["train", "--algo", "ippo", "--scenario", "catchup-v1", "--steps", "200", "--vehicles", "2",
+     "--out", "{OUT}", "--set", "lr=1e308"],
     # an empty selection ran every default instead of being refused like ","
     ["perf", "--quick", "--only", "train", "--algos", ""],
     ["perf", "--quick", "--only", "controllers", "--controllers", ""],
@@ -53,7 +61,8 @@ def test_refused_with_one_message(
     assert _exit_code(argv) == 2
     err = capsys.readouterr().err
     assert "Traceback" not in err and err.strip(), err
-    assert len(err.strip().splitlines()) == 1, err
+    errors = [line for line in err.splitlines() if line.startswith("cacc-bench")]
+    assert len(errors) == 1 and err.strip().splitlines()[-1] == errors[0], err  # progress before
     assert not list(tmp_path.rglob("store.sqlite")) and not list(tmp_path.rglob("*.pt"))
 
 
@@ -67,3 +76,17 @@ def test_an_unknown_shared_policy_option_names_the_valid_ones(
     assert _exit_code(["run", "--controllers", option, "--episodes", "1",
                        "--out", str(tmp_path / "out")]) == 2
     assert message in capsys.readouterr().err
+
+
+def test_tune_refuses_to_fix_exactly_the_fields_it_searches() -> None:
+    from commands.tune import SHARED_SEARCHED, search_space
+
+    class FirstChoice:
+        def suggest_float(self, name: str, low: float, high: float, log: bool = False) -> float:
+            return low
+
+        def suggest_categorical(self, name: str, choices: list[object]) -> object:
+            return choices[0]
+
+    for algo in ("ippo", "mappo"):
+        assert sorted(search_space(FirstChoice(), algo)) == sorted(SHARED_SEARCHED)
