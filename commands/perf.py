@@ -167,17 +167,18 @@ def main(argv: list[str]) -> int:
     if "controllers" in parts:  # bad names or options fail before anything is measured
         from controllers.registry import make_controller, parse_controller_list
 
-        specs = (parse_controller_list(args.controllers) if args.controllers
+        given = args.controllers is not None  # "" names nothing: refused, not the default
+        specs = (parse_controller_list(args.controllers) if given
                  else [(c.name, {}) for c in available_controllers()])
         if not specs:
             raise ConfigError("--controllers: no controller named")
-        if args.controllers:
+        if given:
             for name, opts in specs:
                 make_controller(name, **opts)  # checks the name and every option
     from marl.ppo_nets import SHARED_ALGORITHMS
 
-    algos = ([a.strip() for a in args.algos.split(",") if a.strip()] if args.algos
-             else [*MARL_ALGORITHMS, *SHARED_ALGORITHMS])
+    algos = ([a.strip() for a in args.algos.split(",") if a.strip()] if args.algos is not None
+             else [*MARL_ALGORITHMS, *SHARED_ALGORITHMS])  # "" names nothing: refused below
     shared_algos = [a for a in algos if a in SHARED_ALGORITHMS]
     algos = [a for a in algos if a not in SHARED_ALGORITHMS]
     from envs.limits import check_range

@@ -60,6 +60,9 @@ EPS_ALGOS = ("dcea", "bdc")
 
 #: Learners of one shared policy that ``tune`` also tunes (their own search space).
 SHARED_TUNED = ("ippo", "mappo")
+#: The config fields their search space draws (``--set`` cannot fix these: each trial's value
+#: would replace it).
+SHARED_SEARCHED = ("lr", "init_log_std", "gamma", "n_envs", "reward_alpha")
 
 
 def search_space(trial: Any, algo: str) -> dict[str, Any]:
@@ -260,6 +263,10 @@ def main(argv: list[str]) -> int:
             key, sep, value = item.partition("=")
             if not sep or not key.strip():
                 raise ConfigError(f"--set {item!r}: expected KEY=VALUE, e.g. --set prior=cacc")
+            if key.strip() in SHARED_SEARCHED:
+                raise ConfigError(f"--set {key.strip()}: tune searches this field itself (it "
+                                  f"searches {', '.join(SHARED_SEARCHED)}); fix another field, "
+                                  "or train with --set instead of tuning")
             fixed[key.strip()] = value.strip()
         for a in algos:  # typed and checked now, before any trial
             shared_config(a, [f"{k}={v}" for k, v in fixed.items()])

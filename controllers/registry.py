@@ -294,8 +294,18 @@ def resolve(name: str) -> ControllerSpec:
 
 
 def make_controller(name: str, **options: Any) -> Any:
-    """Build a controller by registered name with keyword options (strings are coerced)."""
+    """Build a controller by registered name with keyword options (strings are coerced).
+
+    An option the controller does not take is a :class:`ConfigError` naming the ones it does
+    (the one rule for every controller, whether its options are a config dataclass's fields
+    or its constructor's keyword arguments)."""
     spec = resolve(name)
+    if options:
+        known = controller_options(name)
+        unknown = [k for k in options if k not in known]
+        if unknown:
+            raise ConfigError(f"{name} has no option {unknown[0]!r}; its options are: "
+                              f"{', '.join(sorted(known)) or 'none'}")
     return _factory(spec)(**spec.fixed, **options)
 
 

@@ -8,7 +8,6 @@ gives exactly the numbers of the same episodes run one by one, on every executor
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -74,10 +73,9 @@ class ChannelConfig:
     dt_s: float = 0.1
 
     def __post_init__(self) -> None:
-        if not (math.isfinite(self.delay_s) and self.delay_s >= 0):
-            raise ConfigError(f"the V2V delay must be >= 0 s, got {self.delay_s}")
-        from envs.limits import check_packet_loss
+        from envs.limits import check_delay, check_packet_loss
 
+        check_delay(self.delay_s, "the V2V delay")  # one rule with --comm-delay and --delay
         check_packet_loss(self.packet_loss)
 
     @property

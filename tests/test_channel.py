@@ -64,8 +64,10 @@ def test_a_block_of_steps_equals_one_call_per_step() -> None:
 
 
 @pytest.mark.parametrize(("delay", "loss", "message"), [
-    (-0.1, 0.0, r"delay must be >= 0 s, got -0.1"),
-    (float("nan"), 0.0, r"delay must be >= 0 s, got nan"),
+    (-0.1, 0.0, r"delay must lie in \[0, 60\] s \(an episode lasts 60 s\), got -0.1"),
+    (float("nan"), 0.0, r"delay must lie in \[0, 60\] s \(an episode lasts 60 s\), got nan"),
+    (1e9, 0.0, r"delay must lie in \[0, 60\] s \(an episode lasts 60 s\), got 1000000000.0"),
+    (float("inf"), 0.0, r"delay must lie in \[0, 60\] s \(an episode lasts 60 s\), got inf"),
     (0.0, -0.1, r"loss must lie in \[0, 1\], got -0.1"),
     (0.0, 1.5, r"loss must lie in \[0, 1\], got 1.5"),
 ])
