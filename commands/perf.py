@@ -184,14 +184,14 @@ def main(argv: list[str]) -> int:
     from envs.limits import check_range
 
     check_range(args.population, "--population", 0, MAX_PERF_POPULATION)
+    unknown_algos = [a for a in algos if a not in MARL_ALGORITHMS]
+    if unknown_algos or not (algos or shared_algos):  # checked whichever parts run
+        raise ConfigError(f"--algos: unknown algorithm(s) {unknown_algos or '(none named)'}; "
+                          f"valid: {', '.join([*MARL_ALGORITHMS, *SHARED_ALGORITHMS])}")
     if "train" in parts:
         from marl.a2c import training_device
 
         training_device(args.device)  # ConfigError for an unknown device or a missing GPU
-        unknown_algos = [a for a in algos if a not in MARL_ALGORITHMS]
-        if unknown_algos or not (algos or shared_algos):
-            raise ConfigError(f"--algos: unknown algorithm(s) {unknown_algos or '(none named)'}; "
-                              f"valid: {', '.join([*MARL_ALGORITHMS, *SHARED_ALGORITHMS])}")
     out: dict[str, Any] = {}
     if "env" in parts:
         out.update(env_throughput(seconds=0.5 if args.quick else 2.0))

@@ -38,8 +38,8 @@ from envs.params import PlatoonParams
 from envs.platoon import PlatoonEnv, PlatoonState
 from envs.scenarios import check_vehicles, make_scenario
 from marl.ppo import PPOResult
-from marl.ppo_eval import agent_inputs, as_shipped, validation_score
-from marl.ppo_nets import PPOConfig, SharedActor
+from marl.ppo_eval import agent_inputs, as_shipped, check_finite_weights, validation_score
+from marl.ppo_nets import PPOConfig, SharedActor, check_learning_rate
 
 #: ``make_expert(env)`` after ``env.reset(seeds)``: the expert's ``act(state) -> (B, N)``.
 ExpertFactory = Callable[[PlatoonEnv], Callable[[PlatoonState], np.ndarray]]
@@ -82,8 +82,7 @@ class DistillConfig:
                 raise ConfigError(f"{name} must lie in 1..1e6, got {getattr(self, name)}")
         if not 0 <= self.beta <= 1:
             raise ConfigError(f"beta must lie in [0, 1], got {self.beta}")
-        if not (math.isfinite(self.lr) and self.lr > 0):
-            raise ConfigError(f"lr must be a finite number > 0, got {self.lr}")
+        check_learning_rate(self.lr)
 
     def actor_config(self) -> PPOConfig:
         """The actor's network settings (accel mode) as the shared learners write them."""
@@ -149,6 +148,8 @@ def distill(
                 actor.obs_mean.copy_(data_x.double().mean(0))
                 actor.obs_var.copy_(data_x.double().var(0, unbiased=False))
         _fit(actor, opt, data_x, data_u, cfg, gen)
+        check_finite_weights((actor,), f"distill {cfg.expert} on {sc.id}, seed {seed}",
+                             f"round {rnd}")
         shipped = as_shipped(actor)
         score = validation_score(shipped, sc.id, n, params, actor_cfg)
         curve.append({"steps": float(steps), **score})

@@ -44,12 +44,18 @@ import torch
 from torch import nn
 
 from envs.channel import ChannelConfig
-from envs.errors import ConfigError, TrainingDivergedError
+from envs.errors import ConfigError
 from envs.params import PlatoonParams
 from envs.platoon import PlatoonEnv
 from envs.scenarios import check_vehicles, make_scenario
 from marl.consensus import bdc, consensus_round
-from marl.ppo_eval import agent_inputs, as_shipped, to_command, validation_score
+from marl.ppo_eval import (
+    agent_inputs,
+    as_shipped,
+    check_finite_weights,
+    to_command,
+    validation_score,
+)
 from marl.ppo_nets import Critic, PPOConfig, SharedActor
 from marl.quantize import ErrorFeedbackQSGD, qsgd_bits, ternary_bits
 
@@ -296,13 +302,8 @@ def train(
                                                 functools.partial(bdc, eps=cfg.consensus_eps))
                     bits["consensus"] += ternary_bits(n_weights)
         updates += 1
-        if not all(bool(torch.isfinite(p).all())
-                   for p in (*actor.parameters(), *critic.parameters())):
-            # a NaN policy scores collisions 0 and would be kept as the best snapshot
-            raise TrainingDivergedError(
-                f"{cfg.algo} on {sc.id}, seed {seed}: the weights became non-finite after "
-                f"{updates} updates ({steps} environment steps); nothing was written; lower "
-                "the learning rate (--set lr=...) or check the other --set options")
+        check_finite_weights((actor, critic), f"{cfg.algo} on {sc.id}, seed {seed}",
+                             f"{updates} updates ({steps} environment steps)")
     rate = steps / max(time.perf_counter() - t0, 1e-9)
     if validate:
         shipped = as_shipped(actor)

@@ -12,7 +12,7 @@ import torch
 
 from envs.accel_mode import position_features
 from envs.channel import ChannelConfig, episode_uniforms
-from envs.errors import ConfigError
+from envs.errors import ConfigError, TrainingDivergedError
 from envs.params import VALIDATION_SEEDS, PlatoonParams, check_decision_seeds
 from envs.platoon import PlatoonEnv, PlatoonState
 from envs.scenarios import Scenario
@@ -78,6 +78,15 @@ def sample_with_uniforms(actor: SharedActor, out: torch.Tensor, uniforms: np.nda
         return out + actor.log_std.exp() * math.sqrt(2.0) * torch.erfinv(2 * u - 1)
     cdf = torch.softmax(out, dim=-1).cumsum(-1)
     return (cdf < u.unsqueeze(-1)).sum(-1).clamp_(max=out.shape[-1] - 1)
+
+
+def check_finite_weights(modules: tuple[torch.nn.Module, ...], run: str, after: str) -> None:
+    """Stop a training whose weights became NaN or infinite (a NaN policy scores no collision
+    and would be kept as the best snapshot): :class:`TrainingDivergedError`, nothing written."""
+    if not all(bool(torch.isfinite(p).all()) for m in modules for p in m.parameters()):
+        raise TrainingDivergedError(
+            f"{run}: the weights became non-finite after {after}; nothing was written; lower "
+            "the learning rate (--set lr=...) or check the other --set options")
 
 
 def as_shipped(actor: SharedActor) -> SharedActor:

@@ -23,6 +23,13 @@ PRIORS: tuple[str, ...] = ("", "cacc", "cacc-exact")
 #: Uniform stream of sampled evaluation actions (per episode, step and agent).
 
 # ---------------------------------------------------------------------------- config
+def check_learning_rate(lr: float) -> None:
+    """The one rule for a shared learner's or the distiller's Adam learning rate: in (0, 1]
+    (a larger step overflows Adam's float32 update or turns the weights non-finite)."""
+    if not (math.isfinite(lr) and 0 < lr <= 1):
+        raise ConfigError(f"lr must lie in (0, 1], got {lr}")
+
+
 @dataclass(frozen=True)
 class PPOConfig:
     """Hyper-parameters (CleanRL's continuous-action PPO where the platoon does not differ).
@@ -126,7 +133,8 @@ class PPOConfig:
                      "eval_every_steps"):
             if not 1 <= getattr(self, name) <= 10**7:
                 raise ConfigError(f"{name} must lie in 1..1e7, got {getattr(self, name)}")
-        for name in ("lr", "reward_clip", "obs_clip", "max_grad_norm"):
+        check_learning_rate(self.lr)
+        for name in ("reward_clip", "obs_clip", "max_grad_norm"):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0):
                 raise ConfigError(f"{name} must be a finite number > 0, got {getattr(self, name)}")
         if self.prior not in PRIORS:

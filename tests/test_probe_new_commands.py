@@ -34,10 +34,15 @@ CASES: list[list[str]] = [
     ["tune", "--algos", "ippo", "--scenarios", "catchup-v1", "--vehicles", "2", "--trials", "1",
      "--steps", "200", "--out", "{OUT}", "--set", "lr=1e308"],
     ["tune", "--algos", "ippo,mappo", "--out", "{OUT}", "--set", "gamma=0.9"],
-    # a learning rate whose first update makes the weights NaN: the NaN policy (collisions 0)
-    # was kept as the best snapshot and written as a finished checkpoint
+    # a learning rate whose first update made the weights NaN (the NaN policy, collisions 0,
+    # was kept as the best snapshot and written) or overflowed Adam's step (a traceback):
+    # marl.ppo_nets.check_learning_rate, the one rule
     ["train", "--algo", "ippo", "--scenario", "catchup-v1", "--steps", "200", "--vehicles", "2",
      "--out", "{OUT}", "--set", "lr=1e308"],
+    ["train", "--algo", "distill", "--scenario", "catchup-v1", "--vehicles", "2", "--out",
+     "{OUT}", "--set", "lr=1e308", "--set", "rounds=1", "--set", "episodes_per_round=1"],
+    # --algos named an unknown learner and was ignored when the train part did not run
+    ["perf", "--quick", "--only", "env", "--algos", "bogus"],
     # an empty selection ran every default instead of being refused like ","
     ["perf", "--quick", "--only", "train", "--algos", ""],
     ["perf", "--quick", "--only", "controllers", "--controllers", ""],
@@ -90,3 +95,32 @@ def test_tune_refuses_to_fix_exactly_the_fields_it_searches() -> None:
 
     for algo in ("ippo", "mappo"):
         assert sorted(search_space(FirstChoice(), algo)) == sorted(SHARED_SEARCHED)
+
+
+@pytest.mark.parametrize("algo_args", [
+    ["--algo", "ippo", "--steps", "200"],
+    ["--algo", "distill", "--set", "rounds=1", "--set", "episodes_per_round=1",
+     "--set", "grad_steps=2"],
+])
+def test_weights_that_turn_non_finite_stop_the_training_and_write_nothing(
+    algo_args: list[str], tmp_path: Path, capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Whatever makes the weights NaN (here every Adam step), the shared learner and the
+    distiller stop with exit 2 and one line, before a NaN policy (which scores no collision)
+    could be kept and written."""
+    import torch
+
+    def poisoned_step(self: torch.optim.Adam, closure: object = None) -> None:
+        with torch.no_grad():
+            for group in self.param_groups:
+                for p in group["params"]:
+                    p.fill_(float("nan"))
+
+    monkeypatch.setattr(torch.optim.Adam, "step", poisoned_step)
+    argv = ["train", *algo_args, "--scenario", "catchup-v1", "--vehicles", "2",
+            "--out", str(tmp_path / "out")]
+    assert _exit_code(argv) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and "the weights became non-finite" in err, err
+    assert not list(tmp_path.rglob("*.pt"))
