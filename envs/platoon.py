@@ -351,9 +351,12 @@ class PlatoonEnv:
                 s.done |= s.collided
             else:
                 s.done |= s.collided & ((t + 1) % 60 == 0)
-        command = np.clip(command_mps2, self.params.accel_min_mps2, self.params.accel_max_mps2)
-        if frozen.any():
-            command = np.where(frozen[:, None], s.command_mps2, command)
+        if self.params.lag_s <= 0:
+            command = a  # without lag the realised acceleration is the clipped command
+        else:
+            command = np.clip(command_mps2, self.params.accel_min_mps2, self.params.accel_max_mps2)
+            if frozen.any():
+                command = np.where(frozen[:, None], s.command_mps2, command)
         s.gap_m, s.speed_mps, s.realised_accel_mps2, s.applied_accel_mps2 = gap, v, a, applied
         s.command_mps2 = command
         s.step = t + 1

@@ -147,12 +147,14 @@ def test_cacc_written_on_the_observation_drives_the_platoon_as_the_cacc_controll
     np.testing.assert_allclose(np.array(gaps), ref.gap_m, atol=1e-8)
 
 
-@pytest.mark.parametrize(("scenario", "n", "seed", "exact"), [
-    ("catchup-v1", 5, 2001, False), ("slowdown-v1", 5, 2001, False),
-    ("openacc-s-v1", 5, 2001, False), ("slowdown-v1", 8, 2000, True),
-    ("slowdown-v1", 8, 3, True), ("catchup-v1", 8, 2001, True)])
+@pytest.mark.parametrize(("scenario", "n", "seed", "exact", "lag_s"), [
+    ("catchup-v1", 5, 2001, False, 0.0), ("slowdown-v1", 5, 2001, False, 0.0),
+    ("openacc-s-v1", 5, 2001, False, 0.0), ("slowdown-v1", 8, 2000, True, 0.0),
+    ("slowdown-v1", 8, 3, True, 0.0), ("catchup-v1", 8, 2001, True, 0.0),
+    ("slowdown-v1", 8, 2000, True, 0.2)])
 def test_memoryless_cacc_law_of_the_observation_is_the_cacc_controller(
-        scenario: str, n: int, seed: int, exact: bool, monkeypatch: pytest.MonkeyPatch) -> None:
+        scenario: str, n: int, seed: int, exact: bool, lag_s: float,
+        monkeypatch: pytest.MonkeyPatch) -> None:
     """:func:`envs.accel_mode.cacc_from_observation` (the prior of the residual learners) reads
     its filter state from the observation's last applied command: it drives the platoon as the
     registered ``cacc`` controller does, with 0.2 s delay and 30 % loss; given the state's
@@ -166,8 +168,9 @@ def test_memoryless_cacc_law_of_the_observation_is_the_cacc_controller(
     monkeypatch.setattr(envs.accel_mode, "PRED_MESSAGE", ("cacc_u", 1))
     channel = ChannelConfig(delay_s=0.2, packet_loss=0.3)
     sc = make_scenario(scenario)
-    ref = rollout(make_controller("cacc"), sc, n, seed, PlatoonParams(), channel)
-    env = PlatoonEnv(sc, n, action_mode="accel", channel=channel, dtype=np.float64)
+    params = PlatoonParams(lag_s=lag_s)  # with lag the last command is not the realised one
+    ref = rollout(make_controller("cacc"), sc, n, seed, params, channel)
+    env = PlatoonEnv(sc, n, params, action_mode="accel", channel=channel, dtype=np.float64)
     obs = env.reset([seed])
     gaps = [env.state.gap_m[0].copy()]  # type: ignore[union-attr]
     for _ in range(ref.steps):
@@ -176,7 +179,7 @@ def test_memoryless_cacc_law_of_the_observation_is_the_cacc_controller(
         exact_state = {"relative_speed_mps": st.pred_speed_mps - st.speed_mps,
                        "last_command_mps2": st.command_mps2} if exact else {}
         res = env.step(cacc_from_observation(obs, sc.target_gap_m, sc.target_speed_mps,
-                                             **exact_state))
+                                             params, **exact_state))
         obs = res.observation
         gaps.append(env.state.gap_m[0].copy())  # type: ignore[union-attr]
     np.testing.assert_allclose(np.array(gaps), ref.gap_m, atol=1e-8)
