@@ -178,7 +178,7 @@ def train(
         # ---- rollout: T steps of B episodes (fewer where a randomised batch ends)
         n_r = n_now
         buf_obs = torch.zeros(t_len, b, n_r, d)
-        buf_cobs = torch.zeros(t_len, b, n_r, d * (2 if critic.central else 1))
+        buf_cobs = torch.zeros(t_len, b, n_r, d * (2 if critic.central else 1) + critic.timed)
         buf_act = torch.zeros(t_len, b, n_r)
         buf_logp = torch.zeros(t_len, b, n_r)
         buf_val = torch.zeros(t_len + 1, b, n_r)
@@ -200,7 +200,7 @@ def train(
                     u = torch.rand(out.shape, generator=gen).clamp_(1e-12, 1.0)
                     action = (out - torch.log(-torch.log(u))).argmax(-1).to(out.dtype)
                 logp, _ = actor.log_prob_entropy(out, action)
-                buf_cobs[t] = critic.inputs(nobs)
+                buf_cobs[t] = critic.inputs(nobs, s.step / env.n_steps)
                 buf_val[t] = critic.body(buf_cobs[t])[..., 0]
             res = env.step(to_command(actor, action, env.state, env.params, obs.numpy(), targets))
             buf_obs[t], buf_act[t], buf_logp[t] = nobs, action, logp
@@ -218,8 +218,9 @@ def train(
             absorbing = _absorbing(env.weights.collision, cfg.gamma, remaining) / std
             if res.done.all():
                 next_obs = new_episodes()
-                with torch.no_grad():  # truncated at the time limit: bootstrap from the last state
-                    last = critic(actor.normalise(
+                with torch.no_grad():  # truncated at the time limit: bootstrap from the last
+                    # state; a time-aware critic knows the time is up (a finite horizon: 0)
+                    last = torch.zeros(b, n_r) if cfg.critic_time else critic(actor.normalise(
                         torch.from_numpy(agent_inputs(res.observation, cfg.action_mode))))
             else:
                 next_obs = torch.from_numpy(agent_inputs(res.observation, cfg.action_mode))
@@ -227,7 +228,7 @@ def train(
             if ended.any():
                 if last is None:
                     with torch.no_grad():
-                        last = critic(actor.normalise(next_obs))
+                        last = critic(actor.normalise(next_obs), s.step / env.n_steps)
                 term_value = torch.where(collided[:, None], torch.tensor(absorbing), last)
                 buf_term_value[t] = term_value * ended[:, None]
             obs = next_obs
@@ -239,7 +240,7 @@ def train(
             t_len_r = t_len
             if obs.shape[-2] == n_r:  # else every episode ended at the last step (unread)
                 with torch.no_grad():
-                    buf_val[t_len] = critic(actor.normalise(obs))
+                    buf_val[t_len] = critic(actor.normalise(obs), env.state.step / env.n_steps)
         if t_len_r < t_len:  # every episode ended at the last step: no value after it is read
             buf_obs, buf_cobs, buf_act, buf_logp, buf_rew, buf_live, buf_cont, buf_term_value = (
                 x[:t_len_r] for x in (buf_obs, buf_cobs, buf_act, buf_logp, buf_rew, buf_live,

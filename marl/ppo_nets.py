@@ -81,6 +81,10 @@ class PPOConfig:
     critic_warmup_updates : int
         Updates at the start that fit only the critic (so a random critic's advantages do not
         move a policy that starts from a good prior).
+    critic_time : bool
+        The critic also reads the episode's elapsed fraction ``t / T`` (a time-aware value for
+        a task with a time limit: Pardo et al., ICML 2018). The actor does not: the shipped
+        policy acts on the observation alone.
     vehicles_min, vehicles_max : int
         0, 0: every training episode has the run's N. Otherwise each batch of ``n_envs``
         episodes draws its N uniformly from ``vehicles_min`` (or the run's N) to
@@ -117,6 +121,7 @@ class PPOConfig:
     eval_every_steps: int = 100_000
     prior: str = ""
     critic_warmup_updates: int = 0
+    critic_time: bool = False
     vehicles_min: int = 0
     vehicles_max: int = 0
     comm_delay_max_s: float = 0.0
@@ -309,20 +314,27 @@ class SharedActor(nn.Module):
 
 
 class Critic(nn.Module):
-    """Value of each agent: its observation (IPPO), or with the platoon's mean beside it (MAPPO)."""
+    """Value of each agent: its observation (IPPO), or with the platoon's mean beside it (MAPPO),
+    and (``critic_time``) the episode's elapsed fraction."""
 
     def __init__(self, config: PPOConfig, n_agents: int = 0) -> None:
         super().__init__()
         self.central = config.algo == "mappo"
-        self.body = _mlp(config.obs_dim * (2 if self.central else 1), config.hidden, 1, 1.0,
-                         n_agents)
+        self.timed = bool(config.critic_time)
+        n_in = config.obs_dim * (2 if self.central else 1) + (1 if self.timed else 0)
+        self.body = _mlp(n_in, config.hidden, 1, 1.0, n_agents)
 
-    def inputs(self, obs: torch.Tensor) -> torch.Tensor:
-        """What the critic reads of ``obs (..., N, D)``: ``(..., N, D)`` or ``(..., N, 2 D)``."""
-        if not self.central:
-            return obs
-        return torch.cat([obs, obs.mean(dim=-2, keepdim=True).expand_as(obs)], dim=-1)
+    def inputs(self, obs: torch.Tensor, elapsed: float = 0.0) -> torch.Tensor:
+        """What the critic reads of ``obs (..., N, D)`` at the elapsed fraction ``elapsed`` of
+        the episode: ``(..., N, D)`` or ``(..., N, 2 D)``, plus one column if timed."""
+        x = obs
+        if self.central:
+            x = torch.cat([obs, obs.mean(dim=-2, keepdim=True).expand_as(obs)], dim=-1)
+        if self.timed:
+            x = torch.cat([x, torch.full((*obs.shape[:-1], 1), float(elapsed),
+                                         dtype=obs.dtype)], dim=-1)
+        return x
 
-    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+    def forward(self, obs: torch.Tensor, elapsed: float = 0.0) -> torch.Tensor:
         """``obs (..., N, D)`` -> values ``(..., N)``."""
-        return self.body(self.inputs(obs))[..., 0]
+        return self.body(self.inputs(obs, elapsed))[..., 0]

@@ -103,6 +103,31 @@ def test_the_mappo_critic_sees_the_platoon_and_the_ippo_critic_does_not() -> Non
     assert not torch.equal(mappo(obs)[:, 0], mappo(other)[:, 0])
 
 
+@pytest.mark.parametrize(("algo", "width"), [("ippo", 12), ("mappo", 24)])
+def test_a_time_aware_critic_reads_the_elapsed_fraction_and_the_actor_does_not(
+        algo: str, width: int) -> None:
+    obs = torch.randn(2, 5, 12)
+    timed = Critic(PPOConfig(algo=algo, critic_time=True))
+    x = timed.inputs(obs, 0.25)
+    assert x.shape == (2, 5, width + 1) and torch.equal(x[..., -1], torch.full((2, 5), 0.25))
+    assert torch.equal(x[..., :width], Critic(PPOConfig(algo=algo)).inputs(obs))
+    assert not torch.equal(timed(obs, 0.0), timed(obs, 0.9))  # the value depends on the time
+    plain, aware = SharedActor(PPOConfig()), SharedActor(PPOConfig(critic_time=True))
+    assert {k: v.shape for k, v in plain.state_dict().items()} == {
+        k: v.shape for k, v in aware.state_dict().items()}  # the shipped format is unchanged
+
+
+def test_a_time_aware_learner_is_deterministic_and_learns_another_policy() -> None:
+    """Same seed, same weights; the time column changes the advantages and so the policy."""
+    cfg = dataclasses.replace(TINY, prior="cacc-exact", critic_time=True)
+    one, two = (train("slowdown-v1", 3, 5, 256, cfg, validate=False).actor for _ in range(2))
+    other = train("slowdown-v1", 3, 5, 256, dataclasses.replace(cfg, critic_time=False),
+                  validate=False).actor
+    assert all(torch.equal(a, b) for a, b in zip(_weights(one).values(), _weights(two).values()))
+    assert any(not torch.equal(a, b)
+               for a, b in zip(_weights(one).values(), _weights(other).values()))
+
+
 @pytest.fixture(scope="module")
 def tiny_checkpoint(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """An IPPO checkpoint trained briefly at N = 4 on catchup-v1, written as `train` writes it."""
