@@ -289,6 +289,10 @@ def _check_config_and_shapes(data: dict[str, Any], damaged: Any) -> None:
         if tuple(value.shape) != expected[key]:
             raise damaged(f"weight {key!r} has shape {tuple(value.shape)}, the network's is "
                           f"{expected[key]}")
+    missing = sorted(set(expected) - set(data["weights"]))
+    if missing:
+        raise damaged(f"weight {missing[0]!r} of the {algo.name} network is missing"
+                      + (f", and {len(missing) - 1} more" if len(missing) > 1 else ""))
 
 
 def upgrade_checkpoint(path: str | Path) -> bool:
