@@ -255,6 +255,54 @@ def test_a_full_disk_at_the_end_leaves_no_truncated_file(
     _no_temporaries(out)
 
 
+def _limited_to(limit_bytes: int) -> Any:
+    """A ``preexec_fn``: files of the child may not grow past ``limit_bytes`` (RLIMIT_FSIZE;
+    SIGXFSZ ignored, so a write past it fails with EFBIG as a full disk fails with ENOSPC):
+    a real refused write without root or a small filesystem."""
+    def limit() -> None:
+        import resource
+        import signal
+
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit_bytes, limit_bytes))
+    return limit
+
+
+@pytest.mark.parametrize("command", ["train", "run"])
+def test_a_real_refused_write_ends_with_one_line_and_keeps_finished_files(
+        finished: Path, tmp_path: Path, command: str) -> None:
+    """Rerun of the full-disk case on a 300 KB tmpfs (issue 32): torch's zip writer raised
+    ``RuntimeError: unexpected pos`` (train) and SQLite ``database or disk is full`` (run),
+    both as tracebacks with exit 1; now exit 2, one line, the finished files unchanged."""
+    import subprocess
+    import sys
+
+    if command == "train":
+        out, argv, limit = _copy(finished, tmp_path / "out"), TRAIN, 64_000
+    else:
+        out = tmp_path / "out"
+        argv = ["run", "--controllers", "ovm,cacc", "--scenarios", "catchup-v1", "--vehicles",
+                "2", "--episodes", "10", "--executor", "serial", "--quiet"]
+        limit = 48_000
+    before = _digests(out) if out.exists() else {}
+    proc = subprocess.run([sys.executable, "-m", "commands", *argv, "--out", str(out)],
+                          capture_output=True, text=True, timeout=300,
+                          cwd=Path(__file__).resolve().parent.parent,
+                          preexec_fn=_limited_to(limit))
+    err = proc.stderr
+    assert proc.returncode == 2, err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    assert ("File too large" if command == "train" else "results store could not grow") in err
+    if command == "train":
+        assert _digests(out) == before
+    else:  # what was stored is whole and valid
+        from benchmark.store import ResultStore
+
+        with ResultStore(out) as store:
+            assert all(r["status"] == "ok" for r in store.records())
+    _no_temporaries(out)
+
+
 @pytest.mark.parametrize("damage", ["empty", "truncate", "flip"])
 def test_train_resume_refuses_a_damaged_final_checkpoint(
         finished: Path, tmp_path: Path, damage: str, capsys: pytest.CaptureFixture[str]) -> None:
