@@ -176,10 +176,7 @@ def write_csvs(
     Refuses (ConfigError) to replace a runs.csv that holds more runs than ``records``: the
     store is the source of truth, and one with fewer runs than its CSV is not the same store.
     """
-    runs_path = folder / "runs.csv"
-    lb_path = folder / "leaderboard.csv"
-    for path in (runs_path, lb_path):
-        _check_file_target(path)
+    runs_path, lb_path = check_csv_targets(folder)
     before = _csv_rows(runs_path)
     if before > len(records):
         raise ConfigError(
@@ -192,6 +189,17 @@ def write_csvs(
     write_csv(runs, runs_path, float_format="%.10g")
     write_csv(lb, lb_path, float_format="%.10g")
     return runs_path, lb_path, lb
+
+
+def check_csv_targets(folder: Path) -> tuple[Path, Path]:
+    """The paths of runs.csv and leaderboard.csv in ``folder``, refused (ConfigError) where a
+    folder of that name stands: checked before a sweep runs, so no work is done that the CSVs
+    cannot then hold."""
+    runs_path = folder / "runs.csv"
+    lb_path = folder / "leaderboard.csv"
+    for path in (runs_path, lb_path):
+        _check_file_target(path)
+    return runs_path, lb_path
 
 
 def _csv_rows(path: Path) -> int:

@@ -7,6 +7,7 @@ called, so ``cacc-bench --help`` and ``cacc-bench list`` start fast. Every user-
 
 from __future__ import annotations
 
+import errno
 import importlib
 import os
 import re
@@ -157,6 +158,44 @@ def _main(argv: Sequence[str] | None) -> int:
         _stop_workers()
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # nothing left to flush
         return 128 + int(signal.SIGPIPE)
+    except Exception as exc:
+        reason = no_space(exc)
+        if reason is None:
+            raise
+        _stop_workers()
+        return fail(f"{cmd} stopped: {reason}; files already finished were left as they were "
+                    "(each is replaced only when whole, the store in whole transactions): free "
+                    "some space (or lift the file-size limit) and rerun (with --resume where the "
+                    "command has it)")
+
+
+#: ``errno`` values of a write refused for room: a full disk, a quota, a file-size limit.
+_NO_SPACE = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
+#: SQLite's names for the same: a full disk, a write the system refused (a file-size limit).
+_SQLITE_NO_SPACE = ("SQLITE_FULL", "SQLITE_IOERR_WRITE")
+
+
+def no_space(exc: BaseException) -> str | None:
+    """What a write refused for want of room reports (``OSError`` of :data:`_NO_SPACE`, or
+    SQLite's :data:`_SQLITE_NO_SPACE`), or None for any other exception.
+
+    Parameters
+    ----------
+    exc : BaseException
+        The exception a command raised.
+
+    Returns
+    -------
+    str or None
+        The reason with the file where it is known, e.g. ``No space left on device
+        (/data/out/runs.csv)``.
+    """
+    if isinstance(exc, OSError) and exc.errno in _NO_SPACE:
+        where = f" ({exc.filename})" if exc.filename else ""
+        return f"{exc.strerror or os.strerror(exc.errno)}{where}"
+    if getattr(exc, "sqlite_errorname", None) in _SQLITE_NO_SPACE:
+        return f"the results store could not grow ({exc})"
+    return None
 
 
 def _interrupted(exc: KeyboardInterrupt) -> int:

@@ -210,11 +210,17 @@ def execute_sweep(
     pool_seeds: bool = False,
 ) -> int:
     """Run the keys not yet stored in ``out``, store each as it finishes, write the CSVs."""
-    from benchmark.export import trajectory_arrays, write_csvs, write_trajectory_csv
+    from benchmark.export import (
+        check_csv_targets,
+        trajectory_arrays,
+        write_csvs,
+        write_trajectory_csv,
+    )
     from benchmark.store import ResultStore
 
     if out.exists() and not out.is_dir():
         raise ConfigError(f"--out {out} exists and is not a folder")
+    check_csv_targets(out)  # a CSV path that is a folder is refused before any run
     store = ResultStore(out, writer=True)
     try:
         # every stored record is checked before any run: an invalid one refuses the sweep

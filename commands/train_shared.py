@@ -120,7 +120,7 @@ def train_shared(
     curve.write("steps,validation_reward,validation_collisions\n")
     for row in result.curve:
         curve.write(f"{row['steps']:.0f},{row['reward']:.6f},{row['collisions']:.0f}\n")
-    from marl.checkpoint import checkpoint_payload
+    from marl.checkpoint import checkpoint_payload, save_to_file
 
     summary = {f"best_{k}": v for k, v in result.best.items()}
     summary.update(budget_steps=float(steps), env_steps_per_s=result.env_steps_per_s,
@@ -132,7 +132,7 @@ def train_shared(
         weights=dict(result.actor.state_dict()))
     out.mkdir(parents=True, exist_ok=True)
     with StagedFiles() as staged:
-        staged.write_with(path, lambda tmp: torch.save(payload, tmp))
+        staged.write_with(path, lambda tmp: save_to_file(payload, tmp))
         staged.write_text(out / f"{stem}.curve.csv", curve.getvalue())
         staged.write_text(out / f"{stem}.log", "\n".join(lines) + "\n")
         staged.commit()

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import io
 import json
 import math
 from pathlib import Path
@@ -119,9 +120,19 @@ def write_payload(path: str | Path, payload: dict[str, Any], atomic: bool = True
 
     payload = {**payload, "sha256": content_hash(payload)}
     if atomic:
-        write_with(path, lambda tmp: torch.save(payload, tmp))
+        write_with(path, lambda tmp: save_to_file(payload, tmp))
     else:
-        torch.save(payload, path)
+        save_to_file(payload, path)
+
+
+def save_to_file(payload: dict[str, Any], path: str | Path) -> None:
+    """``torch.save`` into memory, then one plain write of the bytes to ``path``: a full disk
+    is then an ``OSError`` (``ENOSPC``) naming the file, where torch's zip writer raised a
+    ``RuntimeError`` (``unexpected pos``) that no caller could tell from a bug."""
+    buffer = io.BytesIO()
+    torch.save(payload, buffer)
+    with open(path, "wb") as fh:
+        fh.write(buffer.getbuffer())
 
 
 def content_hash(data: dict[str, Any]) -> str:
@@ -172,8 +183,6 @@ def load_checkpoint(
         raise ConfigError(f"checkpoint {path} is not a file; {fix()}")
     try:
         blob = path.read_bytes()
-        import io
-
         data = torch.load(io.BytesIO(blob), map_location="cpu", weights_only=True)
     except Exception as exc:  # noqa: BLE001 - any failure means an unusable file
         reason = " ".join(str(exc).split())[:160] or type(exc).__name__
@@ -289,6 +298,10 @@ def _check_config_and_shapes(data: dict[str, Any], damaged: Any) -> None:
         if tuple(value.shape) != expected[key]:
             raise damaged(f"weight {key!r} has shape {tuple(value.shape)}, the network's is "
                           f"{expected[key]}")
+    missing = sorted(set(expected) - set(data["weights"]))
+    if missing:
+        raise damaged(f"weight {missing[0]!r} of the {algo.name} network is missing"
+                      + (f", and {len(missing) - 1} more" if len(missing) > 1 else ""))
 
 
 def upgrade_checkpoint(path: str | Path) -> bool:
@@ -301,8 +314,6 @@ def upgrade_checkpoint(path: str | Path) -> bool:
     ConfigError
         The file cannot be read, or fails a check.
     """
-    import io
-
     path = Path(path)
     try:
         data = torch.load(io.BytesIO(path.read_bytes()), map_location="cpu", weights_only=True)

@@ -162,6 +162,27 @@ def test_a_folder_where_a_results_file_belongs_is_refused(
     assert target.is_dir()
 
 
+@pytest.mark.parametrize("name", ["runs.csv", "leaderboard.csv"])
+def test_a_folder_where_a_csv_belongs_refuses_a_sweep_before_any_run(
+        results: Path, tmp_path: Path, name: str, capsys: pytest.CaptureFixture[str]) -> None:
+    """`run --resume` with runs left to do used to run and store them, then stop at the CSV;
+    now the sweep is refused first and the store is not touched."""
+    import hashlib
+    import shutil
+
+    folder = tmp_path / "r"
+    shutil.copytree(results, folder)
+    (folder / name).unlink()
+    (folder / name).mkdir()
+    store = hashlib.sha256((folder / "store.sqlite").read_bytes()).hexdigest()
+    assert cli(["run", "--controllers", "ovm,cacc", "--scenarios", "catchup-v1", "--episodes",
+                "2", "--out", str(folder), "--resume", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert f"{folder / name} is a folder" in err and "Traceback" not in err
+    assert len(err.strip().splitlines()) == 1 and "resuming" not in err
+    assert hashlib.sha256((folder / "store.sqlite").read_bytes()).hexdigest() == store
+
+
 def test_a_closed_pipe_ends_list_quietly() -> None:
     """`cacc-bench list | head`: the reader went away; no BrokenPipeError traceback, status
     128 + SIGPIPE (deterministic: the pipe's reading end is closed before the command starts)."""

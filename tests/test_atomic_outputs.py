@@ -138,7 +138,7 @@ def _altered(checkpoint: Path, rehash: bool, change: str) -> Path:
     elif change == "config-field":
         data["config"]["nonsense"] = 1.0
     elif change == "missing-key":
-        del data["weights"]["fc.bias"]
+        data["weights"].pop("fc.bias", None)  # gone already on a second alteration
     elif change == "steps-type":
         data["steps"] = "many"
     if rehash:
@@ -152,15 +152,15 @@ def _altered(checkpoint: Path, rehash: bool, change: str) -> Path:
                                     "config-field", "missing-key", "steps-type"])
 def test_an_altered_checkpoint_is_refused(checkpoint: Path, change: str) -> None:
     """Altered and saved again: the hash no longer matches. Altered with a new hash (a file
-    written wrongly): shapes, dtypes and config types are checked (a missing weight is caught
-    by the hash only: the file as written is what is read)."""
+    written wrongly): shapes, dtypes, config types and the set of weights are checked (a
+    missing weight was a RuntimeError traceback from ``load_state_dict``)."""
     with pytest.raises(ConfigError, match="damaged or was altered.*content hash"):
         load_checkpoint(_altered(checkpoint, False, change), algo="bdc", n_vehicles=2)
-    if change == "missing-key":
-        return
     with pytest.raises(ConfigError, match="damaged or was altered") as err:
         load_checkpoint(_altered(checkpoint, True, change), algo="bdc", n_vehicles=2)
     assert "content hash" not in str(err.value)
+    if change == "missing-key":
+        assert "weight 'fc.bias' of the bdc network is missing" in str(err.value)
 
 
 def test_shipped_format_1_files_load_by_their_digest_anywhere(tmp_path: Path) -> None:
@@ -252,6 +252,54 @@ def test_a_full_disk_at_the_end_leaves_no_truncated_file(
     assert len(err.strip().splitlines()) == 1
     assert calls
     assert _digests(out) == before
+    _no_temporaries(out)
+
+
+def _limited_to(limit_bytes: int) -> Any:
+    """A ``preexec_fn``: files of the child may not grow past ``limit_bytes`` (RLIMIT_FSIZE;
+    SIGXFSZ ignored, so a write past it fails with EFBIG as a full disk fails with ENOSPC):
+    a real refused write without root or a small filesystem."""
+    def limit() -> None:
+        import resource
+        import signal
+
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit_bytes, limit_bytes))
+    return limit
+
+
+@pytest.mark.parametrize("command", ["train", "run"])
+def test_a_real_refused_write_ends_with_one_line_and_keeps_finished_files(
+        finished: Path, tmp_path: Path, command: str) -> None:
+    """Rerun of the full-disk case on a 300 KB tmpfs (issue 32): torch's zip writer raised
+    ``RuntimeError: unexpected pos`` (train) and SQLite ``database or disk is full`` (run),
+    both as tracebacks with exit 1; now exit 2, one line, the finished files unchanged."""
+    import subprocess
+    import sys
+
+    if command == "train":
+        out, argv, limit = _copy(finished, tmp_path / "out"), TRAIN, 64_000
+    else:
+        out = tmp_path / "out"
+        argv = ["run", "--controllers", "ovm,cacc", "--scenarios", "catchup-v1", "--vehicles",
+                "2", "--episodes", "10", "--executor", "serial", "--quiet"]
+        limit = 48_000
+    before = _digests(out) if out.exists() else {}
+    proc = subprocess.run([sys.executable, "-m", "commands", *argv, "--out", str(out)],
+                          capture_output=True, text=True, timeout=300,
+                          cwd=Path(__file__).resolve().parent.parent,
+                          preexec_fn=_limited_to(limit))
+    err = proc.stderr
+    assert proc.returncode == 2, err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    assert ("File too large" if command == "train" else "results store could not grow") in err
+    if command == "train":
+        assert _digests(out) == before
+    else:  # what was stored is whole and valid
+        from benchmark.store import ResultStore
+
+        with ResultStore(out) as store:
+            assert all(r["status"] == "ok" for r in store.records())
     _no_temporaries(out)
 
 
