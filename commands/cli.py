@@ -115,7 +115,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return _main(argv)
     except KeyboardInterrupt as exc:
-        return _interrupted(exc)
+        args = sys.argv[1:] if argv is None else list(argv)
+        return _interrupted(exc, args[0] if args else "")
     finally:
         _end(previous, restore_handlers=argv is not None)
 
@@ -198,7 +199,11 @@ def no_space(exc: BaseException) -> str | None:
     return None
 
 
-def _interrupted(exc: KeyboardInterrupt) -> int:
+#: Commands that complete an interrupted invocation with ``--resume``.
+RESUMABLE = ("run", "train", "reproduce", "pareto", "sensitivity", "compare-learned", "generalise")
+
+
+def _interrupted(exc: KeyboardInterrupt, command: str = "") -> int:
     """Stop what runs (signals only recorded from here on), print one line, 128 + signum."""
     from envs.interrupt import Interrupted, hold_forever, received
 
@@ -207,8 +212,10 @@ def _interrupted(exc: KeyboardInterrupt) -> int:
     # Ray's blocking calls do)
     signum = received() or (exc.signum if isinstance(exc, Interrupted) else signal.SIGINT)
     _stop_workers()
-    print(f"cacc-bench: interrupted ({signal.Signals(signum).name}); the run in flight was "
-          "not stored, finished runs are (complete with --resume)", file=sys.stderr)
+    advice = ("the run in flight was not stored, finished runs are (complete with --resume)"
+              if command in RESUMABLE else
+              "nothing in flight was written, finished files were left as they were (rerun it)")
+    print(f"cacc-bench: interrupted ({signal.Signals(signum).name}); {advice}", file=sys.stderr)
     return 128 + int(signum)
 
 
