@@ -1,5 +1,6 @@
 """``cacc-bench generalise`` and :mod:`analysis.generalisation`: the cell rule on hand-made
-runs, the command in small form, and the committed matrix reproduced by the command."""
+runs, the command in small form, every shipped checkpoint a row or a stated reason, and the
+committed matrix reproduced by the command."""
 
 from __future__ import annotations
 
@@ -10,8 +11,20 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from analysis.generalisation import COLUMNS, MODEL_BASED, Column, Row, cell_frame
+from analysis.generalisation import (
+    COLUMNS,
+    MODEL_BASED,
+    NOT_IN_MATRIX,
+    Column,
+    Row,
+    cell_frame,
+    learned_rows,
+    unrun_checkpoints,
+    with_safety_filter,
+)
 from commands.cli import main
+from commands.generalise import _available
+from controllers.policy import CHECKPOINT_DIR
 
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "generalise"
 
@@ -54,6 +67,48 @@ def test_the_command_in_small_form(tmp_path: Path, capsys: pytest.CaptureFixture
     assert main(["generalise", "--columns", "moon", "--out", str(tmp_path / "x")]) == 2
     assert main(["generalise", "--episodes", "101", "--out", str(tmp_path / "x")]) == 2
     assert "Traceback" not in capsys.readouterr().err
+
+
+def test_a_policy_trained_at_n4_fills_the_n4_cell_with_its_one_seed(tmp_path: Path) -> None:
+    """The BDC policies trained at N = 4 (one seed shipped each) act in the N = 4 column only;
+    the N = 8 BDC rows are "n/a" there; nothing runs for a cell marked "n/a"."""
+    out = tmp_path / "g"
+    argv = ["generalise", "--controllers", "bdc", "--columns", "catchup N=4,brake",
+            "--episodes", "1", "--no-safety-filter", "--executor", "serial", "--out", str(out)]
+    assert main(argv) == 0
+    cells = pd.read_csv(out / "matrix.csv").set_index(["row", "column"])
+    for sc in ("catchup-v1", "openacc-train-s-v1", "openacc-train-m-v1", "openacc-train-l-v1"):
+        row = f"bdc ({sc}, N=4, seed 0)"
+        assert cells.loc[(row, "catchup N=4"), "applicable"]
+        assert cells.loc[(row, "catchup N=4"), "episodes"] == 1
+        assert not cells.loc[(row, "brake"), "applicable"]
+    for sc in ("catchup-v1", "slowdown-v1"):
+        assert not cells.loc[(f"bdc ({sc})", "catchup N=4"), "applicable"]
+        assert cells.loc[(f"bdc ({sc})", "brake"), "episodes"] == 3
+    runs = pd.read_csv(out / "runs" / "runs.csv")
+    assert len(runs) == 4 + 2 * 3 and set(runs["n_vehicles"]) == {4, 8}
+    line = next(x for x in (out / "report.md").read_text().splitlines()
+                if x.startswith("| `bdc (openacc-train-m-v1, N=4, seed 0)` |"))
+    n4, brake = line.rstrip(" |").split(" | ")[1:3]
+    assert n4.split(",")[0] in ("0/1", "1/1") and brake == "n/a"
+
+
+def test_every_shipped_checkpoint_is_a_row_or_has_a_stated_reason() -> None:
+    """A learned policy shipped in ``controllers/checkpoints`` (a new training scenario, family,
+    N or variant) fails this test until a row runs it or :data:`NOT_IN_MATRIX` says why not;
+    a row pools exactly the training seeds shipped for it, and every reason still applies."""
+    rows = learned_rows(_available)
+    unrun = unrun_checkpoints(CHECKPOINT_DIR, rows)
+    assert "no row and no reason" not in unrun, unrun.get("no row and no reason")
+    assert set(unrun) == {why for _, why in NOT_IN_MATRIX}  # no reason is stale
+    for row in rows:
+        first = CHECKPOINT_DIR / row.checkpoints()[0]
+        stem = first.name.rsplit("__s", 1)[0]
+        shipped = sorted(int(f.stem.rsplit("__s", 1)[1]) for f in first.parent.glob(f"{stem}__s*.pt"))
+        assert tuple(shipped) == row.seeds, (row.label, shipped)
+        assert len(row.seeds) == 3 or f"seed {row.seeds[0]})" in row.label
+    safe = with_safety_filter(rows[-1])
+    assert safe.checkpoints() == rows[-1].checkpoints() and safe.seeds == rows[-1].seeds
 
 
 def test_the_committed_matrix_is_what_the_command_gives(tmp_path: Path) -> None:
