@@ -64,25 +64,64 @@ MODEL_BASED: tuple[str, ...] = ("cacc", "mpc-qp", "mpc", "cmpc", "acc", "ovm", "
 TRAINED_ON: tuple[str, ...] = ("catchup-v1", "slowdown-v1")
 #: Training seeds pooled in a learned row.
 TRAIN_SEEDS: tuple[int, ...] = (0, 1, 2)
+#: The N a shared policy's checkpoint is filed under (it acts at any N).
+SHARED_TRAINED_N = 8
+#: Per-agent policies trained at another N than 8: (algorithm, training scenario or family, N,
+#: the training seeds shipped). They act at that N only; one seed each is shipped, so their rows
+#: name it instead of pooling three.
+OTHER_N_POLICIES: tuple[tuple[str, str, int, tuple[int, ...]], ...] = (
+    ("bdc", "catchup-v1", 4, (0,)),
+    ("bdc", "openacc-train-s-v1", 4, (0,)),
+    ("bdc", "openacc-train-m-v1", 4, (0,)),
+    ("bdc", "openacc-train-l-v1", 4, (0,)),
+)
+#: Shipped checkpoints the matrix does not run, each with why (``fnmatch`` patterns of the path
+#: below ``controllers/checkpoints``); the report lists them, so none is left out silently.
+NOT_IN_MATRIX: tuple[tuple[str, str], ...] = (
+    ("variants/w5_*/*", "the reward-weight variants of the energy-spacing study (w5 = 0, -1, "
+                        "-5, -20; seed 0; the same scenario under another reward)"),
+    ("bdc__catchup-v1__n2__*", "BDC of the scaling study at N = 2: no column is at its N"),
+    ("bdc__catchup-v1__n6__*", "BDC of the scaling study at N = 6: no column is at its N"),
+)
 
 
 @dataclass(frozen=True)
 class Row:
     """A matrix row: label, registered controller, options (without the training seed), whether
-    it is learned (pooled over :data:`TRAIN_SEEDS`) and the N it acts at (None: any)."""
+    it is learned (pooled over ``seeds``, :data:`TRAIN_SEEDS` unless named) and the N it acts at
+    (None: any)."""
 
     label: str
     controller: str
     options: tuple[tuple[str, str], ...]
     learned: bool
     only_n: int | None = None
+    seeds: tuple[int, ...] = TRAIN_SEEDS
 
     def specs(self) -> list[tuple[str, dict[str, str]]]:
         """The controller specs the row runs (one per training seed for a learned row)."""
         opts = dict(self.options)
         if not self.learned:
             return [(self.controller, opts)]
-        return [(self.controller, {**opts, "seed": str(s)}) for s in TRAIN_SEEDS]
+        return [(self.controller, {**opts, "seed": str(s)}) for s in self.seeds]
+
+    @property
+    def trained_n(self) -> int:
+        """The N its checkpoints are filed under: its only N, else :data:`SHARED_TRAINED_N`."""
+        return SHARED_TRAINED_N if self.only_n is None else self.only_n
+
+    def checkpoints(self) -> list[str]:
+        """The shipped checkpoint files a learned row loads, as paths below
+        ``controllers/checkpoints`` (``variants/<name>/...`` for a variant); [] if not learned."""
+        if not self.learned:
+            return []
+        from envs.naming import checkpoint_stem
+
+        opts = dict(self.options)
+        algo = self.controller.removeprefix("safe:")
+        folder = f"variants/{opts['variant']}/" if "variant" in opts else ""
+        return [f"{folder}{checkpoint_stem(algo, opts['scenario'], self.trained_n, s)}.pt"
+                for s in self.seeds]
 
     def applies(self, column: Column) -> bool:
         """Whether the controller can act in ``column`` (a per-agent policy at its N only)."""
@@ -92,8 +131,10 @@ class Row:
 def learned_rows(available: Any) -> list[Row]:
     """Every shipped learned policy, per training scenario or family: the paper's seven (one
     network per follower, N = 8 only), the shared policies (any N), ``ippo-bdc`` (N = 8), the
-    residual variant and ``ippo`` trained on ``mixed-v1``; ``available(controller, options,
-    seed)`` says whether a checkpoint exists (rows lacking one are left out by the caller)."""
+    residual and OVM-gain variants of ``ippo``, ``ippo`` trained on ``mixed-v1``, then the
+    per-agent policies trained at another N (:data:`OTHER_N_POLICIES`, one seed each, named in
+    the label); ``available(controller, options, n_vehicles)`` says whether a checkpoint exists
+    (rows lacking one are left out by the caller)."""
     from controllers.shared_policy import PER_AGENT_POLICIES, SHARED_POLICIES
     from marl.config import ALGORITHM_NAMES
 
@@ -104,16 +145,39 @@ def learned_rows(available: Any) -> list[Row]:
             rows.append(Row(f"{algo} ({sc})", algo, (("scenario", sc),), True,
                             None if shared else 8))
     rows.append(Row("ippo (mixed-v1)", "ippo", (("scenario", "mixed-v1"),), True))
-    for sc in TRAINED_ON:
-        rows.append(Row(f"ippo residual-cacc ({sc})", "ippo",
-                        (("scenario", sc), ("variant", "residual-cacc")), True))
-    return [r for r in rows if all(available(c, o) for c, o in r.specs())]
+    for variant in ("residual-cacc", "ovm-gain"):
+        for sc in TRAINED_ON:
+            rows.append(Row(f"ippo {variant} ({sc})", "ippo",
+                            (("scenario", sc), ("variant", variant)), True))
+    for algo, sc, n, seeds in OTHER_N_POLICIES:
+        named = ", ".join(f"seed {s}" for s in seeds)
+        rows.append(Row(f"{algo} ({sc}, N={n}, {named})", algo, (("scenario", sc),), True, n,
+                        seeds))
+    return [r for r in rows if all(available(c, o, r.trained_n) for c, o in r.specs())]
+
+
+def unrun_checkpoints(folder: Path, rows: Sequence[Row]) -> dict[str, list[str]]:
+    """The shipped checkpoints (``*.pt`` below ``folder``, variants included) that no row of
+    ``rows`` loads, by the reason :data:`NOT_IN_MATRIX` gives; a file it does not explain falls
+    under ``"no row and no reason"`` (a test keeps that empty)."""
+    from fnmatch import fnmatch
+
+    loaded = {f for r in rows for f in r.checkpoints()}
+    out: dict[str, list[str]] = {}
+    for path in sorted(folder.rglob("*.pt")):
+        rel = path.relative_to(folder).as_posix()
+        if rel in loaded:
+            continue
+        why = next((w for pattern, w in NOT_IN_MATRIX if fnmatch(rel, pattern)),
+                   "no row and no reason")
+        out.setdefault(why, []).append(rel)
+    return out
 
 
 def with_safety_filter(row: Row) -> Row:
     """The same controller behind the safety filter (``safe:<controller>``)."""
     return Row(f"safe:{row.label}", f"safe:{row.controller}", row.options, row.learned,
-               row.only_n)
+               row.only_n, row.seeds)
 
 
 def cell_frame(runs: Any, rows: list[Row], columns: Sequence[Column] = COLUMNS) -> Any:
@@ -182,8 +246,11 @@ def plot_heatmap(cells: Any, out: Path, columns: Sequence[Column] = COLUMNS) -> 
 
 
 def write_report(cells: Any, out: Path, command: str, episodes: int,
-                 columns: Sequence[Column] = COLUMNS) -> Path:
-    """``report.md``: the matrix (collisions / episodes, reward [interval], gap RMSE per cell)."""
+                 columns: Sequence[Column] = COLUMNS,
+                 unrun: dict[str, list[str]] | None = None) -> Path:
+    """``report.md``: the matrix (collisions / episodes, reward [interval], gap RMSE per cell),
+    what the safety filter costs, and the shipped checkpoints no row runs (``unrun``, by reason,
+    from :func:`unrun_checkpoints`)."""
     from envs.atomic import write_text
 
     cols = [c.name for c in columns]
@@ -192,9 +259,10 @@ def write_report(cells: Any, out: Path, command: str, episodes: int,
         "",
         f"Made by `{command} --out FOLDER` on the first {episodes} test seeds "
         "(`envs.params.TEST_SEEDS`, which no training, tuning or selection reads). Rows: "
-        "learned controllers by training scenario or family, three training seeds pooled, "
-        "actions sampled as trained, with and without the safety filter (`safe:`), then the "
-        "model-based controllers. A cell: colliding episodes / episodes, mean reward [95 % "
+        "learned controllers by training scenario or family, three training seeds pooled "
+        "(a row that names a seed has only that one shipped, and its interval is over episodes "
+        "alone), actions sampled as trained, with and without the safety filter (`safe:`), then "
+        "the model-based controllers. A cell: colliding episodes / episodes, mean reward [95 % "
         "two-stage interval], gap RMSE in m; \"n/a\": the controller cannot act at that N. "
         "Columns use N = 8 unless named. Tables: `matrix.csv`; figure: "
         "`figures/generalisation.png`.",
@@ -231,6 +299,12 @@ def write_report(cells: Any, out: Path, command: str, episodes: int,
             lines.append(f"| `{r['row']}` | {r['collisions_without']} | {r['collisions_with']} | "
                          f"{r['clean_cells']} | {r['reward_change']:+.1f} | "
                          f"{r['energy_change_kwh_per_100km']:+.3f} |")
+    if unrun:
+        lines += ["", "## Shipped checkpoints not in the matrix", "",
+                  "Every file of `controllers/checkpoints` that no row above loads, with why "
+                  "(`analysis.generalisation.NOT_IN_MATRIX`):", ""]
+        for why, files in unrun.items():
+            lines.append(f"- {why}: " + ", ".join(f"`{f}`" for f in files))
     path = out / "report.md"
     write_text(path, "\n".join(lines) + "\n")
     return path
@@ -262,4 +336,5 @@ def rows_json(rows: list[Row]) -> str:
     """The rows as JSON (what the command ran), for the report folder."""
     return json.dumps([{"label": r.label, "controller": r.controller,
                         "options": dict(r.options), "learned": r.learned,
-                        "only_n": r.only_n} for r in rows], indent=1)
+                        "only_n": r.only_n, "training_seeds": list(r.seeds) if r.learned else []}
+                       for r in rows], indent=1)

@@ -1,10 +1,12 @@
 """``cacc-bench generalise``: the generalisation matrix on the test seeds, in one report.
 
-Every shipped learned policy (per training scenario or family, three training seeds), with and
-without the safety filter, and the model-based controllers, on the columns of
-:data:`analysis.generalisation.COLUMNS` (other scenarios, the OpenACC windows, N = 4 and 12,
-degraded V2V), through the results store (resumable, ``--resume``); writes ``report.md``,
-``matrix.csv``, ``filter_cost.csv``, ``rows.json`` and ``figures/generalisation.{png,pdf}`` into ``--out``.
+Every shipped learned policy (per training scenario or family, three training seeds pooled, or
+the one seed shipped of a per-agent policy trained at N = 4), with and without the safety filter,
+and the model-based controllers, on the columns of :data:`analysis.generalisation.COLUMNS` (other
+scenarios, the OpenACC windows, N = 4 and 12, degraded V2V), through the results store
+(resumable, ``--resume``); writes ``report.md``, ``matrix.csv``, ``filter_cost.csv``,
+``rows.json`` and ``figures/generalisation.{png,pdf}`` into ``--out``; the report lists the
+shipped checkpoints no row runs, with why (:data:`analysis.generalisation.NOT_IN_MATRIX`).
 """
 
 from __future__ import annotations
@@ -36,12 +38,12 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
-def _available(controller: str, options: dict[str, str]) -> bool:
-    """Whether the shipped checkpoint of a learned spec exists."""
+def _available(controller: str, options: dict[str, str], n_vehicles: int) -> bool:
+    """Whether the shipped checkpoint of a learned spec, trained at ``n_vehicles``, exists."""
     from controllers.policy import VARIANT_DIR, checkpoint_path
 
     folder = VARIANT_DIR / options["variant"] if "variant" in options else None
-    return checkpoint_path(controller, options["scenario"], 8, int(options["seed"]),
+    return checkpoint_path(controller, options["scenario"], n_vehicles, int(options["seed"]),
                            folder).exists()
 
 
@@ -58,6 +60,7 @@ def main(argv: list[str]) -> int:
         learned_rows,
         plot_heatmap,
         rows_json,
+        unrun_checkpoints,
         with_safety_filter,
         write_report,
     )
@@ -66,6 +69,7 @@ def main(argv: list[str]) -> int:
     from benchmark.paths import writable_dir
     from benchmark.suite import build_sweep, seeds_from_set
     from commands.run import execute_sweep
+    from controllers.policy import CHECKPOINT_DIR
     from envs.atomic import write_text
 
     args = _parser().parse_args(argv)
@@ -114,6 +118,7 @@ def main(argv: list[str]) -> int:
         write_csv(filter_cost(cells), out / "filter_cost.csv")
         write_text(out / "rows.json", rows_json(rows) + "\n")
         plot_heatmap(cells, out / "figures", columns)
-        report = write_report(cells, out, command, len(seeds), columns)
+        report = write_report(cells, out, command, len(seeds), columns,
+                              unrun_checkpoints(CHECKPOINT_DIR, learned))
     print(f"wrote {report} and the matrix beside it")
     return rc

@@ -1,5 +1,7 @@
 """``cacc-bench generalise`` and :mod:`analysis.generalisation`: the cell rule on hand-made
-runs, the command in small form, and the committed matrix reproduced by the command."""
+runs, the command in small form, every shipped checkpoint a row or a stated reason, and the
+committed matrix: reproduced by the command, its report written from its CSV, its rows the
+command's rows."""
 
 from __future__ import annotations
 
@@ -10,8 +12,21 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from analysis.generalisation import COLUMNS, MODEL_BASED, Column, Row, cell_frame
+from analysis.generalisation import (
+    COLUMNS,
+    MODEL_BASED,
+    NOT_IN_MATRIX,
+    Column,
+    Row,
+    cell_frame,
+    learned_rows,
+    unrun_checkpoints,
+    with_safety_filter,
+    write_report,
+)
 from commands.cli import main
+from commands.generalise import _available
+from controllers.policy import CHECKPOINT_DIR
 
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "generalise"
 
@@ -56,6 +71,82 @@ def test_the_command_in_small_form(tmp_path: Path, capsys: pytest.CaptureFixture
     assert "Traceback" not in capsys.readouterr().err
 
 
+def test_a_policy_trained_at_n4_fills_the_n4_cell_with_its_one_seed(tmp_path: Path) -> None:
+    """The BDC policies trained at N = 4 (one seed shipped each) act in the N = 4 column only;
+    the N = 8 BDC rows are "n/a" there; nothing runs for a cell marked "n/a"."""
+    out = tmp_path / "g"
+    argv = ["generalise", "--controllers", "bdc", "--columns", "catchup N=4,brake",
+            "--episodes", "1", "--no-safety-filter", "--executor", "serial", "--out", str(out)]
+    assert main(argv) == 0
+    cells = pd.read_csv(out / "matrix.csv").set_index(["row", "column"])
+    for sc in ("catchup-v1", "openacc-train-s-v1", "openacc-train-m-v1", "openacc-train-l-v1"):
+        row = f"bdc ({sc}, N=4, seed 0)"
+        assert cells.loc[(row, "catchup N=4"), "applicable"]
+        assert cells.loc[(row, "catchup N=4"), "episodes"] == 1
+        assert not cells.loc[(row, "brake"), "applicable"]
+    for sc in ("catchup-v1", "slowdown-v1"):
+        assert not cells.loc[(f"bdc ({sc})", "catchup N=4"), "applicable"]
+        assert cells.loc[(f"bdc ({sc})", "brake"), "episodes"] == 3
+    runs = pd.read_csv(out / "runs" / "runs.csv")
+    assert len(runs) == 4 + 2 * 3 and set(runs["n_vehicles"]) == {4, 8}
+    line = next(x for x in (out / "report.md").read_text().splitlines()
+                if x.startswith("| `bdc (openacc-train-m-v1, N=4, seed 0)` |"))
+    n4, brake = line.rstrip(" |").split(" | ")[1:3]
+    assert n4.split(",")[0] in ("0/1", "1/1") and brake == "n/a"
+
+
+def test_every_shipped_checkpoint_is_a_row_or_has_a_stated_reason() -> None:
+    """A learned policy shipped in ``controllers/checkpoints`` (a new training scenario, family,
+    N or variant) fails this test until a row runs it or :data:`NOT_IN_MATRIX` says why not;
+    a row pools exactly the training seeds shipped for it, and every reason still applies."""
+    rows = learned_rows(_available)
+    unrun = unrun_checkpoints(CHECKPOINT_DIR, rows)
+    assert "no row and no reason" not in unrun, unrun.get("no row and no reason")
+    assert set(unrun) == {why for _, why in NOT_IN_MATRIX}  # no reason is stale
+    for row in rows:
+        first = CHECKPOINT_DIR / row.checkpoints()[0]
+        stem = first.name.rsplit("__s", 1)[0]
+        shipped = sorted(int(f.stem.rsplit("__s", 1)[1]) for f in first.parent.glob(f"{stem}__s*.pt"))
+        assert tuple(shipped) == row.seeds, (row.label, shipped)
+        assert len(row.seeds) == 3 or f"seed {row.seeds[0]})" in row.label
+    safe = with_safety_filter(rows[-1])
+    assert safe.checkpoints() == rows[-1].checkpoints() and safe.seeds == rows[-1].seeds
+
+
+def test_the_committed_matrix_has_every_row_and_marks_what_cannot_run() -> None:
+    """The committed rows are the command's rows today, in order; a cell is "n/a" exactly where
+    the row's N is not the column's, and every other cell holds 10 test episodes per training
+    seed."""
+    committed = json.loads((DOCS / "rows.json").read_text())
+    learned = learned_rows(_available)
+    rows = [*learned, *(with_safety_filter(r) for r in learned),
+            *(Row(name, name, (), False) for name in MODEL_BASED)]
+    assert [r["label"] for r in committed] == [r.label for r in rows]
+    by_label = {r.label: r for r in rows}
+    cells = pd.read_csv(DOCS / "matrix.csv")
+    assert list(dict.fromkeys(cells["row"])) == [r.label for r in rows]
+    n_of = {c.name: c.n_vehicles for c in COLUMNS}
+    for _, c in cells.iterrows():
+        row = by_label[c["row"]]
+        assert c["applicable"] == (row.only_n is None or row.only_n == n_of[c["column"]])
+        if c["applicable"]:
+            assert c["episodes"] == 10 * (len(row.seeds) if row.learned else 1), (row.label, c)
+        else:
+            assert np.isnan(c["episodes"])
+
+
+def test_the_committed_report_is_written_from_its_csv(tmp_path: Path) -> None:
+    """``report.md`` is what :func:`write_report` makes of the committed ``matrix.csv``, with the
+    command its first line names and the shipped checkpoints no row runs."""
+    committed = (DOCS / "report.md").read_text()
+    command = committed.split("Made by `", 1)[1].split(" --out FOLDER`", 1)[0]
+    cells = pd.read_csv(DOCS / "matrix.csv")
+    cells["applicable"] = cells["applicable"].astype(bool)
+    unrun = unrun_checkpoints(CHECKPOINT_DIR, learned_rows(_available))
+    path = write_report(cells, tmp_path, command, 10, COLUMNS, unrun)
+    assert path.read_text() == committed
+
+
 def test_the_committed_matrix_is_what_the_command_gives(tmp_path: Path) -> None:
     """The brake-v1 column of every ``ippo`` row, rerun by the command from the shipped
     checkpoints on the same test seeds, is the committed one."""
@@ -83,8 +174,12 @@ def test_the_readme_reading_is_the_committed_matrix() -> None:
                and r not in MODEL_BASED]
     colliding = [r for r in learned if m[m["row"] == r]["collisions"].sum() > 0]
     one_scenario = [r for r in learned if "mixed-v1" not in r]
-    assert (f"Of the {len(one_scenario)} learned rows trained on one scenario, "
-            f"{sum(r in colliding for r in one_scenario)} collide somewhere") in text
+    assert (f"Of the {len(one_scenario)} learned rows trained on one scenario or one "
+            f"OpenACC-like family, {sum(r in colliding for r in one_scenario)} collide "
+            "somewhere") in text
+    at_n4 = [r for r in learned if "N=4" in r]
+    assert len(at_n4) == 4 and "the four trained at N = 4 collide in none" in text
+    assert all(m[m["row"] == r]["collisions"].sum() == 0 for r in at_n4)
     mixed = m[m["row"] == "ippo (mixed-v1)"]
     assert mixed["collisions"].sum() == 0 and len(mixed) == 11
     cell = m.set_index(["row", "column"])["reward"]
