@@ -145,7 +145,7 @@ def learned_rows(available: Any) -> list[Row]:
             rows.append(Row(f"{algo} ({sc})", algo, (("scenario", sc),), True,
                             None if shared else 8))
     rows.append(Row("ippo (mixed-v1)", "ippo", (("scenario", "mixed-v1"),), True))
-    for variant in ("residual-cacc", "ovm-gain"):
+    for variant in ("residual-cacc", "residual-timed", "ovm-gain"):
         for sc in TRAINED_ON:
             rows.append(Row(f"ippo {variant} ({sc})", "ippo",
                             (("scenario", sc), ("variant", variant)), True))

@@ -156,10 +156,13 @@ def test_the_committed_matrix_is_what_the_command_gives(tmp_path: Path) -> None:
     assert main(argv) == 0
     ours = pd.read_csv(tmp_path / "matrix.csv").set_index(["row", "column"])
     theirs = committed.set_index(["row", "column"]).loc[ours.index]
-    for col in ("episodes", "collisions", "reward", "reward_ci_low", "reward_ci_high",
-                "gap_rmse_m"):
+    for col in ("episodes", "collisions"):
+        np.testing.assert_array_equal(ours[col].to_numpy(), theirs[col].to_numpy(), err_msg=col)
+    # bit-exact on the CPU that made the report; float32 kernels of other CPUs round otherwise
+    # (the shared policies' cells moved by up to 3.2e-9 between an AMD EPYC and an Intel Xeon)
+    for col in ("reward", "reward_ci_low", "reward_ci_high", "gap_rmse_m"):
         np.testing.assert_allclose(ours[col].to_numpy(float), theirs[col].to_numpy(float),
-                                   rtol=1e-9, err_msg=col)
+                                   rtol=1e-6, err_msg=col)
     rows = json.loads((DOCS / "rows.json").read_text())
     assert {r["label"] for r in rows} == set(committed["row"])
 

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 ALGOS = {"IA2C": "ia2c", "FPrint": "fprint", "DIAL": "dial", "CommNet": "commnet", "WAC": "wac",
@@ -63,4 +64,8 @@ def test_the_test_seed_column_is_what_the_shipped_policies_score() -> None:
         m = re.match(r"(\d+)/150, (-?\d+\.\d\d) \[", rows[name][1])
         assert m is not None, rows[name]
         assert int(m.group(1)) == sum(bool(t.collided) for t in runs), name
-        assert f"{np.mean([t.reward.mean() for t in runs]):.2f}" == m.group(2), name
+        # to the printed digit on the CPU that made the table; another CPU's float32 kernels
+        # round otherwise and the sampled closed loop carries it on (DIAL: -917.34 on an AMD
+        # EPYC, -917.32 on an Intel Xeon): 0.05 % (docs/contributing.md, "Numbers across CPUs")
+        assert np.mean([t.reward.mean() for t in runs]) == pytest.approx(
+            float(m.group(2)), rel=5e-4), name
