@@ -31,6 +31,7 @@ POLICIES: dict[str, tuple[str, dict[str, str]]] = {
     "ippo": ("ippo", {}),
     "mappo": ("mappo", {}),
     "ippo (residual on cacc)": ("ippo", {"variant": "residual-cacc"}),
+    "ippo (residual, time-aware critic)": ("ippo", {"variant": "residual-timed"}),
     "ippo-bdc": ("ippo-bdc", {}),
     "distill": ("distill", {}),
 }
@@ -74,6 +75,13 @@ COMPARISONS: tuple[Comparison, ...] = (
     Comparison("learning", "mappo", "ippo", "a centralised critic against a local one"),
     Comparison("learning", "ippo (residual on cacc)", "cacc",
                "a learned residual on top of cacc against cacc alone"),
+    Comparison("learning", "ippo (residual, time-aware critic)", "cacc",
+               "the residual on cacc learned with a critic that knows the episode's time, "
+               "against cacc alone"),
+    Comparison("learning", "ippo (residual, time-aware critic)", "ippo (residual on cacc)",
+               "what the time-aware critic (and the exact prior) changes in the residual"),
+    Comparison("learning", "ippo (residual, time-aware critic)", "mpc",
+               "the best learned residual against mpc"),
     Comparison("learning", "cacc", "mpc", "the linear controller against mpc"),
 )
 

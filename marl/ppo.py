@@ -239,8 +239,10 @@ def train(
         else:
             t_len_r = t_len
             if obs.shape[-2] == n_r:  # else every episode ended at the last step (unread)
+                now = env.state
+                assert now is not None
                 with torch.no_grad():
-                    buf_val[t_len] = critic(actor.normalise(obs), env.state.step / env.n_steps)
+                    buf_val[t_len] = critic(actor.normalise(obs), now.step / env.n_steps)
         if t_len_r < t_len:  # every episode ended at the last step: no value after it is read
             buf_obs, buf_cobs, buf_act, buf_logp, buf_rew, buf_live, buf_cont, buf_term_value = (
                 x[:t_len_r] for x in (buf_obs, buf_cobs, buf_act, buf_logp, buf_rew, buf_live,
