@@ -289,9 +289,7 @@ def _check_config_and_shapes(data: dict[str, Any], damaged: Any) -> None:
         config = config_from_dict(algo, data["config"])
     except ConfigError as exc:
         raise damaged(f"config: {exc}") from None
-    with torch.device("meta"):  # shapes only: no memory, no initialisation, no random draw
-        net = algo.build_net(config, data["n_vehicles"], with_critic=False)
-    expected = {k: tuple(v.shape) for k, v in net.acting_state_dict().items()}
+    expected = acting_weight_shapes(algo.name, config, data["n_vehicles"])
     for key, value in data["weights"].items():
         if key not in expected:
             raise damaged(f"weight {key!r} is not a {algo.name} network weight")
@@ -302,6 +300,20 @@ def _check_config_and_shapes(data: dict[str, Any], damaged: Any) -> None:
     if missing:
         raise damaged(f"weight {missing[0]!r} of the {algo.name} network is missing"
                       + (f", and {len(missing) - 1} more" if len(missing) > 1 else ""))
+
+
+def acting_weight_shapes(algo_name: str, config: Any, n_vehicles: int) -> dict[str, tuple[int, ...]]:
+    """The acting weights a checkpoint of ``algo_name`` (a :mod:`marl.config` algorithm) with
+    ``config`` (its config object or dict) at N = ``n_vehicles`` holds, with their shapes:
+    every one must be stored (:func:`load_checkpoint` refuses a file missing one)."""
+    from marl.config import algorithm, config_from_dict
+
+    algo = algorithm(algo_name)
+    if isinstance(config, dict):
+        config = config_from_dict(algo, config)
+    with torch.device("meta"):  # shapes only: no memory, no initialisation, no random draw
+        net = algo.build_net(config, n_vehicles, with_critic=False)
+    return {k: tuple(v.shape) for k, v in net.acting_state_dict().items()}
 
 
 def upgrade_checkpoint(path: str | Path) -> bool:

@@ -401,6 +401,9 @@ def test_per_agent_clip_norms_do_not_depend_on_the_stack() -> None:
 
 # ----------------------------------------------------------------------------- checkpoints
 def _save(path, **over):
+    """A checkpoint with every acting weight of its network (zeros) but those given."""
+    from marl.checkpoint import acting_weight_shapes
+
     kw = dict(
         algo="ia2c",
         config={"n_step": 60},
@@ -412,6 +415,8 @@ def _save(path, **over):
         weights={"fc.weight": torch.randn(8, 15, 64)},
     )
     kw.update(over)
+    shapes = acting_weight_shapes(kw["algo"], kw["config"], kw["n_vehicles"])
+    kw["weights"] = {**{k: torch.zeros(v) for k, v in shapes.items()}, **kw["weights"]}
     return save_checkpoint(path, **kw)
 
 

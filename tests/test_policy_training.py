@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+import torch
 
 import controllers.policy as policy
 from commands.policy_training import (
@@ -19,13 +20,21 @@ from envs.errors import ConfigError
 from marl.checkpoint import energy_model_id, save_checkpoint
 
 
+def _zero_weights(config: dict) -> dict[str, torch.Tensor]:
+    """Every acting weight of the N = 8 bdc network (zeros): a checkpoint must hold them all."""
+    from marl.checkpoint import acting_weight_shapes
+
+    return {k: torch.zeros(v) for k, v in acting_weight_shapes("bdc", config, 8).items()}
+
+
 def _ship(folder: Path, job: dict, total_steps: int, energy_model: str | None = None,
           **config_changes: object) -> Path:
     config = {**job_config(job), **config_changes}
     path = folder / "bdc__catchup-v1__n8__s0.pt"
     save_checkpoint(path, algo="bdc", config=config, scenario="catchup-v1", n_vehicles=8, seed=0,
                     steps=total_steps // 2, energy_model=energy_model or energy_model_id(),
-                    curve_summary={"total_steps": total_steps, "wall_s": 12.5}, weights={})
+                    curve_summary={"total_steps": total_steps, "wall_s": 12.5},
+                    weights=_zero_weights(config))
     path.with_suffix("").with_suffix(".curve.csv").write_text("episode,steps\n1,720\n")
     return path
 
@@ -70,7 +79,7 @@ def test_a_run_trained_under_another_energy_model_is_not_done(tmp_path: Path, jo
     final = Path(job["out"]) / "bdc__catchup-v1__n8__s0.final.pt"
     save_checkpoint(final, algo="bdc", config=job_config(job), scenario="catchup-v1",
                     n_vehicles=8, seed=0, steps=600_720, energy_model="0123456789ab",
-                    curve_summary={}, weights={})
+                    curve_summary={}, weights=_zero_weights(job_config(job)))
     with pytest.raises(ConfigError, match="another energy model"):
         is_done(job)
 
