@@ -291,3 +291,20 @@ def test_a_killed_ray_driver_leaves_no_ray_process(tmp_path: Path) -> None:
     proc.send_signal(signal.SIGKILL)
     proc.communicate(timeout=30)
     _assert_gone(started)
+
+
+def test_the_resumable_commands_are_those_that_take_resume(capsys: pytest.CaptureFixture[str]
+                                                           ) -> None:
+    """The interrupted line's advice (commands.cli.RESUMABLE) names exactly the commands whose
+    help offers --resume, so a new resumable command cannot be told to just rerun."""
+    from commands.cli import RESUMABLE, SUBCOMMANDS, main
+
+    offering = []
+    for name in SUBCOMMANDS:
+        try:
+            main([name, "--help"])
+        except SystemExit:
+            pass
+        if "--resume" in capsys.readouterr().out:
+            offering.append(name)
+    assert sorted(offering) == sorted(RESUMABLE)
