@@ -267,8 +267,11 @@ def _openacc_train(sc: Scenario, seeds: np.ndarray, u: np.ndarray, n: int) -> Ep
                         leader_speed_mps=leader)
 
 
-#: The disturbances ``mixed-v1`` draws from (its ``kinds`` option joins a subset with ``+``).
-MIXED_KINDS: tuple[str, ...] = ("catchup", "slowdown", "brake", "sine")
+#: The disturbances the ``mixed`` families draw from (their ``kinds`` option joins a subset with
+#: ``+``). ``mixed-v1`` stays as first published, with the first four; ``mixed-v2`` adds the
+#: randomised OpenACC-like leader of the ``openacc-train`` families.
+MIXED_KINDS: tuple[str, ...] = ("catchup", "slowdown", "brake", "sine", "openacc")
+MIXED_V1_KINDS: tuple[str, ...] = MIXED_KINDS[:4]
 
 
 def _mixed(sc: Scenario, seeds: np.ndarray, u: np.ndarray, n: int) -> EpisodeBatch:
@@ -277,7 +280,10 @@ def _mixed(sc: Scenario, seeds: np.ndarray, u: np.ndarray, n: int) -> EpisodeBat
     spread around the kind's own. ``catchup`` and ``slowdown`` are the published builders (the
     episode's ``U`` sets them); ``brake`` is a leader braking from ``v*`` at a random rate to a
     random speed, holding, and recovering (``brake-v1`` and the OpenACC Dynamic Platform's
-    manoeuvre are members); ``sine`` has a random amplitude and frequency."""
+    manoeuvre are members); ``sine`` has a random amplitude and frequency; ``openacc`` is the
+    randomised Dynamic-Platform-like leader of the ``openacc-train`` families (cruise at 7.5-12
+    m/s, braking at up to 3.5 m/s^2 as in the three real windows) with the followers starting at
+    ``d*`` and the leader's initial speed."""
     o = sc.options
     kinds = o["kinds"].split("+")
     b = len(seeds)
@@ -300,6 +306,10 @@ def _mixed(sc: Scenario, seeds: np.ndarray, u: np.ndarray, n: int) -> EpisodeBat
             profile = braking_profile_mps(t, v0, 3.0 + 12.0 * rng.random(), a_brake, v_min,
                                           10.0 * rng.random(), 0.8 + 2.0 * rng.random())
             ep = _equilibrium(sc, *one[1:], profile)
+        elif kind == "openacc":
+            profile = dynamic_platform_profile_mps(rng.random(6), sc.n_steps)
+            ep = _equilibrium(sc, *one[1:], profile)
+            ep.speed_mps[:] = profile[0]
         else:
             amp = o["sine_amplitude_max_mps"] * rng.random()
             freq = 0.02 + (o["sine_frequency_max_hz"] - 0.02) * rng.random()
@@ -331,21 +341,37 @@ def braking_profile_mps(t_s: np.ndarray, v0_mps: float, t_brake_s: float, a_brak
     return v
 
 
-def _check_mixed(opts: dict[str, Any]) -> None:
-    kinds = opts["kinds"].split("+")
-    if not kinds or any(k not in MIXED_KINDS for k in kinds) or len(set(kinds)) != len(kinds):
-        raise ConfigError(f"mixed-v1 kinds must join distinct names of {', '.join(MIXED_KINDS)} "
-                          f"with '+', got {opts['kinds']!r}")
-    if not 1.5 <= opts["brake_rate_max_mps2"] <= 2.5:
-        raise ConfigError("mixed-v1 brake_rate_max_mps2 must lie in [1.5, 2.5] m/s^2 (a leader "
-                          "braking harder than the followers can is not survivable)")
-    if not 0 <= opts["sine_amplitude_max_mps"] <= 10:
-        raise ConfigError("mixed-v1 sine_amplitude_max_mps must lie in [0, 10] m/s")
-    if not 0.02 < opts["sine_frequency_max_hz"] < 5:
-        raise ConfigError("mixed-v1 sine_frequency_max_hz must lie in (0.02, 5) Hz")
-    if not (0 <= opts["gap_spread"] < 0.5 and 0 <= opts["speed_spread_mps"] <= 3):
-        raise ConfigError("mixed-v1 gap_spread must lie in [0, 0.5) and speed_spread_mps in "
-                          "[0, 3] m/s")
+def _mixed_check(scenario_id: str, allowed: tuple[str, ...]) -> Callable[[dict[str, Any]], None]:
+    """The option check of one ``mixed`` family (its id in the messages, its own kinds)."""
+
+    def check(opts: dict[str, Any]) -> None:
+        kinds = opts["kinds"].split("+")
+        if not kinds or any(k not in allowed for k in kinds) or len(set(kinds)) != len(kinds):
+            raise ConfigError(f"{scenario_id} kinds must join distinct names of "
+                              f"{', '.join(allowed)} with '+', got {opts['kinds']!r}")
+        if not 1.5 <= opts["brake_rate_max_mps2"] <= 2.5:
+            raise ConfigError(f"{scenario_id} brake_rate_max_mps2 must lie in [1.5, 2.5] m/s^2 "
+                              "(a leader braking harder than the followers can is not "
+                              "survivable)")
+        if not 0 <= opts["sine_amplitude_max_mps"] <= 10:
+            raise ConfigError(f"{scenario_id} sine_amplitude_max_mps must lie in [0, 10] m/s")
+        if not 0.02 < opts["sine_frequency_max_hz"] < 5:
+            raise ConfigError(f"{scenario_id} sine_frequency_max_hz must lie in (0.02, 5) Hz")
+        if not (0 <= opts["gap_spread"] < 0.5 and 0 <= opts["speed_spread_mps"] <= 3):
+            raise ConfigError(f"{scenario_id} gap_spread must lie in [0, 0.5) and "
+                              "speed_spread_mps in [0, 3] m/s")
+
+    return check
+
+
+def _mixed_spec(scenario_id: str, kinds: tuple[str, ...], description: str) -> ScenarioSpec:
+    return ScenarioSpec(
+        scenario_id, description, 20.0, 15.0, 600, _mixed,
+        defaults={"kinds": "+".join(kinds), "brake_rate_max_mps2": 2.5,
+                  "sine_amplitude_max_mps": 3.0, "sine_frequency_max_hz": 0.5,
+                  "gap_spread": 0.2, "speed_spread_mps": 0.5},
+        check=_mixed_check(scenario_id, kinds),
+    )
 
 
 def _openacc_train_spec(size: str, gap_m: float) -> ScenarioSpec:
@@ -453,16 +479,16 @@ for _spec in (
         "stands in for the paper's dynamic_part9)",
     ),
     _openacc_spec("L", "real OpenACC leader (ZalaZONE dynamic_part2, 450..510 s, long ACC setting)"),
-    ScenarioSpec(
-        "mixed-v1",
+    _mixed_spec(
+        "mixed-v1", MIXED_V1_KINDS,
         "a training distribution: per episode catchup, slowdown, a random braking manoeuvre or "
         "a random sine (options kinds, brake_rate_max_mps2, sine_amplitude_max_mps, "
         "sine_frequency_max_hz, gap_spread, speed_spread_mps)",
-        20.0, 15.0, 600, _mixed,
-        defaults={"kinds": "+".join(MIXED_KINDS), "brake_rate_max_mps2": 2.5,
-                  "sine_amplitude_max_mps": 3.0, "sine_frequency_max_hz": 0.5,
-                  "gap_spread": 0.2, "speed_spread_mps": 0.5},
-        check=_check_mixed,
+    ),
+    _mixed_spec(
+        "mixed-v2", MIXED_KINDS,
+        "mixed-v1 plus the randomised OpenACC-like leader (kind openacc, as openacc-train-*-v1 "
+        "draws it); the same options",
     ),
     _openacc_train_spec("s", 12.0),
     _openacc_train_spec("m", 16.0),

@@ -1,4 +1,5 @@
-"""``mixed-v1``: the training distribution (per episode a kind of disturbance and its draws)."""
+"""``mixed-v1`` and ``mixed-v2``: the training distributions (per episode a kind of disturbance
+and its draws)."""
 
 from __future__ import annotations
 
@@ -6,7 +7,13 @@ import numpy as np
 import pytest
 
 from envs.errors import ConfigError
-from envs.scenarios import MIXED_KINDS, make_scenario
+from envs.scenarios import (
+    MIXED_KINDS,
+    MIXED_V1_KINDS,
+    dynamic_platform_profile_mps,
+    episode_stream,
+    make_scenario,
+)
 
 
 def test_an_episode_is_its_seed_alone_or_in_a_batch() -> None:
@@ -58,4 +65,34 @@ def test_impossible_options_are_refused(options: dict, needle: str) -> None:
 
 def test_the_kinds_are_named_in_the_listing() -> None:
     sc = make_scenario("mixed-v1")
-    assert sc.options["kinds"] == "+".join(MIXED_KINDS) and sc.target_gap_m == 20.0
+    assert sc.options["kinds"] == "+".join(MIXED_V1_KINDS) and sc.target_gap_m == 20.0
+    assert make_scenario("mixed-v2").options["kinds"] == "+".join(MIXED_KINDS)
+
+
+def test_mixed_v1_keeps_its_four_kinds() -> None:
+    """The OpenACC-like leader is ``mixed-v2``'s; ``mixed-v1`` refuses it, so a v1 label keeps
+    meaning the distribution its policies were trained on."""
+    with pytest.raises(ConfigError, match="mixed-v1 kinds must join"):
+        make_scenario("mixed-v1", kinds="openacc")
+
+
+def test_mixed_v2_draws_the_openacc_like_leader() -> None:
+    """About one episode in five is the Dynamic-Platform-like leader of ``openacc-train``: a
+    cruise in [7.5, 12] m/s (every other kind starts at 15 m/s or above), braking at no more than
+    3.5 m/s^2, with the followers starting at d* and the leader's speed; the other kinds are
+    ``mixed-v1``'s builders."""
+    sc = make_scenario("mixed-v2", gap_spread=0.0, speed_spread_mps=0.0)
+    ep = sc.episodes(np.arange(500), 4)
+    lead = ep.leader_speed_mps
+    oa = lead[:, 0] < 15.0 - 1e-9
+    assert 0.15 < oa.mean() < 0.25
+    assert lead[oa, 0].min() >= 7.5 and lead[oa, 0].max() <= 12.0
+    assert np.all(-np.diff(lead[oa], axis=1) <= 3.5 * 0.1 + 1e-9) and lead[oa].min() >= 3.0 - 1e-9
+    np.testing.assert_array_equal(ep.speed_mps[oa], np.repeat(lead[oa, :1], 4, axis=1))
+    np.testing.assert_array_equal(ep.gap_m[oa], 20.0)
+    for k in np.flatnonzero(oa)[:5]:  # the openacc-train generator, on the episode's stream
+        rng = episode_stream(int(k), "mixed")
+        assert MIXED_KINDS[int(rng.integers(len(MIXED_KINDS)))] == "openacc"
+        np.testing.assert_array_equal(lead[k], dynamic_platform_profile_mps(rng.random(6),
+                                                                            sc.n_steps))
+

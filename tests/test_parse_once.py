@@ -107,7 +107,8 @@ def test_the_label_is_the_one_scenario_label_gives() -> None:
 
 
 UNKNOWN = ("cacc-bench: error: unknown scenario 'nope'; valid scenarios are: brake-v1, "
-           "catchup-v1, mixed-v1, openacc-l-v1, openacc-m-v1, openacc-s-v1, openacc-train-l-v1, "
+           "catchup-v1, mixed-v1, mixed-v2, openacc-l-v1, openacc-m-v1, openacc-s-v1, "
+           "openacc-train-l-v1, "
            "openacc-train-m-v1, openacc-train-s-v1, sine-v1, slowdown-v1, slowdown-v2\n")
 NO_OPTION = ("cacc-bench: error: scenario sine-v1 has no option 'nope'; its options are: "
              "amplitude_mps, frequency_hz\n")
