@@ -102,13 +102,18 @@ def settings_for(families: list[str], scenarios: list[str], n_vehicles: int
             for name in POINTS:
                 add(name, name, {}, "", "")
         if group == "marl":
-            from controllers.shared_policy import SHARED_POLICIES
+            from controllers.shared_policy import IPPO_VARIANTS, SHARED_POLICIES
 
             for algo in (*ALGORITHM_NAMES, *SHARED_POLICIES):
                 if not all(checkpoint_path(algo, sc, n_vehicles).exists() for sc in scenarios):
                     continue
                 if algo not in MARL_SWEEPS:
                     add(f"marl {algo}", algo, {}, "", "")
+                    if algo == "ippo":  # its shipped variants, as points beside it
+                        for variant in IPPO_VARIANTS:
+                            if all(checkpoint_path(algo, sc, n_vehicles, 0, VARIANT_DIR / variant)
+                                   .exists() for sc in scenarios):
+                                add(f"marl ippo {variant}", algo, {"variant": variant}, "", "")
                     continue
                 for w5 in MARL_SWEEPS[algo]:
                     opts = {} if w5 == DEFAULT_W5 else {"variant": w5_variant(w5)}

@@ -50,6 +50,10 @@ from envs.scenarios import Scenario
 SHARED_POLICIES: tuple[str, ...] = ("ippo", "mappo", "distill", "ippo-bdc")
 #: Those of them with one network per follower: they act at their trained N only.
 PER_AGENT_POLICIES: tuple[str, ...] = ("ippo-bdc",)
+#: Shipped variants of ``ippo`` (``ippo:variant=NAME``, folders below
+#: ``controllers/checkpoints/variants``): a residual on ``cacc``, the same with a time-aware
+#: critic, and the published OVM-gain action set.
+IPPO_VARIANTS: tuple[str, ...] = ("residual-cacc", "residual-timed", "ovm-gain")
 
 
 #: Fewest episodes' rows a per-agent actor (``ippo-bdc``, batched products ``(N, M, D) @ (N, D,

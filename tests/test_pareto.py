@@ -92,3 +92,32 @@ def test_marl_sweep_uses_the_shipped_w5_variants(tmp_path: Path, monkeypatch) ->
     assert [s["label"] for s in settings_for(["marl"], ["catchup-v1", "slowdown-v1"], 8)
             if s["controller"] == "bdc"] == ["bdc"]
     assert {s["family"] for s in settings} >= {"marl wac", "marl ia2c (power weight w5)"}
+
+
+def test_the_marl_family_shows_the_shared_learners_and_the_ippo_variants() -> None:
+    """Every shipped shared-policy learner is a point, and so is each shipped ``ippo`` variant
+    (the time-aware residual among them), on both published scenarios."""
+    from commands.pareto import settings_for
+    from controllers.shared_policy import IPPO_VARIANTS, SHARED_POLICIES
+
+    labels = [s["label"] for s in settings_for(["marl"], ["catchup-v1", "slowdown-v1"], 8)]
+    assert set(SHARED_POLICIES) <= set(labels)
+    assert [f"ippo[variant={v}]" for v in IPPO_VARIANTS] == [
+        x for x in labels if x.startswith("ippo[variant=")]
+
+
+def test_the_committed_reading_of_the_shared_learners_is_its_csv() -> None:
+    """The reading in ``docs/pareto/README.md`` quotes the committed ``pareto.csv``: the front's
+    size, and each shared learner's energy and spacing, the residuals on the front."""
+    docs = Path(__file__).resolve().parent.parent / "docs" / "pareto"
+    text = " ".join((docs / "README.md").read_text().split())
+    front = pd.read_csv(docs / "pareto.csv")
+    assert f"({int(front['non_dominated'].sum())} points, none collided)" in text
+    assert front["collisions"].sum() == 0
+    row = front.set_index("controller")
+    for label in ("ippo", "mappo", "ippo-bdc", "distill", "ippo[variant=residual-cacc]",
+                  "ippo[variant=residual-timed]", "ippo[variant=ovm-gain]"):
+        energy, gap = row.loc[label, ["energy_kwh_per_100km_mean", "gap_rmse_m_mean"]]
+        assert f"{energy:.2f}" in text and f"{gap:.2f} m" in text, label
+        on_front = bool(row.loc[label, "non_dominated"])
+        assert on_front == label.startswith("ippo[variant=residual"), label
