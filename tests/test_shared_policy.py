@@ -527,9 +527,15 @@ def test_the_string_stability_reading_of_the_docs(tmp_path: Path) -> None:
 
     from commands.cli import main as cli
 
+    timed = "ippo:variant=residual-timed,scenario="
     assert cli(["stability", "--controllers", "ippo:scenario=slowdown-v1,"
-                "distill:scenario=slowdown-v1", "--empirical", "--out", str(tmp_path)]) == 0
+                f"distill:scenario=slowdown-v1,{timed}slowdown-v1,{timed}catchup-v1",
+                "--empirical", "--out", str(tmp_path)]) == 0
     summary = pd.read_csv(tmp_path / "stability_summary.csv")
     peaks = dict(zip(summary["controller"], summary["peak_gain"]))
     assert round(peaks["ippo[scenario=slowdown-v1]"], 3) == 1.356
     assert round(peaks["distill[scenario=slowdown-v1]"], 3) == 1.539
+    text = " ".join((Path(__file__).resolve().parent.parent / "docs" / "learned-control.md")
+                    .read_text().split())
+    for sc in ("slowdown-v1", "catchup-v1"):
+        assert f"{peaks[f'ippo[scenario={sc},variant=residual-timed]']:.3f}" in text, sc
