@@ -446,7 +446,7 @@ def ensure_ray(workers: int, address: str | None = None) -> object:
         ) from None
     import signal
 
-    from envs.interrupt import Interrupted, held, raise_if_interrupted, reinstall
+    from envs.interrupt import Interrupted, exit_at_once, held, raise_if_interrupted, reinstall
 
     if ray.is_initialized():
         return ray
@@ -467,12 +467,13 @@ def ensure_ray(workers: int, address: str | None = None) -> object:
         os.environ.setdefault("RAY_AUTH_MODE", "disabled")
         _start_reaper()
         # not interrupted half-way (a half-made core worker crashed the process at exit,
-        # SIGSEGV): signals held, and Ray's own SIGTERM handler (sys.exit(15) from anywhere
-        # inside its start) not installed; a signal received meanwhile is raised after
+        # SIGSEGV) nor waited for (seconds): a signal ends the command's process at once (the
+        # reaper ends Ray's), or, called from Python, is held and raised after; Ray's own
+        # SIGTERM handler (sys.exit(15) from anywhere inside its start) not installed
         utils = getattr(getattr(ray, "_private", None), "utils", None)
         own_handler = getattr(utils, "set_sigterm_handler", None)
         try:
-            with held():
+            with exit_at_once():
                 if own_handler is not None:
                     utils.set_sigterm_handler = lambda handler: None  # type: ignore[union-attr]
                 ray.init(

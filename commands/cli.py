@@ -108,16 +108,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     with 128 + the signal's number and one line on stderr, after its worker processes and Ray
     were stopped; repeated signals never interrupt that shutdown.
     """
-    from envs.interrupt import install
+    from envs.interrupt import install, set_exit_line
 
     on_main_thread = threading.current_thread() is threading.main_thread()
     previous = install() if on_main_thread else {}
+    args = sys.argv[1:] if argv is None else list(argv)
+    command = args[0] if args else ""
+    if argv is None:  # its own process: a start-up that cannot be unwound may end it at once
+        set_exit_line(lambda signum: interrupted_line(signum, command))
     try:
         return _main(argv)
     except KeyboardInterrupt as exc:
-        args = sys.argv[1:] if argv is None else list(argv)
-        return _interrupted(exc, args[0] if args else "")
+        return _interrupted(exc, command)
     finally:
+        set_exit_line(None)
         _end(previous, restore_handlers=argv is not None)
 
 
@@ -212,11 +216,16 @@ def _interrupted(exc: KeyboardInterrupt, command: str = "") -> int:
     # Ray's blocking calls do)
     signum = received() or (exc.signum if isinstance(exc, Interrupted) else signal.SIGINT)
     _stop_workers()
+    print(interrupted_line(signum, command), file=sys.stderr)
+    return 128 + int(signum)
+
+
+def interrupted_line(signum: int, command: str) -> str:
+    """The one line an interrupted ``command`` prints (what was kept, how to go on)."""
     advice = ("the run in flight was not stored, finished runs are (complete with --resume)"
               if command in RESUMABLE else
               "nothing in flight was written, finished files were left as they were (rerun it)")
-    print(f"cacc-bench: interrupted ({signal.Signals(signum).name}); {advice}", file=sys.stderr)
-    return 128 + int(signum)
+    return f"cacc-bench: interrupted ({signal.Signals(signum).name}); {advice}"
 
 
 def _stop_workers() -> None:

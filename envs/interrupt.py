@@ -14,9 +14,10 @@ worker pools, the command line's exit path), a signal is only recorded. A later 
 
 from __future__ import annotations
 
+import os
 import signal
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any
 
@@ -26,6 +27,8 @@ REPEAT_GRACE_S = 10.0
 _received: int | None = None
 _raised_at: float | None = None
 _holding = 0
+_exit_line: Callable[[int], str] | None = None
+_exiting_at_once = 0
 
 
 class Interrupted(KeyboardInterrupt):
@@ -40,6 +43,9 @@ def _handler(signum: int, frame: Any) -> None:
     global _received, _raised_at
     if _received is None:
         _received = signum  # the first signal names the interrupt (and the exit status)
+    if _exiting_at_once > 0 and _exit_line is not None:
+        os.write(2, (_exit_line(_received) + "\n").encode())
+        os._exit(128 + _received)
     if _holding > 0:
         return
     if _raised_at is not None and time.monotonic() - _raised_at < REPEAT_GRACE_S:
@@ -100,6 +106,31 @@ def held() -> Iterator[None]:
         yield
     finally:
         _holding -= 1
+
+
+def set_exit_line(line: Callable[[int], str] | None) -> None:
+    """The line (from the signal's number) a signal prints inside :func:`exit_at_once` before
+    the process ends; set by the command line for a command run as its own process, never for
+    one called from Python (None: the block only holds signals)."""
+    global _exit_line
+    _exit_line = line
+
+
+@contextmanager
+def exit_at_once() -> Iterator[None]:
+    """Within the block, a signal ends the process at once: :func:`set_exit_line`'s line on
+    stderr, exit status 128 + the signal's number, no Python clean-up. For a start-up that can
+    neither be interrupted half-way nor be waited for (Ray's ``ray.init``: several seconds; a
+    half-made core worker crashed the process at exit) while nothing of the command's own is
+    being written; the processes it started are ended by :mod:`benchmark.reaper`. Without an
+    exit line it is :func:`held`."""
+    global _exiting_at_once
+    _exiting_at_once += 1
+    try:
+        with held():
+            yield
+    finally:
+        _exiting_at_once -= 1
 
 
 def hold_forever() -> None:
