@@ -15,10 +15,11 @@ Search space (the same for all seven; ``consensus_eps`` only where the algorithm
 ``power_baseline`` in {paper (0 kW), cruise (P(v*, 0))}; ``advantage_norm`` in {off, on};
 ``consensus_eps`` log-uniform in [1e-4, 1e-2] (DCEA, BDC).
 
-The shared-policy learners ``ippo`` and ``mappo`` (:mod:`marl.ppo`) get the same budget
-(trials, steps, seeds, score) over their own knobs: ``lr`` log-uniform in [1e-4, 3e-3];
+The shared-policy learners ``ippo``, ``mappo`` and ``ippo-bdc`` (:mod:`marl.ppo`) get the same
+budget (trials, steps, seeds, score) over their own knobs: ``lr`` log-uniform in [1e-4, 3e-3];
 ``init_log_std`` uniform in [-3, -1]; ``gamma`` in {0.99, 0.995}; ``n_envs`` in {64, 256};
-``reward_alpha`` in {0, 0.5}. ``--set KEY=VALUE`` fixes a config field of theirs in every trial
+``reward_alpha`` in {0, 0.5}; for ``ippo-bdc`` also ``consensus_eps`` log-uniform in [1e-4,
+1e-2], as for BDC. ``--set KEY=VALUE`` fixes a config field of theirs in every trial
 (for example ``--set prior=cacc``, the residual variant) and is recorded with the best config.
 
 Trials 1..3 are random draws that every study shares (sampler seed ``seed + k``), then TPE
@@ -59,22 +60,27 @@ EPS_ALGOS = ("dcea", "bdc")
 
 
 #: Learners of one shared policy that ``tune`` also tunes (their own search space).
-SHARED_TUNED = ("ippo", "mappo")
+SHARED_TUNED = ("ippo", "mappo", "ippo-bdc")
+#: Those with BDC's consensus step on the critics (``consensus_eps`` searched as for BDC).
+SHARED_EPS_ALGOS = ("ippo-bdc",)
 #: The config fields their search space draws (``--set`` cannot fix these: each trial's value
 #: would replace it).
-SHARED_SEARCHED = ("lr", "init_log_std", "gamma", "n_envs", "reward_alpha")
+SHARED_SEARCHED = ("lr", "init_log_std", "gamma", "n_envs", "reward_alpha", "consensus_eps")
 
 
 def search_space(trial: Any, algo: str) -> dict[str, Any]:
     """Config overrides of one trial (the same ranges for every algorithm of a family)."""
     if algo in SHARED_TUNED:
-        return {
+        shared: dict[str, Any] = {
             "lr": trial.suggest_float("lr", 1e-4, 3e-3, log=True),
             "init_log_std": trial.suggest_float("init_log_std", -3.0, -1.0),
             "gamma": trial.suggest_categorical("gamma", [0.99, 0.995]),
             "n_envs": trial.suggest_categorical("n_envs", [64, 256]),
             "reward_alpha": trial.suggest_categorical("reward_alpha", [0.0, 0.5]),
         }
+        if algo in SHARED_EPS_ALGOS:
+            shared["consensus_eps"] = trial.suggest_float("consensus_eps", 1e-4, 1e-2, log=True)
+        return shared
     opts: dict[str, Any] = {
         "lr_scale": trial.suggest_float("lr_scale", 1.0, 8.0, log=True),
         "entropy_coef_final": trial.suggest_float("entropy_coef_final", 5e-4, 5e-2, log=True),
@@ -94,8 +100,11 @@ def default_params(algo: str) -> dict[str, Any]:
         from marl.ppo_nets import PPOConfig
 
         ppo = PPOConfig()
-        return {"lr": ppo.lr, "init_log_std": ppo.init_log_std, "gamma": ppo.gamma,
-                "n_envs": ppo.n_envs, "reward_alpha": ppo.reward_alpha}
+        point = {"lr": ppo.lr, "init_log_std": ppo.init_log_std, "gamma": ppo.gamma,
+                 "n_envs": ppo.n_envs, "reward_alpha": ppo.reward_alpha}
+        if algo in SHARED_EPS_ALGOS:
+            point["consensus_eps"] = ppo.consensus_eps
+        return point
     from marl.config import algorithm
 
     cfg = algorithm(algo).config_cls()
@@ -125,7 +134,8 @@ def _parser() -> argparse.ArgumentParser:
         description="Tune every MARL algorithm with the same budget (Optuna, validation seeds).",
     )
     p.add_argument("--algos", default=",".join(ALGORITHM_NAMES),
-                   help="comma list of algorithms (default: all seven; also ippo, mappo)")
+                   help="comma list of algorithms (default: all seven; also ippo, mappo, "
+                        "ippo-bdc)")
     p.add_argument("--scenarios", default="catchup-v1,slowdown-v1",
                    help="comma list of scenarios (default catchup-v1,slowdown-v1)")
     p.add_argument("--vehicles", type=int, default=8, help="followers N (default 8)")
@@ -140,7 +150,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--workers", type=int, default=2, help="processes or Ray CPUs (default 2)")
     p.add_argument("--ray-address", default=None, help="attach to this Ray cluster")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                   help="fix a config field of ippo/mappo in every trial (repeatable)")
+                   help="fix a config field of ippo/mappo/ippo-bdc in every trial "
+                        "(repeatable)")
     return p
 
 

@@ -84,7 +84,7 @@ def test_an_unknown_shared_policy_option_names_the_valid_ones(
 
 
 def test_tune_refuses_to_fix_exactly_the_fields_it_searches() -> None:
-    from commands.tune import SHARED_SEARCHED, search_space
+    from commands.tune import SHARED_SEARCHED, SHARED_TUNED, default_params, search_space
 
     class FirstChoice:
         def suggest_float(self, name: str, low: float, high: float, log: bool = False) -> float:
@@ -93,8 +93,11 @@ def test_tune_refuses_to_fix_exactly_the_fields_it_searches() -> None:
         def suggest_categorical(self, name: str, choices: list[object]) -> object:
             return choices[0]
 
-    for algo in ("ippo", "mappo"):
-        assert sorted(search_space(FirstChoice(), algo)) == sorted(SHARED_SEARCHED)
+    spaces = {algo: set(search_space(FirstChoice(), algo)) for algo in SHARED_TUNED}
+    assert set().union(*spaces.values()) == set(SHARED_SEARCHED)
+    for algo, space in spaces.items():  # every study's first trial is the default config
+        assert set(default_params(algo)) == space, algo
+    assert spaces["ippo-bdc"] - spaces["ippo"] == {"consensus_eps"}
 
 
 @pytest.mark.parametrize("algo_args", [

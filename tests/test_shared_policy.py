@@ -539,3 +539,21 @@ def test_the_string_stability_reading_of_the_docs(tmp_path: Path) -> None:
                     .read_text().split())
     for sc in ("slowdown-v1", "catchup-v1"):
         assert f"{peaks[f'ippo[scenario={sc},variant=residual-timed]']:.3f}" in text, sc
+
+
+def test_the_ippo_bdc_tuning_reading_is_the_shipped_tuned_configs() -> None:
+    """``docs/learned-control.md`` says every ``ippo-bdc`` trial collided at the tuning budget:
+    the shipped best configs (the fewest collisions) collide, in as many episodes as it says,
+    and were searched over BDC's consensus step too."""
+    import json
+
+    root = Path(__file__).resolve().parent.parent
+    text = " ".join((root / "docs" / "learned-control.md").read_text().split())
+    configs = json.loads((root / "marl" / "tuned_configs.json").read_text())["configs"]
+    best = [configs[f"ippo-bdc/{sc}"] for sc in ("catchup-v1", "slowdown-v1")]
+    assert all(b["validation_collisions_sampled"] > 0 and "consensus_eps" in b["config"]
+               for b in best)
+    fewest = min(int(b["validation_collisions_sampled"]) for b in best)
+    assert f"collides in {fewest} to 32 of the 32 validation episodes" in text
+    assert all(b["command"] == "cacc-bench tune --algos ippo-bdc --scenarios "
+               "catchup-v1,slowdown-v1 --out results/tune-bdc" for b in best)
