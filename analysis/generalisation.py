@@ -53,6 +53,9 @@ COLUMNS: tuple[Column, ...] = (
     Column("OpenACC S", "openacc-s-v1"),
     Column("OpenACC M", "openacc-m-v1"),
     Column("OpenACC L", "openacc-l-v1"),
+    Column("OpenACC S N=4", "openacc-s-v1", n_vehicles=4),
+    Column("OpenACC M N=4", "openacc-m-v1", n_vehicles=4),
+    Column("OpenACC L N=4", "openacc-l-v1", n_vehicles=4),
     Column("catchup N=4", "catchup-v1", n_vehicles=4),
     Column("catchup N=12", "catchup-v1", n_vehicles=12),
     Column("catchup 0.2 s 30 %", "catchup-v1", comm_delay_s=0.2, packet_loss=0.3),
@@ -62,6 +65,9 @@ COLUMNS: tuple[Column, ...] = (
 MODEL_BASED: tuple[str, ...] = ("cacc", "mpc-qp", "mpc", "cmpc", "acc", "ovm", "duty")
 #: Training scenarios of the shipped learned policies at N = 8.
 TRAINED_ON: tuple[str, ...] = ("catchup-v1", "slowdown-v1")
+#: The training distributions ``ippo`` is shipped trained on (``mixed-v2`` adds the OpenACC-like
+#: leader to ``mixed-v1``'s four kinds).
+MIXED_FAMILIES: tuple[str, ...] = ("mixed-v1", "mixed-v2")
 #: Training seeds pooled in a learned row.
 TRAIN_SEEDS: tuple[int, ...] = (0, 1, 2)
 #: The N a shared policy's checkpoint is filed under (it acts at any N).
@@ -131,11 +137,11 @@ class Row:
 def learned_rows(available: Any) -> list[Row]:
     """Every shipped learned policy, per training scenario or family: the paper's seven (one
     network per follower, N = 8 only), the shared policies (any N), ``ippo-bdc`` (N = 8), the
-    residual and OVM-gain variants of ``ippo``, ``ippo`` trained on ``mixed-v1``, then the
+    residual and OVM-gain variants of ``ippo``, ``ippo`` trained on :data:`MIXED_FAMILIES`, then the
     per-agent policies trained at another N (:data:`OTHER_N_POLICIES`, one seed each, named in
     the label); ``available(controller, options, n_vehicles)`` says whether a checkpoint exists
     (rows lacking one are left out by the caller)."""
-    from controllers.shared_policy import PER_AGENT_POLICIES, SHARED_POLICIES
+    from controllers.shared_policy import IPPO_VARIANTS, PER_AGENT_POLICIES, SHARED_POLICIES
     from marl.config import ALGORITHM_NAMES
 
     rows: list[Row] = []
@@ -144,8 +150,9 @@ def learned_rows(available: Any) -> list[Row]:
         for sc in TRAINED_ON:
             rows.append(Row(f"{algo} ({sc})", algo, (("scenario", sc),), True,
                             None if shared else 8))
-    rows.append(Row("ippo (mixed-v1)", "ippo", (("scenario", "mixed-v1"),), True))
-    for variant in ("residual-cacc", "residual-timed", "ovm-gain"):
+    for family in MIXED_FAMILIES:
+        rows.append(Row(f"ippo ({family})", "ippo", (("scenario", family),), True))
+    for variant in IPPO_VARIANTS:
         for sc in TRAINED_ON:
             rows.append(Row(f"ippo {variant} ({sc})", "ippo",
                             (("scenario", sc), ("variant", variant)), True))
@@ -264,7 +271,9 @@ def write_report(cells: Any, out: Path, command: str, episodes: int,
         "alone), actions sampled as trained, with and without the safety filter (`safe:`), then "
         "the model-based controllers. A cell: colliding episodes / episodes, mean reward [95 % "
         "two-stage interval], gap RMSE in m; \"n/a\": the controller cannot act at that N. "
-        "Columns use N = 8 unless named. Tables: `matrix.csv`; figure: "
+        "Columns use N = 8 unless named; the OpenACC windows run also at N = 4, their "
+        "scenarios' default and the N the OpenACC-like families' policies were trained at. "
+        "Tables: `matrix.csv`; figure: "
         "`figures/generalisation.png`.",
         "",
         "![matrix](figures/generalisation.png)",
