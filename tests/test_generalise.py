@@ -176,18 +176,24 @@ def test_the_readme_reading_is_the_committed_matrix() -> None:
     learned = [r for r in dict.fromkeys(m["row"]) if not r.startswith("safe:")
                and r not in MODEL_BASED]
     colliding = [r for r in learned if m[m["row"] == r]["collisions"].sum() > 0]
-    one_scenario = [r for r in learned if "mixed-v1" not in r]
+    one_scenario = [r for r in learned if "(mixed-" not in r]
     assert (f"Of the {len(one_scenario)} learned rows trained on one scenario or one "
             f"OpenACC-like family, {sum(r in colliding for r in one_scenario)} collide "
             "somewhere") in text
     at_n4 = [r for r in learned if "N=4" in r]
     assert len(at_n4) == 4 and "the four trained at N = 4 collide in none" in text
     assert all(m[m["row"] == r]["collisions"].sum() == 0 for r in at_n4)
-    mixed = m[m["row"] == "ippo (mixed-v1)"]
-    assert mixed["collisions"].sum() == 0 and len(mixed) == 11
+    assert all(len(m[m["row"] == r]) == 4 for r in at_n4)  # the N = 4 columns, OpenACC's included
+    assert "on fourteen test conditions" in text and len(COLUMNS) == 14
+    for family in ("mixed-v1", "mixed-v2"):
+        mixed = m[m["row"] == f"ippo ({family})"]
+        assert mixed["collisions"].sum() == 0 and len(mixed) == len(COLUMNS)
     cell = m.set_index(["row", "column"])["reward"]
-    for row, value in (("ippo (mixed-v1)", "-657.7"), ("duty", "-775.3"), ("cacc", "-609.6")):
-        assert f"{cell[(row, 'brake')]:.1f}" == value and value in text
+    for row, column, value in (("ippo (mixed-v1)", "brake", "-657.7"), ("duty", "brake", "-775.3"),
+                               ("cacc", "brake", "-609.6"), ("ippo (mixed-v2)", "brake", "-737.8"),
+                               ("ippo (mixed-v2)", "OpenACC S", "-391.6"),
+                               ("ippo (mixed-v1)", "OpenACC S", "-366.4")):
+        assert f"{cell[(row, column)]:.1f}" == value and value in text, (row, column)
     assert m[m["row"].str.startswith("safe:")]["collisions"].sum() == 0
     cost = pd.read_csv(DOCS / "filter_cost.csv")
     for x in (cost["reward_change"].min(), cost["reward_change"].max()):
@@ -202,8 +208,13 @@ def test_the_mixed_training_reading_of_the_docs_is_the_checkpoints() -> None:
 
     text = (DOCS.parent / "learned-control.md").read_text()
     part = text[text.index("## Training on a distribution"):text.index("## Equal tuning")]
-    for seed in (0, 1, 2):
-        data = load_checkpoint(checkpoint_path("ippo", "mixed-v1", 8, seed))
+    cell = pd.read_csv(DOCS / "matrix.csv").set_index(["row", "column"])["reward"]
+    flat = " ".join(part.split())
+    for family in ("mixed-v1", "mixed-v2"):
+        for column in ("OpenACC S", "OpenACC M", "OpenACC L", "brake"):
+            assert f"{cell[(f'ippo ({family})', column)]:.1f}" in flat, (family, column)
+    for family, seed in ((f, s) for f in ("mixed-v1", "mixed-v2") for s in (0, 1, 2)):
+        data = load_checkpoint(checkpoint_path("ippo", family, 8, seed))
         assert f"{data['curve_summary']['best_reward']:.2f}" in part
         assert (data["config"]["vehicles_min"], data["config"]["vehicles_max"]) == (4, 12)
         assert (data["config"]["comm_delay_max_s"], data["config"]["packet_loss_max"]) == (0.2, 0.3)
