@@ -557,3 +557,53 @@ def test_the_ippo_bdc_tuning_reading_is_the_shipped_tuned_configs() -> None:
     assert f"collides in {fewest} to 32 of the 32 validation episodes" in text
     assert all(b["command"] == "cacc-bench tune --algos ippo-bdc --scenarios "
                "catchup-v1,slowdown-v1 --out results/tune-bdc" for b in best)
+
+
+def _retrained(prefix: str) -> dict[str, list[tuple[float, int]]]:
+    """Kept validation reward and collisions of the tuned configs retrained at 1e6 steps, by
+    scenario, from their training logs in ``docs/tuning/retrained``."""
+    import re
+
+    folder = Path(__file__).resolve().parent.parent / "docs" / "tuning" / "retrained"
+    out: dict[str, list[tuple[float, int]]] = {}
+    for path in sorted(folder.glob(f"{prefix}--*.log")):
+        last = path.read_text().strip().splitlines()[-1]
+        m = re.search(r"__(\w+-v1)__n8__s\d: 1\d{6} steps .*validation reward (-?[\d.]+), "
+                      r"collisions (\d+)$", last)
+        assert m, last
+        out.setdefault(m[1], []).append((float(m[2]), int(m[3])))
+    assert sorted(out) == ["catchup-v1", "slowdown-v1"] and all(len(v) == 3 for v in out.values())
+    return out
+
+
+def test_the_tuning_readings_are_the_committed_trials_and_logs() -> None:
+    """The tuned-and-retrained numbers ``docs/learned-control.md`` quotes for ``ippo-bdc`` and
+    the time-aware residual are their committed trials and training logs, and the comparison
+    with the shipped runs reads the shipped checkpoints."""
+    import pandas as pd
+
+    from controllers.policy import VARIANT_DIR, checkpoint_path
+    from marl.checkpoint import load_checkpoint
+
+    root = Path(__file__).resolve().parent.parent
+    text = " ".join((root / "docs" / "learned-control.md").read_text().split())
+    timed = _retrained("residual-timed-tuned")
+    trials = pd.read_csv(root / "docs" / "tuning" / "trials-residual-timed.csv")
+    for sc in ("catchup-v1", "slowdown-v1"):
+        assert f"({trials[trials['scenario'] == sc]['score'].max():.2f})" in text, sc
+        assert all(c == 0 and f"{r:.2f}" in text for r, c in timed[sc]), sc
+    shipped = [load_checkpoint(checkpoint_path("ippo", "slowdown-v1", 8, s,
+                                               VARIANT_DIR / "residual-timed"))
+               ["curve_summary"]["best_reward"] for s in (0, 1, 2)]
+    tuned = [r for r, _ in timed["slowdown-v1"]]
+    assert f"its mean ({np.mean(tuned):.2f}) is above H's ({np.mean(shipped):.2f})" in text
+    assert np.mean(tuned) > np.mean(shipped)
+    shipped_c = [load_checkpoint(checkpoint_path("ippo", "catchup-v1", 8, s,
+                                                 VARIANT_DIR / "residual-timed"))
+                 ["curve_summary"]["best_reward"] for s in (0, 1, 2)]
+    assert all(t < s for (t, _), s in zip(timed["catchup-v1"], shipped_c))  # below H per seed
+    bdc = _retrained("ippo-bdc-tuned")
+    assert all(f"{r:.2f}" in text and c == 0 for r, c in bdc["catchup-v1"])
+    assert all(c == 32 for _, c in bdc["slowdown-v1"])  # "collides in all 32 ... on every seed"
+    bdc_trials = pd.read_csv(root / "docs" / "tuning" / "trials-ippo-bdc.csv")
+    assert len(bdc_trials) == 16 and (bdc_trials["selected_eval_collisions_sampled"] > 0).all()
