@@ -44,7 +44,10 @@ def _handler(signum: int, frame: Any) -> None:
     if _received is None:
         _received = signum  # the first signal names the interrupt (and the exit status)
     if _exiting_at_once > 0 and _exit_line is not None:
-        os.write(2, (_exit_line(_received) + "\n").encode())
+        try:
+            os.write(2, (_exit_line(_received) + "\n").encode())
+        except OSError:  # no stderr to tell: the status still says it
+            pass
         os._exit(128 + _received)
     if _holding > 0:
         return
