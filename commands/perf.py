@@ -284,6 +284,8 @@ def _print_table(out: dict[str, Any]) -> None:
             else:
                 print(f"  {name:<{w}} {t}")
     if "train_env_steps_per_s" in out:
+        from controllers.shared_policy import PER_AGENT_POLICIES
+
         print(f"training on {out['train_device']} (environment steps/s, one process, one torch "
               "thread; median of the runs):")
         if not out["train_env_steps_per_s"] and not out.get("train_shared_env_steps_per_s"):
@@ -297,8 +299,9 @@ def _print_table(out: dict[str, Any]) -> None:
         for algo, rate in out.get("train_shared_env_steps_per_s", {}).items():
             runs = out["train_shared_env_steps_per_s_runs"][algo]
             spread = f", runs {min(runs):,.0f} to {max(runs):,.0f}" if len(runs) > 1 else ""
-            print(f"  {algo:<10} {rate:10,.0f}  (one policy shared by the followers, accel mode; "
-                  f"target 34,000{spread})")
+            kind = ("a network per follower, BDC's consensus" if algo in PER_AGENT_POLICIES
+                    else "one policy shared by the followers")
+            print(f"  {algo:<10} {rate:10,.0f}  ({kind}, accel mode; target 34,000{spread})")
         if "train_population_env_steps_per_s" in out:
             k = out["train_population_size"]
             print(f"training a population of {k} seeds in one process, one torch thread (total "

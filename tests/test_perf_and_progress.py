@@ -70,3 +70,17 @@ def test_progress_on_terminal_only() -> None:
     q.advance()
     q.close()
     assert log.getvalue() == ""
+
+
+def test_perf_names_what_each_shared_learner_trains(capsys) -> None:
+    """``ippo-bdc`` trains a network per follower: its perf line does not call it one shared
+    policy."""
+    from commands.perf import _print_table
+
+    _print_table({"train_env_steps_per_s": {}, "train_device": "cpu",
+                  "train_shared_env_steps_per_s": {"ippo": 7882.0, "ippo-bdc": 5768.0},
+                  "train_shared_env_steps_per_s_runs": {"ippo": [7570.0, 7965.0],
+                                                        "ippo-bdc": [5659.0, 6027.0]}})
+    lines = capsys.readouterr().out.splitlines()
+    assert "one policy shared by the followers" in lines[1] and lines[1].split()[0] == "ippo"
+    assert "a network per follower" in lines[2] and "7,882" in lines[1] and "5,768" in lines[2]
