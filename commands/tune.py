@@ -55,14 +55,12 @@ COLLISION_PENALTY = 10_000.0
 STARTUP_TRIALS = 4
 #: Most trials per study.
 MAX_TRIALS = 1000
-#: Algorithms with a consensus step size.
-EPS_ALGOS = ("dcea", "bdc")
+#: Algorithms with a consensus step size (``consensus_eps`` searched in both families).
+EPS_ALGOS = ("dcea", "bdc", "ippo-bdc")
 
 
 #: Learners of one shared policy that ``tune`` also tunes (their own search space).
 SHARED_TUNED = ("ippo", "mappo", "ippo-bdc")
-#: Those with BDC's consensus step on the critics (``consensus_eps`` searched as for BDC).
-SHARED_EPS_ALGOS = ("ippo-bdc",)
 #: The config fields their search space draws (``--set`` cannot fix these: each trial's value
 #: would replace it).
 SHARED_SEARCHED = ("lr", "init_log_std", "gamma", "n_envs", "reward_alpha", "consensus_eps")
@@ -70,25 +68,25 @@ SHARED_SEARCHED = ("lr", "init_log_std", "gamma", "n_envs", "reward_alpha", "con
 
 def search_space(trial: Any, algo: str) -> dict[str, Any]:
     """Config overrides of one trial (the same ranges for every algorithm of a family)."""
+    opts: dict[str, Any]
     if algo in SHARED_TUNED:
-        shared: dict[str, Any] = {
+        opts = {
             "lr": trial.suggest_float("lr", 1e-4, 3e-3, log=True),
             "init_log_std": trial.suggest_float("init_log_std", -3.0, -1.0),
             "gamma": trial.suggest_categorical("gamma", [0.99, 0.995]),
             "n_envs": trial.suggest_categorical("n_envs", [64, 256]),
             "reward_alpha": trial.suggest_categorical("reward_alpha", [0.0, 0.5]),
         }
-        if algo in SHARED_EPS_ALGOS:
-            shared["consensus_eps"] = trial.suggest_float("consensus_eps", 1e-4, 1e-2, log=True)
-        return shared
-    opts: dict[str, Any] = {
-        "lr_scale": trial.suggest_float("lr_scale", 1.0, 8.0, log=True),
-        "entropy_coef_final": trial.suggest_float("entropy_coef_final", 5e-4, 5e-2, log=True),
-        "power_baseline_kw": {"paper": 0.0, "cruise": None}[
-            trial.suggest_categorical("power_baseline", ["paper", "cruise"])
-        ],
-        "advantage_norm": trial.suggest_categorical("advantage_norm", [False, True]),
-    }
+    else:
+        opts = {
+            "lr_scale": trial.suggest_float("lr_scale", 1.0, 8.0, log=True),
+            "entropy_coef_final": trial.suggest_float("entropy_coef_final", 5e-4, 5e-2,
+                                                      log=True),
+            "power_baseline_kw": {"paper": 0.0, "cruise": None}[
+                trial.suggest_categorical("power_baseline", ["paper", "cruise"])
+            ],
+            "advantage_norm": trial.suggest_categorical("advantage_norm", [False, True]),
+        }
     if algo in EPS_ALGOS:
         opts["consensus_eps"] = trial.suggest_float("consensus_eps", 1e-4, 1e-2, log=True)
     return opts
@@ -96,26 +94,25 @@ def search_space(trial: Any, algo: str) -> dict[str, Any]:
 
 def default_params(algo: str) -> dict[str, Any]:
     """The search-space point of the algorithm's default config (every study's first trial)."""
+    cfg: Any
     if algo in SHARED_TUNED:
         from marl.ppo_nets import PPOConfig
 
-        ppo = PPOConfig()
-        point = {"lr": ppo.lr, "init_log_std": ppo.init_log_std, "gamma": ppo.gamma,
-                 "n_envs": ppo.n_envs, "reward_alpha": ppo.reward_alpha}
-        if algo in SHARED_EPS_ALGOS:
-            point["consensus_eps"] = ppo.consensus_eps
-        return point
-    from marl.config import algorithm
+        cfg = PPOConfig()
+        params = {"lr": cfg.lr, "init_log_std": cfg.init_log_std, "gamma": cfg.gamma,
+                  "n_envs": cfg.n_envs, "reward_alpha": cfg.reward_alpha}
+    else:
+        from marl.config import algorithm
 
-    cfg = algorithm(algo).config_cls()
-    params: dict[str, Any] = {
-        "lr_scale": cfg.lr_scale,
-        "entropy_coef_final": cfg.entropy_coef_final,
-        "power_baseline": "paper" if cfg.power_baseline_kw == 0.0 else "cruise",
-        "advantage_norm": cfg.advantage_norm,
-    }
+        cfg = algorithm(algo).config_cls()
+        params = {
+            "lr_scale": cfg.lr_scale,
+            "entropy_coef_final": cfg.entropy_coef_final,
+            "power_baseline": "paper" if cfg.power_baseline_kw == 0.0 else "cruise",
+            "advantage_norm": cfg.advantage_norm,
+        }
     if algo in EPS_ALGOS:
-        params["consensus_eps"] = cfg.consensus_eps  # type: ignore[attr-defined]
+        params["consensus_eps"] = cfg.consensus_eps
     return params
 
 
