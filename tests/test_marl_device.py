@@ -108,3 +108,27 @@ def test_a_gpu_run_is_deterministic() -> None:
     one, two = _trained("bdc", [3], "cuda"), _trained("bdc", [3], "cuda")
     for (key, p), q in zip(one.net.named_parameters(), two.net.parameters(), strict=True):
         assert torch.equal(p, q), key
+
+
+def test_the_populations_note_quotes_the_committed_gpu_check() -> None:
+    """The GPU table and protocol times of docs/populations.md are those of the committed
+    output of docs/scripts/gpu_check.sh (docs/gpu-check/), run on a lent GPU machine."""
+    import json
+    import re
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    note = (root / "docs" / "populations.md").read_text()
+    section = note[note.index("## On a GPU"):note.index("## The measurements in brief")]
+    rows = json.loads((root / "docs" / "gpu-check" / "throughput.json").read_text())
+    rate = {(r["algo"], r["population"], r["device"]): r["env_steps_per_s"] for r in rows}
+    for algo in ("ia2c", "bdc"):
+        for k in (6, 1):
+            line = f"| `{algo}` | {k} | {rate[algo, k, 'cuda']:,} | {rate[algo, k, 'cpu']:,} |"
+            assert line in section, line
+        gain = rate[algo, 6, "cuda"] / rate[algo, 6, "cpu"]
+        assert f"{gain:.1f}x (`{algo}`)" in section
+    assert "12 passed, 1 skipped" in (root / "docs" / "gpu-check" / "gpu-tests.log").read_text()
+    times = dict(re.findall(r"protocol on (\w+): exit 0, ([\d.]+) s wall",
+                            (root / "docs" / "gpu-check" / "protocol.txt").read_text()))
+    assert f"{times['cuda']} s with `--device cuda`, {times['cpu']} s on the 16 CPU cores" in section
