@@ -11,6 +11,7 @@ import os
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
+from benchmark.reaper import hand_over
 from benchmark.suite import RunKey, batch_keys, execute_batch
 from envs.errors import ConfigError
 
@@ -405,6 +406,13 @@ def _start_reaper() -> None:
                                stdin=subprocess.PIPE, env=env, cwd=root)
 
 
+def _hand_over_to_reaper() -> None:
+    """Give the reaper this process's descendants now (a signal ends the process at once):
+    the Ray agents it has not scanned yet would be orphans once Ray's raylet dies with us."""
+    if _reaper is not None and _reaper.stdin is not None:
+        hand_over(_reaper.stdin.fileno(), os.getpid())
+
+
 def shutdown_ray() -> None:
     """Stop the Ray instance this process started or attached to, then let the reaper end what
     Ray's shutdown missed, and wait for it (signals only recorded meanwhile)."""
@@ -473,7 +481,7 @@ def ensure_ray(workers: int, address: str | None = None) -> object:
         utils = getattr(getattr(ray, "_private", None), "utils", None)
         own_handler = getattr(utils, "set_sigterm_handler", None)
         try:
-            with exit_at_once():
+            with exit_at_once(_hand_over_to_reaper):
                 if own_handler is not None:
                     utils.set_sigterm_handler = lambda handler: None  # type: ignore[union-attr]
                 ray.init(

@@ -29,6 +29,8 @@ _raised_at: float | None = None
 _holding = 0
 _exit_line: Callable[[int], str] | None = None
 _exiting_at_once = 0
+#: Run by a signal inside :func:`exit_at_once` just before the process ends (its argument).
+_before_exit: Callable[[], None] | None = None
 
 
 class Interrupted(KeyboardInterrupt):
@@ -44,6 +46,11 @@ def _handler(signum: int, frame: Any) -> None:
     if _received is None:
         _received = signum  # the first signal names the interrupt (and the exit status)
     if _exiting_at_once > 0 and _exit_line is not None:
+        if _before_exit is not None:
+            try:
+                _before_exit()
+            except Exception:  # ending is what matters now
+                pass
         try:
             os.write(2, (_exit_line(_received) + "\n").encode())
         except OSError:  # no stderr to tell: the status still says it
@@ -120,20 +127,23 @@ def set_exit_line(line: Callable[[int], str] | None) -> None:
 
 
 @contextmanager
-def exit_at_once() -> Iterator[None]:
-    """Within the block, a signal ends the process at once: :func:`set_exit_line`'s line on
-    stderr, exit status 128 + the signal's number, no Python clean-up. For a start-up that can
-    neither be interrupted half-way nor be waited for (Ray's ``ray.init``: several seconds; a
-    half-made core worker crashed the process at exit) while nothing of the command's own is
-    being written; the processes it started are ended by :mod:`benchmark.reaper`. Without an
-    exit line it is :func:`held`."""
-    global _exiting_at_once
+def exit_at_once(before_exit: Callable[[], None] | None = None) -> Iterator[None]:
+    """Within the block, a signal ends the process at once: ``before_exit()`` (quick, and only
+    what must happen while the process lives), :func:`set_exit_line`'s line on stderr, exit
+    status 128 + the signal's number, no Python clean-up. For a start-up that can neither be
+    interrupted half-way nor be waited for (Ray's ``ray.init``: several seconds; a half-made
+    core worker crashed the process at exit) while nothing of the command's own is being
+    written; the processes it started are ended by :mod:`benchmark.reaper`. Without an exit
+    line it is :func:`held`."""
+    global _exiting_at_once, _before_exit
     _exiting_at_once += 1
+    previous, _before_exit = _before_exit, before_exit
     try:
         with held():
             yield
     finally:
         _exiting_at_once -= 1
+        _before_exit = previous
 
 
 def hold_forever() -> None:

@@ -300,6 +300,88 @@ def test_a_killed_ray_driver_leaves_no_ray_process(tmp_path: Path) -> None:
     _assert_gone(started)
 
 
+def test_the_reaper_ends_the_processes_handed_over_to_it() -> None:
+    """A command ending at once on a signal hands its descendants to the reaper
+    (``benchmark.reaper.hand_over``): Ray kills its raylet when the command dies, and an agent
+    the raylet started since the reaper's last scan was an orphan nobody noted
+    (ray::DashboardAgent and ray::RuntimeEnvAgent were left alive under load). Here the
+    handed-over process is no descendant of the command at all, so only the hand-over can end
+    it; a process that ran before the reaper, handed over too, is spared."""
+    import textwrap
+
+    from benchmark.reaper import _parse, descendants, hand_over
+
+    read, write = os.pipe()
+    hand_over(write, os.getpid())
+    os.close(write)
+    assert _parse(os.read(read, 1 << 20)) == descendants(os.getpid())
+    os.close(read)
+    foreign = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    code = textwrap.dedent("""
+        import os, subprocess, sys, time
+        from benchmark.reaper import _stat, hand_over
+        quiet = dict(stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        before = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"], **quiet)
+        reaper = subprocess.Popen([sys.executable, "-m", "benchmark.reaper", str(os.getpid())],
+                                  stdin=subprocess.PIPE, **quiet)
+        time.sleep(0.5)  # the reaper noted what ran before it
+        foreign = int(sys.argv[1])
+        os.write(reaper.stdin.fileno(), f"{foreign} {_stat(foreign)[2]}\\n".encode())
+        hand_over(reaper.stdin.fileno(), os.getpid())
+        print(before.pid, flush=True)
+        os._exit(143)
+    """)
+    proc = subprocess.run([sys.executable, "-c", code, str(foreign.pid)], capture_output=True,
+                          text=True, cwd=ROOT, timeout=60)
+    before = int(proc.stdout)
+    try:
+        assert foreign.wait(timeout=15) == -signal.SIGKILL, "the handed-over process lived on"
+        time.sleep(0.5)
+        assert _alive(before), "the reaper ended a process that ran before it"
+    finally:
+        foreign.kill()
+        if _alive(before):
+            os.kill(before, signal.SIGKILL)
+
+
+def test_the_reaper_spares_only_what_ran_before_it_even_when_it_starts_late() -> None:
+    """What ran before the reaper is told by start time: a reaper whose first scan came late
+    (a loaded machine) took the Ray processes already up for the command's older ones and left
+    them alive. Here the reaper's start is delayed 1 s by hand and a child made meanwhile is
+    ended; the one made before the reaper is spared."""
+    import textwrap
+
+    code = textwrap.dedent("""
+        import os, subprocess, sys, time
+        quiet = dict(stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        sleeper = [sys.executable, "-c", "import time; time.sleep(60)"]
+        before = subprocess.Popen(sleeper, **quiet)
+        time.sleep(0.05)
+        late = ("import runpy, sys, time; time.sleep(1.0); sys.argv = ['reaper', sys.argv[1]]; "
+                "runpy.run_module('benchmark.reaper', run_name='__main__')")
+        reaper = subprocess.Popen([sys.executable, "-c", late, str(os.getpid())],
+                                  stdin=subprocess.PIPE, **quiet)
+        time.sleep(0.05)
+        during = subprocess.Popen(sleeper, **quiet)  # before the reaper's first scan
+        time.sleep(2.0)
+        print(before.pid, during.pid, flush=True)
+        os._exit(143)
+    """)
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          cwd=ROOT, timeout=60)
+    before, during = (int(x) for x in proc.stdout.split())
+    try:
+        deadline = time.monotonic() + 15
+        while _alive(during) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert not _alive(during), "a process made after the reaper's start was left alive"
+        assert _alive(before), "the reaper ended a process that ran before it"
+    finally:
+        for pid in (before, during):
+            if _alive(pid):
+                os.kill(pid, signal.SIGKILL)
+
+
 def test_the_resumable_commands_are_those_that_take_resume(capsys: pytest.CaptureFixture[str]
                                                            ) -> None:
     """The interrupted line's advice (commands.cli.RESUMABLE) names exactly the commands whose
@@ -337,14 +419,15 @@ def test_exit_at_once_ends_a_process_but_only_holds_inside_python() -> None:
         from envs.interrupt import exit_at_once, install, set_exit_line
         install()
         set_exit_line(lambda s: f"ended by {signal.Signals(s).name}")
-        with exit_at_once():
+        with exit_at_once(lambda: print("before exit", flush=True)):
             os.kill(os.getpid(), signal.SIGTERM)
             time.sleep(5)
         print("not reached")
     """)
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                           cwd=ROOT, timeout=60)
-    assert (proc.returncode, proc.stderr, proc.stdout) == (143, "ended by SIGTERM\n", "")
+    assert (proc.returncode, proc.stderr, proc.stdout) == (143, "ended by SIGTERM\n",
+                                                          "before exit\n")
     previous = install()
     try:
         with exit_at_once():
