@@ -32,7 +32,8 @@ def writable_dir(path: str | Path, flag: str = "--out", create: bool = False) ->
     while not probe.exists():
         probe = probe.parent
     if not probe.is_dir():
-        raise ConfigError(f"{flag} {out}: {probe} is a file, so the folder cannot be made; "
+        given = next((p for p in (out, *out.parents) if p.absolute() == probe), probe)
+        raise ConfigError(f"{flag} {out}: {given} is a file, so the folder cannot be made; "
                           f"choose another {flag}")
     try:  # the real test (root passes os.access everywhere): a private probe folder in the
         # nearest existing ancestor, so two commands checking the same --out never race

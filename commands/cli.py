@@ -224,6 +224,8 @@ def interrupted_line(signum: int, command: str) -> str:
     """The one line an interrupted ``command`` prints (what was kept, how to go on)."""
     advice = ("the run in flight was not stored, finished runs are (complete with --resume)"
               if command in RESUMABLE else
+              "its study records the trial in flight as failed and keeps the finished ones "
+              "(rerun the same command to go on)" if command == "tune" else
               "nothing in flight was written, finished files were left as they were (rerun it)")
     return f"cacc-bench: interrupted ({signal.Signals(signum).name}); {advice}"
 

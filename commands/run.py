@@ -123,10 +123,11 @@ def _validate(args: argparse.Namespace
             raise ConfigError(
                 f"--vehicles: a platoon needs {MIN_VEHICLES} to {MAX_VEHICLES} followers, got {n}"
             )
-    from envs.limits import check_delay, check_packet_loss
+    from envs.limits import check_delay, check_packet_loss, check_whole_steps
 
     for d in args.comm_delay:
         check_delay(d, "--comm-delay")  # one rule with stability's --delay
+        check_whole_steps(d, "--comm-delay")
     for loss in args.packet_loss:
         check_packet_loss(loss, "--packet-loss")  # one rule with the channel's
     for lag in args.lag:

@@ -26,6 +26,7 @@ from commands.cli import plain, scenarios_argument
 from commands.train import add_device_argument
 from envs.atomic import write_text
 from envs.errors import ConfigError, UnknownNameError
+from envs.limits import step_count
 from envs.scenarios import Scenario
 
 #: Multiples of the tuned consensus eps tried (two decades and more around it).
@@ -50,7 +51,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--knobs", default=",".join(KNOBS),
                    help="comma list among " + ", ".join(KNOBS) + " (default: all)")
     p.add_argument("--seeds", default="0", help="training seeds (default: %(default)s)")
-    p.add_argument("--steps", type=int, default=600_000,
+    p.add_argument("--steps", type=step_count, default=600_000,
                    help="environment steps per training run (default 6e5, the shipped budget)")
     p.add_argument("--validation-episodes", type=int, default=32,
                    help="validation episodes per snapshot evaluation (default: 32)")

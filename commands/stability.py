@@ -70,9 +70,11 @@ MAX_SWEEP_BYTES = 2**30
 
 
 def _check_args(args: argparse.Namespace) -> None:
-    from envs.limits import check_delay, check_range
+    from envs.limits import check_delay, check_range, check_whole_steps
 
     check_delay(args.delay, "--delay")
+    if args.empirical:  # the analytic loop takes any delay; the simulated sweeps whole steps
+        check_whole_steps(args.delay, "--delay (with --empirical)")
     for flag, value in (
         ("--time-gap", args.time_gap),
         ("--lag", args.lag),

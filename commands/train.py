@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from envs.errors import ConfigError, UnknownNameError
+from envs.limits import step_count
 
 #: Default output: the folder the ``marl`` controllers load from (``controllers/checkpoints``
 #: of the installed package), so ``cacc-bench run --controllers NAME`` uses what was trained.
@@ -40,7 +41,7 @@ def _parser() -> argparse.ArgumentParser:
                         "(marl/distill.py), whose config fields --set takes")
     p.add_argument("--scenario", required=True,
                    help="scenario id, e.g. catchup-v1, or a comma list")
-    p.add_argument("--steps", type=int, default=600_000, help="environment steps (default 6e5)")
+    p.add_argument("--steps", type=step_count, default=600_000, help="environment steps (default 6e5)")
     p.add_argument("--seed", type=int, default=0, help="training seed (default 0)")
     p.add_argument("--seeds", default=None,
                    help="comma list of training seeds, run through the harness executors "
@@ -233,17 +234,19 @@ def tuned_options(algo: str, scenario: str, path: Path = TUNED_CONFIGS) -> dict[
     """Config overrides chosen by ``cacc-bench tune`` for ``algo`` on ``scenario``."""
     import json
 
+    shown = "the package's marl/tuned_configs.json" if path == TUNED_CONFIGS else str(path)
+
     if not path.exists():
-        raise ConfigError(f"--tuned: {path} is missing; make it with `cacc-bench tune` and copy "
+        raise ConfigError(f"--tuned: {shown} is missing; make it with `cacc-bench tune` and copy "
                           "its tuned_configs.json there")
     try:
         configs = json.loads(path.read_text())["configs"]
     except (ValueError, KeyError) as exc:
-        raise ConfigError(f"--tuned: {path} is not a tuned_configs.json ({exc})") from None
+        raise ConfigError(f"--tuned: {shown} is not a tuned_configs.json ({exc})") from None
     entry = configs.get(f"{algo}/{scenario}")
     if entry is None:
         have = ", ".join(sorted(configs)) or "none"
-        raise ConfigError(f"--tuned: no tuned config for {algo} on {scenario} in {path} "
+        raise ConfigError(f"--tuned: no tuned config for {algo} on {scenario} in {shown} "
                           f"(it has: {have}); run `cacc-bench tune --algos {algo} "
                           f"--scenarios {scenario}`")
     return dict(entry["config"])

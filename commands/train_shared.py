@@ -71,14 +71,24 @@ def stored_config(config: Any) -> dict[str, Any]:
 
 def finished(path: Path, config: Any, steps: int) -> bool:
     """Whether ``path`` holds a finished run of this config and budget (under the shipped
-    energy model)."""
+    energy model); a damaged file, or a finished run of another config, budget or energy model,
+    is a ConfigError (``--resume`` never trains over a finished run)."""
     if not path.exists():
         return False
     from marl.checkpoint import load_checkpoint, same_energy_model
 
     data = load_checkpoint(path)
-    return (data["config"] == stored_config(config) and int(data["curve_summary"].get(
-        "budget_steps", -1)) == steps and same_energy_model(data))
+    budget = int(data["curve_summary"].get("budget_steps", -1))
+    if data["config"] != stored_config(config) or budget != steps \
+            or not same_energy_model(data):
+        diff = sorted(k for k, v in stored_config(config).items() if data["config"].get(k) != v)
+        why = (f"config fields {', '.join(diff)} differ" if diff else
+               f"budget {budget} steps, not {steps}" if budget != steps else
+               "trained under another energy model")
+        raise ConfigError(f"{path.name} in --out holds a finished run of another setting ({why});"
+                          " --resume never trains over it: use another --out, or remove the "
+                          "file to train again")
+    return True
 
 
 def train_shared(
@@ -172,6 +182,12 @@ def main_shared(args: Any, algos: list[str], scenarios: list[str], seeds: list[i
     writable_dir(args.out)
     out = Path(args.out)
     with folder_lock(out):
+        if args.resume:  # every finished run checked before any training
+            for seed in seeds:
+                for sc in scenarios:
+                    for a in algos:
+                        stem = checkpoint_stem(a, sc, args.vehicles, seed)
+                        finished(out / f"{stem}.pt", configs[(a, sc)], args.steps)
         for seed in seeds:
             for sc in scenarios:
                 for a in algos:

@@ -47,6 +47,7 @@ from typing import Any
 
 from benchmark.export import write_csv
 from envs.errors import ConfigError, UnknownNameError
+from envs.limits import step_count
 
 #: Weight of one colliding validation episode in a trial's score.
 COLLISION_PENALTY = 10_000.0
@@ -66,6 +67,10 @@ SHARED_TUNED = ("ippo", "mappo", "ippo-bdc")
 SHARED_SEARCHED = ("lr", "init_log_std", "gamma", "n_envs", "reward_alpha", "consensus_eps")
 
 
+#: The episodes stepped together that a shared-policy trial draws from.
+SHARED_N_ENVS = (64, 256)
+
+
 def search_space(trial: Any, algo: str) -> dict[str, Any]:
     """Config overrides of one trial (the same ranges for every algorithm of a family)."""
     opts: dict[str, Any]
@@ -74,7 +79,7 @@ def search_space(trial: Any, algo: str) -> dict[str, Any]:
             "lr": trial.suggest_float("lr", 1e-4, 3e-3, log=True),
             "init_log_std": trial.suggest_float("init_log_std", -3.0, -1.0),
             "gamma": trial.suggest_categorical("gamma", [0.99, 0.995]),
-            "n_envs": trial.suggest_categorical("n_envs", [64, 256]),
+            "n_envs": trial.suggest_categorical("n_envs", list(SHARED_N_ENVS)),
             "reward_alpha": trial.suggest_categorical("reward_alpha", [0.0, 0.5]),
         }
     else:
@@ -137,7 +142,7 @@ def _parser() -> argparse.ArgumentParser:
                    help="comma list of scenarios (default catchup-v1,slowdown-v1)")
     p.add_argument("--vehicles", type=int, default=8, help="followers N (default 8)")
     p.add_argument("--trials", type=int, default=8, help="trials per study (default 8)")
-    p.add_argument("--steps", type=int, default=200_000,
+    p.add_argument("--steps", type=step_count, default=200_000,
                    help="environment steps per trial (default 2e5)")
     p.add_argument("--seed", type=int, default=0,
                    help="sampler seed and training seed of the trials (default 0)")
@@ -198,16 +203,23 @@ def _study_job(job: dict) -> list[dict]:
         trial = study.ask()
         options = search_space(trial, algo_name)
         run_dir = out / "trials" / name / f"t{k:03d}"
-        if shared:
-            summary = _shared_trial(job, options, run_dir)
-            options = {**job["fixed"], **options}
-        else:
-            assert algo is not None
-            config = build_config(algo.config_cls, options, f"{algo_name} (tune)")
-            result = run_training(algo, config, scenario, n, job["steps"], job["seed"], run_dir,
-                                  evaluate=validation_evaluator(algo_name, scenario, n))
-            assert result.checkpoint is not None
-            summary = load_checkpoint(result.checkpoint)["curve_summary"]
+        try:
+            if shared:
+                summary = _shared_trial(job, options, run_dir)
+                options = {**job["fixed"], **options}
+            else:
+                assert algo is not None
+                config = build_config(algo.config_cls, options, f"{algo_name} (tune)")
+                result = run_training(algo, config, scenario, n, job["steps"], job["seed"],
+                                      run_dir, evaluate=validation_evaluator(algo_name, scenario, n))
+                assert result.checkpoint is not None
+                summary = load_checkpoint(result.checkpoint)["curve_summary"]
+        except KeyboardInterrupt:  # the study records the trial in flight as failed, then stops
+            from envs.interrupt import held
+
+            with held():
+                study.tell(trial, state=optuna.trial.TrialState.FAIL)
+            raise
         trial.set_user_attr("options", {k2: v for k2, v in options.items()})
         for key in ("selected_eval_reward_sampled", "selected_eval_collisions_sampled",
                     "selected_eval_reward_greedy", "selected_eval_collisions_greedy",
@@ -289,6 +301,16 @@ def main(argv: list[str]) -> int:
     check_range(args.trials, "--trials", 1, MAX_TRIALS)
     check_range(args.steps, "--steps", 1, MAX_TRAIN_STEPS)
     check_seeds([args.seed], "--seed", MAX_TRAIN_SEED)  # the trials' training seed
+    if any(a in SHARED_TUNED for a in algos):  # every trial's rollout fits its budget
+        from commands.train_shared import shared_config
+
+        rollout = max(SHARED_N_ENVS) * shared_config(
+            "ippo", [f"{k}={v}" for k, v in fixed.items() if k != "algo"]).rollout_steps
+        if rollout > args.steps:
+            raise ConfigError(f"--steps {args.steps}: a trial may step {max(SHARED_N_ENVS)} "
+                              f"episodes x rollout_steps, {rollout:,} environment steps per "
+                              "update, more than its budget; raise --steps or fix a smaller "
+                              "rollout_steps with --set")
     try:
         import optuna  # noqa: F401
     except ImportError:

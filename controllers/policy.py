@@ -25,9 +25,11 @@ from controllers.base import Controller, EpisodeContext, Message
 from envs.channel import episode_uniforms
 from envs.dynamics import OBS_DIM, action_to_command_mps2
 from envs.errors import ConfigError
+from envs.limits import MAX_TRAIN_SEED, check_seeds
 from envs.naming import checkpoint_stem, coerce_option
 from envs.params import EVAL_MODES
 from envs.platoon import PlatoonState
+from envs.scenarios import make_scenario
 
 CHECKPOINT_DIR = Path(__file__).resolve().parent / "checkpoints"
 #: Name of the per-episode uniform stream sampled actions are drawn from.
@@ -70,11 +72,13 @@ def rows_are_batch_invariant(algo: str, n_agents: int = 8) -> bool:
     return True
 
 
-def shipped_variants() -> list[str]:
-    """Names of the shipped checkpoint variants (folders of ``VARIANT_DIR``), sorted."""
+def shipped_variants(algo: str | None = None) -> list[str]:
+    """Names of the shipped checkpoint variants (folders of ``VARIANT_DIR``), sorted; with
+    ``algo``, those holding a checkpoint of it."""
     if not VARIANT_DIR.is_dir():
         return []
-    return sorted(p.name for p in VARIANT_DIR.iterdir() if p.is_dir())
+    return sorted(p.name for p in VARIANT_DIR.iterdir() if p.is_dir()
+                  and (algo is None or any(p.glob(f"{algo}__*.pt"))))
 
 
 def checkpoint_path(
@@ -140,8 +144,7 @@ class PolicyController(Controller):
         if mode not in EVAL_MODES:
             raise ConfigError(f"{algo}: mode must be one of {', '.join(EVAL_MODES)}, got {mode!r}")
         seed = int(coerce_option(seed, int, "seed", algo))  # the one rule for option values
-        if seed < 0:
-            raise ConfigError(f"{algo}: seed must be >= 0, got {seed}")
+        check_seeds([seed], f"{algo}: seed", MAX_TRAIN_SEED)  # what `train` can make
         if algo not in ALGORITHM_NAMES:
             raise ConfigError(
                 f"unknown MARL algorithm {algo!r}; valid: {', '.join(ALGORITHM_NAMES)}"
@@ -149,10 +152,10 @@ class PolicyController(Controller):
         if variant is not None:
             if checkpoint_dir is not None:
                 raise ConfigError(f"{algo}: give variant or checkpoint_dir, not both")
-            known = shipped_variants()
-            if variant not in known:
+            if variant not in shipped_variants():  # the list: those holding this algorithm
                 raise ConfigError(
-                    f"{algo}: unknown variant {variant!r}; shipped: {', '.join(known) or 'none'}"
+                    f"{algo}: unknown variant {variant!r}; shipped with {algo}: "
+                    f"{', '.join(shipped_variants(algo)) or 'none'}"
                 )
         self.variant = variant
         self.algo = algo
@@ -229,6 +232,7 @@ class PolicyController(Controller):
                 f"N = {n_vehicles} ({path.name} missing); it holds: {', '.join(have) or 'nothing'}"
             )
         if not path.exists():
+            make_scenario(source)  # an unknown scenario id is named as such, not to be trained on
             cmd = train_command(self.algo, source, n_vehicles, self.seed, self.checkpoint_dir or "")
             raise ConfigError(
                 f"no trained {self.algo} policy for {source} with N = {n_vehicles}: {path} is "

@@ -41,10 +41,11 @@ from envs.accel_mode import (
 from envs.channel import episode_uniforms
 from envs.dynamics import agent_observations
 from envs.errors import ConfigError
+from envs.limits import MAX_TRAIN_SEED, check_seeds
 from envs.naming import coerce_option
 from envs.params import EVAL_MODES, PlatoonParams
 from envs.platoon import PlatoonState
-from envs.scenarios import Scenario
+from envs.scenarios import Scenario, make_scenario
 
 #: The shared policies this controller loads: the PPO learners and the MPC distillation.
 SHARED_POLICIES: tuple[str, ...] = ("ippo", "mappo", "distill", "ippo-bdc")
@@ -130,14 +131,15 @@ class SharedPolicyController(Controller):
             raise ConfigError(f"{algo}: mode must be one of {', '.join(EVAL_MODES)}, got {mode!r}")
         seed = int(coerce_option(seed, int, "seed", algo))  # the one rule for option values
         vehicles = int(coerce_option(vehicles, int, "vehicles", algo))
-        if seed < 0 or not 2 <= vehicles <= 64:
-            raise ConfigError(f"{algo}: seed must be >= 0 and vehicles in 2..64")
+        check_seeds([seed], f"{algo}: seed", MAX_TRAIN_SEED)  # what `train` can make
+        if not 2 <= vehicles <= 64:
+            raise ConfigError(f"{algo}: vehicles must lie in 2..64, got {vehicles}")
         if variant is not None:
             if checkpoint_dir is not None:
                 raise ConfigError(f"{algo}: give variant or checkpoint_dir, not both")
-            if variant not in shipped_variants():
-                raise ConfigError(f"{algo}: unknown variant {variant!r}; shipped: "
-                                  f"{', '.join(shipped_variants()) or 'none'}")
+            if variant not in shipped_variants():  # the list: those holding this algorithm
+                raise ConfigError(f"{algo}: unknown variant {variant!r}; shipped with {algo}: "
+                                  f"{', '.join(shipped_variants(algo)) or 'none'}")
             checkpoint_dir = str(VARIANT_DIR / variant)
         self.name = self.algo = algo
         self.variant = variant
@@ -186,13 +188,16 @@ class SharedPolicyController(Controller):
         torch.set_num_threads(1)
         path = self._path(source)
         if not path.exists():
+            make_scenario(source)  # an unknown scenario id is named as such, not to be trained on
             where = self.variant or self.checkpoint_dir or CHECKPOINT_DIR.name
             raise ConfigError(
                 f"no trained {self.algo} policy for {source} with N = {self.vehicles} in {where} "
                 f"({path.name} missing); make it with `cacc-bench train --algo {self.algo} "
                 f"--scenario {source} --vehicles {self.vehicles} --seed {self.seed}`, or pick "
                 f"another with {self.algo}:scenario=ID")
-        data = load_checkpoint(path, algo=self.algo, scenario=source)
+        # a file named for N = vehicles holds that N (an explicit checkpoint=FILE: any N)
+        data = load_checkpoint(path, algo=self.algo, scenario=source,
+                               n_vehicles=None if self.checkpoint else self.vehicles)
         self.actor = load_actor(data)
         self.action_mode = data["config"]["action_mode"]
         self.loaded, self._source = data, source

@@ -16,6 +16,13 @@ MAX_SEED = 2**31 - 1
 MAX_TRAIN_STEPS = 10**8
 #: Most episodes one learner steps together.
 MAX_EPISODES_PARALLEL = 4096
+#: Widest hidden layer of the shared-policy learners and the distilled actor (64 shipped).
+MAX_HIDDEN = 1024
+#: Most agent-steps one rollout of a shared-policy learner holds (``n_envs x rollout_steps x
+#: N``): its observations, actions and returns must stay allocatable (the default holds 32,768).
+MAX_ROLLOUT_AGENT_STEPS = 2**24
+#: Simulation step (s) of every scenario: a V2V delay is a whole number of them.
+SIM_DT_S = 0.1
 #: Training episode k of run seed s has env seed ``TRAIN_SEED_STRIDE * (s + 1) + k``
 #: (:meth:`marl.a2c.Run.training_seeds`), drawn by 32-bit generators.
 TRAIN_SEED_STRIDE = 10_000_000
@@ -28,6 +35,36 @@ def check_delay(value: float, flag: str) -> float:
     if not (math.isfinite(value) and 0 <= value <= MAX_V2V_DELAY_S):
         raise ConfigError(f"{flag} must lie in [0, {MAX_V2V_DELAY_S:g}] s (an episode lasts "
                           f"60 s), got {value}")
+    return float(value)
+
+
+def step_count(text: str) -> int:
+    """A step budget as ``--steps`` takes it: ``600000``, ``6e5`` or ``6_00_000`` (an integer
+    written as a float is read exactly; ``6.5`` or ``abc`` is refused)."""
+    import argparse
+
+    try:
+        return int(text)
+    except ValueError:
+        pass
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number of steps, got {text!r}") from None
+    if not (math.isfinite(value) and value == int(value)):
+        raise argparse.ArgumentTypeError(f"expected a whole number of steps, got {text!r}")
+    return int(value)
+
+
+def check_whole_steps(value: float, flag: str, dt_s: float = SIM_DT_S) -> float:
+    """``value`` if it is a whole number of simulation steps of ``dt_s``, else a ConfigError (a
+    V2V delay is delivered after whole steps: 0.05 s would run as 0.1 s and be stored as
+    0.05)."""
+    steps = value / dt_s
+    if abs(steps - round(steps)) > 1e-6:
+        raise ConfigError(f"{flag} {value:g} s: V2V messages arrive after whole simulation steps "
+                          f"of {dt_s:g} s; give a multiple of {dt_s:g} s (0, {dt_s:g}, "
+                          f"{2 * dt_s:g}, ...)")
     return float(value)
 
 

@@ -25,6 +25,7 @@ import hashlib
 import io
 import json
 import math
+import re
 from pathlib import Path
 from typing import Any
 
@@ -165,12 +166,15 @@ def load_checkpoint(
         weights; the one-line message names the file and what to do.
     """
     path = Path(path)
-    want_algo = algo or "ALGO"
-    want_scenario = scenario or "SCENARIO"
-    want_n = n_vehicles or 8
+    named = re.fullmatch(r"(.+?)__(.+?)__n(\d+)__s(\d+)(?:\.final)?\.pt", path.name)
+    want_algo = algo or (named.group(1) if named else "ALGO")
+    want_scenario = scenario or (named.group(2) if named else "SCENARIO")
+    want_n = n_vehicles or (int(named.group(3)) if named else 8)
+    want_seed = int(named.group(4)) if named else 0
 
     def fix() -> str:
-        return f"make it with `{train_command(want_algo, want_scenario, want_n)}`"
+        cmd = train_command(want_algo, want_scenario, want_n, want_seed, str(path.parent))
+        return f"make it with `{cmd}`"
 
     def damaged(what: str) -> ConfigError:
         return ConfigError(
@@ -185,7 +189,7 @@ def load_checkpoint(
         blob = path.read_bytes()
         data = torch.load(io.BytesIO(blob), map_location="cpu", weights_only=True)
     except Exception as exc:  # noqa: BLE001 - any failure means an unusable file
-        reason = " ".join(str(exc).split())[:160] or type(exc).__name__
+        reason = " ".join(str(exc).split()).split(". ")[0][:160] or type(exc).__name__
         raise ConfigError(f"checkpoint {path} cannot be read ({reason}); {fix()}") from None
     got = data.get("format_version") if isinstance(data, dict) else None
     if got == SHIPPED_FORMAT:
@@ -203,7 +207,7 @@ def load_checkpoint(
     elif got != FORMAT_VERSION:
         raise ConfigError(
             f"checkpoint {path} has format version {got}, this cacc-bench reads version "
-            f"{FORMAT_VERSION}; re-train: `{train_command(want_algo, want_scenario, want_n)}`"
+            f"{FORMAT_VERSION}; re-train: {fix()}"
         )
     assert isinstance(data, dict)
     if scenario is None and isinstance(data.get("scenario"), str):

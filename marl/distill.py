@@ -77,9 +77,12 @@ class DistillConfig:
     hidden: int = 64
 
     def __post_init__(self) -> None:
-        for name in ("rounds", "episodes_per_round", "grad_steps", "minibatch_rows", "hidden"):
-            if not 1 <= getattr(self, name) <= 10**6:
-                raise ConfigError(f"{name} must lie in 1..1e6, got {getattr(self, name)}")
+        from envs.limits import MAX_EPISODES_PARALLEL, MAX_HIDDEN
+
+        for name, high in (("rounds", 10**6), ("episodes_per_round", MAX_EPISODES_PARALLEL),
+                           ("grad_steps", 10**6), ("minibatch_rows", 10**6), ("hidden", MAX_HIDDEN)):
+            if not 1 <= getattr(self, name) <= high:
+                raise ConfigError(f"{name} must lie in 1..{high:,}, got {getattr(self, name)}")
         if not 0 <= self.beta <= 1:
             raise ConfigError(f"beta must lie in [0, 1], got {self.beta}")
         check_learning_rate(self.lr)

@@ -45,6 +45,7 @@ from torch import nn
 
 from envs.channel import ChannelConfig
 from envs.errors import ConfigError
+from envs.limits import MAX_ROLLOUT_AGENT_STEPS
 from envs.params import PlatoonParams
 from envs.platoon import PlatoonEnv
 from envs.scenarios import check_vehicles, make_scenario
@@ -93,6 +94,15 @@ def train(
     """
     cfg, sc = config, make_scenario(scenario)
     n = check_vehicles(n_vehicles)
+    rollout = cfg.n_envs * cfg.rollout_steps  # environment steps per update
+    if rollout * max(n, cfg.vehicles_max) > MAX_ROLLOUT_AGENT_STEPS:
+        raise ConfigError(f"one rollout of n_envs x rollout_steps x N = {cfg.n_envs} x "
+                          f"{cfg.rollout_steps} x {max(n, cfg.vehicles_max)} agent-steps exceeds "
+                          f"{MAX_ROLLOUT_AGENT_STEPS:,}; lower n_envs or rollout_steps")
+    if rollout > total_steps:
+        raise ConfigError(f"one rollout is n_envs x rollout_steps = {rollout:,} environment "
+                          f"steps, more than the {total_steps:,} asked (--steps); raise --steps "
+                          "or lower n_envs or rollout_steps")
     gen = torch.Generator().manual_seed(int(seed))
     torch.manual_seed(int(seed))  # nn.init draws from the global generator
     n_agents = n if cfg.per_agent else 0

@@ -134,10 +134,18 @@ class PPOConfig:
         if self.algo not in SHARED_ALGORITHMS:
             raise ConfigError(f"algo must be one of {', '.join(SHARED_ALGORITHMS)}, got {self.algo!r}")
         check_action_mode(self.action_mode)
-        for name in ("n_envs", "rollout_steps", "epochs", "minibatch_rows", "hidden",
-                     "eval_every_steps"):
-            if not 1 <= getattr(self, name) <= 10**7:
-                raise ConfigError(f"{name} must lie in 1..1e7, got {getattr(self, name)}")
+        from envs.limits import (
+            MAX_EPISODES_PARALLEL,
+            MAX_HIDDEN,
+            MAX_TRAIN_STEPS,
+            check_whole_steps,
+        )
+
+        for name, high in (("n_envs", MAX_EPISODES_PARALLEL), ("rollout_steps", 10**4),
+                           ("epochs", 1000), ("minibatch_rows", 10**7), ("hidden", MAX_HIDDEN),
+                           ("eval_every_steps", MAX_TRAIN_STEPS)):
+            if not 1 <= getattr(self, name) <= high:
+                raise ConfigError(f"{name} must lie in 1..{high:,}, got {getattr(self, name)}")
         check_learning_rate(self.lr)
         for name in ("reward_clip", "obs_clip", "max_grad_norm"):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0):
@@ -177,6 +185,8 @@ class PPOConfig:
         if not (0 < self.clip_coef < 1 and self.vf_coef >= 0 and self.ent_coef >= 0):
             raise ConfigError("clip_coef must lie in (0, 1); vf_coef and ent_coef must be >= 0")
         ChannelConfig(self.comm_delay_s, self.packet_loss)  # the channel's own checks
+        for name in ("comm_delay_s", "comm_delay_max_s"):
+            check_whole_steps(getattr(self, name), name)
 
     @property
     def randomised(self) -> bool:

@@ -212,8 +212,11 @@ def test_missing_checkpoint_names_train_command(tmp_path) -> None:
     ctrl = PolicyController("bdc", checkpoint=str(tmp_path / "nope.pt"))
     with pytest.raises(ConfigError, match="cacc-bench train --algo bdc --scenario catchup-v1"):
         _rollout(ctrl)
-    ctrl = PolicyController("bdc", scenario="no-such-scenario-v9")
-    with pytest.raises(ConfigError, match="cacc-bench train --algo bdc --scenario no-such"):
+    ctrl = PolicyController("bdc", scenario="sine-v1")  # no shipped bdc policy for sine-v1
+    with pytest.raises(ConfigError, match="cacc-bench train --algo bdc --scenario sine-v1"):
+        _rollout(ctrl)
+    ctrl = PolicyController("bdc", scenario="no-such-scenario-v9")  # named as unknown, not to train
+    with pytest.raises(UnknownNameError, match="unknown scenario 'no-such-scenario-v9'"):
         _rollout(ctrl)
 
 
@@ -245,7 +248,7 @@ def test_variant_loads_its_folder_and_bad_variants_fail(tmp_path, monkeypatch) -
     same = PolicyController("ia2c", checkpoint=str(folder / "ia2c__catchup-v1__n4__s0.pt"))
     np.testing.assert_array_equal(_rollout(ctrl)[0], _rollout(same)[0])
     assert ctrl.options == {"variant": "w5_m1"}
-    with pytest.raises(ConfigError, match="unknown variant 'w5_m2'; shipped: w5_m1"):
+    with pytest.raises(ConfigError, match="unknown variant 'w5_m2'; shipped with ia2c: w5_m1"):
         PolicyController("ia2c", variant="w5_m2")
     with pytest.raises(ConfigError, match="not both"):
         PolicyController("ia2c", variant="w5_m1", checkpoint_dir=str(tmp_path))

@@ -306,7 +306,7 @@ def test_the_controller_refuses_a_missing_or_mismatched_checkpoint(
     with pytest.raises(ConfigError, match="holds algorithm 'ippo', not 'mappo'"):
         SharedPolicyController("mappo", checkpoint=str(tiny_checkpoint)).preflight(
             make_scenario("catchup-v1"), 8)
-    with pytest.raises(ConfigError, match="vehicles in 2..64"):
+    with pytest.raises(ConfigError, match="vehicles must lie in 2..64"):
         SharedPolicyController("ippo", vehicles=65)
 
 

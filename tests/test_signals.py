@@ -382,6 +382,41 @@ def test_the_reaper_spares_only_what_ran_before_it_even_when_it_starts_late() ->
                 os.kill(pid, signal.SIGKILL)
 
 
+def test_an_interrupted_tune_records_its_trial_in_flight_as_failed(tmp_path: Path) -> None:
+    """A SIGINT during a trial left it RUNNING in the study file while the line said finished
+    files were left as they were. Now the study records it as failed, the line says so, the
+    finished trial keeps its score, and the same command then completes the study."""
+    optuna = pytest.importorskip("optuna")
+    argv = ["tune", "--algos", "ippo", "--scenarios", "catchup-v1", "--vehicles", "2",
+            "--steps", "4096", "--set", "rollout_steps=8",
+            "--set", "eval_every_steps=512", "--out", str(tmp_path / "tu")]
+    first = subprocess.run([sys.executable, "-m", "commands.cli", *argv, "--trials", "1"],
+                           cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert first.returncode == 0, first.stderr
+    (db,) = (tmp_path / "tu").rglob("*.sqlite3")
+
+    def trials() -> list[object]:
+        return optuna.load_study(study_name=None, storage=f"sqlite:///{db}").get_trials()
+
+    (done,) = trials()
+    proc = _start(*argv, "--trials", "3")
+    _wait_until(lambda: len(list((tmp_path / "tu").rglob("t001"))) > 0, proc)
+    sent = time.monotonic()
+    proc.send_signal(signal.SIGINT)
+    rc, err, took = _end(proc, sent)
+    assert rc == 130 and took < END_S and "Traceback" not in err, err
+    assert err.strip().splitlines() == [
+        "cacc-bench: interrupted (SIGINT); its study records the trial in flight as failed and "
+        "keeps the finished ones (rerun the same command to go on)"]
+    states = [t.state.name for t in trials()]
+    assert "RUNNING" not in states and states[-1] == "FAIL", states
+    assert trials()[0].value == done.value
+    again = subprocess.run([sys.executable, "-m", "commands.cli", *argv, "--trials", "3"],
+                           cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert again.returncode == 0, again.stderr
+    assert [t.state.name for t in trials()].count("COMPLETE") == 3
+
+
 def test_the_resumable_commands_are_those_that_take_resume(capsys: pytest.CaptureFixture[str]
                                                            ) -> None:
     """The interrupted line's advice (commands.cli.RESUMABLE) names exactly the commands whose

@@ -150,14 +150,15 @@ def test_tune_the_shared_learners_with_a_fixed_field(tmp_path: Path, capsys) -> 
     import json
 
     args = ["tune", "--algos", "ippo", "--scenarios", "catchup-v1", "--trials", "2",
-            "--steps", "2000", "--vehicles", "2", "--set", "prior=cacc", "--out", str(tmp_path)]
+            "--steps", "2048", "--vehicles", "2", "--set", "prior=cacc", "--set", "rollout_steps=8",
+            "--out", str(tmp_path)]
     assert main(args) == 0
     trials = pd.read_csv(tmp_path / "trials.csv")
     assert len(trials) == 2 and (trials["config.prior"] == "cacc").all()
     first = trials[trials["trial"] == 0].iloc[0]
     assert (first["lr"], first["n_envs"], first["gamma"]) == (0.001, 64, 0.99)
     best = json.loads((tmp_path / "tuned_configs.json").read_text())
-    assert best["budget"]["fixed"] == {"prior": "cacc"}
+    assert best["budget"]["fixed"] == {"prior": "cacc", "rollout_steps": "8"}
     assert best["configs"]["ippo/catchup-v1"]["config"]["prior"] == "cacc"
     capsys.readouterr()
     assert main([*args[:-4], "--out", str(tmp_path)]) == 2  # the same study without the field
