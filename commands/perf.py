@@ -241,6 +241,11 @@ def main(argv: list[str]) -> int:
         if shared_algos:
             out["train_shared_env_steps_per_s"] = {
                 a: float(np.median(r)) for a, r in out["train_shared_env_steps_per_s_runs"].items()}
+            from marl.perf import shared_network_bound
+
+            # what the default config's networks alone allow: the learner cannot pass it here
+            out["train_shared_network_bound_env_steps_per_s"] = float(
+                shared_network_bound(repeats=2 if args.quick else 6))
         rates = {algo: float(np.median(r)) for algo, r in runs.items() if r}
         out["train_env_steps_per_s"] = rates
         out["train_device"] = args.device
@@ -302,6 +307,10 @@ def _print_table(out: dict[str, Any]) -> None:
             kind = ("a network per follower, BDC's consensus" if algo in PER_AGENT_POLICIES
                     else "one policy shared by the followers")
             print(f"  {algo:<10} {rate:10,.0f}  ({kind}, accel mode; target 34,000{spread})")
+        if "train_shared_network_bound_env_steps_per_s" in out:
+            print(f"  {'bound':<10} "
+                  f"{out['train_shared_network_bound_env_steps_per_s']:10,.0f}  (the default "
+                  "config's networks alone: no shared learner trains faster here)")
         if "train_population_env_steps_per_s" in out:
             k = out["train_population_size"]
             print(f"training a population of {k} seeds in one process, one torch thread (total "

@@ -80,7 +80,22 @@ def test_perf_names_what_each_shared_learner_trains(capsys) -> None:
     _print_table({"train_env_steps_per_s": {}, "train_device": "cpu",
                   "train_shared_env_steps_per_s": {"ippo": 7882.0, "ippo-bdc": 5768.0},
                   "train_shared_env_steps_per_s_runs": {"ippo": [7570.0, 7965.0],
-                                                        "ippo-bdc": [5659.0, 6027.0]}})
+                                                        "ippo-bdc": [5659.0, 6027.0]},
+                  "train_shared_network_bound_env_steps_per_s": 12894.0})
     lines = capsys.readouterr().out.splitlines()
     assert "one policy shared by the followers" in lines[1] and lines[1].split()[0] == "ippo"
     assert "a network per follower" in lines[2] and "7,882" in lines[1] and "5,768" in lines[2]
+    assert lines[3].split()[:2] == ["bound", "12,894"] and "networks alone" in lines[3]
+
+
+def test_the_network_bound_times_an_update_of_the_given_config() -> None:
+    """``marl.perf.shared_network_bound``: environment steps of one update over the median
+    time of its networks' work; a tiny config gives a positive finite rate."""
+    import math
+
+    from marl.perf import shared_network_bound
+    from marl.ppo_nets import PPOConfig
+
+    rate = shared_network_bound(PPOConfig(n_envs=4, rollout_steps=4, minibatch_rows=32,
+                                          hidden=8), n_vehicles=2, repeats=1)
+    assert math.isfinite(rate) and rate > 0
