@@ -164,6 +164,7 @@ def _study_job(job: dict) -> list[dict]:
 
     from benchmark.policy_eval import validation_evaluator
     from controllers.registry import build_config
+    from envs.interrupt import held, raise_if_interrupted
     from marl.checkpoint import load_checkpoint
     from marl.config import algorithm
     from marl.selection import run_training
@@ -200,10 +201,12 @@ def _study_job(job: dict) -> list[dict]:
         study.sampler = optuna.samplers.TPESampler(seed=job["seed"] + k, n_startup_trials=STARTUP_TRIALS)
         if k == 0 and not study.get_trials(states=(optuna.trial.TrialState.WAITING,)):
             study.enqueue_trial(default_params(algo_name))
-        trial = study.ask()
-        options = search_space(trial, algo_name)
-        run_dir = out / "trials" / name / f"t{k:03d}"
+        with held():  # a trial is in the study only with a try that ends it
+            trial = study.ask()
         try:
+            raise_if_interrupted()
+            options = search_space(trial, algo_name)
+            run_dir = out / "trials" / name / f"t{k:03d}"
             if shared:
                 summary = _shared_trial(job, options, run_dir)
                 options = {**job["fixed"], **options}
@@ -214,18 +217,18 @@ def _study_job(job: dict) -> list[dict]:
                                       run_dir, evaluate=validation_evaluator(algo_name, scenario, n))
                 assert result.checkpoint is not None
                 summary = load_checkpoint(result.checkpoint)["curve_summary"]
+            with held():  # its attributes and score recorded together, or not at all
+                trial.set_user_attr("options", {k2: v for k2, v in options.items()})
+                for key in ("selected_eval_reward_sampled", "selected_eval_collisions_sampled",
+                            "selected_eval_reward_greedy", "selected_eval_collisions_greedy",
+                            "selected_at_steps"):
+                    trial.set_user_attr(key, summary[key])
+                study.tell(trial, trial_score(summary))
         except KeyboardInterrupt:  # the study records the trial in flight as failed, then stops
-            from envs.interrupt import held
-
             with held():
                 study.tell(trial, state=optuna.trial.TrialState.FAIL)
             raise
-        trial.set_user_attr("options", {k2: v for k2, v in options.items()})
-        for key in ("selected_eval_reward_sampled", "selected_eval_collisions_sampled",
-                    "selected_eval_reward_greedy", "selected_eval_collisions_greedy",
-                    "selected_at_steps"):
-            trial.set_user_attr(key, summary[key])
-        study.tell(trial, trial_score(summary))
+        raise_if_interrupted()  # a signal during the recording: the trial is complete
     # "trial" counts complete trials (an interrupted, redone trial keeps its place);
     # "optuna_trial" is Optuna's number in the study file
     return [
