@@ -307,8 +307,9 @@ def main(argv: list[str]) -> int:
     if any(a in SHARED_TUNED for a in algos):  # every trial's rollout fits its budget
         from commands.train_shared import shared_config
 
-        rollout = max(SHARED_N_ENVS) * shared_config(
-            "ippo", [f"{k}={v}" for k, v in fixed.items() if k != "algo"]).rollout_steps
+        rollout = max(SHARED_N_ENVS) * max(
+            shared_config(a, [f"{k}={v}" for k, v in fixed.items()]).rollout_steps
+            for a in algos if a in SHARED_TUNED)
         if rollout > args.steps:
             raise ConfigError(f"--steps {args.steps}: a trial may step {max(SHARED_N_ENVS)} "
                               f"episodes x rollout_steps, {rollout:,} environment steps per "

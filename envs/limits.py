@@ -21,8 +21,6 @@ MAX_HIDDEN = 1024
 #: Most agent-steps one rollout of a shared-policy learner holds (``n_envs x rollout_steps x
 #: N``): its observations, actions and returns must stay allocatable (the default holds 32,768).
 MAX_ROLLOUT_AGENT_STEPS = 2**24
-#: Simulation step (s) of every scenario: a V2V delay is a whole number of them.
-SIM_DT_S = 0.1
 #: Training episode k of run seed s has env seed ``TRAIN_SEED_STRIDE * (s + 1) + k``
 #: (:meth:`marl.a2c.Run.training_seeds`), drawn by 32-bit generators.
 TRAIN_SEED_STRIDE = 10_000_000
@@ -56,10 +54,14 @@ def step_count(text: str) -> int:
     return int(value)
 
 
-def check_whole_steps(value: float, flag: str, dt_s: float = SIM_DT_S) -> float:
-    """``value`` if it is a whole number of simulation steps of ``dt_s``, else a ConfigError (a
-    V2V delay is delivered after whole steps: 0.05 s would run as 0.1 s and be stored as
-    0.05)."""
+def check_whole_steps(value: float, flag: str, dt_s: float | None = None) -> float:
+    """``value`` if it is a whole number of simulation steps of ``dt_s`` (default the
+    platoon's, :class:`envs.params.PlatoonParams`), else a ConfigError (a V2V delay is delivered
+    after whole steps: 0.05 s would run as 0.1 s and be stored as 0.05)."""
+    if dt_s is None:
+        from envs.params import PlatoonParams
+
+        dt_s = PlatoonParams().dt_s
     steps = value / dt_s
     if abs(steps - round(steps)) > 1e-6:
         raise ConfigError(f"{flag} {value:g} s: V2V messages arrive after whole simulation steps "

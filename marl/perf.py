@@ -3,8 +3,12 @@
 from __future__ import annotations
 
 import time
+from typing import TYPE_CHECKING
 
 import torch
+
+if TYPE_CHECKING:
+    from marl.ppo_nets import PPOConfig
 
 
 def train_throughput(
@@ -51,8 +55,8 @@ def train_throughput(
     return sum(r.steps for r in results) / max(clock() - t0, 1e-9)
 
 
-def shared_network_bound(config: object = None, n_vehicles: int = 8, repeats: int = 6
-                         ) -> float:
+def shared_network_bound(config: PPOConfig | None = None, n_vehicles: int = 8,
+                         repeats: int = 6) -> float:
     """Environment steps per second that a shared-policy learner's networks alone allow: one
     update's rollout forwards, then per minibatch forward, PPO loss, backward, norm clip and Adam
     (:class:`marl.ppo_nets.SharedActor` and :class:`~marl.ppo_nets.Critic` on random inputs; no
@@ -63,7 +67,7 @@ def shared_network_bound(config: object = None, n_vehicles: int = 8, repeats: in
 
     from marl.ppo_nets import Critic, PPOConfig, SharedActor
 
-    cfg = config if isinstance(config, PPOConfig) else PPOConfig()
+    cfg = PPOConfig() if config is None else config
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
