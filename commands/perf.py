@@ -189,7 +189,7 @@ def main(argv: list[str]) -> int:
         raise ConfigError(f"--algos: unknown algorithm(s) {unknown_algos or '(none named)'}; "
                           f"valid: {', '.join([*MARL_ALGORITHMS, *SHARED_ALGORITHMS])}")
     if "train" in parts:
-        from marl.a2c import training_device
+        from marl.config import training_device
 
         training_device(args.device)  # ConfigError for an unknown device or a missing GPU
     out: dict[str, Any] = {}

@@ -177,8 +177,7 @@ def _holds_files(folder: Path) -> bool:
 
 def main(argv: list[str]) -> int:
     """Entry point of ``cacc-bench reproduce``."""
-    from marl.a2c import training_device
-    from marl.config import ALGORITHM_NAMES
+    from marl.config import ALGORITHM_NAMES, training_device
 
     t0 = time.perf_counter()
     args = _parser().parse_args(argv)

@@ -209,7 +209,7 @@ def main(argv: list[str]) -> int:
     from benchmark.suite import seeds_from_episodes
     from commands.policy_training import train_stage
     from commands.run import execute_sweep
-    from marl.a2c import training_device
+    from marl.config import training_device
 
     args = _parser().parse_args(argv)
     from benchmark.executors import check_ray_address

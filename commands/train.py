@@ -189,7 +189,7 @@ def add_population_argument(p: argparse.ArgumentParser) -> None:
 
 
 def add_device_argument(p: argparse.ArgumentParser) -> None:
-    """The ``--device`` option (checked by :func:`marl.a2c.training_device`)."""
+    """The ``--device`` option (checked by :func:`marl.config.training_device`)."""
     p.add_argument("--device", default="cpu",
                    help="where the networks train: cpu (default) or cuda[:K]; environments, "
                         "validation and checkpoints stay on the CPU")
@@ -306,8 +306,7 @@ def main(argv: list[str]) -> int:
     from commands.train_shared import SHARED_LEARNERS
     from controllers.registry import build_config
     from envs.scenarios import check_vehicles
-    from marl.a2c import training_device
-    from marl.config import ALGORITHM_NAMES, algorithm
+    from marl.config import ALGORITHM_NAMES, algorithm, training_device
 
     args = _parser().parse_args(argv)
     from benchmark.executors import check_ray_address

@@ -1,88 +1,58 @@
-"""The learner: on-policy A2C of N agents per platoon, in the order it runs.
+"""The learner: on-policy A2C of one run of N agents, in the order it runs.
 
-Read top to bottom, as a CleanRL file: **config** (:class:`marl.config.A2CConfig`, shared with
-the acting side, and the training device), **networks** (:mod:`marl.networks`: N agents batched
-as one module), **rollout** (each run's own state, :class:`Run`, and what a segment records,
-:class:`Segment`), **returns** (reward sharing and n-step returns), **loss** (the three A2C
-terms), and **update** (:class:`Learner`: recompute the segment with gradient, loss, backward,
-per-agent clipping, the algorithm's hooks, RMSprop, the divergence check).
+Read top to bottom, as a CleanRL file: **config** (:class:`marl.config.A2CConfig`), **networks**
+(:mod:`marl.networks`), **rollout** state (:class:`Run`, :class:`Segment`, :class:`Batch`),
+**returns**, **loss** (:func:`segment_loss`), then the :class:`Trainer`: its rollout loop
+(:meth:`Trainer.train`) and its **update** (recompute with gradient, loss, backward, per-agent
+clipping, the algorithm's hooks, RMSprop). Around it: :mod:`marl.population` (K runs at once,
+each exactly as alone), :mod:`marl.selection` (validation and checkpoint selection),
+:mod:`marl.acting` (acting from a checkpoint). Each algorithm file (``ia2c.py`` ... ``bdc.py``)
+fills an :class:`marl.config.Algorithm`.
 
-The layers around it: :mod:`marl.population` steps K runs at once through batched envs and calls
-this update (:class:`marl.population.Trainer`; K = 1 is one run); :mod:`marl.selection` trains
-with validation and checkpoint selection (:func:`marl.selection.run_training`,
-:func:`marl.selection.run_population`); :mod:`marl.acting` acts from a checkpoint. Every
-algorithm file (``ia2c.py`` ... ``bdc.py``) fills an :class:`marl.config.Algorithm`;
-``run_training(algorithm("bdc"), config, "catchup-v1")`` trains any of them.
-
-Learner (published A2C, ``docs/spec/marl.md``): n-step segments (60 steps; every episode length and
-every published collision end is a multiple of 60), bootstrap from V of the observation after
-the segment (0 if terminal), truncated backprop through the LSTM within a segment, entropy
-bonus, per-agent global grad-norm clip, RMSprop. The acting LSTM state advances exactly once per
-observation: at a segment boundary the bootstrap forward is computed without gradient from the
-detached state and the next segment recomputes that same transition with gradient, re-using the
-actions sampled for the bootstrap. B episodes run in parallel in one batched
-:class:`envs.platoon.PlatoonEnv` (``training=True, collision_mode="published"``); one batched
-step of B active episodes counts as B environment steps.
+Published A2C (``docs/spec/marl.md``): n-step segments (60 steps; every episode length and
+published collision end is a multiple of 60), bootstrap from V of the next observation (0 if
+terminal), truncated backprop through the LSTM within a segment, entropy bonus, per-agent
+grad-norm clip, RMSprop. The acting LSTM state advances once per observation: at a segment
+boundary the next segment starts from the state the bootstrap used, acting again with the
+updated weights. B episodes run in one batched :class:`envs.platoon.PlatoonEnv`
+(``training=True, collision_mode="published"``); a step of B active episodes counts as B steps.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 import torch
-from torch import nn
 
-from envs.errors import ConfigError
-from envs.platoon import PlatoonEnv
-from marl.config import A2CConfig, Algorithm
-from marl.layers import per_agent_clip_
-from marl.networks import AgentNet, State, neighbour_action_onehot
-
+from envs.errors import TrainingDivergedError
+from envs.params import RewardWeights
+from envs.platoon import PlatoonEnv, StepResult
+from envs.scenarios import Scenario, make_scenario
+from marl.config import A2CConfig, Algorithm, training_device
+from marl.layers import per_agent_clip_, rmsprop_
+from marl.networks import AgentNet, State, exchange, neighbour_action_onehot
 
 # ---------------------------------------------------------------------------- config
-# :class:`marl.config.A2CConfig`: every hyper-parameter, with the paper's values as defaults (its
-# own module, shared with the acting side, which never loads this learner); each algorithm's
-# config subclasses it. Here: where the learner trains.
-def training_device(name: str | torch.device) -> torch.device:
-    """The torch device a :class:`marl.population.Trainer` trains on: ``cpu`` (default), ``cuda`` or
-    ``cuda:K``. Raises :class:`ConfigError` for another name or a GPU this machine lacks."""
-    try:
-        device = torch.device(name)
-    except (RuntimeError, TypeError):
-        raise ConfigError(f"--device {name!r}: expected cpu, cuda or cuda:K") from None
-    if device.type == "cpu":
-        return device
-    if device.type != "cuda":
-        raise ConfigError(f"--device {name}: training runs on cpu or cuda, not {device.type}")
-    if not torch.cuda.is_available():
-        raise ConfigError(f"--device {name}: this torch ({torch.__version__}) sees no CUDA GPU; "
-                          "train on the CPU (--device cpu, the default) or install a CUDA build "
-                          "of torch on a GPU machine")
-    index = 0 if device.index is None else device.index
-    if index >= torch.cuda.device_count():
-        raise ConfigError(f"--device {name}: this machine has {torch.cuda.device_count()} CUDA "
-                          f"device(s), numbered from 0")
-    return torch.device("cuda", index)
-
-
+# :class:`marl.config.A2CConfig`: every hyper-parameter, the paper's values as defaults (shared
+# with the acting side, which never loads this learner); each algorithm's config subclasses it.
 # ---------------------------------------------------------------------------- networks
-# :mod:`marl.networks`: N agents' actor-critics batched as one module
-# (:class:`marl.networks.AgentNet`): the shared trunk of IA2C, FPrint, DIAL and CommNet, and the
-# separate actor and critic of WAC, DCEA and BDC.
+# :mod:`marl.networks`: N agents' actor-critics batched as one module (a shared trunk for IA2C,
+# FPrint, DIAL and CommNet; a separate actor and critic for WAC, DCEA and BDC).
 
 
 # ---------------------------------------------------------------------------- rollout
 @dataclass
 class Run:
-    """One training run of a :class:`marl.population.Trainer`: everything of its own.
+    """One training run: everything of its own.
 
-    A population shares only the stacked network tensors (each run owns the agent rows
-    ``rows``); its random stream, environment, optimiser rates, return statistics, step counts,
-    bit tallies and algorithm state (``hook_state``) are its own, used in the order a run alone
-    uses them, so each run trains exactly as it would alone.
+    Its random stream, environment settings, optimiser rates, return statistics, step counts,
+    bit tallies and algorithm state (``hook_state``); in a population
+    (:mod:`marl.population`) the runs share only the stacked network tensors, each owning its
+    agent rows ``rows``, so each run trains exactly as it would alone.
     """
 
     index: int
@@ -97,7 +67,7 @@ class Run:
     rows: slice
     #: per running agent and step, added to the env's reward: ``-w5 P0`` (0 as published)
     baseline_reward: float
-    #: the run's step budget (entropy schedule); :func:`run_population` sets it
+    #: the run's step budget (entropy schedule); :func:`marl.selection.run_population` sets it
     total_steps: int = 0
     steps: int = 0
     episodes: int = 0
@@ -185,6 +155,25 @@ class Segment:
     terms: list[np.ndarray] = field(default_factory=list)
     absorbed: list[np.ndarray] = field(default_factory=list)
     bootstrap: torch.Tensor | None = None
+
+
+@dataclass
+class Batch:
+    """A run's batch of B episodes in progress: the batched env they run in (rows ``rows``; a
+    population's runs whose batches start together share one), which still run, their training
+    reward and length so far, its open segment (started at step ``seg_start`` of a population's
+    loop) and whether it is over."""
+
+    env: PlatoonEnv
+    rows: slice
+    active: np.ndarray
+    ep_reward: np.ndarray
+    ep_len: np.ndarray
+    seg_start: int = 0
+    seg: Segment = field(default_factory=Segment)
+    steps: int = 0
+    t_episode: int = 0
+    done: bool = False
 
 
 # ---------------------------------------------------------------------------- returns and loss
@@ -315,173 +304,269 @@ def normalise_advantages(adv: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     return (adv - mean) / (var.sqrt() + 1e-8)
 
 
-# ---------------------------------------------------------------------------- update
-class Learner:
-    """The update of one segment of a group of runs (one run, or several of a population whose
-    segments end at the same step with the same length): recompute with gradient, each run's
-    loss, one backward, per-agent clipping, the algorithm's hooks and RMSprop on each run's rows.
+def segment_loss(run: Run, seg: Segment, logits: torch.Tensor, values: torch.Tensor,
+                 actions: torch.Tensor, rows: slice) -> torch.Tensor:
+    """The run's A2C loss over its segment, from its agents' ``rows`` of the recompute: logits
+    ``(A, T, B, 4)``, values and actions ``(A, T, B)``. (Slicing even all rows matters: its
+    backward hands the network a contiguous gradient, so one run rounds as in a population.)"""
+    cfg, device = run.config, logits.device
 
-    :class:`marl.population.Trainer` holds the state it reads (the stacked network, the runs,
-    the optimiser's running averages) and calls :meth:`_update` when segments end.
+    def tensor(parts: list[np.ndarray], dtype: torch.dtype | None = torch.float32) -> torch.Tensor:
+        return torch.from_numpy(np.stack(parts)).to(device, dtype)
+
+    mask = tensor(seg.masks).unsqueeze(-1)  # (T, B, 1)
+    term = tensor(seg.terms, None)
+    # R_t = r_t + gamma V_absorbing at a step that ended the episode by collision
+    reward = tensor(seg.rews) + cfg.gamma * tensor(seg.absorbed).unsqueeze(-1)
+    assert cfg.reward_alpha is not None and seg.bootstrap is not None
+    reward = share_rewards(reward * cfg.reward_scale, cfg.reward_alpha)
+    if cfg.return_norm:
+        reward = reward / run.return_scale(reward, term, mask)
+    returns = nstep_returns(reward, seg.bootstrap, term, cfg.gamma)  # (T, B, N)
+    terms = a2c_losses(logits[rows].permute(1, 0, 2, 3), actions[rows].permute(1, 0, 2),
+                       values[rows].permute(1, 0, 2), returns, mask, cfg.advantage_norm)
+    ent_coef = cfg.entropy_at(run.steps / run.total_steps if run.total_steps else 0.0)
+    return terms["policy"] + cfg.value_coef * terms["value"] - ent_coef * terms["entropy"]
+
+
+# ---------------------------------------------------------------------------- the trainer
+class Trainer:
+    """On-policy A2C of one run over a batched env: the rollout loop (:meth:`train`), then the
+    update of each segment (:meth:`_update`).
+
+    Parameters
+    ----------
+    algo : Algorithm
+    config : A2CConfig
+    scenario_id : str
+        The scenario's id (it names the checkpoints).
+    n_vehicles : int
+    seed : int
+        The run's seed: its initial weights, its actions' uniforms and its episodes' seeds.
+    device : str or torch.device
+        Where the network, its gradients and optimiser state live (:func:`training_device`);
+        the environments, the random stream and the checkpoints stay on the CPU, so the same
+        seed draws the same actions' uniforms on every device.
+    scenario : Scenario, optional
+        The scenario, when the caller built it already.
     """
 
-    algo: Algorithm
-    scenario_id: str
-    n_vehicles: int
-    device: torch.device
-    #: the runs' networks stacked along the agent axis (``K N`` agents)
-    net: AgentNet
-    runs: list[Run]
-    #: the fields the runs share (:data:`marl.population.POPULATION_SHARED_FIELDS`)
-    shape: A2CConfig
-    #: (parameter, is_critic): actor parameters, then the critic's
-    params: list[tuple[nn.Parameter, bool]]
-    _square_avg: list[torch.Tensor]
+    def __init__(self, algo: Algorithm, config: A2CConfig, scenario_id: str, n_vehicles: int,
+                 seed: int, device: str | torch.device = "cpu",
+                 scenario: Scenario | None = None) -> None:
+        scenario = make_scenario(scenario_id) if scenario is None else scenario
+        self._start(algo, scenario_id, scenario, n_vehicles, [int(seed)],
+                    [config.resolved(scenario)], device)
+        self.run = self.runs[0]
 
-    def _recompute(
-        self, group: list[Run], seg_state: State, record: list[dict[str, Any]]
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, list[slice], State]:
-        """Re-run the group's segment with gradient on the group's rows only: logits
-        ``(A, T, B, 4)``, values and actions ``(A, T, B)`` of its ``A`` agents, each run's rows
-        among them, and the recurrent state after the segment (those rows)."""
+    def _start(self, algo: Algorithm, scenario_id: str, scenario: Scenario, n_vehicles: int,
+               seeds: Sequence[int], resolved: Sequence[A2CConfig],
+               device: str | torch.device) -> None:
+        """Build the runs (``resolved``: their configs, ``reward_alpha`` and the power
+        baseline filled in), their networks (joined by :meth:`_join`) and the optimiser."""
+        torch.set_num_threads(1)
+        self.device = training_device(device)
+        self.algo, self.scenario_id, self.scenario = algo, scenario_id, scenario
+        self.n_vehicles = n = n_vehicles
+        self.shape = resolved[0]  # the structural fields (hidden, n_step, episodes_parallel)
+        self.runs: list[Run] = []
+        nets = []
+        for k, (s, cfg) in enumerate(zip(seeds, resolved, strict=True)):
+            generator = torch.Generator().manual_seed(s)
+            assert cfg.power_baseline_kw is not None
+            self.runs.append(Run(k, s, cfg, generator, self._make_env(cfg.reward_weights()),
+                                 slice(k * n, (k + 1) * n),
+                                 -cfg.reward_w_power * cfg.power_baseline_kw))
+            with torch.device("cpu"):  # the same initial weights on every device
+                nets.append(algo.build_net(cfg, n, True, generator))
+        self.net = self._join(nets).to(self.device)
+        #: (parameter, is_critic): actor parameters, then the critic's
+        self.params = [(p, False) for p in self.net.actor_parameters()] + [
+            (p, True) for p in self.net.critic_parameters()]
+        self._square_avg = [torch.zeros_like(p) for p, _ in self.params]  # RMSprop's state
+        for run in self.runs:
+            algo.setup(run)
+
+    def _join(self, nets: list[AgentNet]) -> AgentNet:
+        """The network trained: the run's own."""
+        return nets[0]
+
+    # -- rollout
+    def train(self, on_batch: Callable[[Run, int, float], bool]) -> None:
+        """Train batch after batch of B episodes, an update every n steps, until ``on_batch(run,
+        steps, mean_training_reward)``, called after each batch (``run.steps`` counts it), says
+        stop. A run that diverges stops there (``run.failed`` says why)."""
+        run, b, n = self.run, self.shape.episodes_parallel, self.n_vehicles
         net = self.net
+        while True:
+            env = self._make_env(run.env.weights)
+            first = env.reset(run.training_seeds(b))
+            assert first is not None
+            obs = self._observation(first)
+            run.return_acc = torch.zeros(b, n, device=self.device)
+            bt = Batch(env, slice(0, b), np.ones(b, dtype=bool), np.zeros(b), np.zeros(b))
+            state = net.initial_state(b)
+            cur = self._act(obs, state)
+            history: list[tuple[State, dict[str, Any]]] = []  # the open segment's steps
+            while True:
+                history.append((state, cur))
+                res = env.step_actions(cur["actions"].cpu().T.numpy())
+                self._record(run, bt, res)
+                nxt: dict[str, Any] | None = None
+                if bt.done:  # every episode ended: the segment bootstraps from 0
+                    bt.seg.bootstrap = torch.zeros(b, n, device=self.device)
+                else:  # act on the next observation, with the weights before any update
+                    assert res.observation is not None
+                    obs = self._observation(res.observation)
+                    nxt = self._act(obs, cur["state"])
+                    if len(bt.seg.rews) < self.shape.n_step:
+                        state, cur = cur["state"], nxt
+                        continue
+                    if not net.separate_critic:  # (a separate critic's: in the update)
+                        with torch.no_grad():
+                            bt.seg.bootstrap = net.value(nxt["out"], neighbour_action_onehot(
+                                nxt["actions"], net.platoon_size)).T
+                # the segment ends: one update
+                critic_after = self._update(history[0][0], [h[1] for h in history], bt.seg, nxt)
+                # most episodes ended (published collision rule): truncate the rest (their last
+                # segment was bootstrapped) instead of stepping finished episodes
+                if (bt.done or run.failed is not None
+                        or bt.active.sum() < run.config.min_active_fraction * b):
+                    break
+                # the next segment starts from the same observation and state, acting again
+                # with the new weights (a separate critic's state is its recompute's end)
+                state = cur["state"] | critic_after
+                cur, history, bt.seg = self._act(obs, state), [], Segment()
+            if run.failed is not None:
+                return
+            run.steps += bt.steps
+            run.episodes += b
+            if not on_batch(run, bt.steps, float((bt.ep_reward / np.maximum(bt.ep_len, 1)).mean())):
+                return
+
+    @torch.no_grad()
+    def _act(self, obs: torch.Tensor, state: State) -> dict[str, Any]:
+        """No-grad acting step: observations ``(N, B, 15)``, messages received, logits, actions
+        sampled (Gumbel-max with the run's uniforms), next state."""
+        net = self.net
+        front, rear = exchange(net, state)
+        logits, out, new = net.act_step(obs, state, front, rear, critic=not net.separate_critic)
+        u = self.run.uniforms((self.n_vehicles,) + tuple(logits.shape[1:])).to(self.device)
+        actions = (logits - torch.log(-torch.log(u))).argmax(-1)
+        return {"obs": obs, "front": front, "rear": rear, "out": out, "logits": logits,
+                "actions": actions, "state": new}
+
+    def _record(self, r: Run, bt: Batch, res: StepResult) -> Batch:
+        """Record the run's rows of its env's step ``res`` in its batch and open segment."""
+        sg, act, rows = bt.seg, bt.active, bt.rows
+        done, collided, reward = res.done[rows], res.collided[rows], res.reward[rows]
+        bt.t_episode += 1
+        sg.masks.append(act.copy())
+        sg.terms.append(done & act)
+        if r.baseline_reward:
+            running = act & ~collided
+            sg.rews.append(reward + r.baseline_reward * running[:, None])
+        else:
+            sg.rews.append(reward)
+        crashed = done & collided & act
+        sg.absorbed.append(
+            r.absorbing_value(r.env.n_steps - bt.t_episode) * crashed
+            if crashed.any() else np.zeros(len(act))
+        )
+        bt.steps += int(act.sum())
+        bt.ep_reward += np.where(act, sg.rews[-1].sum(1), 0.0)
+        bt.ep_len += act
+        bt.active = ~done
+        bt.done = bool(done.all())
+        return bt
+
+    def _observation(self, obs_np: np.ndarray) -> torch.Tensor:
+        """Env observations ``(B, N, 15)`` -> agent-major ``(N, B, 15)``."""
+        return torch.from_numpy(obs_np).transpose(0, 1).contiguous().to(self.device)
+
+    def _make_env(self, weights: RewardWeights) -> PlatoonEnv:
+        """A batched training env of the scenario (published collision rule, ``weights``)."""
+        return PlatoonEnv(self.scenario, self.n_vehicles, training=True,
+                          collision_mode="published", weights=weights)
+
+    # -- update
+    def _update(self, seg_state: State, record: list[dict[str, Any]], seg: Segment,
+                nxt: dict[str, Any] | None) -> State:
+        """One update on the segment that starts from ``seg_state`` (``record``: its acts).
+
+        With a separate critic, the bootstrap of a segment whose batch goes on is computed here
+        from the recompute's critic state and ``nxt`` (the act on the next observation), with
+        the weights before the update; returns that critic state after the segment."""
+        logits, values, actions, after = self._recompute(seg_state, record)
+        critic_after = self._critic_bootstrap(seg, after, nxt)
+        self._optimise(segment_loss(self.run, seg, logits, values, actions, self.run.rows),
+                       [self.run])
+        return critic_after
+
+    def _recompute(self, seg_state: State, record: list[dict[str, Any]]
+                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, State]:
+        """Re-run the segment with gradient: logits ``(N, T, B, 4)``, values and actions
+        ``(N, T, B)`` and the recurrent state after the segment."""
         obs = torch.stack([r["obs"] for r in record], 1)
         actions = torch.stack([r["actions"] for r in record], 1)
         msgs = None
-        if not net.differentiable_messages and record[0]["front"] is not None:
+        if not self.net.differentiable_messages and record[0]["front"] is not None:
             msgs = (torch.stack([r["front"] for r in record], 1),
                     torch.stack([r["rear"] for r in record], 1))
-        if len(group) == len(self.runs):
-            logits, values, after = net(seg_state, obs, actions, msgs)
-            return logits, values, actions, [r.rows for r in group], after
-        idx = torch.cat([torch.arange(r.rows.start, r.rows.stop, device=self.device)
-                         for r in group])
+        logits, values, after = self.net(seg_state, obs, actions, msgs)
+        return logits, values, actions, after
 
-        def pick(t: torch.Tensor) -> torch.Tensor:
-            return t.index_select(0, idx)
+    @torch.no_grad()
+    def _critic_bootstrap(self, seg: Segment, after: State, nxt: dict[str, Any] | None) -> State:
+        """For a separate critic and a batch that goes on: the segment's bootstrap (the critic
+        one step on from the segment's end, on the next observation) and its critic state at the
+        segment's end (empty otherwise)."""
+        net = self.net
+        if not net.separate_critic or seg.bootstrap is not None:
+            return {}
+        assert nxt is not None
+        critic = {k: after[k].detach().clone() for k in ("ch", "cc")}
+        out, _ = net.critic_features(nxt["obs"], critic)
+        seg.bootstrap = net.value(out, neighbour_action_onehot(nxt["actions"], net.platoon_size)).T
+        return critic
 
-        tensors = {name: pick(t) for name, t in [*net.named_parameters(), *net.named_buffers()]}
-        logits, values, after = torch.func.functional_call(net, tensors, (
-            {k: pick(v) for k, v in seg_state.items()}, pick(obs), pick(actions),
-            None if msgs is None else (pick(msgs[0]), pick(msgs[1]))))
-        n = self.n_vehicles
-        rows = [slice(j * n, (j + 1) * n) for j in range(len(group))]
-        return logits, values, pick(actions), rows, after
-
-    def _loss(self, run: Run, seg: Segment, logits: torch.Tensor, values: torch.Tensor,
-              actions: torch.Tensor, rows: slice) -> torch.Tensor:
-        """The run's A2C loss over its segment from its ``rows`` of the recompute."""
-        cfg = run.config
-        def tensor(parts: list[np.ndarray], dtype: torch.dtype | None = torch.float32
-                   ) -> torch.Tensor:
-            return torch.from_numpy(np.stack(parts)).to(self.device, dtype)
-
-        mask = tensor(seg.masks).unsqueeze(-1)  # (T, B, 1)
-        term = tensor(seg.terms, None)
-        reward = tensor(seg.rews)
-        # R_t = r_t + gamma V_absorbing at a step that ended the episode by collision
-        extra = tensor(seg.absorbed)  # (T, B)
-        reward = reward + cfg.gamma * extra.unsqueeze(-1)
-        assert cfg.reward_alpha is not None and seg.bootstrap is not None
-        reward = share_rewards(reward * cfg.reward_scale, cfg.reward_alpha)
-        if cfg.return_norm:
-            reward = reward / run.return_scale(reward, term, mask)
-        returns = nstep_returns(reward, seg.bootstrap, term, cfg.gamma)  # (T, B, N)
-        terms_ = a2c_losses(
-            logits[rows].permute(1, 0, 2, 3), actions[rows].permute(1, 0, 2),
-            values[rows].permute(1, 0, 2), returns, mask, cfg.advantage_norm)
-        ent_coef = cfg.entropy_at(run.steps / run.total_steps if run.total_steps else 0.0)
-        return terms_["policy"] + cfg.value_coef * terms_["value"] - ent_coef * terms_["entropy"]
-
-    def _update(
-        self, group: list[Run], seg_state: State, record: list[dict[str, Any]],
-        segs: list[Segment], nxt: dict[str, Any] | None,
-    ) -> dict[int, State]:
-        """One update of every run in ``group`` (their segments have the same length).
-
-        With a separate critic, the bootstrap of a run whose batch goes on is computed here from
-        the recompute's critic state and ``nxt`` (the act on the next observation), with the
-        weights before the update; returns those runs' critic state after the segment."""
-        logits, values, actions, rows, after = self._recompute(group, seg_state, record)
-        critic_after = self._critic_bootstrap(group, segs, rows, after, nxt)
-        losses = [self._loss(r, sg, logits, values, actions, rw)
-                  for r, sg, rw in zip(group, segs, rows, strict=True)]
-        loss = losses[0]
-        for other in losses[1:]:  # each run's gradient is its own loss's (the sum's is 1 each)
-            loss = loss + other
+    def _optimise(self, loss: torch.Tensor, runs: list[Run]) -> None:
+        """Backward of ``loss`` (the sum of ``runs``' losses: this trainer's one run, or a
+        population's group), per-agent clipping, the algorithm's hooks around RMSprop, and the
+        divergence check."""
         for p, _ in self.params:
             if p.grad is not None:
                 p.grad.zero_()
         loss.backward()
-        params = [p for p, _ in self.params]
-        clips = {r.config.grad_clip for r in group}
-        if len(clips) == 1:
-            per_agent_clip_(params, clips.pop())
-        else:  # a config population: each run clips at its own norm (other rows have no grad)
-            per_agent_clip_(params, torch.tensor(
-                [r.config.grad_clip for r in self.runs], device=self.device
-            ).repeat_interleave(self.n_vehicles))
-        for r in group:
+        self._clip(runs)
+        for r in runs:
             self.algo.before_step(r, self.net)
-        self._rmsprop_step(group)
-        for r in group:
+        self._rmsprop_step(runs)
+        for r in runs:
             self.algo.after_step(r, self.net)
             r.updates += 1
         if not all(bool(torch.isfinite(p).all()) for p, _ in self.params):
-            for r in group:
+            for r in runs:
                 self._check_finite(r)
-        return critic_after
+
+    def _clip(self, runs: list[Run]) -> None:
+        """Clip each agent's gradient to the run's global norm (``grad_clip``)."""
+        per_agent_clip_([p for p, _ in self.params], self.run.config.grad_clip)
 
     @torch.no_grad()
-    def _critic_bootstrap(
-        self, group: list[Run], segs: list[Segment], rows: list[slice], after: State,
-        nxt: dict[str, Any] | None,
-    ) -> dict[int, State]:
-        """For a separate critic: each continuing run's bootstrap (its critic one step on from
-        the segment's end, on the next observation) and its critic state at the segment's end."""
-        net = self.net
-        if not net.separate_critic:
-            return {}
-        going = [(r, sg, rw) for r, sg, rw in zip(group, segs, rows, strict=True)
-                 if sg.bootstrap is None]
-        if not going:
-            return {}
-        assert nxt is not None
-        b = self.shape.episodes_parallel
-        start = {k: torch.zeros(net.n_agents, b, net.hidden, device=self.device)
-                 for k in ("ch", "cc")}
-        for r, _, rw in going:
-            for k in start:
-                start[k][r.rows] = after[k][rw]
-        out, _ = net.critic_features(nxt["obs"], start)
-        values = net.value(out, neighbour_action_onehot(nxt["actions"], net.platoon_size))
-        for r, sg, _ in going:
-            sg.bootstrap = values[r.rows].T
-        return {r.index: {k: after[k][rw].detach().clone() for k in ("ch", "cc")}
-                for r, _, rw in going}
-
-    @torch.no_grad()
-    def _rmsprop_step(self, group: list[Run]) -> None:
-        """RMSprop (no momentum, not centred; the arithmetic of ``torch.optim.RMSprop``) on the
-        rows of the runs in ``group``, each with its own rates, smoothing and epsilon."""
-        settings = {(r.learning_rates(), r.config.rmsprop_alpha, r.config.rmsprop_eps)
-                    for r in group}
-        whole = len(group) == len(self.runs) and len(settings) == 1
+    def _rmsprop_step(self, runs: list[Run]) -> None:
+        """RMSprop (no momentum, not centred; the arithmetic of ``torch.optim.RMSprop``), the
+        actor's and the critic's rates."""
+        cfg = self.run.config
+        lrs = self.run.learning_rates()
         for (p, is_critic), sq in zip(self.params, self._square_avg, strict=True):
             assert p.grad is not None
-            if whole:
-                (lrs, alpha, eps), = settings
-                _rmsprop_(p, p.grad, sq, lrs[is_critic], alpha, eps)
-                continue
-            for r in group:
-                cfg = r.config
-                _rmsprop_(p[r.rows], p.grad[r.rows], sq[r.rows], r.learning_rates()[is_critic],
-                          cfg.rmsprop_alpha, cfg.rmsprop_eps)
+            rmsprop_(p, p.grad, sq, lrs[is_critic], cfg.rmsprop_alpha, cfg.rmsprop_eps)
 
     def _check_finite(self, run: Run) -> None:
         """Stop a run whose weights became NaN or infinite (a NaN policy would otherwise act as
-        "action 0" everywhere: the argmax of NaN logits); the other runs go on. Its rows are
-        zeroed so nothing non-finite stays in the stack."""
+        "action 0" everywhere: the argmax of NaN logits). Its rows are zeroed so nothing
+        non-finite stays in the network."""
         bad = [name for name, p in self.net.named_parameters()
                if not bool(torch.isfinite(p[run.rows]).all())]
         if bad:
@@ -496,13 +581,19 @@ class Learner:
                 for p in self.net.parameters():
                     p[run.rows] = 0.0
 
+    # -- what the layers above read
+    def run_batch(self) -> list[tuple[int, float]]:
+        """Train one batch of B episodes; returns ``[(environment steps, mean training
+        reward)]`` (the learner's own reward, shaped when the config says so; mean over steps
+        of the sum over agents, as the paper reports). Raises :class:`TrainingDivergedError`
+        if the run diverged."""
+        out: list[tuple[int, float]] = []
 
-def _rmsprop_(
-    param: torch.Tensor, grad: torch.Tensor, square_avg: torch.Tensor, lr: float, alpha: float,
-    eps: float,
-) -> None:
-    """One RMSprop step in place, in the operation order of ``torch.optim.RMSprop``."""
-    square_avg.mul_(alpha).addcmul_(grad, grad, value=1 - alpha)
-    avg = square_avg.sqrt().add_(eps)
-    param.addcdiv_(grad, avg, value=-lr)
+        def once(run: Run, steps: int, reward: float) -> bool:
+            out.append((steps, reward))
+            return False
 
+        self.train(once)
+        if self.run.failed is not None:
+            raise TrainingDivergedError(self.run.failed)
+        return out

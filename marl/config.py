@@ -26,6 +26,8 @@ from envs.params import EVAL_MODES, MARL_ALGORITHMS, RewardWeights
 from envs.scenarios import Scenario, as_scenario
 
 if TYPE_CHECKING:
+    import torch
+
     from marl.a2c import Run
     from marl.networks import AgentNet
 
@@ -197,6 +199,31 @@ class A2CConfig:
             return self.entropy_coef
         f = min(max(fraction, 0.0), 1.0)
         return self.entropy_coef + (self.entropy_coef_final - self.entropy_coef) * f
+
+
+# ---------------------------------------------------------------------------- device
+def training_device(name: str | torch.device) -> torch.device:
+    """The torch device a learner (:class:`marl.a2c.Trainer`) trains on: ``cpu`` (default), ``cuda`` or
+    ``cuda:K``. Raises :class:`ConfigError` for another name or a GPU this machine lacks."""
+    import torch  # not at the top: the command line reads this module without torch
+
+    try:
+        device = torch.device(name)
+    except (RuntimeError, TypeError):
+        raise ConfigError(f"--device {name!r}: expected cpu, cuda or cuda:K") from None
+    if device.type == "cpu":
+        return device
+    if device.type != "cuda":
+        raise ConfigError(f"--device {name}: training runs on cpu or cuda, not {device.type}")
+    if not torch.cuda.is_available():
+        raise ConfigError(f"--device {name}: this torch ({torch.__version__}) sees no CUDA GPU; "
+                          "train on the CPU (--device cpu, the default) or install a CUDA build "
+                          "of torch on a GPU machine")
+    index = 0 if device.index is None else device.index
+    if index >= torch.cuda.device_count():
+        raise ConfigError(f"--device {name}: this machine has {torch.cuda.device_count()} CUDA "
+                          f"device(s), numbered from 0")
+    return torch.device("cuda", index)
 
 
 # ---------------------------------------------------------------------------- algorithms

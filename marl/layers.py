@@ -217,3 +217,14 @@ def per_agent_clip_(
     for g in grads:
         g.mul_(scale.reshape((-1,) + (1,) * (g.dim() - 1)))
     return norm
+
+
+def rmsprop_(
+    param: torch.Tensor, grad: torch.Tensor, square_avg: torch.Tensor, lr: float, alpha: float,
+    eps: float,
+) -> None:
+    """One RMSprop step in place (no momentum, not centred), in the operation order of
+    ``torch.optim.RMSprop``."""
+    square_avg.mul_(alpha).addcmul_(grad, grad, value=1 - alpha)
+    avg = square_avg.sqrt().add_(eps)
+    param.addcdiv_(grad, avg, value=-lr)

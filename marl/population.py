@@ -1,17 +1,17 @@
 """The population layer: K runs of one algorithm trained at once, each exactly as alone.
 
-:class:`Trainer` stacks the K runs' networks as one network of ``K N`` agents
-(:func:`stack_nets`; every layer is per agent, :mod:`marl.layers`), so each step acts for all
-runs in one forward and each update (:class:`marl.a2c.Learner`) is one backward. It collects the
-rollout: every live run steps its own env, ends its own segments and batches, and starts its
-next batch at once (:meth:`Trainer.train`). K = 1 is one run. Training with validation and
-checkpoint selection on top of it: :mod:`marl.selection`; ``docs/populations.md``.
+:class:`PopulationTrainer` wraps the single-run learner (:class:`marl.a2c.Trainer`): it stacks
+the K runs' networks as one network of ``K N`` agents (:func:`stack_nets`; every layer is per
+agent, :mod:`marl.layers`), so each step acts for all runs in one forward and each update is one
+backward of the runs whose segments ended. Every live run steps its own env, ends its own
+segments and batches, and starts its next batch at once (:meth:`PopulationTrainer.train`).
+Training with validation and checkpoint selection on top of it: :mod:`marl.selection`;
+``docs/populations.md``.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -20,10 +20,10 @@ import torch
 from envs.dynamics import OBS_DIM
 from envs.errors import ConfigError, TrainingDivergedError
 from envs.params import RewardWeights
-from envs.platoon import PlatoonEnv, StepResult
 from envs.scenarios import Scenario, make_scenario
-from marl.a2c import Learner, Run, Segment, training_device
-from marl.config import A2CConfig, Algorithm
+from marl.a2c import Batch, Run, Segment, Trainer, segment_loss
+from marl.config import A2CConfig, Algorithm, training_device
+from marl.layers import per_agent_clip_, rmsprop_
 from marl.networks import AgentNet, State, exchange, neighbour_action_onehot
 
 #: Structural fields every run of a population shares (they shape the stacked tensors and the
@@ -44,25 +44,6 @@ def stack_nets(algo: Algorithm, config: A2CConfig, nets: Sequence[AgentNet]) -> 
     return big
 
 
-@dataclass
-class _Batch:
-    """A run's batch in progress: the batched env its B episodes run in (rows ``rows``, shared
-    with the runs whose batch started at the same step), which of them still run, their
-    training reward and length so far, its open segment (started at step ``seg_start`` of the
-    loop) and whether it is over."""
-
-    env: PlatoonEnv
-    rows: slice
-    active: np.ndarray
-    ep_reward: np.ndarray
-    ep_len: np.ndarray
-    seg_start: int = 0
-    seg: Segment = field(default_factory=Segment)
-    steps: int = 0
-    t_episode: int = 0
-    done: bool = False
-
-
 def _merge_rows(base: dict[str, Any], new: dict[str, Any], runs: Sequence[Run]) -> dict[str, Any]:
     """``base`` (an act's output, nested dicts of ``(A, ...)`` tensors) with the rows of
     ``runs`` taken from ``new``."""
@@ -80,17 +61,19 @@ def _merge_rows(base: dict[str, Any], new: dict[str, Any], runs: Sequence[Run]) 
     return {k: merge(base[k], new[k]) for k in base}
 
 
-class Trainer(Learner):
-    """On-policy A2C of K runs (a population; K = 1: one run) over batched envs.
+class PopulationTrainer(Trainer):
+    """On-policy A2C of K runs at once over batched envs, each exactly as
+    :class:`marl.a2c.Trainer` trains it alone.
 
     The K runs' agents are stacked as one network of ``K N`` agents (every layer is per agent,
     :mod:`marl.layers`), so each step acts for all runs in one forward and each update is one
     backward; everything that crosses agents (messages, the critic's neighbour actions,
     consensus, reward sharing) stays inside a run's platoon. Runs run free: each step acts
     for all of them, a run whose batch ended starts its next at once, and an update computes on
-    the rows of the runs whose segment ended (:meth:`train`). Each run draws
-    from its own generator in the order a run alone does, keeps its own environment, statistics
-    and optimiser state, and so trains exactly as alone (tested to the last bit).
+    the rows of the runs whose segment ended (:meth:`train`). Each run draws from its own
+    generator in the order a run alone does, keeps its own environment, statistics and optimiser
+    state, and so trains exactly as alone (tested to the last bit against the single-run
+    learner).
 
     Parameters
     ----------
@@ -104,8 +87,7 @@ class Trainer(Learner):
         The runs' seeds (one int: one run).
     device : str or torch.device
         Where the network, its gradients and optimiser state live (:func:`training_device`);
-        the environments, the random streams and the checkpoints stay on the CPU, so the
-        same seed draws the same actions' uniforms on every device.
+        the environments, the random streams and the checkpoints stay on the CPU.
     """
 
     def __init__(
@@ -118,8 +100,7 @@ class Trainer(Learner):
         device: str | torch.device = "cpu",
         scenario: Scenario | None = None,
     ) -> None:
-        torch.set_num_threads(1)
-        self.device = training_device(device)
+        training_device(device)  # a bad device first, as for one run
         seeds = [int(seed)] if isinstance(seed, int | np.integer) else [int(s) for s in seed]
         configs = (
             [config] * len(seeds) if isinstance(config, A2CConfig) else list(config)
@@ -128,64 +109,43 @@ class Trainer(Learner):
             raise ConfigError(
                 f"a population needs one config per seed (got {len(configs)} configs for "
                 f"{len(seeds)} seeds)")
-        self.algo = algo
-        self.scenario_id = scenario_id
         # built once (or by the caller), for the config and every env of every run
-        self.scenario = make_scenario(scenario_id) if scenario is None else scenario
-        self.n_vehicles = n = n_vehicles
-        resolved = [c.resolved(self.scenario) for c in configs]
+        scenario = make_scenario(scenario_id) if scenario is None else scenario
+        resolved = [c.resolved(scenario) for c in configs]
         for f in POPULATION_SHARED_FIELDS:
             values = {getattr(c, f) for c in resolved}
             if len(values) > 1:
                 raise ConfigError(
                     f"the runs of one population must share {f} (got {sorted(values)}); "
                     "train them in separate populations")
-        self.shape = resolved[0]  # the shared structural fields
-        self.runs: list[Run] = []
-        nets = []
-        for k, (s, cfg) in enumerate(zip(seeds, resolved, strict=True)):
-            generator = torch.Generator().manual_seed(s)
-            env = self._make_env(cfg.reward_weights())
-            assert cfg.power_baseline_kw is not None  # resolved above
-            run = Run(k, s, cfg, generator, env, slice(k * n, (k + 1) * n),
-                      -cfg.reward_w_power * cfg.power_baseline_kw)
-            with torch.device("cpu"):
-                nets.append(algo.build_net(cfg, n, True, generator))
-            self.runs.append(run)
-        # built on the CPU from the CPU generators (the same initial weights on every device)
+        self._start(algo, scenario_id, scenario, n_vehicles, seeds, resolved, device)
+
+    def _join(self, nets: list[AgentNet]) -> AgentNet:
+        """The K runs' networks stacked as one (built on the CPU from the CPU generators)."""
+        if len(nets) == 1:
+            return nets[0]
         with torch.device("cpu"):
-            net = nets[0] if len(nets) == 1 else stack_nets(algo, resolved[0], nets)
-        self.net = net.to(self.device)
-        #: (parameter, is_critic): actor parameters, then the critic's
-        self.params = [(p, False) for p in self.net.actor_parameters()] + [
-            (p, True) for p in self.net.critic_parameters()]
-        self._square_avg = [torch.zeros_like(p) for p, _ in self.params]
-        self._views: dict[int, AgentNet] = {}
-        for run in self.runs:
-            algo.setup(run)
+            return stack_nets(self.algo, self.shape, nets)
 
     # -- acting
     @torch.no_grad()
-    def _act(self, obs: torch.Tensor, state: State, sampling: Sequence[Run]) -> dict[str, Any]:
+    def _act(self, obs: torch.Tensor, state: State, sampling: Sequence[Run] | None = None
+             ) -> dict[str, Any]:
         """No-grad acting step of the whole stack: observations ``(K N, B, 15)``, messages
         received, logits, actions, next state. Only the runs in ``sampling`` draw their actions
-        (the others' rows are computed and ignored)."""
+        (the others' rows are computed and ignored; default all)."""
         net = self.net
         front, rear = exchange(net, state)
         logits, out, new = net.act_step(obs, state, front, rear,
                                         critic=not net.separate_critic)
         shape = (self.n_vehicles,) + tuple(logits.shape[1:])
-        drawing = {r.index for r in sampling}
+        drawing = {r.index for r in (self.runs if sampling is None else sampling)}
         parts = [r.uniforms(shape) if r.index in drawing else torch.full(shape, 0.5, device="cpu")
                  for r in self.runs]
         u = (parts[0] if len(parts) == 1 else torch.cat(parts)).to(self.device)
         actions = (logits - torch.log(-torch.log(u))).argmax(-1)
         return {"obs": obs, "front": front, "rear": rear, "out": out, "logits": logits,
                 "actions": actions, "state": new}
-
-    def _observation(self, obs_np: np.ndarray) -> torch.Tensor:
-        """Env observations ``(B, N, 15)`` -> agent-major ``(N, B, 15)``."""
-        return torch.from_numpy(obs_np).transpose(0, 1).contiguous().to(self.device)
 
     def run_batch(self, runs: Sequence[Run] | None = None) -> list[tuple[int, float]]:
         """Run one batch of B episodes of every run in ``runs`` (default all), with an update of
@@ -202,14 +162,15 @@ class Trainer(Learner):
             out[run.index] = (steps, reward)
             return False
 
-        self.train(taking, once)
+        self.train(once, taking)
         failed = [r.failed for r in taking if r.failed is not None]
         if failed:
             raise TrainingDivergedError("; ".join(failed))
         return [out[r.index] for r in taking]
 
-    def train(self, runs: Sequence[Run], on_batch: Callable[[Run, int, float], bool]) -> None:
-        """Train ``runs`` batch after batch until ``on_batch`` says stop for each.
+    def train(self, on_batch: Callable[[Run, int, float], bool],
+              runs: Sequence[Run] | None = None) -> None:
+        """Train ``runs`` (default all) batch after batch until ``on_batch`` says stop for each.
 
         The runs run free: every step acts for the whole stack at once, and each run steps its
         own env, ends its own segments (an update of exactly its rows) and batches, and starts
@@ -217,12 +178,12 @@ class Trainer(Learner):
         run's batch ended (after ``run.steps`` counts it) and returns whether the run goes on.
         A run that diverged stops there (``run.failed`` says why).
         """
+        live = list(self.runs if runs is None else runs)
         b = self.shape.episodes_parallel
         obs = [torch.zeros(self.n_vehicles, b, OBS_DIM, device=self.device)
                for _ in self.runs]  # idle runs: ignored
         state = self.net.initial_state(b)
-        batch = self._start_batches(list(runs), obs, 0)
-        live = list(runs)
+        batch = self._start_batches(live, obs, 0)
         cur = self._act(self._stack(obs), state, live)
         #: per step since ``base``: the state acted from and what the act gave
         history: list[tuple[State, dict[str, Any]]] = []
@@ -257,7 +218,7 @@ class Trainer(Learner):
             base = oldest
 
     def _step_envs(
-        self, live: list[Run], batch: dict[int, _Batch], actions: torch.Tensor,
+        self, live: list[Run], batch: dict[int, Batch], actions: torch.Tensor,
         obs: list[torch.Tensor],
     ) -> tuple[list[Run], set[int]]:
         """Step every live run's env with its rows of ``actions`` and store its next
@@ -292,7 +253,7 @@ class Trainer(Learner):
 
     @torch.no_grad()
     def _bootstrap_shared_critic(
-        self, ending: list[Run], over: set[int], batch: dict[int, _Batch],
+        self, ending: list[Run], over: set[int], batch: dict[int, Batch],
         nxt: dict[str, Any] | None,
     ) -> None:
         """A critic that shares the actor's trunk bootstraps a segment that ended mid-batch from
@@ -308,7 +269,7 @@ class Trainer(Learner):
             batch[r.index].seg.bootstrap = values[r.rows].T
 
     def _update_ending(
-        self, ending: list[Run], batch: dict[int, _Batch],
+        self, ending: list[Run], batch: dict[int, Batch],
         record: list[tuple[State, dict[str, Any]]], nxt: dict[str, Any] | None,
     ) -> dict[int, State]:
         """Update the runs whose segment ended, one update per segment length (``record``: the
@@ -320,12 +281,12 @@ class Trainer(Learner):
         critic_after: dict[int, State] = {}
         for t_len, group in sorted(by_length.items()):
             seg = record[-t_len:]
-            critic_after |= self._update(group, seg[0][0], [h[1] for h in seg],
-                                         [batch[r.index].seg for r in group], nxt)
+            critic_after |= self._update_group(group, seg[0][0], [h[1] for h in seg],
+                                               [batch[r.index].seg for r in group], nxt)
         return critic_after
 
     def _next_segments(
-        self, ending: list[Run], over: set[int], batch: dict[int, _Batch], tick: int
+        self, ending: list[Run], over: set[int], batch: dict[int, Batch], tick: int
     ) -> list[Run]:
         """Open the next segment (from step ``tick``) of each run whose segment ended and whose
         batch goes on; a run that failed, or whose running episodes fell below
@@ -361,7 +322,7 @@ class Trainer(Learner):
         return next_state, _merge_rows(nxt, self._act(nxt["obs"], next_state, reacting), reacting)
 
     def _end_batches(
-        self, live: list[Run], over: set[int], batch: dict[int, _Batch],
+        self, live: list[Run], over: set[int], batch: dict[int, Batch],
         on_batch: Callable[[Run, int, float], bool],
     ) -> list[Run]:
         """Count and report each ended batch (``on_batch``); returns the runs that go on."""
@@ -379,7 +340,7 @@ class Trainer(Learner):
         return restarting
 
     def _restart(
-        self, restarting: list[Run], batch: dict[int, _Batch], obs: list[torch.Tensor],
+        self, restarting: list[Run], batch: dict[int, Batch], obs: list[torch.Tensor],
         next_state: State, nxt: dict[str, Any] | None, tick: int,
     ) -> tuple[State, dict[str, Any]]:
         """Start the next batch of each run in ``restarting`` at step ``tick``: new episodes,
@@ -393,13 +354,8 @@ class Trainer(Learner):
         new = self._act(self._stack(obs), next_state, restarting)
         return next_state, new if nxt is None else _merge_rows(nxt, new, restarting)
 
-    def _make_env(self, weights: RewardWeights) -> PlatoonEnv:
-        """A batched training env of the scenario (published collision rule, ``weights``)."""
-        return PlatoonEnv(self.scenario, self.n_vehicles, training=True,
-                          collision_mode="published", weights=weights)
-
     def _start_batches(self, runs: list[Run], obs: list[torch.Tensor], tick: int
-                       ) -> dict[int, _Batch]:
+                       ) -> dict[int, Batch]:
         """Start the next batch of each run in ``runs`` at step ``tick``: the runs with the same
         reward weights share one batched env of their K B episodes (each episode depends on its
         own seed only, so a run's rows equal its env alone; one step of a shared env costs about
@@ -417,55 +373,114 @@ class Trainer(Learner):
                 rows = slice(j * b, (j + 1) * b)
                 obs[r.index] = self._observation(obs_np[rows])
                 r.return_acc = torch.zeros(b, n, device=self.device)
-                out[r.index] = _Batch(env, rows, np.ones(b, dtype=bool), np.zeros(b),
+                out[r.index] = Batch(env, rows, np.ones(b, dtype=bool), np.zeros(b),
                                       np.zeros(b), seg_start=tick)
         return out
-
-    def _record(self, r: Run, bt: _Batch, res: StepResult) -> _Batch:
-        """Record the run's rows of its env's step ``res`` in its batch and open segment."""
-        sg, act, rows = bt.seg, bt.active, bt.rows
-        done, collided, reward = res.done[rows], res.collided[rows], res.reward[rows]
-        bt.t_episode += 1
-        sg.masks.append(act.copy())
-        sg.terms.append(done & act)
-        if r.baseline_reward:
-            running = act & ~collided
-            sg.rews.append(reward + r.baseline_reward * running[:, None])
-        else:
-            sg.rews.append(reward)
-        crashed = done & collided & act
-        sg.absorbed.append(
-            r.absorbing_value(r.env.n_steps - bt.t_episode) * crashed
-            if crashed.any() else np.zeros(len(act))
-        )
-        bt.steps += int(act.sum())
-        bt.ep_reward += np.where(act, sg.rews[-1].sum(1), 0.0)
-        bt.ep_len += act
-        bt.active = ~done
-        bt.done = bool(done.all())
-        return bt
 
     def _stack(self, parts: list[torch.Tensor]) -> torch.Tensor:
         return parts[0] if len(parts) == 1 else torch.cat(parts)
 
+    # -- update of a group of runs (one, or several whose segments ended together)
+    def _update_group(
+        self, group: list[Run], seg_state: State, record: list[dict[str, Any]],
+        segs: list[Segment], nxt: dict[str, Any] | None,
+    ) -> dict[int, State]:
+        """:meth:`marl.a2c.Trainer._update` of every run in ``group`` (their segments have the
+        same length) on their rows: one recompute, each run's loss, one backward; returns a
+        separate critic's state after the segment per continuing run."""
+        logits, values, actions, rows, after = self._recompute_group(group, seg_state, record)
+        critic_after = self._critic_bootstrap_group(group, segs, rows, after, nxt)
+        losses = [segment_loss(r, sg, logits, values, actions, rw)
+                  for r, sg, rw in zip(group, segs, rows, strict=True)]
+        loss = losses[0]
+        for other in losses[1:]:  # each run's gradient is its own loss's (the sum's is 1 each)
+            loss = loss + other
+        self._optimise(loss, group)
+        return critic_after
 
-    # -- one run's view
-    def run_net(self, run: Run) -> AgentNet:
-        """The run's acting network as its checkpoint stores it: N agents, no critic, weights
-        rounded to the checkpoint's precision (validation scores what is saved, and a saved
-        snapshot scores in the harness exactly what validation measured)."""
-        from marl.checkpoint import WEIGHT_DTYPE
+    def _recompute_group(
+        self, group: list[Run], seg_state: State, record: list[dict[str, Any]]
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, list[slice], State]:
+        """Re-run the group's segment with gradient on the group's rows only: logits
+        ``(A, T, B, 4)``, values and actions ``(A, T, B)`` of its ``A`` agents, each run's rows
+        among them, and the recurrent state after the segment (those rows)."""
+        if len(group) == len(self.runs):
+            logits, values, actions, after = self._recompute(seg_state, record)
+            return logits, values, actions, [r.rows for r in group], after
+        net = self.net
+        idx = torch.cat([torch.arange(r.rows.start, r.rows.stop, device=self.device)
+                         for r in group])
 
-        view = self._views.get(run.index)
-        if view is None:
-            with torch.device("cpu"):  # validation and checkpoints on the CPU
-                view = self.algo.build_net(run.config, self.n_vehicles, False,
-                                           torch.Generator().manual_seed(0))
-            view.requires_grad_(False)
-            self._views[run.index] = view
-        whole = dict(self.net.named_parameters())
-        with torch.no_grad():
-            for name, p in view.named_parameters():
-                p.copy_(whole[name][run.rows].to(WEIGHT_DTYPE))
-        return view
+        def pick(t: torch.Tensor) -> torch.Tensor:
+            return t.index_select(0, idx)
 
+        obs = torch.stack([r["obs"] for r in record], 1)
+        actions = torch.stack([r["actions"] for r in record], 1)
+        msgs = None
+        if not net.differentiable_messages and record[0]["front"] is not None:
+            msgs = (pick(torch.stack([r["front"] for r in record], 1)),
+                    pick(torch.stack([r["rear"] for r in record], 1)))
+        tensors = {name: pick(t) for name, t in [*net.named_parameters(), *net.named_buffers()]}
+        logits, values, after = torch.func.functional_call(net, tensors, (
+            {k: pick(v) for k, v in seg_state.items()}, pick(obs), pick(actions), msgs))
+        n = self.n_vehicles
+        rows = [slice(j * n, (j + 1) * n) for j in range(len(group))]
+        return logits, values, pick(actions), rows, after
+
+    @torch.no_grad()
+    def _critic_bootstrap_group(
+        self, group: list[Run], segs: list[Segment], rows: list[slice], after: State,
+        nxt: dict[str, Any] | None,
+    ) -> dict[int, State]:
+        """:meth:`marl.a2c.Trainer._critic_bootstrap` of each continuing run of the group, in
+        one critic step of the whole stack."""
+        net = self.net
+        if not net.separate_critic:
+            return {}
+        going = [(r, sg, rw) for r, sg, rw in zip(group, segs, rows, strict=True)
+                 if sg.bootstrap is None]
+        if not going:
+            return {}
+        assert nxt is not None
+        b = self.shape.episodes_parallel
+        start = {k: torch.zeros(net.n_agents, b, net.hidden, device=self.device)
+                 for k in ("ch", "cc")}
+        for r, _, rw in going:
+            for k in start:
+                start[k][r.rows] = after[k][rw]
+        out, _ = net.critic_features(nxt["obs"], start)
+        values = net.value(out, neighbour_action_onehot(nxt["actions"], net.platoon_size))
+        for r, sg, _ in going:
+            sg.bootstrap = values[r.rows].T
+        return {r.index: {k: after[k][rw].detach().clone() for k in ("ch", "cc")}
+                for r, _, rw in going}
+
+    def _clip(self, runs: list[Run]) -> None:
+        """Clip each agent's gradient to its run's global norm (the other rows have none)."""
+        clips = {r.config.grad_clip for r in runs}
+        params = [p for p, _ in self.params]
+        if len(clips) == 1:
+            per_agent_clip_(params, clips.pop())
+        else:  # a config population: each run clips at its own norm
+            per_agent_clip_(params, torch.tensor(
+                [r.config.grad_clip for r in self.runs], device=self.device
+            ).repeat_interleave(self.n_vehicles))
+
+    @torch.no_grad()
+    def _rmsprop_step(self, runs: list[Run]) -> None:
+        """RMSprop on the rows of ``runs``, each with its own rates, smoothing and epsilon (one
+        step of the whole stack when every run updates with the same settings)."""
+        settings = {(r.learning_rates(), r.config.rmsprop_alpha, r.config.rmsprop_eps)
+                    for r in runs}
+        if len(runs) == len(self.runs) and len(settings) == 1:
+            (lrs, alpha, eps), = settings
+            for (p, is_critic), sq in zip(self.params, self._square_avg, strict=True):
+                assert p.grad is not None
+                rmsprop_(p, p.grad, sq, lrs[is_critic], alpha, eps)
+            return
+        for (p, is_critic), sq in zip(self.params, self._square_avg, strict=True):
+            assert p.grad is not None
+            for r in runs:
+                cfg = r.config
+                rmsprop_(p[r.rows], p.grad[r.rows], sq[r.rows], r.learning_rates()[is_critic],
+                         cfg.rmsprop_alpha, cfg.rmsprop_eps)

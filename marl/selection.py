@@ -6,7 +6,8 @@ precision, is evaluated on the validation seeds in both modes by the benchmark's
 (an :data:`Evaluator`); the snapshot kept is the evaluated one with the fewest collisions, then
 the best reward, in ``selection_mode`` (a tie goes to the later one). When the run finishes its
 learning curve, final weights and kept snapshot are written together (:func:`_finish`). The
-trainer underneath: :class:`marl.population.Trainer`.
+trainers underneath: :class:`marl.a2c.Trainer` (one run) and
+:class:`marl.population.PopulationTrainer` (K runs).
 """
 
 from __future__ import annotations
@@ -27,10 +28,10 @@ from envs.errors import ConfigError, TrainingDivergedError
 from envs.naming import checkpoint_stem
 from envs.params import EVAL_MODES
 from envs.scenarios import make_scenario
-from marl.a2c import Run
+from marl.a2c import Run, Trainer
 from marl.config import A2CConfig, Algorithm
 from marl.networks import AgentNet, execution_bits_per_agent_step, training_step_bits_per_agent
-from marl.population import Trainer
+from marl.population import PopulationTrainer
 
 ProgressFn = Callable[[int, int, dict[str, float]], None]
 
@@ -119,7 +120,8 @@ def run_population(
     evaluate: Evaluator | None = None,
     device: str | torch.device = "cpu",
 ) -> list[TrainResult]:
-    """Train K runs of ``algo`` at once (one :class:`marl.population.Trainer`): run ``k`` with
+    """Train K runs of ``algo`` at once (a :class:`marl.population.PopulationTrainer`; one run:
+    a :class:`marl.a2c.Trainer`): run ``k`` with
     ``configs[k]`` and ``seeds[k]``, each evaluated, selected and saved exactly as
     :func:`run_training` alone.
 
@@ -136,8 +138,11 @@ def run_population(
         )
     if len({int(s) for s in seeds}) != len(seeds):
         raise ConfigError(f"the runs of a population need distinct seeds, got {list(seeds)}")
-    trainer = Trainer(algo, list(configs), scenario_id, n_vehicles, list(seeds), device,
-                      scenario)
+    trainer: Trainer = (
+        Trainer(algo, configs[0], scenario_id, n_vehicles, seeds[0], device, scenario)
+        if len(seeds) == 1 else
+        PopulationTrainer(algo, list(configs), scenario_id, n_vehicles, list(seeds), device,
+                          scenario))
     runs = trainer.runs
     log_of = list(logs) if logs is not None else [None] * len(runs)
     for r in runs:
@@ -147,6 +152,7 @@ def run_population(
     best = [(-math.inf, -math.inf) for _ in runs]
     results = [TrainResult(algo.name, scenario_id, n_vehicles, r.seed, 0, 0, 0.0, 0.0, {},
                            curves[r.index]) for r in runs]
+    views: dict[int, AgentNet] = {}  # each run's acting network, reused at every validation
     t0 = time.perf_counter()
     evaluating = 0.0  # seconds spent in validation, not training
 
@@ -164,7 +170,7 @@ def run_population(
         if r.steps >= next_eval[k] or (out_dir is not None and last):
             assert evaluate is not None
             te = time.perf_counter()
-            net = trainer.run_net(r)
+            net = acting_net(trainer, r, views)
             for mode in EVAL_MODES:
                 ev = evaluate(net, mode)
                 for key in CURVE_EVAL_KEYS:
@@ -195,14 +201,15 @@ def run_population(
             progress(r.steps, total_steps, row)
         return not last
 
-    trainer.train(runs, on_batch)
+    trainer.train(on_batch)
     train_time = time.perf_counter() - t0 - evaluating
     wall = time.perf_counter() - t0
     for r in runs:
         if r.failed is not None:
             continue
         res = results[r.index]
-        _finish(res, trainer, r, trainer.run_net(r), wall, train_time, out_dir, False, final=True)
+        _finish(res, trainer, r, acting_net(trainer, r, views), wall, train_time, out_dir, False,
+                final=True)
         log = log_of[r.index]
         if log is not None:
             log(
@@ -221,6 +228,28 @@ def run_population(
     if failed:
         raise TrainingDivergedError("; ".join(failed))
     return results
+
+
+def acting_net(trainer: Trainer, run: Run, views: dict[int, AgentNet] | None = None) -> AgentNet:
+    """The run's acting network as its checkpoint stores it: N agents, no critic, weights
+    rounded to the checkpoint's precision (validation scores what is saved, and a saved
+    snapshot scores in the harness exactly what validation measured). ``views`` keeps one
+    network per run to refill at the next call."""
+    from marl.checkpoint import WEIGHT_DTYPE
+
+    views = {} if views is None else views
+    view = views.get(run.index)
+    if view is None:
+        with torch.device("cpu"):  # validation and checkpoints on the CPU
+            view = trainer.algo.build_net(run.config, trainer.n_vehicles, False,
+                                          torch.Generator().manual_seed(0))
+        view.requires_grad_(False)
+        views[run.index] = view
+    whole = dict(trainer.net.named_parameters())
+    with torch.no_grad():
+        for name, p in view.named_parameters():
+            p.copy_(whole[name][run.rows].to(WEIGHT_DTYPE))
+    return view
 
 
 #: Validation numbers recorded per mode in the curve (``eval_<key>_<mode>``).

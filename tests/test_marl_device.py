@@ -11,9 +11,9 @@ import torch
 from commands.cli import main as cli
 from envs.dynamics import OBS_DIM
 from envs.errors import ConfigError
-from marl.a2c import training_device
-from marl.config import ALGORITHM_NAMES, algorithm
-from marl.population import Trainer
+from marl.config import ALGORITHM_NAMES, algorithm, training_device
+from marl.population import PopulationTrainer
+from marl.selection import acting_net
 
 N, SCENARIO = 3, "catchup-v1"
 NO_GPU = not torch.cuda.is_available()
@@ -24,9 +24,9 @@ def _tiny(name: str):
     return a, a.config_cls(episodes_parallel=4, n_step=7)
 
 
-def _trained(name: str, seeds: list[int], device: str = "cpu") -> Trainer:
+def _trained(name: str, seeds: list[int], device: str = "cpu") -> PopulationTrainer:
     a, cfg = _tiny(name)
-    tr = Trainer(a, cfg, SCENARIO, N, seeds, device=device)
+    tr = PopulationTrainer(a, cfg, SCENARIO, N, seeds, device=device)
     for r in tr.runs:
         r.total_steps = 5000
     tr.run_batch()
@@ -85,8 +85,8 @@ def test_a_gpu_population_starts_as_on_the_cpu_and_trains(name: str) -> None:
     not compared: the kernels round differently and one flipped sampled action changes the
     episode.)"""
     a, cfg = _tiny(name)
-    gpu = Trainer(a, cfg, SCENARIO, N, [0, 1], device="cuda")
-    cpu = Trainer(a, cfg, SCENARIO, N, [0, 1])
+    gpu = PopulationTrainer(a, cfg, SCENARIO, N, [0, 1], device="cuda")
+    cpu = PopulationTrainer(a, cfg, SCENARIO, N, [0, 1])
     assert all(p.device.type == "cuda" for p in gpu.net.parameters())
     for (key, p), q in zip(gpu.net.named_parameters(), cpu.net.parameters(), strict=True):
         assert torch.equal(p.cpu(), q), key
@@ -100,7 +100,7 @@ def test_a_gpu_population_starts_as_on_the_cpu_and_trains(name: str) -> None:
         r.total_steps = 5000
     gpu.run_batch()
     assert all(bool(torch.isfinite(p).all()) for p in gpu.net.parameters())
-    assert all(p.device.type == "cpu" for p in gpu.run_net(gpu.runs[0]).parameters())
+    assert all(p.device.type == "cpu" for p in acting_net(gpu, gpu.runs[0]).parameters())
 
 
 @pytest.mark.skipif(NO_GPU, reason="needs a CUDA GPU")

@@ -7,9 +7,8 @@ import hashlib
 import pytest
 import torch
 
-from marl.a2c import a2c_losses
+from marl.a2c import Trainer, a2c_losses
 from marl.config import algorithm
-from marl.population import Trainer
 
 
 def _one_step(z: list[float], a: int, v: float, r: float, mask: float = 1.0):

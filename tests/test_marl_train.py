@@ -7,8 +7,9 @@ import math
 import pytest
 import torch
 
+from marl.a2c import Trainer
 from marl.config import ALGORITHM_NAMES, algorithm
-from marl.population import Trainer
+from marl.population import PopulationTrainer
 from marl.quantize import qsgd_bits, ternary_bits
 from marl.selection import run_training
 
@@ -38,13 +39,13 @@ def test_recompute_equals_rollout(algo, monkeypatch) -> None:
     seen = []
     orig = tr._recompute
 
-    def spy(group, seg_state, record):
+    def spy(seg_state, record):
         if len(seen) == 5:
             raise _Stop
-        logits, values, actions, rows, after = orig(group, seg_state, record)
+        logits, values, actions, after = orig(seg_state, record)
         want = torch.stack([r["logits"] for r in record], 1)  # agent-major (N, T, B, 4)
         seen.append(float((logits.detach() - want).abs().max()))
-        return logits, values, actions, rows, after
+        return logits, values, actions, after
 
     monkeypatch.setattr(tr, "_recompute", spy)
     monkeypatch.setattr(tr, "_rmsprop_step", lambda group: None)  # weights fixed: exact
@@ -59,10 +60,10 @@ def _run_updates(tr: Trainer, k: int, monkeypatch) -> None:
     """Run a batch but stop after ``k`` updates."""
     orig = tr._recompute
 
-    def limited(group, seg_state, record):
+    def limited(seg_state, record):
         if tr.runs[0].updates == k:
             raise _Stop
-        return orig(group, seg_state, record)
+        return orig(seg_state, record)
 
     monkeypatch.setattr(tr, "_recompute", limited)
     with pytest.raises(_Stop):
@@ -204,9 +205,9 @@ def test_absorbing_value_enters_only_collision_ends(monkeypatch) -> None:
     seen = []
     orig = tr._update
 
-    def spy(group, seg_state, record, segs, nxt):
-        seen.append((np.stack(segs[0].terms), np.stack(segs[0].absorbed)))
-        return orig(group, seg_state, record, segs, nxt)
+    def spy(seg_state, record, seg, nxt):
+        seen.append((np.stack(seg.terms), np.stack(seg.absorbed)))
+        return orig(seg_state, record, seg, nxt)
 
     monkeypatch.setattr(tr, "_update", spy)
     tr.run_batch()
@@ -440,18 +441,19 @@ def test_a_short_training_learns() -> None:
     limited-regeneration fit, and 0 with the sign flipped. A learner whose update does nothing,
     or pushes the wrong way, fails this in about 20 s."""
     from benchmark.policy_eval import evaluate_policy
+    from marl.selection import acting_net
 
     a = algorithm("ia2c")
     seeds = [0, 1, 2]
-    trainer = Trainer(a, a.config_cls(), "catchup-v1", 8, seeds)
+    trainer = PopulationTrainer(a, a.config_cls(), "catchup-v1", 8, seeds)
     for run in trainer.runs:
         run.total_steps = 30_000
     episodes = list(range(1, 17))
-    before = [evaluate_policy("ia2c", trainer.run_net(r), "catchup-v1", 8, episodes, "sampled")
+    before = [evaluate_policy("ia2c", acting_net(trainer, r), "catchup-v1", 8, episodes, "sampled")
               for r in trainer.runs]
     while any(r.steps < 30_000 for r in trainer.runs):
         trainer.run_batch()
-    after = [evaluate_policy("ia2c", trainer.run_net(r), "catchup-v1", 8, episodes, "sampled")
+    after = [evaluate_policy("ia2c", acting_net(trainer, r), "catchup-v1", 8, episodes, "sampled")
              for r in trainer.runs]
     assert all(b["collisions"] == 16 for b in before)
     assert sum(x["collisions"] for x in after) <= 24
