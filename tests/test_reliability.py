@@ -175,7 +175,7 @@ def test_csvs_are_never_replaced_by_fewer_rows(finished: Path, tmp_path: Path,
     assert (out / "runs.csv").read_bytes() == csv_before
 
 
-MPC = ["run", "--controllers", "mpc", "--scenarios", "catchup-v1", "--vehicles", "4",
+MPC = ["run", "--controllers", "mpc", "--scenarios", "catchup-v1", "--vehicles", "2",
        "--episodes", "6", "--quiet"]
 
 
