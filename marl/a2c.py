@@ -37,11 +37,9 @@ from marl.layers import per_agent_clip_, rmsprop_
 from marl.networks import AgentNet, State, exchange, neighbour_action_onehot
 
 # ---------------------------------------------------------------------------- config
-# :class:`marl.config.A2CConfig`: every hyper-parameter, the paper's values as defaults (shared
-# with the acting side, which never loads this learner); each algorithm's config subclasses it.
+# :class:`marl.config.A2CConfig`: every hyper-parameter, the paper's values as defaults.
 # ---------------------------------------------------------------------------- networks
-# :mod:`marl.networks`: N agents' actor-critics batched as one module (a shared trunk for IA2C,
-# FPrint, DIAL and CommNet; a separate actor and critic for WAC, DCEA and BDC).
+# :mod:`marl.networks`: N agents' actor-critics batched as one module.
 
 
 # ---------------------------------------------------------------------------- rollout
@@ -507,14 +505,19 @@ class Trainer:
                    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, State]:
         """Re-run the segment with gradient: logits ``(N, T, B, 4)``, values and actions
         ``(N, T, B)`` and the recurrent state after the segment."""
+        obs, actions, msgs = self._segment_inputs(record)
+        logits, values, after = self.net(seg_state, obs, actions, msgs)
+        return logits, values, actions, after
+
+    def _segment_inputs(self, record: list[dict[str, Any]]) -> tuple[Any, Any, Any]:
+        """The segment's observations, actions and (gradient-free) messages ``(A, T, ...)``."""
         obs = torch.stack([r["obs"] for r in record], 1)
         actions = torch.stack([r["actions"] for r in record], 1)
         msgs = None
         if not self.net.differentiable_messages and record[0]["front"] is not None:
             msgs = (torch.stack([r["front"] for r in record], 1),
                     torch.stack([r["rear"] for r in record], 1))
-        logits, values, after = self.net(seg_state, obs, actions, msgs)
-        return logits, values, actions, after
+        return obs, actions, msgs
 
     @torch.no_grad()
     def _critic_bootstrap(self, seg: Segment, after: State, nxt: dict[str, Any] | None) -> State:
@@ -564,9 +567,8 @@ class Trainer:
             rmsprop_(p, p.grad, sq, lrs[is_critic], cfg.rmsprop_alpha, cfg.rmsprop_eps)
 
     def _check_finite(self, run: Run) -> None:
-        """Stop a run whose weights became NaN or infinite (a NaN policy would otherwise act as
-        "action 0" everywhere: the argmax of NaN logits). Its rows are zeroed so nothing
-        non-finite stays in the network."""
+        """Stop a run whose weights became non-finite (a NaN policy would act as "action 0"
+        everywhere); its rows are zeroed so nothing non-finite stays in the network."""
         bad = [name for name, p in self.net.named_parameters()
                if not bool(torch.isfinite(p[run.rows]).all())]
         if bad:
@@ -583,10 +585,8 @@ class Trainer:
 
     # -- what the layers above read
     def run_batch(self) -> list[tuple[int, float]]:
-        """Train one batch of B episodes; returns ``[(environment steps, mean training
-        reward)]`` (the learner's own reward, shaped when the config says so; mean over steps
-        of the sum over agents, as the paper reports). Raises :class:`TrainingDivergedError`
-        if the run diverged."""
+        """Train one batch; returns ``[(environment steps, mean training reward)]`` (mean over
+        steps of the sum over agents). Raises :class:`TrainingDivergedError` if it diverged."""
         out: list[tuple[int, float]] = []
 
         def once(run: Run, steps: int, reward: float) -> bool:

@@ -22,7 +22,7 @@ from envs.errors import ConfigError, TrainingDivergedError
 from envs.params import RewardWeights
 from envs.scenarios import Scenario, make_scenario
 from marl.a2c import Batch, Run, Segment, Trainer, segment_loss
-from marl.config import A2CConfig, Algorithm, training_device
+from marl.config import A2CConfig, Algorithm
 from marl.layers import per_agent_clip_, rmsprop_
 from marl.networks import AgentNet, State, exchange, neighbour_action_onehot
 
@@ -100,7 +100,6 @@ class PopulationTrainer(Trainer):
         device: str | torch.device = "cpu",
         scenario: Scenario | None = None,
     ) -> None:
-        training_device(device)  # a bad device first, as for one run
         seeds = [int(seed)] if isinstance(seed, int | np.integer) else [int(s) for s in seed]
         configs = (
             [config] * len(seeds) if isinstance(config, A2CConfig) else list(config)
@@ -414,12 +413,9 @@ class PopulationTrainer(Trainer):
         def pick(t: torch.Tensor) -> torch.Tensor:
             return t.index_select(0, idx)
 
-        obs = torch.stack([r["obs"] for r in record], 1)
-        actions = torch.stack([r["actions"] for r in record], 1)
-        msgs = None
-        if not net.differentiable_messages and record[0]["front"] is not None:
-            msgs = (pick(torch.stack([r["front"] for r in record], 1)),
-                    pick(torch.stack([r["rear"] for r in record], 1)))
+        obs, actions, msgs = self._segment_inputs(record)
+        if msgs is not None:
+            msgs = (pick(msgs[0]), pick(msgs[1]))
         tensors = {name: pick(t) for name, t in [*net.named_parameters(), *net.named_buffers()]}
         logits, values, after = torch.func.functional_call(net, tensors, (
             {k: pick(v) for k, v in seg_state.items()}, pick(obs), pick(actions), msgs))
