@@ -90,7 +90,7 @@ def test_communication_pairs_each_training_seed_and_episode_with_itself() -> Non
 
 def test_the_command_in_small_form(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "cl"
-    argv = ["compare-learned", "--scenarios", "catchup-v1", "--episodes", "2", "--vehicles",
+    argv = ["compare-learned", "--scenarios", "catchup-v1", "--episodes", "1", "--vehicles",
             "4", "--executor", "serial", "--out", str(out)]
     assert main(argv) == 0
     report = (out / "report.md").read_text()

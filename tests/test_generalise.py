@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+from run_marks import FULL
 
 from analysis.generalisation import (
     COLUMNS,
@@ -147,6 +148,7 @@ def test_the_committed_report_is_written_from_its_csv(tmp_path: Path) -> None:
     assert path.read_text() == committed
 
 
+@FULL
 def test_the_committed_matrix_is_what_the_command_gives(tmp_path: Path) -> None:
     """The brake-v1 column of every ``ippo`` row, rerun by the command from the shipped
     checkpoints on the same test seeds, is the committed one."""

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+from run_marks import FULL, representative
 
 from analysis.stability import time_domain_string_gain as string_gain
 from benchmark.metrics import TIMING_COLUMNS
@@ -236,6 +237,7 @@ def test_sigkill_then_resume_equals_uninterrupted(tmp_path: Path) -> None:
         pd.testing.assert_frame_equal(_no_timing(part / name), _no_timing(full / name))
 
 
+@FULL
 def test_process_executor_equals_serial(tmp_path: Path) -> None:
     # senders under delay and loss (cacc, a sampled policy whose draws come from the episode
     # seed, not the process) and a controller that sends nothing (ovm)
@@ -251,6 +253,7 @@ def test_process_executor_equals_serial(tmp_path: Path) -> None:
         pd.testing.assert_frame_equal(_no_timing(tmp_path / "s2" / name), ref)
 
 
+@FULL
 @pytest.mark.ray
 def test_ray_executor_equals_serial(tmp_path: Path) -> None:
     pytest.importorskip("ray")
@@ -394,7 +397,7 @@ def _assert_each_record_equals_its_run_alone(keys, batched) -> None:
             assert rec[col] == value or (value != value and rec[col] != rec[col]), (key.seed, col)
 
 
-@pytest.mark.parametrize("name", ["ovm", "duty", "acc", "cacc"])
+@pytest.mark.parametrize("name", representative(["ovm", "duty", "acc", "cacc"], {"acc", "cacc"}))
 @pytest.mark.parametrize(("scenario", "delay", "loss", "lag"), [
     ("catchup-v1", 0.0, 0.0, 0.0), ("slowdown-v1", 0.2, 0.1, 0.2), ("brake-v1", 0.1, 0.3, 0.0),
 ])
@@ -412,10 +415,10 @@ def test_a_batch_gives_each_run_its_record_alone(name, scenario, delay, loss, la
 
 @pytest.mark.parametrize(("name", "options", "scenario", "n", "delay", "loss", "mixed"), [
     ("bdc", {}, "slowdown-v1", 8, 0.0, 0.0, False),
-    ("dial", {"mode": "greedy"}, "catchup-v1", 8, 0.2, 0.1, False),
-    ("commnet", {}, "catchup-v1", 8, 0.1, 0.3, False),
+    pytest.param("dial", {"mode": "greedy"}, "catchup-v1", 8, 0.2, 0.1, False, marks=FULL),
+    pytest.param("commnet", {}, "catchup-v1", 8, 0.1, 0.3, False, marks=FULL),
     ("fprint", {"untrained": "true"}, "catchup-v1", 4, 0.1, 0.2, True),
-    ("ia2c", {"untrained": "true"}, "slowdown-v1", 8, 0.0, 0.0, True),
+    pytest.param("ia2c", {"untrained": "true"}, "slowdown-v1", 8, 0.0, 0.0, True, marks=FULL),
 ])
 def test_a_batch_of_policy_runs_gives_each_run_its_record_alone(
     name, options, scenario, n, delay, loss, mixed

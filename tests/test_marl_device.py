@@ -7,6 +7,7 @@ from collections.abc import Iterator
 
 import pytest
 import torch
+from run_marks import representative
 
 from commands.cli import main as cli
 from envs.dynamics import OBS_DIM
@@ -44,7 +45,7 @@ def default_device_meta() -> Iterator[None]:
         torch.set_default_device(None)
 
 
-@pytest.mark.parametrize("name", ALGORITHM_NAMES)
+@pytest.mark.parametrize("name", representative(ALGORITHM_NAMES, {"bdc"}))
 def test_training_places_every_tensor_explicitly(name: str, default_device_meta: None) -> None:
     """A population of two trains a batch with the default device elsewhere: every tensor the
     trainer, the networks, the losses, consensus and QSGD make names its device (a GPU run

@@ -6,6 +6,7 @@ import dataclasses
 
 import pytest
 import torch
+from run_marks import FULL, representative
 
 from envs.errors import ConfigError, TrainingDivergedError
 from marl.a2c import Trainer
@@ -43,7 +44,7 @@ def _assert_run_equals_solo(pop: PopulationTrainer, k: int, solo: Trainer) -> No
     assert (a.steps, a.episodes, a.updates, a.bits) == (b.steps, b.episodes, b.updates, b.bits)
 
 
-@pytest.mark.parametrize("name", ALGORITHM_NAMES)
+@pytest.mark.parametrize("name", representative(ALGORITHM_NAMES, {"bdc"}))
 def test_each_run_of_a_population_trains_exactly_as_alone(name: str) -> None:
     """Weights (critics included), step counts, updates and bit tallies of every run equal a
     separate run of the same seed by the single-run learner (:class:`marl.a2c.Trainer`, a
@@ -70,6 +71,7 @@ def test_the_unaligned_case_is_exercised() -> None:
     assert any(r.steps % cfg.n_step for r in pop.runs)
 
 
+@FULL
 def test_a_population_of_configs_trains_each_as_alone() -> None:
     """Runs may differ in every non-structural field (rates, clip, discount, entropy,
     reward shaping): each trains with its own."""
@@ -98,6 +100,7 @@ def test_runs_of_a_population_must_share_the_structure() -> None:
         run_population(a, [cfg, cfg], SCENARIO, N, 100, [3, 3])
 
 
+@FULL
 def test_population_checkpoints_and_curves_equal_separate_runs(tmp_path) -> None:
     """Through the driver: each run's selected and final checkpoints hold the weights, steps and
     selection of the run trained alone, and its learning curve is the same."""

@@ -6,6 +6,7 @@ import math
 
 import pytest
 import torch
+from run_marks import FULL
 
 from marl.a2c import Trainer
 from marl.config import ALGORITHM_NAMES, algorithm
@@ -430,6 +431,7 @@ def test_training_messages_per_algorithm() -> None:
             assert shared == 33_024
 
 
+@FULL
 def test_a_short_training_learns() -> None:
     """3e4 steps of IA2C on catchup-v1 (N = 8), seeds 0, 1 and 2 as one population: the untrained
     policies collide in every one of 16 validation episodes (sampled); trained, together they

@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+from run_marks import FULL
 
 from analysis.pareto import PARETO_COLUMNS, non_dominated
 from commands.cli import main as cli
@@ -60,6 +61,7 @@ def _pareto(out: Path, executor: str) -> pd.DataFrame:
     return pd.read_csv(out / "pareto.csv")
 
 
+@FULL
 def test_pareto_csv_is_identical_across_executors_and_reruns(tmp_path: Path) -> None:
     serial = _pareto(tmp_path / "a", "serial")
     assert list(serial.columns) == list(PARETO_COLUMNS)

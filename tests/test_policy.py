@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from run_marks import FULL, representative
 
 from benchmark.policy_eval import evaluate_policy
 from benchmark.rollout import rollout
@@ -118,7 +119,7 @@ def test_policy_controller_sends_its_messages_and_counts_bits(tmp_path, algo) ->
     assert {"ia2c": 0, "fprint": 4, "dial": 64, "commnet": 64}.get(algo, 0) == ctrl.net.msg_width
 
 
-@pytest.mark.parametrize("algo", ALGORITHM_NAMES)
+@pytest.mark.parametrize("algo", representative(ALGORITHM_NAMES, {"bdc", "dial"}))
 @pytest.mark.parametrize("mode", ["sampled", "greedy"])
 def test_training_validation_is_the_benchmark_loop(algo, mode) -> None:
     """Training's validation (batched episodes, the live network) gives what the harness's
@@ -383,7 +384,7 @@ def test_duty_beats_ovm_on_the_evaluation_seeds(scenario) -> None:
 
 
 @pytest.mark.parametrize("scenario", ["catchup-v1", "slowdown-v1"])
-@pytest.mark.parametrize("name", ALGORITHM_NAMES)
+@pytest.mark.parametrize("name", representative(ALGORITHM_NAMES, {"bdc"}))
 def test_shipped_policies_on_the_evaluation_seeds(name, scenario) -> None:
     """What the README says of the shipped policies, on the 50 published evaluation seeds in the
     default (sampled) mode, pooled over the three shipped training seeds:
@@ -476,6 +477,7 @@ def test_the_paper_report_judged_the_shipped_catchup_policies() -> None:
             assert t2.loc[(name, scenario), "reward_mean"] == pytest.approx(reward, abs=0.5)
 
 
+@FULL
 def test_ia2c_seeds_disagree_on_power_where_bdc_seeds_agree() -> None:
     """The README's reading of the energy claim's wide interval against IA2C on catchup-v1
     (shipped seeds, 50 evaluation seeds, actions sampled): one IA2C seed uses far more platoon

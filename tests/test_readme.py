@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
+from run_marks import FULL
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -92,6 +93,7 @@ def test_the_readme_stays_a_short_guide() -> None:
     assert not re.search(r"\b20\d\d-\d\d-\d\d\b", text)
 
 
+@FULL
 def test_the_main_table_on_the_test_seeds_is_what_the_controllers_score() -> None:
     """The README's main table (the test seeds): the `cacc` row and the pooled rewards of the
     learned rows, recomputed from the shipped checkpoints; the residual within 1 % of `cacc`,

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
+from run_marks import representative
 
 from benchmark.store import ResultStore
 from commands.cli import main as cli
@@ -207,8 +208,8 @@ def _wait_for_runs(out: Path, n: int, proc: subprocess.Popen[str]) -> None:
     assert proc.poll() is None, "the sweep ended before the signal"
 
 
-@pytest.mark.parametrize("sig, code, executor", [("SIGINT", 130, "serial"),
-                                                 ("SIGTERM", 143, "auto")])
+@pytest.mark.parametrize("sig, code, executor", representative(
+    [("SIGINT", 130, "serial"), ("SIGTERM", 143, "auto")], {("SIGTERM", 143, "auto")}))
 def test_a_signal_during_mpc_stores_nothing_wrong_and_exits_128_plus_signum(
         tmp_path: Path, sig: str, code: int, executor: str) -> None:
     """In the serial loop and in the process pool that ``auto`` picks for an MPC sweep."""

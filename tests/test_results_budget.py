@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+from run_marks import FULL
 
 ROOT = Path(__file__).resolve().parents[1]
 ALGOS = {"IA2C": "ia2c", "FPrint": "fprint", "DIAL": "dial", "CommNet": "commnet", "WAC": "wac",
@@ -50,6 +51,7 @@ def test_the_validation_seeds_alone_choose_the_slowdown_budget() -> None:
             table[table["algo"] == algo]["collisions"].min()
 
 
+@FULL
 def test_the_test_seed_column_is_what_the_shipped_policies_score() -> None:
     from benchmark.rollout import rollout_batch
     from controllers.registry import make_controller

@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 import pytest
 import torch
+from run_marks import FULL, representative
 
 from envs.errors import ConfigError
 from envs.params import PlatoonParams
@@ -215,6 +216,7 @@ def test_the_shipped_ippo_bdc_scores_an_episode_alike_alone_or_in_a_batch() -> N
     assert np.array_equal(one[0].reward, ten[3].reward)
 
 
+@FULL
 def test_training_on_a_distribution_of_sizes_and_channels_is_deterministic() -> None:
     """``vehicles_min/max``, ``comm_delay_max_s`` and ``packet_loss_max`` draw each batch's N and
     V2V from the run's generator: a seed gives the same weights; the batches see several N."""
@@ -319,6 +321,7 @@ def test_weights_that_do_not_fit_the_learner_are_refused(tiny_checkpoint: Path) 
         load_actor(data)
 
 
+@FULL
 def test_distill_with_a_seed_gives_the_same_weights() -> None:
     """Two distillations of one seed (behaviour cloning and a DAgger round) end with equal
     weights, and another seed with others."""
@@ -334,6 +337,7 @@ def test_distill_with_a_seed_gives_the_same_weights() -> None:
                    for k, v in res.actor.state_dict().items())
 
 
+@FULL
 def test_distill_copies_a_linear_law() -> None:
     """Behaviour cloning then DAgger of ``cacc`` (cheap, smooth): the kept actor commands what
     cacc commands on the platoon's own states to within 0.2 m/s^2 RMS (4 % of the command
@@ -394,7 +398,8 @@ def pooled_shared(algo: str, scenario: str, n_vehicles: int = 8, **options: str
     return {"reward": float(np.mean(rewards)), "collisions": collisions}
 
 
-@pytest.mark.parametrize(("algo", "scenario"), sorted(SHIPPED))
+@pytest.mark.parametrize(("algo", "scenario"), representative(sorted(SHIPPED),
+                                                             {("ippo", "slowdown-v1")}))
 def test_the_shipped_shared_policies_read_the_readme(algo: str, scenario: str) -> None:
     pooled = pooled_shared(algo, scenario)
     collisions, reward = SHIPPED[(algo, scenario)]
@@ -452,8 +457,9 @@ def test_mpc_reads_the_readme(scenario: str) -> None:
     assert float(np.mean(rewards)) == pytest.approx(MPC_REWARD[scenario], abs=0.01)
 
 
-@pytest.mark.parametrize("n", [4, 12])
-@pytest.mark.parametrize("scenario", ["catchup-v1", "slowdown-v1"])
+@pytest.mark.parametrize(("scenario", "n"), representative(
+    [("catchup-v1", 4), ("catchup-v1", 12), ("slowdown-v1", 4), ("slowdown-v1", 12)],
+    {("slowdown-v1", 12)}))
 def test_the_shipped_n8_policies_drive_4_and_12_followers_without_a_collision(
         scenario: str, n: int) -> None:
     for algo in ("ippo", "mappo", "distill"):
@@ -474,6 +480,7 @@ def test_the_shipped_n8_policies_drive_4_and_12_followers_without_a_collision(
 TIMED_RESIDUAL = {"catchup-v1": (-428.68, -432.37), "slowdown-v1": (-399.66, -435.71)}
 
 
+@FULL
 @pytest.mark.parametrize("scenario", sorted(TIMED_RESIDUAL))
 def test_the_time_aware_residual_meets_the_bar(scenario: str) -> None:
     """Issue 31's bar, from the shipped checkpoints: no collision at N = 4, 8 and 12 with the

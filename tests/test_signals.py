@@ -13,6 +13,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+from run_marks import FULL
 
 ROOT = Path(__file__).resolve().parent.parent
 MPC_SWEEP = ["run", "--controllers", "mpc,mpc-qp,cacc", "--scenarios", "catchup-v1",
@@ -270,6 +271,7 @@ def _assert_gone(pids: set[int]) -> None:
     assert not left, f"left behind: {names}"
 
 
+@FULL
 @pytest.mark.ray
 @pytest.mark.parametrize("moment", ["ray starting", "workers running"])
 def test_sigterm_under_ray_exits_143_and_leaves_no_ray_process(tmp_path: Path,
@@ -291,6 +293,7 @@ def test_sigterm_under_ray_exits_143_and_leaves_no_ray_process(tmp_path: Path,
     _assert_gone(started)
 
 
+@FULL
 @pytest.mark.ray
 def test_a_killed_ray_driver_leaves_no_ray_process(tmp_path: Path) -> None:
     """SIGKILL of the command left ray::DashboardAgent and ray::RuntimeEnvAgent alive."""
@@ -382,6 +385,7 @@ def test_the_reaper_spares_only_what_ran_before_it_even_when_it_starts_late() ->
                 os.kill(pid, signal.SIGKILL)
 
 
+@FULL
 def test_an_interrupted_tune_records_its_trial_in_flight_as_failed(tmp_path: Path) -> None:
     """A SIGINT during a trial left it RUNNING in the study file while the line said finished
     files were left as they were. Now the study records it as failed, the line says so, the

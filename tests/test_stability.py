@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+from run_marks import representative
 
 from analysis import stability as st
 from controllers.base import EpisodeContext, reset_controller
@@ -116,7 +117,7 @@ def test_discrete_tf_matches_discrete_response(delay, lag, feedforward):
     assert st.discrete_internally_stable(loop)
 
 
-@pytest.mark.parametrize(("delay", "lag"), [(0.2, 0.1), (0.0, 0.0)])
+@pytest.mark.parametrize(("delay", "lag"), representative([(0.2, 0.1), (0.0, 0.0)], {(0.2, 0.1)}))
 def test_cacc_empirical_matches_discrete_model(delay, lag):
     omegas = np.geomspace(0.05, 3.0, 12)
     res = st.empirical_gain("cacc", omegas, n_vehicles=4, delay_s=delay, lag_s=lag)

@@ -7,6 +7,7 @@ from pathlib import Path
 import pandas as pd
 import pytest
 import torch
+from run_marks import FULL
 
 from commands.cli import main
 
@@ -25,6 +26,7 @@ def _tensors(obj: object, prefix: str = "") -> dict[str, torch.Tensor]:
     return out
 
 
+@FULL
 def test_seeds_on_process_executor_equal_serial(tmp_path: Path) -> None:
     common = ["train", "--algo", "ia2c", "--scenario", "catchup-v1", "--vehicles", "3",
               "--steps", "1500"]
@@ -168,6 +170,7 @@ def test_tune_the_shared_learners_with_a_fixed_field(tmp_path: Path, capsys) -> 
     assert "Traceback" not in err and "--set fixes a field of ippo/mappo/ippo-bdc only" in err
 
 
+@FULL
 def test_a_population_of_seeds_equals_separate_processes(tmp_path: Path, capsys) -> None:
     """``--seeds 0,1,2`` (serial: one population of three in one process) gives each seed the
     checkpoint and curve it gets trained alone (``--population 1``, process executor)."""
@@ -208,6 +211,7 @@ def test_population_jobs_group_by_everything_but_the_seed() -> None:
     assert [j["seeds"] for j in population_jobs(jobs, 1, "serial", 2)] == [[s] for s in range(5)] + [[0]]
 
 
+@FULL
 @pytest.mark.ray
 def test_populations_on_ray_equal_serial(tmp_path: Path, capsys) -> None:
     """Two Ray tasks (one run each, split over the workers) give the checkpoints of the serial
