@@ -537,8 +537,8 @@ def test_the_residual_and_ippo_bdc_readings_of_the_docs_are_the_checkpoints() ->
                 summary = load_checkpoint(checkpoint_path(algo, sc, 8, seed, folder))["curve_summary"]
                 assert f"{summary['best_reward']:.2f}" in part, (algo, sc, seed)
                 if algo == "ippo-bdc":
-                    assert 7e5 <= summary["best_steps"] <= 9.1e5
-                    assert round(summary["consensus_bits_per_agent"] / 1e7, 1) in (3.2, 3.3)
+                    assert 9e5 <= summary["best_steps"] <= 2.01e6
+                    assert 6.3 <= round(summary["consensus_bits_per_agent"] / 1e7, 1) <= 6.5
 
 
 @pytest.mark.slow
