@@ -583,8 +583,8 @@ def _retrained(prefix: str, scenarios: tuple[str, ...] = ("catchup-v1", "slowdow
                ) -> dict[str, list[tuple[float, int]]]:
     """Kept validation reward and collisions of runs at 1e6 steps, by scenario, from their
     training logs in ``docs/tuning/retrained``: the tuned configs retrained
-    (``*-tuned``), and the time-aware residual's H on ``slowdown-v1``, which the tuned runs
-    replaced (``residual-timed-h``)."""
+    (``*-tuned``), and the runs that shipped runs replaced: the time-aware residual's H on
+    ``slowdown-v1`` (``residual-timed-h``) and ``ippo-bdc`` at 1e6 steps (``ippo-bdc-1e6``)."""
     import re
 
     folder = Path(__file__).resolve().parent.parent / "docs" / "tuning" / "retrained"
@@ -629,6 +629,14 @@ def test_the_tuning_readings_are_the_committed_trials_and_logs() -> None:
                                                  VARIANT_DIR / "residual-timed"))
                  ["curve_summary"]["best_reward"] for s in (0, 1, 2)]
     assert all(t < s for (t, _), s in zip(timed["catchup-v1"], shipped_c))  # below H per seed
+    # ippo-bdc ships its 2e6-step runs: the 1e6-step ones they replaced, read from their logs
+    shipped_bdc = {sc: [load_checkpoint(checkpoint_path("ippo-bdc", sc, 8, s))["curve_summary"]
+                        ["best_reward"] for s in (0, 1, 2)] for sc in ("catchup-v1", "slowdown-v1")}
+    for sc, runs in _retrained("ippo-bdc-1e6").items():
+        old = [r for r, _ in runs]
+        assert f"`{sc}` {', '.join(f'{r:.2f}' for r in old)} (mean {np.mean(old):.2f})" in text
+        assert f"(mean {np.mean(shipped_bdc[sc]):.2f})" in text
+        assert np.mean(shipped_bdc[sc]) > np.mean(old)
     bdc = _retrained("ippo-bdc-tuned")
     assert all(f"{r:.2f}" in text and c == 0 for r, c in bdc["catchup-v1"])
     assert all(c == 32 for _, c in bdc["slowdown-v1"])  # "collides in all 32 ... on every seed"
