@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+from run_marks import FULL
 
 from analysis.learned_report import (
     DEGRADED,
@@ -88,6 +89,7 @@ def test_communication_pairs_each_training_seed_and_episode_with_itself() -> Non
     assert row["verdict"] == HIGHER
 
 
+@FULL
 def test_the_command_in_small_form(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "cl"
     argv = ["compare-learned", "--scenarios", "catchup-v1", "--episodes", "1", "--vehicles",

@@ -6,6 +6,7 @@ import io
 import json
 
 import pytest
+from run_marks import FULL
 
 from benchmark.progress import Progress
 from commands.cli import main
@@ -29,6 +30,7 @@ def test_perf_takes_run_controller_syntax_and_labels_like_run(
     assert set(timing) == {"cacc[kp=0.3]", "ovm"}  # the default-valued option adds nothing
 
 
+@FULL
 def test_perf_train_key(capsys: pytest.CaptureFixture[str]) -> None:
     """The issue's key: one training rate per requested algorithm, with the runs behind it."""
     assert main(["perf", "--quick", "--json", "--only", "train", "--algos", "ia2c,bdc",

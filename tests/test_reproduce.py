@@ -181,10 +181,12 @@ def tiny_reproduction(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 #: Both tests of the tiny reproduction run on one pytest-xdist worker (``--dist loadgroup``), so
-#: its module fixture is built once, not once per worker (95 s each).
+#: its module fixture is built once, not once per worker (about 50 s each). The README's
+#: reproduction command in small form is a full check (CI runs it).
 _ONE_WORKER = pytest.mark.xdist_group("tiny_reproduction")
 
 
+@FULL
 @_ONE_WORKER
 def test_reproduce_writes_the_report_tables_and_claims(tiny_reproduction: Path) -> None:
     out = tiny_reproduction
@@ -227,6 +229,7 @@ def test_the_size_and_openacc_studies_in_small_form(tmp_path: Path) -> None:
     assert not list((out / "checkpoints").rglob("*__openacc-[sml]-v1__*"))
 
 
+@FULL
 @_ONE_WORKER
 def test_reproduce_refuses_a_used_folder_and_resumes_without_redoing(
         tiny_reproduction: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -9,6 +9,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
+from run_marks import FULL
 
 from analysis.sensitivity import SENSITIVITY_COLUMNS, knob_effects, training_bits
 from commands.cli import main as cli
@@ -56,6 +57,7 @@ def _study(out: Path, resume: bool = False) -> pd.DataFrame:
     return pd.read_csv(out / "sensitivity.csv")
 
 
+@FULL
 def test_a_tiny_study_trains_evaluates_and_reports(tmp_path: Path,
                                                    capsys: pytest.CaptureFixture[str]) -> None:
     df = _study(tmp_path / "a")

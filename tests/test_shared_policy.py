@@ -457,9 +457,9 @@ def test_mpc_reads_the_readme(scenario: str) -> None:
     assert float(np.mean(rewards)) == pytest.approx(MPC_REWARD[scenario], abs=0.01)
 
 
-@pytest.mark.parametrize(("scenario", "n"), representative(
-    [("catchup-v1", 4), ("catchup-v1", 12), ("slowdown-v1", 4), ("slowdown-v1", 12)],
-    {("slowdown-v1", 12)}))
+@FULL
+@pytest.mark.parametrize("n", [4, 12])
+@pytest.mark.parametrize("scenario", ["catchup-v1", "slowdown-v1"])
 def test_the_shipped_n8_policies_drive_4_and_12_followers_without_a_collision(
         scenario: str, n: int) -> None:
     for algo in ("ippo", "mappo", "distill"):
