@@ -164,25 +164,19 @@ def _replace(argv: list[str], flag: str, value: str) -> list[str]:
     return [*argv[:i + 1], value, *argv[i + 2:]]
 
 
-def _tiny_reproduction(out: Path, *extra: str) -> Path:
+@pytest.fixture(scope="module")
+def tiny_reproduction(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The README's reproduction command in small form: quick budget, one algorithm, one
     scenario (the README never lies)."""
+    out = tmp_path_factory.mktemp("rep") / "rep"
     argv = _replace(_replace(_readme_reproduce_command(), "--budget", "quick"), "--out", str(out))
-    assert cli([*argv, "--algos", "bdc", "--scenarios", "catchup-v1", *extra]) == 0
+    assert cli([*argv, "--algos", "bdc", "--scenarios", "catchup-v1"]) == 0
     return out
 
 
-@pytest.fixture(scope="module")
-def tiny_reproduction(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """Without the OpenACC and size studies, which take two thirds of the time (MPC on the long
-    real windows; 12 more trainings): :func:`test_the_size_and_openacc_studies_in_small_form`
-    runs them in CI's full run."""
-    return _tiny_reproduction(tmp_path_factory.mktemp("rep") / "rep", "--skip", "openacc,sizes")
-
-
 #: Both tests of the tiny reproduction run on one pytest-xdist worker (``--dist loadgroup``), so
-#: its module fixture is built once, not once per worker (about 50 s each). The README's
-#: reproduction command in small form is a full check (CI runs it).
+#: its module fixture is built once, not once per worker (about 95 s each); both are full checks
+#: (CI runs them).
 _ONE_WORKER = pytest.mark.xdist_group("tiny_reproduction")
 
 
@@ -205,26 +199,17 @@ def test_reproduce_writes_the_report_tables_and_claims(tiny_reproduction: Path) 
     for fig in ("curves_marl__catchup-v1.png", "radar__catchup-v1.png",
                 "timeseries__bdc__catchup-v1.png"):
         assert (out / "figures" / fig).stat().st_size > 0
-    # main 2 + ablation 2
-    assert len(list((out / "checkpoints").rglob("*.source.json"))) == 4
-    assert "## Platoon size" not in report and "## OpenACC (Table III)" not in report
-
-
-@FULL
-def test_the_size_and_openacc_studies_in_small_form(tmp_path: Path) -> None:
-    out = _tiny_reproduction(tmp_path / "rep", "--skip", "ablations")
-    # main 2 + sizes 3 x 2 + OpenACC 3 x 2
-    assert len(list((out / "checkpoints").rglob("*.source.json"))) == 14
+    # main 2 + ablation 2 + sizes 3 x 2 + OpenACC 3 x 2
+    assert len(list((out / "checkpoints").rglob("*.source.json"))) == 16
     sizes = pd.read_csv(out / "sizes.csv")
     assert set(sizes["n_vehicles"]) == {2, 4, 6, 8} and set(sizes["name"]) == {"bdc", "ovm"}
-    assert "## Platoon size" in (out / "report.md").read_text()
-    assert (out / "figures" / "curves_sizes__bdc.png").stat().st_size > 0
     t3 = pd.read_csv(out / "table3.csv")
     assert set(t3["group"]) == {"S", "M", "L"}
     assert set(t3["name"]) == {"openacc-real", "cacc", "mpc", "bdc"}
     real_s = t3[(t3["group"] == "S") & (t3["name"] == "openacc-real")].iloc[0]
     assert real_s["paper_ivs_m_std"] == TABLE_III["S"]["openacc"]["ivs_m"][1]
-    assert "## OpenACC (Table III)" in (out / "report.md").read_text()
+    assert "## Platoon size" in report and "## OpenACC (Table III)" in report
+    assert (out / "figures" / "curves_sizes__bdc.png").stat().st_size > 0
     # never trained on a test window
     assert not list((out / "checkpoints").rglob("*__openacc-[sml]-v1__*"))
 
@@ -235,7 +220,7 @@ def test_reproduce_refuses_a_used_folder_and_resumes_without_redoing(
         tiny_reproduction: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tiny_reproduction
     argv = ["reproduce", "--budget", "quick", "--algos", "bdc", "--scenarios", "catchup-v1",
-            "--skip", "openacc,sizes", "--out", str(out)]
+            "--out", str(out)]
     assert cli(argv) == 2
     assert "--resume" in capsys.readouterr().err
     stamps = {p: os.stat(p).st_mtime_ns for p in (out / "checkpoints").rglob("*.pt")}
