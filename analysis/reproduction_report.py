@@ -75,7 +75,8 @@ def write_report(jobs: list[dict[str, Any]], names: dict[str, str], built: Seque
             "# The BDC-MARL paper, reproduced with cacc-bench",
             "",
             f"Command: `{manifest['command']}` (OUT: this folder; every path below is "
-            f"relative to it). Budget **{budget.name}**: {budget.description}.",
+            f"relative to it). Budget **{budget.name}**: {budget.description}. "
+            + _arithmetic_sentence(manifest["settings"].get("arithmetic", "native")),
             f"Code: git {git_sha()}; machine: {_machine()}. This invocation took "
             f"{manifest['wall_s']:.0f} s; the training runs took {manifest['train_wall_s']:.0f} s "
             f"of compute in all (recorded per run), the evaluation runs "
@@ -360,3 +361,13 @@ def _openacc_section(jobs: list[dict[str, Any]], runs: Any, names: dict[str, str
             "as for one recorded run. Group M uses ZalaZONE dynamic_part8 1250-1310 s in place of "
             "the paper's unavailable dynamic_part9 (its leader runs at about 8 m/s, not 11).", "",
             rp.format_table(t3, cols, 3), ""]
+
+
+def _arithmetic_sentence(mode: str) -> str:
+    """What the training arithmetic (:mod:`marl.arithmetic`) means for a reader's rerun."""
+    if mode == "portable":
+        return ("Training arithmetic **portable**: the policies trained here used MKL's "
+                "`COMPATIBLE` branch, which Intel documents as giving the same results on Intel "
+                "and compatible processors, so a seed trains the same weights on either.")
+    return ("Training arithmetic **native**: the policies trained here depend on the processor's "
+            "float32 kernels; on another processor the command trains other weights.")

@@ -59,8 +59,9 @@ def _worker_env() -> None:
     os.environ.setdefault("MKL_NUM_THREADS", "1")
 
 
-def _worker_main(conn: Any, parent_pid: int) -> None:
-    """A process-executor worker: apply the jobs it receives on ``conn`` until told to stop.
+def _worker_main(conn: Any, parent_pid: int, env: dict[str, str] | None = None) -> None:
+    """A process-executor worker: apply the jobs it receives on ``conn`` until told to stop,
+    with ``env`` added to its environment before anything else runs.
 
     It started with SIGINT and SIGTERM blocked (the parent's mask while it starts workers), so a
     Ctrl-C sent to the whole process group during its start-up prints nothing. From here SIGINT
@@ -69,6 +70,7 @@ def _worker_main(conn: Any, parent_pid: int) -> None:
     """
     import signal
 
+    os.environ.update(env or {})  # before any library reads it (MKL at its first product)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
     if hasattr(signal, "pthread_sigmask"):
@@ -170,22 +172,31 @@ def map_jobs(
     executor: str = "serial",
     workers: int = 1,
     ray_address: str | None = None,
+    env: dict[str, str] | None = None,
 ) -> Iterator[Any]:
     """Apply a top-level (picklable) function to every item on an executor; yield the results
-    as they finish (any order). Sweeps and multi-seed training both run through here."""
+    as they finish (any order). Sweeps and multi-seed training both run through here.
+
+    ``env``: environment variables the function's processes hold from their start (process
+    workers, Ray workers); ``serial`` with an ``env`` this process lacks runs the items in one
+    worker process started with it (a library may have read the variable here already).
+    """
     if executor not in EXECUTORS:
         raise ConfigError(f"unknown executor {executor!r}; valid executors are: {', '.join(EXECUTORS)}")
     if workers < 1:
         raise ConfigError(f"--workers must be >= 1, got {workers}")
     if not items:
         return
-    if executor == "serial":
+    env = dict(env or {})
+    if executor == "serial" and any(os.environ.get(k) != v for k, v in env.items()):
+        yield from _process(fn, items, 1, env)
+    elif executor == "serial":
         for item in items:
             yield fn(item)
     elif executor == "process":
-        yield from _process(fn, items, workers)
+        yield from _process(fn, items, workers, env)
     else:
-        yield from _ray(fn, items, workers, ray_address)
+        yield from _ray(fn, items, workers, ray_address, env)
 
 
 _SIGNALS = frozenset({2, 15})  # SIGINT, SIGTERM (numbers: the same on every POSIX system)
@@ -207,7 +218,7 @@ class _Pool:
     and hung after a second Ctrl-C).
     """
 
-    def __init__(self, workers: int) -> None:
+    def __init__(self, workers: int, env: dict[str, str] | None = None) -> None:
         self.procs: list[Any] = []
         self.conns: list[Any] = []
         _LIVE.add(self)
@@ -229,7 +240,7 @@ class _Pool:
             try:
                 for _ in range(workers):
                     parent_end, child_end = ctx.Pipe()
-                    proc = ctx.Process(target=_worker_main, args=(child_end, os.getpid()),
+                    proc = ctx.Process(target=_worker_main, args=(child_end, os.getpid(), env),
                                        daemon=True)
                     self.procs.append(proc)
                     self.conns.append(parent_end)
@@ -341,11 +352,12 @@ def stop_all() -> None:
         pool.stop(graceful=False)
 
 
-def _process(fn: Callable[[Any], Any], items: Sequence[Any], workers: int) -> Iterator[Any]:
+def _process(fn: Callable[[Any], Any], items: Sequence[Any], workers: int,
+             env: dict[str, str] | None = None) -> Iterator[Any]:
     pool = None
     finished = False
     try:
-        pool = _Pool(min(workers, len(items)))
+        pool = _Pool(min(workers, len(items)), env)
         yield from pool.imap_unordered(fn, items)
         finished = True
     finally:
@@ -509,9 +521,11 @@ def ensure_ray(workers: int, address: str | None = None) -> object:
 
 
 def _ray(fn: Callable[[Any], Any], items: Sequence[Any], workers: int,
-         address: str | None) -> Iterator[Any]:
+         address: str | None, env: dict[str, str] | None = None) -> Iterator[Any]:
     ray = ensure_ray(workers, address)
     remote = ray.remote(num_cpus=1)(fn)  # type: ignore[attr-defined]
+    if env:  # Ray starts workers of their own for a runtime environment
+        remote = remote.options(runtime_env={"env_vars": env})
     pending = [remote.remote(item) for item in items]
     try:
         while pending:

@@ -60,9 +60,16 @@ def is_done(job: dict[str, Any]) -> bool:
     if src.exists():
         info = json.loads(src.read_text())
         if (info.get("config") == job_config(job) and info.get("steps", 0) >= job["steps"]
-                and same_energy_model(info)):
+                and same_energy_model(info) and _same_arithmetic(info, job)):
             return (Path(job["out"]) / f"{stem(job)}.pt").exists()
     return _finished(job)
+
+
+def _same_arithmetic(info: dict[str, Any], job: dict[str, Any]) -> bool:
+    """A copied shipped run serves any arithmetic (its weights are fixed: evaluation gives the
+    same numbers on every processor); a trained one, only its own (:mod:`marl.arithmetic`)."""
+    return info.get("source") == "shipped" or (
+        info.get("arithmetic", "native") == job.get("arithmetic", "native"))
 
 
 def shipped_checkpoint(job: dict[str, Any]) -> Path | None:
@@ -137,24 +144,29 @@ def copy_shipped(job: dict[str, Any], path: Path) -> None:
 def record_trained(job: dict[str, Any]) -> None:
     from benchmark.provenance import git_sha
     from envs.atomic import write_text
+    from marl.arithmetic import of_summary
     from marl.checkpoint import load_checkpoint
 
     data = load_checkpoint(Path(job["out"]) / f"{stem(job)}.final.pt", algo=job["algo"],
                            n_vehicles=job["vehicles"], scenario=job["scenario"])
     write_text(source_file(job), json.dumps({
         "source": "trained", "commit": git_sha(), "config": data["config"],
+        "arithmetic": of_summary(data["curve_summary"]),
         "energy_model": data.get("energy_model"),
         "steps": int(data["steps"]), "wall_s": data["curve_summary"].get("wall_s"),
     }, indent=1, sort_keys=True))
 
 
 def train_stage(jobs: list[dict[str, Any]], args: Any, reuse_shipped: bool) -> None:
-    """Train what is missing (``args``: executor, workers, ray_address); with
+    """Train what is missing (``args``: executor, workers, ray_address, arithmetic); with
     ``reuse_shipped``, copy shipped checkpoints of the same config and budget instead."""
     from benchmark.executors import map_jobs
     from benchmark.progress import Progress
     from commands.train import _train_job, population_jobs
+    from marl.arithmetic import process_env
 
+    mode = getattr(args, "arithmetic", "native")
+    jobs = [{**job, "arithmetic": mode} for job in jobs]
     todo = []
     for job in jobs:
         if is_done(job):
@@ -171,7 +183,8 @@ def train_stage(jobs: list[dict[str, Any]], args: Any, reuse_shipped: bool) -> N
     device = getattr(args, "device", "cpu")  # where to train; the jobs' results do not say
     populations = population_jobs([{**j, "device": device} for j in todo],
                                   getattr(args, "population", None), args.executor, args.workers)
-    for res in map_jobs(_train_job, populations, args.executor, args.workers, args.ray_address):
+    for res in map_jobs(_train_job, populations, args.executor, args.workers, args.ray_address,
+                        process_env(mode)):
         for run in res["runs"]:
             job = by_key[str(Path(run["checkpoint"]))]
             record_trained(job)

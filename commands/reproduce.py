@@ -40,7 +40,13 @@ from analysis.paper import (
 from benchmark.executors import EXECUTORS
 from commands.cli import plain, scenarios_argument
 from commands.policy_training import make_job, source_file, train_stage, tuned_config
-from commands.train import add_device_argument, add_population_argument, check_population
+from commands.train import (
+    add_arithmetic_argument,
+    add_device_argument,
+    add_population_argument,
+    check_arithmetic,
+    check_population,
+)
 from envs.atomic import write_text
 from envs.errors import ConfigError, UnknownNameError
 from envs.scenarios import Scenario
@@ -65,6 +71,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--workers", type=int, default=2, help="processes or Ray CPUs (default 2)")
     add_population_argument(p)
     add_device_argument(p)
+    add_arithmetic_argument(p, "portable")
     p.add_argument("--ray-address", default=None, help="attach to this Ray cluster")
     p.add_argument("--resume", action="store_true",
                    help="complete a reproduction in --out (finished training and runs are kept)")
@@ -199,6 +206,7 @@ def main(argv: list[str]) -> int:
         raise ConfigError(f"--workers must be >= 1, got {args.workers}")
     check_population(args.population)
     training_device(args.device)  # ConfigError for an unknown device or a missing GPU
+    check_arithmetic(args.arithmetic, args.device)
     from benchmark.paths import writable_dir
 
     out = writable_dir(args.out)
@@ -209,13 +217,14 @@ def main(argv: list[str]) -> int:
             raise UnknownNameError("study", x, STUDIES)
     studies = {x for x in STUDIES if x not in skip}
     settings = {"budget": budget.name, "algos": algos, "scenarios": scenarios,
-                "studies": sorted(studies)}
+                "studies": sorted(studies), "arithmetic": args.arithmetic}
     previous = json.loads(manifest_path.read_text()) if manifest_path.exists() else None
     if previous is not None:
         if not args.resume:
             raise ConfigError(f"{out} already holds a reproduction; add --resume to complete it, "
                               "or choose another --out")
-        if previous.get("settings") != settings:
+        # a reproduction from before --arithmetic existed trained natively
+        if {"arithmetic": "native", **previous.get("settings", {})} != settings:
             raise ConfigError(f"{out} holds a reproduction with other settings "
                               f"({previous.get('settings')}); use another --out")
     elif _holds_files(out) and not args.resume:

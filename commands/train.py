@@ -52,6 +52,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--workers", type=int, default=2, help="processes or Ray CPUs (default 2)")
     p.add_argument("--ray-address", default=None, help="attach to this Ray cluster")
     add_device_argument(p)
+    add_arithmetic_argument(p, "native")
     p.add_argument("--vehicles", type=int, default=8, help="followers N (default 8)")
     p.add_argument("--out", default=DEFAULT_OUT,
                    help="output folder (default: the package's controllers/checkpoints, where "
@@ -120,9 +121,11 @@ def _train_job(job: dict) -> dict:
     from envs.atomic import StagedFiles, temporary_beside
     from envs.naming import checkpoint_stem
     from envs.params import VALIDATION_SEEDS
+    from marl import arithmetic
     from marl.config import algorithm
     from marl.selection import run_population
 
+    arithmetic.require(job.get("arithmetic", "native"))  # before this process's first product
     torch.set_num_threads(1)
     seeds = list(job.get("seeds", [job["seed"]]))
     algo = algorithm(job["algo"])
@@ -193,6 +196,24 @@ def add_device_argument(p: argparse.ArgumentParser) -> None:
     p.add_argument("--device", default="cpu",
                    help="where the networks train: cpu (default) or cuda[:K]; environments, "
                         "validation and checkpoints stay on the CPU")
+
+
+def add_arithmetic_argument(p: argparse.ArgumentParser, default: str) -> None:
+    """The ``--arithmetic`` option (:mod:`marl.arithmetic`)."""
+    from marl.arithmetic import ARITHMETIC_MODES
+
+    p.add_argument("--arithmetic", choices=ARITHMETIC_MODES, default=default,
+                   help="native: the processor's fastest float32 kernels, so a seed's weights "
+                        "depend on the processor; portable: the same weights on every x86-64 "
+                        "processor, 1.3 to 2.3 times slower (MKL_CBWR=COMPATIBLE in the "
+                        "training processes; CPU only) (default: %(default)s)")
+
+
+def check_arithmetic(mode: str, device: str) -> None:
+    """Refuse portable arithmetic on a GPU (ConfigError): it is MKL's, the CPU's library."""
+    if mode == "portable" and device not in (None, "cpu"):
+        raise ConfigError(f"--arithmetic portable --device {device}: portable arithmetic is the "
+                          "CPU's (MKL); train on the CPU, or natively on the GPU")
 
 
 def check_population(population: int | None) -> None:
@@ -290,6 +311,13 @@ def _finished(job: dict) -> bool:
             f"({data['steps']} < {job['steps']} or config differs); use another --out, or "
             "remove it to train again"
         )
+    from marl.arithmetic import of_summary
+
+    mode = job.get("arithmetic", "native")
+    if of_summary(data["curve_summary"]) != mode:
+        raise ConfigError(
+            f"{final} holds a run trained with {of_summary(data['curve_summary'])} arithmetic, "
+            f"not {mode} (--arithmetic); use another --out, or remove it to train again")
     if not same_energy_model(data):
         raise ConfigError(
             f"{final} holds a run trained with another energy model (fingerprint "
@@ -306,6 +334,7 @@ def main(argv: list[str]) -> int:
     from commands.train_shared import SHARED_LEARNERS
     from controllers.registry import build_config
     from envs.scenarios import check_vehicles
+    from marl.arithmetic import process_env
     from marl.config import ALGORITHM_NAMES, algorithm, training_device
 
     args = _parser().parse_args(argv)
@@ -344,6 +373,7 @@ def main(argv: list[str]) -> int:
     check_range(args.steps, "--steps", 1, MAX_TRAIN_STEPS)
     check_population(args.population)
     training_device(args.device)  # ConfigError for an unknown device or a missing GPU
+    check_arithmetic(args.arithmetic, args.device)
     if args.seeds is not None:
         try:
             seeds = list(dict.fromkeys(int(x) for x in args.seeds.split(",") if x.strip()))
@@ -358,6 +388,10 @@ def main(argv: list[str]) -> int:
     if shared:
         from commands.train_shared import main_shared
 
+        if args.arithmetic != "native":
+            raise ConfigError("--arithmetic portable: the shared-policy learners train natively "
+                              "in this process (one run after another); portable arithmetic "
+                              "is for the paper's learners")
         return main_shared(args, shared, scenarios, seeds)
     overrides: dict[str, object] = {}
     for pair in args.overrides:
@@ -383,7 +417,7 @@ def main(argv: list[str]) -> int:
     jobs = [
         {"algo": a, "scenario": sc, "vehicles": args.vehicles, "steps": args.steps,
          "seed": seed, "out": args.out, "options": configs[(a, sc)],
-         "progress": tty and single, "device": args.device}
+         "progress": tty and single, "device": args.device, "arithmetic": args.arithmetic}
         for seed in seeds for sc in scenarios for a in algos
     ]
     from benchmark.folder_lock import folder_lock
@@ -398,7 +432,7 @@ def main(argv: list[str]) -> int:
         populations = population_jobs(jobs, args.population, args.executor, args.workers)
         try:
             for res in map_jobs(_train_job, populations, args.executor, args.workers,
-                                args.ray_address):
+                                args.ray_address, process_env(args.arithmetic)):
                 for run in res["runs"]:
                     together = (f" (population of {run['population']})"
                                 if run["population"] > 1 else "")

@@ -28,6 +28,7 @@ from envs.errors import ConfigError, TrainingDivergedError
 from envs.naming import checkpoint_stem
 from envs.params import EVAL_MODES
 from envs.scenarios import make_scenario
+from marl import arithmetic
 from marl.a2c import Run, Trainer
 from marl.config import A2CConfig, Algorithm
 from marl.networks import AgentNet, execution_bits_per_agent_step, training_step_bits_per_agent
@@ -309,6 +310,7 @@ def _finish(
         **{f"selected_eval_{k}_{m}": (evals[-1][f"eval_{k}_{m}"] if evals else math.nan)
            for m in EVAL_MODES for k in CURVE_EVAL_KEYS},
         **result.bits,
+        **arithmetic.summary(arithmetic.current()),  # portable runs say so; native: no key
     }
     result.checkpoint = out / f"{stem}.pt"
 

@@ -1,0 +1,124 @@
+"""Portable training arithmetic (marl.arithmetic): MKL's COMPATIBLE branch in fresh processes,
+recorded in the checkpoint, checked on resume, refused where it cannot hold."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import pytest
+import torch
+
+from benchmark.executors import map_jobs
+from commands.cli import main
+from envs.errors import ConfigError
+from marl import arithmetic
+
+#: Weights after three batches of 4 followers on slowdown-v1, seed 3, advantage_norm (the
+#: training of ``tests/test_marl_losses.py``'s pins), trained with portable arithmetic: one hash
+#: per algorithm, where native arithmetic needs one per processor family. Measured on an Intel
+#: Xeon with AVX-512 and AMX; Intel documents MKL's COMPATIBLE branch as giving the same results
+#: on its and compatible processors, so an AMD processor must give the same hashes.
+PORTABLE_PINNED = {
+    "ia2c": "685e471a8fcad903",
+    "bdc": "8da992d5bd3cac4f",
+    "dial": "0cab3ab54c7d5b11",
+}
+
+
+def weights_hash(name: str) -> tuple[str, str]:
+    """The short-training weights hash of ``name`` in this process, and the process's mode
+    (top level: the executors' worker processes run it)."""
+    from marl.a2c import Trainer
+    from marl.config import algorithm
+
+    torch.set_num_threads(1)
+    a = algorithm(name)
+    trainer = Trainer(a, a.config_cls(advantage_norm=True), "slowdown-v1", 4, 3)
+    trainer.runs[0].total_steps = 3000
+    for _ in range(3):
+        trainer.run_batch()
+    blob = b"".join(p.detach().numpy().tobytes() for p in trainer.net.parameters())
+    return hashlib.sha256(blob).hexdigest()[:16], arithmetic.current()
+
+
+def test_portable_training_is_pinned_to_one_hash_per_algorithm() -> None:
+    """The serial executor runs items whose environment this process lacks in a worker process
+    started with it; there the short trainings give the portable hashes."""
+    assert arithmetic.current() == "native"  # this process: MKL's processor-specific kernels
+    names = sorted(PORTABLE_PINNED)
+    got = dict(zip(names, map_jobs(weights_hash, names, "serial",
+                                   env=arithmetic.process_env("portable")), strict=True))
+    assert {n: mode for n, (_, mode) in got.items()} == dict.fromkeys(names, "portable")
+    assert {n: h for n, (h, _) in got.items()} == PORTABLE_PINNED
+
+
+def test_modes_and_their_records() -> None:
+    assert arithmetic.process_env("native") == {}
+    assert arithmetic.process_env("portable") == {"MKL_CBWR": "COMPATIBLE"}
+    assert arithmetic.summary("native") == {}
+    assert arithmetic.of_summary(arithmetic.summary("portable")) == "portable"
+    assert arithmetic.of_summary({"wall_s": 1.0}) == "native"  # checkpoints from before
+    with pytest.raises(ConfigError, match="expected one of native, portable"):
+        arithmetic.check_mode("fast")
+
+
+def test_a_portable_run_is_refused_in_a_native_process(monkeypatch) -> None:
+    """MKL reads its branch once, at its first product: a process started without it cannot
+    train portably, and one started with it cannot train natively."""
+    from commands.train import _train_job
+
+    job = {"algo": "ia2c", "scenario": "catchup-v1", "vehicles": 3, "steps": 300, "seed": 0,
+           "out": "unused", "options": {}, "progress": False, "arithmetic": "portable"}
+    with pytest.raises(ConfigError, match="portable training run in a native process"):
+        _train_job(job)
+    monkeypatch.setenv("MKL_CBWR", "COMPATIBLE")
+    with pytest.raises(ConfigError, match="native training run in a portable process"):
+        _train_job({**job, "arithmetic": "native"})
+
+
+def test_train_records_portable_arithmetic_and_resume_checks_it(tmp_path: Path, capsys) -> None:
+    """``cacc-bench train --arithmetic portable`` (serial: one worker process) records the mode
+    in the checkpoint; ``--resume`` in the other mode refuses the finished run (exit 2)."""
+    common = ["train", "--algo", "ia2c", "--scenario", "catchup-v1", "--vehicles", "3",
+              "--steps", "300", "--episodes-parallel", "2", "--out", str(tmp_path)]
+    assert main([*common, "--arithmetic", "portable"]) == 0
+    for suffix in (".pt", ".final.pt"):
+        data = torch.load(tmp_path / f"ia2c__catchup-v1__n3__s0{suffix}", weights_only=True)
+        assert arithmetic.of_summary(data["curve_summary"]) == "portable"
+    capsys.readouterr()
+    assert main([*common, "--arithmetic", "portable", "--resume"]) == 0
+    assert "1 of 1 runs already finished" in capsys.readouterr().err
+    assert main([*common, "--resume"]) == 2
+    err = capsys.readouterr().err
+    assert "trained with portable arithmetic, not native" in err and "Traceback" not in err
+
+
+def test_the_shared_learners_refuse_portable_arithmetic(tmp_path: Path, capsys) -> None:
+    """They train in the command's own process, where MKL may have chosen its kernels."""
+    assert main(["train", "--algo", "ippo", "--scenario", "catchup-v1", "--arithmetic",
+                 "portable", "--out", str(tmp_path)]) == 2
+    assert "shared-policy learners train natively" in capsys.readouterr().err
+
+
+def test_a_reproduction_folder_from_before_is_native(tmp_path: Path, capsys) -> None:
+    """A manifest without ``arithmetic`` was trained natively: resuming it portably (the
+    default of ``reproduce``) is another setting, refused before anything trains."""
+    settings = {"budget": "quick", "algos": ["bdc"], "scenarios": ["catchup-v1"],
+                "studies": []}
+    (tmp_path / "reproduce.json").write_text(json.dumps({"settings": settings}))
+    assert main(["reproduce", "--budget", "quick", "--algos", "bdc", "--scenarios",
+                 "catchup-v1", "--skip", "ablations,sizes,openacc", "--out", str(tmp_path),
+                 "--resume"]) == 2
+    assert "other settings" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["reproduce.json"]
+
+
+def test_portable_arithmetic_is_refused_on_a_gpu() -> None:
+    from commands.train import check_arithmetic
+
+    check_arithmetic("portable", "cpu")
+    check_arithmetic("native", "cuda")
+    with pytest.raises(ConfigError, match="portable arithmetic is the CPU's"):
+        check_arithmetic("portable", "cuda:0")
