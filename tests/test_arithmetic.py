@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from run_marks import FULL
 
 from benchmark.executors import map_jobs
 from commands.cli import main
@@ -52,6 +53,32 @@ def test_portable_training_is_pinned_to_one_hash_per_algorithm() -> None:
                                    env=arithmetic.process_env("portable")), strict=True))
     assert {n: mode for n, (_, mode) in got.items()} == dict.fromkeys(names, "portable")
     assert {n: h for n, (h, _) in got.items()} == PORTABLE_PINNED
+
+
+@FULL
+def test_process_workers_start_portable() -> None:
+    """Process workers hold the mode from their start: the serial executor's hash."""
+    got = list(map_jobs(weights_hash, ["dial"], "process", 1,
+                        env=arithmetic.process_env("portable")))
+    assert got == [(PORTABLE_PINNED["dial"], "portable")]
+
+
+@FULL
+@pytest.mark.ray
+def test_ray_workers_train_portably(tmp_path: Path) -> None:
+    """Ray starts workers with the mode (a runtime environment): the checkpoints of a portable
+    run on Ray record it and equal the serial executor's."""
+    pytest.importorskip("ray")
+    common = ["train", "--algo", "ia2c", "--scenario", "catchup-v1", "--vehicles", "3",
+              "--steps", "300", "--episodes-parallel", "2", "--arithmetic", "portable"]
+    assert main([*common, "--out", str(tmp_path / "serial")]) == 0
+    assert main([*common, "--executor", "ray", "--workers", "1",
+                 "--out", str(tmp_path / "ray")]) == 0
+    name = "ia2c__catchup-v1__n3__s0.final.pt"
+    a, b = (torch.load(tmp_path / d / name, weights_only=True) for d in ("serial", "ray"))
+    assert arithmetic.of_summary(b["curve_summary"]) == "portable"
+    assert a["weights"].keys() == b["weights"].keys()
+    assert all(torch.equal(a["weights"][k], b["weights"][k]) for k in a["weights"])
 
 
 def test_modes_and_their_records() -> None:
