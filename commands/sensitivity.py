@@ -23,7 +23,7 @@ from typing import Any
 from benchmark.executors import add_executor_options
 from benchmark.export import write_csv
 from commands.cli import plain, scenarios_argument
-from commands.train import add_device_argument
+from commands.train import add_arithmetic_argument, add_device_argument, check_arithmetic
 from envs.atomic import write_text
 from envs.errors import ConfigError, UnknownNameError
 from envs.limits import step_count
@@ -62,6 +62,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--resume", action="store_true", help="complete a study in --out")
     add_executor_options(p)
     add_device_argument(p)
+    add_arithmetic_argument(p, "native")
     return p
 
 
@@ -232,18 +233,20 @@ def main(argv: list[str]) -> int:
     check_seeds(seeds, "--seeds", MAX_TRAIN_SEED)  # training seeds
     check_range(args.steps, "--steps", 1, MAX_TRAIN_STEPS)
     training_device(args.device)  # ConfigError for an unknown device or a missing GPU
+    check_arithmetic(args.arithmetic, args.device)
     from benchmark.paths import writable_dir
 
     out = writable_dir(args.out)
     settings_key = {"scenarios": scenarios, "knobs": knobs, "seeds": seeds, "steps": args.steps,
-                    "validation_episodes": args.validation_episodes, "episodes": args.episodes}
+                    "validation_episodes": args.validation_episodes, "episodes": args.episodes,
+                    "arithmetic": args.arithmetic}
     manifest = out / MANIFEST
     if manifest.exists():
         previous = json.loads(manifest.read_text())
         if not args.resume:
             raise ConfigError(f"{out} already holds a sensitivity study; add --resume to "
                               "complete it, or choose another --out")
-        if previous != settings_key:
+        if {"arithmetic": "native", **previous} != settings_key:  # native before the option
             raise ConfigError(f"{out} holds a study with other settings ({previous}); use "
                               "another --out")
     elif _holds_files(out) and not args.resume:
