@@ -3,45 +3,18 @@ recorded in the checkpoint, checked on resume, refused where it cannot hold."""
 
 from __future__ import annotations
 
-import hashlib
 import json
 from pathlib import Path
 
 import pytest
 import torch
+from pinned_training import PORTABLE_PINNED, weights_hash
 from run_marks import FULL
 
 from benchmark.executors import map_jobs
 from commands.cli import main
 from envs.errors import ConfigError
 from marl import arithmetic
-
-#: Weights after three batches of 4 followers on slowdown-v1, seed 3, advantage_norm (the
-#: training of ``tests/test_marl_losses.py``'s pins), trained with portable arithmetic: one hash
-#: per algorithm, where native arithmetic needs one per processor family. Measured on an Intel
-#: Xeon with AVX-512 and AMX; Intel documents MKL's COMPATIBLE branch as giving the same results
-#: on its and compatible processors, so an AMD processor must give the same hashes.
-PORTABLE_PINNED = {
-    "ia2c": "685e471a8fcad903",
-    "bdc": "8da992d5bd3cac4f",
-    "dial": "0cab3ab54c7d5b11",
-}
-
-
-def weights_hash(name: str) -> tuple[str, str]:
-    """The short-training weights hash of ``name`` in this process, and the process's mode
-    (top level: the executors' worker processes run it)."""
-    from marl.a2c import Trainer
-    from marl.config import algorithm
-
-    torch.set_num_threads(1)
-    a = algorithm(name)
-    trainer = Trainer(a, a.config_cls(advantage_norm=True), "slowdown-v1", 4, 3)
-    trainer.runs[0].total_steps = 3000
-    for _ in range(3):
-        trainer.run_batch()
-    blob = b"".join(p.detach().numpy().tobytes() for p in trainer.net.parameters())
-    return hashlib.sha256(blob).hexdigest()[:16], arithmetic.current()
 
 
 def test_portable_training_is_pinned_to_one_hash_per_algorithm() -> None:

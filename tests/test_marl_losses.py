@@ -2,13 +2,11 @@
 
 from __future__ import annotations
 
-import hashlib
-
 import pytest
 import torch
+from pinned_training import NATIVE_PINNED, weights_hash
 
-from marl.a2c import Trainer, a2c_losses
-from marl.config import algorithm
+from marl.a2c import a2c_losses
 
 
 def _one_step(z: list[float], a: int, v: float, r: float, mask: float = 1.0):
@@ -83,35 +81,14 @@ def test_advantage_normalisation_changes_only_the_policy_term() -> None:
     assert norm["policy"] != plain["policy"]
 
 
-#: Weights after three batches of 4 followers on slowdown-v1, seed 3, advantage_norm (torch
-#: 2.13 CPU, one thread), one hash per family of CPU kernels measured: float32 products round
-#: differently between CPUs, and sampled training turns the last bit into other weights.
-#: Measured on an AMD EPYC with AVX-512 (first) since the limited-regeneration energy fit and
-#: the stack-independent gradient norm changed the arithmetic, and on an Intel Xeon with
-#: AVX-512 and AMX (second; `torch.backends.cpu.get_cpu_capability()` says AVX512 on both, yet
-#: their float32 kernels round differently). On another CPU, add its hash after checking the
-#: rest of the suite passes there. A change in the learner's arithmetic changes every hash: if
-#: it is intended, say why in the commit and update the pins.
-PINNED = {
-    "ia2c": ("49697009249f3d40", "3a9844e581e84a20"),
-    "bdc": ("0f5895d5a28a7600", "7e66330e3087ec38"),
-    "dial": ("b6fe515744bb9855", "b38960411574c8a0"),
-}
-
-
-@pytest.mark.parametrize("name", sorted(PINNED))
-def test_short_training_is_pinned(name: str) -> None:
+@pytest.mark.parametrize("name", sorted(NATIVE_PINNED))
+def test_native_training_is_pinned_per_processor_family(name: str) -> None:
     import platform
 
-    a = algorithm(name)
-    trainer = Trainer(a, a.config_cls(advantage_norm=True), "slowdown-v1", 4, 3)
-    trainer.runs[0].total_steps = 3000
-    for _ in range(3):
-        trainer.run_batch()
-    blob = b"".join(p.detach().numpy().tobytes() for p in trainer.net.parameters())
-    digest = hashlib.sha256(blob).hexdigest()[:16]
+    digest, mode = weights_hash(name)
     cpu = f"{platform.processor() or platform.machine()}, {torch.backends.cpu.get_cpu_capability()}"
-    assert digest in PINNED[name], f"{name}: weights hash {digest} on this CPU ({cpu})"
+    assert mode == "native"
+    assert digest in NATIVE_PINNED[name], f"{name}: weights hash {digest} on this CPU ({cpu})"
 
 
 def test_an_agent_with_one_running_step_gets_a_zero_advantage() -> None:
