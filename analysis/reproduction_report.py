@@ -370,4 +370,5 @@ def _arithmetic_sentence(mode: str) -> str:
                 "`COMPATIBLE` branch, which Intel documents as giving the same results on Intel "
                 "and compatible processors, so a seed trains the same weights on either.")
     return ("Training arithmetic **native**: the policies trained here depend on the processor's "
-            "float32 kernels; on another processor the command trains other weights.")
+            "float32 kernels; on another processor the command trains other weights "
+            "(`--arithmetic portable` trains the same weights on either).")

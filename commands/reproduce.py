@@ -71,7 +71,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--workers", type=int, default=2, help="processes or Ray CPUs (default 2)")
     add_population_argument(p)
     add_device_argument(p)
-    add_arithmetic_argument(p, "portable")
+    add_arithmetic_argument(p, "native")
     p.add_argument("--ray-address", default=None, help="attach to this Ray cluster")
     p.add_argument("--resume", action="store_true",
                    help="complete a reproduction in --out (finished training and runs are kept)")

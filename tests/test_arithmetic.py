@@ -102,15 +102,33 @@ def test_the_shared_learners_refuse_portable_arithmetic(tmp_path: Path, capsys) 
     assert "shared-policy learners train natively" in capsys.readouterr().err
 
 
+def test_the_training_stage_records_portable_runs(tmp_path: Path) -> None:
+    """``reproduce``'s and ``sensitivity``'s training stage trains portably when asked, and its
+    ``source.json`` says so; the report says what a reader's rerun gives."""
+    from types import SimpleNamespace
+
+    from analysis.reproduction_report import _arithmetic_sentence
+    from commands.policy_training import make_job, source_file, train_stage
+
+    job = make_job("ia2c", "ia2c", "catchup-v1", 3, 0, tmp_path, {"episodes_parallel": 2}, 300,
+                   "main", validation_episodes=2)
+    args = SimpleNamespace(executor="serial", workers=1, ray_address=None, population=None,
+                           arithmetic="portable")
+    train_stage([job], args, reuse_shipped=False)
+    assert json.loads(source_file(job).read_text())["arithmetic"] == "portable"
+    assert "same results on Intel and compatible processors" in _arithmetic_sentence("portable")
+    assert "`--arithmetic portable`" in _arithmetic_sentence("native")
+
+
 def test_a_reproduction_folder_from_before_is_native(tmp_path: Path, capsys) -> None:
-    """A manifest without ``arithmetic`` was trained natively: resuming it portably (the
-    default of ``reproduce``) is another setting, refused before anything trains."""
+    """A manifest without ``arithmetic`` was trained natively: resuming it portably is another
+    setting, refused before anything trains."""
     settings = {"budget": "quick", "algos": ["bdc"], "scenarios": ["catchup-v1"],
                 "studies": []}
     (tmp_path / "reproduce.json").write_text(json.dumps({"settings": settings}))
     assert main(["reproduce", "--budget", "quick", "--algos", "bdc", "--scenarios",
                  "catchup-v1", "--skip", "ablations,sizes,openacc", "--out", str(tmp_path),
-                 "--resume"]) == 2
+                 "--arithmetic", "portable", "--resume"]) == 2
     assert "other settings" in capsys.readouterr().err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["reproduce.json"]
 

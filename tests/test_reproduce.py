@@ -200,10 +200,10 @@ def test_reproduce_writes_the_report_tables_and_claims(tiny_reproduction: Path) 
     for fig in ("curves_marl__catchup-v1.png", "radar__catchup-v1.png",
                 "timeseries__bdc__catchup-v1.png"):
         assert (out / "figures" / fig).stat().st_size > 0
-    # main 2 + ablation 2 + sizes 3 x 2 + OpenACC 3 x 2, every one trained portably (the default)
+    # main 2 + ablation 2 + sizes 3 x 2 + OpenACC 3 x 2, every one trained natively (the default)
     sources = [json.loads(p.read_text()) for p in (out / "checkpoints").rglob("*.source.json")]
-    assert len(sources) == 16 and {s["arithmetic"] for s in sources} == {"portable"}
-    assert "Training arithmetic **portable**" in report
+    assert len(sources) == 16 and {s["arithmetic"] for s in sources} == {"native"}
+    assert "Training arithmetic **native**" in report
     sizes = pd.read_csv(out / "sizes.csv")
     assert set(sizes["n_vehicles"]) == {2, 4, 6, 8} and set(sizes["name"]) == {"bdc", "ovm"}
     t3 = pd.read_csv(out / "table3.csv")
