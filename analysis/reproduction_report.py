@@ -368,7 +368,7 @@ def _arithmetic_sentence(mode: str) -> str:
     if mode == "portable":
         return ("Training arithmetic **portable**: the policies trained here used MKL's "
                 "`COMPATIBLE` branch, which Intel documents as giving the same results on Intel "
-                "and compatible processors, so a seed trains the same weights on either.")
+                "and compatible processors.")
     return ("Training arithmetic **native**: the policies trained here depend on the processor's "
             "float32 kernels; on another processor the command trains other weights "
-            "(`--arithmetic portable` trains the same weights on either).")
+            "(`--arithmetic portable` trains with MKL's processor-independent branch).")

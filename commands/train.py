@@ -204,9 +204,10 @@ def add_arithmetic_argument(p: argparse.ArgumentParser, default: str) -> None:
 
     p.add_argument("--arithmetic", choices=ARITHMETIC_MODES, default=default,
                    help="native: the processor's fastest float32 kernels, so a seed's weights "
-                        "depend on the processor; portable: the same weights on every x86-64 "
-                        "processor, 1.3 to 2.3 times slower (MKL_CBWR=COMPATIBLE in the "
-                        "training processes; CPU only) (default: %(default)s)")
+                        "depend on the processor; portable: MKL_CBWR=COMPATIBLE in the training "
+                        "processes, which Intel documents as giving the same results on Intel "
+                        "and compatible processors, 1.3 to 2.3 times slower; CPU only "
+                        "(default: %(default)s)")
 
 
 def check_arithmetic(mode: str, device: str) -> None:

@@ -1,4 +1,4 @@
-"""Float32 arithmetic that gives a training seed the same weights on every x86-64 processor.
+"""Float32 training arithmetic meant to give a seed the same weights on Intel and AMD processors.
 
 PyTorch's CPU products go through Intel MKL, which picks its kernels by processor: an Intel
 Xeon and an AMD EPYC, both with AVX-512, round some float32 products differently, and a sampled
