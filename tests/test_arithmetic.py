@@ -121,14 +121,14 @@ def test_the_training_stage_records_portable_runs(tmp_path: Path) -> None:
 
 
 def test_a_reproduction_folder_from_before_is_native(tmp_path: Path, capsys) -> None:
-    """A manifest without ``arithmetic`` was trained natively: resuming it portably is another
-    setting, refused before anything trains."""
+    """A manifest without ``arithmetic`` was trained natively: resuming it portably (the
+    default) is another setting, refused before anything trains."""
     settings = {"budget": "quick", "algos": ["bdc"], "scenarios": ["catchup-v1"],
                 "studies": []}
     (tmp_path / "reproduce.json").write_text(json.dumps({"settings": settings}))
     assert main(["reproduce", "--budget", "quick", "--algos", "bdc", "--scenarios",
                  "catchup-v1", "--skip", "ablations,sizes,openacc", "--out", str(tmp_path),
-                 "--arithmetic", "portable", "--resume"]) == 2
+                 "--resume"]) == 2
     assert "other settings" in capsys.readouterr().err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["reproduce.json"]
 
