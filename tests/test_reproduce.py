@@ -290,3 +290,18 @@ def test_the_readme_quotes_the_committed_paper_report() -> None:
                     "Inconclusive on slowdown-v1, where every learned policy collides:",
                     "Inconclusive elsewhere:", "Does not hold:", "Not testable here:"):
         assert verdict in readme
+
+
+def test_the_default_command_trains_as_the_committed_report_was_trained() -> None:
+    """``reproduce``'s default arithmetic is the one the committed report (docs/paper-reproduction)
+    trained with, in its manifest and in every trained policy's source, so the README's command
+    retrains the report's weights rather than other ones."""
+    from commands.reproduce import _parser
+
+    docs = Path(__file__).resolve().parent.parent / "docs" / "paper-reproduction"
+    default = _parser().parse_args([]).arithmetic
+    assert json.loads((docs / "reproduce.json").read_text())["settings"]["arithmetic"] == default
+    sources = [json.loads(p.read_text()) for p in (docs / "sources").rglob("*.source.json")]
+    trained = [s for s in sources if s["source"] == "trained"]
+    assert len(sources) == 75 and len(trained) == 48
+    assert {s.get("arithmetic", "native") for s in trained} == {default}
