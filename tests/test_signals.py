@@ -167,9 +167,29 @@ def test_sigterm_then_sigint_exits_with_the_first(tmp_path: Path) -> None:
     time.sleep(1.0)
     sent = time.monotonic()
     proc.send_signal(signal.SIGTERM)
+    # "first" needs the process to have taken SIGTERM before SIGINT comes: two standard
+    # signals pending together are delivered lowest number first (SIGINT), whatever the order
+    # they were sent in, which a loaded machine did once with a fixed 20 ms gap
+    _wait_while_pending(proc.pid, signal.SIGTERM)
     time.sleep(0.02)
     proc.send_signal(signal.SIGINT)
     _assert_clean_end(proc, sent, 143, "SIGTERM")
+
+
+def _wait_while_pending(pid: int, sig: int, timeout: float = 10.0) -> None:
+    """Wait until the kernel no longer holds ``sig`` pending for ``pid`` (it was delivered)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        try:
+            status = Path(f"/proc/{pid}/status").read_text()
+        except OSError:
+            return  # ended: nothing pending
+        pending = int(next(line.split()[1] for line in status.splitlines()
+                           if line.startswith("ShdPnd:")), 16)
+        if not pending & (1 << (sig - 1)):
+            return
+        time.sleep(0.001)
+    raise AssertionError(f"signal {sig} still pending after {timeout} s")
 
 
 def _handles_sigterm(pid: int) -> bool:
