@@ -180,28 +180,27 @@ def _wait_while_pending(pid: int, sig: int, timeout: float = 10.0) -> None:
     """Wait until the kernel no longer holds ``sig`` pending for ``pid`` (it was delivered)."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
-        try:
-            status = Path(f"/proc/{pid}/status").read_text()
-        except OSError:
-            return  # ended: nothing pending
-        pending = int(next(line.split()[1] for line in status.splitlines()
-                           if line.startswith("ShdPnd:")), 16)
-        if not pending & (1 << (sig - 1)):
-            return
+        if not _signal_set(pid, "ShdPnd") & (1 << (sig - 1)):
+            return  # delivered, or the process ended
         time.sleep(0.001)
     raise AssertionError(f"signal {sig} still pending after {timeout} s")
+
+
+def _signal_set(pid: int, field: str) -> int:
+    """The signal set ``field`` of ``/proc/PID/status`` (``SigCgt``: caught, ``ShdPnd``:
+    pending for the process) as a bit mask; 0 once the process is gone."""
+    try:
+        status = Path(f"/proc/{pid}/status").read_text()
+    except OSError:
+        return 0
+    return int(next(line.split()[1] for line in status.splitlines()
+                    if line.startswith(f"{field}:")), 16)
 
 
 def _handles_sigterm(pid: int) -> bool:
     """Whether ``pid`` catches SIGTERM (the command line's handlers are installed: before that
     the interpreter itself is starting, which no Python code can guard)."""
-    try:
-        status = Path(f"/proc/{pid}/status").read_text()
-    except OSError:
-        return False
-    caught = int(next(line.split()[1] for line in status.splitlines()
-                      if line.startswith("SigCgt:")), 16)
-    return bool(caught & (1 << (signal.SIGTERM - 1)))
+    return bool(_signal_set(pid, "SigCgt") & (1 << (signal.SIGTERM - 1)))
 
 
 @pytest.mark.parametrize("after_s", [0.0, 0.3, 1.5])
