@@ -7,7 +7,9 @@ hash per processor family in the default, ``native``, mode).
 
 ``portable`` sets MKL's conditional numerical reproducibility branch ``COMPATIBLE`` (the
 environment variable ``MKL_CBWR``), which Intel documents as giving the same results on Intel
-and Intel-compatible processors. MKL reads it once, at its first product, so it must be in a
+and Intel-compatible processors; the pinned hashes also hold with MKL and PyTorch limited to
+AVX2 kernels, but not with PyTorch's scalar ones: a processor without AVX2 trains other weights
+(``tests/test_arithmetic.py``). MKL reads it once, at its first product, so it must be in a
 process's environment before that: the executors start such processes with it
 (:func:`benchmark.executors.map_jobs`'s ``env``), and a training job checks it
 (:func:`require`). It costs time: 1.3 to 2.3 times the native training time here (``cacc-bench

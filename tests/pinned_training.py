@@ -24,7 +24,9 @@ NATIVE_PINNED = {
 
 #: The same trainings with portable arithmetic: one hash per algorithm. Measured on the Intel
 #: Xeon; Intel documents MKL's COMPATIBLE branch as giving the same results on its and
-#: compatible processors, so an AMD processor must give the same hashes.
+#: compatible processors, so an AMD processor must give the same hashes. They hold with MKL
+#: limited to AVX2, AVX or SSE4.2 and PyTorch's kernels to AVX2 (what a processor without
+#: AVX-512 runs), not with PyTorch's scalar kernels (``ATEN_CPU_CAPABILITY=default``).
 PORTABLE_PINNED = {
     "ia2c": "685e471a8fcad903",
     "bdc": "8da992d5bd3cac4f",
@@ -46,3 +48,9 @@ def weights_hash(name: str) -> tuple[str, str]:
         trainer.run_batch()
     blob = b"".join(p.detach().numpy().tobytes() for p in trainer.net.parameters())
     return hashlib.sha256(blob).hexdigest()[:16], arithmetic.current()
+
+
+def weights_hash_and_kernels(name: str) -> tuple[str, str, str]:
+    """:func:`weights_hash` and the instruction set PyTorch's own kernels used in this process."""
+    digest, mode = weights_hash(name)
+    return digest, mode, torch.backends.cpu.get_cpu_capability()

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from pinned_training import PORTABLE_PINNED, weights_hash
+from pinned_training import PORTABLE_PINNED, weights_hash, weights_hash_and_kernels
 from run_marks import FULL
 
 from benchmark.executors import map_jobs
@@ -26,6 +26,15 @@ def test_portable_training_is_pinned_to_one_hash_per_algorithm() -> None:
                                    env=arithmetic.process_env("portable")), strict=True))
     assert {n: mode for n, (_, mode) in got.items()} == dict.fromkeys(names, "portable")
     assert {n: h for n, (h, _) in got.items()} == PORTABLE_PINNED
+
+
+def test_portable_hashes_hold_on_avx2_kernels() -> None:
+    """A processor without AVX-512 runs MKL's and PyTorch's AVX2 kernels: forced here, the
+    portable training gives the pinned hash (both libraries read these variables at start)."""
+    env = {**arithmetic.process_env("portable"), "MKL_ENABLE_INSTRUCTIONS": "AVX2",
+           "ATEN_CPU_CAPABILITY": "avx2"}
+    got = list(map_jobs(weights_hash_and_kernels, ["bdc"], "serial", env=env))
+    assert got == [(PORTABLE_PINNED["bdc"], "portable", "AVX2")]
 
 
 @FULL
