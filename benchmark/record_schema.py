@@ -57,6 +57,8 @@ class RunRecord(BaseModel):
     deterministic: bool | None = None
     version: str
     git_sha: str
+    #: the learned weights' content hash (empty: no learned weights, or stored before it)
+    policy_sha256: str = Field(default="", pattern=r"^([0-9a-f]{64})?$")
     # the outcome
     status: Literal["ok", "failed"]
     error: str

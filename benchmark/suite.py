@@ -153,6 +153,7 @@ def execute_run(key: RunKey, keep_trajectory: bool = False) -> dict:
         record["deterministic"] = bool(getattr(controller, "deterministic", True))
         params, channel = _setting(key)
         traj = rollout(controller, scenario, key.n_vehicles, key.seed, params, channel)
+        record["policy_sha256"] = str(getattr(controller, "policy_sha256", ""))
         _finish(record, traj, scenario.target_gap_m, scenario.target_speed_mps, keep_trajectory)
     except Exception as exc:  # a failing controller must not end the sweep
         raise_if_interrupted()  # an interrupted run is not a failed run: it is not stored
@@ -197,10 +198,33 @@ def execute_batch(keys: Sequence[RunKey], keep_trajectory: bool = False) -> list
     for key, traj in zip(keys, trajs, strict=True):
         record = _record(key)
         record["deterministic"] = bool(getattr(controller, "deterministic", True))
+        record["policy_sha256"] = str(getattr(controller, "policy_sha256", ""))
         _finish(record, traj, scenario.target_gap_m, scenario.target_speed_mps, keep_trajectory)
         record["wall_s"] = wall_s
         records.append(record)
     return records
+
+
+def current_policies(keys: Sequence[RunKey]) -> dict[RunKey, str]:
+    """The ``policy_sha256`` each key's controller would act with now (its checkpoint as it
+    is), loading each controller once per setting; a missing or damaged checkpoint raises its
+    :class:`envs.errors.ConfigError`."""
+    from controllers.registry import make_controller
+
+    controllers: dict[tuple[str, str], Any] = {}
+    found: dict[tuple[str, str, str, int, float], str] = {}
+    out = {}
+    for key in keys:
+        setting = (key.name, key.options, key.scenario, key.n_vehicles, key.lag_s)
+        if setting not in found:
+            ctrl = controllers.get((key.name, key.options))
+            if ctrl is None:
+                ctrl = controllers[(key.name, key.options)] = make_controller(
+                    key.name, **json.loads(key.options))
+            ctrl.preflight(_scenario(key), key.n_vehicles, _setting(key)[0])
+            found[setting] = ctrl.policy_sha256
+        out[key] = found[setting]
+    return out
 
 
 #: Most episodes one batch of the harness steps together.

@@ -197,6 +197,32 @@ def main(argv: list[str]) -> int:
                          pool_seeds=args.pool_seeds)
 
 
+def _refuse_changed_policies(keys: list[RunKey], stored: list[dict], out: Path) -> None:
+    """Refuse (ConfigError) to resume over stored runs of a learned policy whose checkpoint has
+    changed since they ran (retrained or replaced): they would stand for the new weights. Runs
+    stored before records held ``policy_sha256`` cannot be checked."""
+    from benchmark.suite import current_policies
+
+    ran = {r["id"]: r["policy_sha256"] for r in stored
+           if r["status"] == "ok" and r.get("policy_sha256")}
+    held = [k for k in keys if k.id in ran]
+    now = current_policies(held) if held else {}
+    changed = [k for k in held if now[k] != ran[k.id]]
+    if not changed:
+        return
+    k = changed[0]
+    settings = sorted({(c.controller, c.scenario, c.n_vehicles) for c in changed})
+    extra = len(settings) - 1
+    more = f", and {extra} more setting{'s' * (extra > 1)}" if extra else ""
+    raise ConfigError(
+        f"{out.resolve()} holds {len(changed)} runs of learned policies whose checkpoints "
+        f"changed since they ran ({k.controller} on {k.scenario}, N = {k.n_vehicles}: weights "
+        f"{ran[k.id][:12]} then, {now[k][:12] or 'none'} now{more}); stored runs are never "
+        "replaced: move that folder aside and run the command again with --resume (its runs "
+        "are evaluated again, with the policies as they are now), or put back the checkpoints "
+        "those runs used")
+
+
 def execute_sweep(
     keys: list[RunKey],
     out: Path,
@@ -233,6 +259,7 @@ def execute_sweep(
                 f"{out} already holds {len(stored)} stored runs; add --resume to complete that "
                 "sweep (stored runs are kept), or choose another --out"
             )
+        _refuse_changed_policies(keys, before, out)
         pending = [k for k in keys if k.id not in done_ok]
         if first_seed is None:
             first_seed = min(k.seed for k in keys) if keys else 0

@@ -186,6 +186,14 @@ class Controller(ABC):
         self.solver_failures = 0
         self.options: dict[str, object] = {}
 
+    @property
+    def policy_sha256(self) -> str:
+        """The content hash of the learned weights this controller acts with since its last
+        load (a checkpoint's ``sha256``); empty for a controller without any. The harness
+        stores it with each run, and a resumed sweep refuses stored runs of a policy whose
+        checkpoint has changed since."""
+        return ""
+
     def preflight(self, scenario: Scenario, n_vehicles: int, params: PlatoonParams | None = None
                   ) -> None:
         """Fail now (:class:`envs.errors.ConfigError`) if this controller cannot run

@@ -244,6 +244,13 @@ class PolicyController(Controller):
         self.loaded = data
         return net
 
+    @property
+    def policy_sha256(self) -> str:
+        """The loaded checkpoint's content hash (empty before a load, or untrained)."""
+        from marl.checkpoint import weights_id
+
+        return weights_id(self.loaded)
+
     def preflight(self, scenario: Any, n_vehicles: int, params: Any = None) -> None:
         """Load the policy for ``scenario`` and N now, so a missing or mismatched checkpoint
         fails before a sweep starts (a clear error, nothing stored)."""

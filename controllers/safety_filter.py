@@ -365,6 +365,11 @@ class SafetyFilter(Controller):
             f"{OPTION_PREFIX}{k}": getattr(defaults, k)
             for k in SafetyFilterConfig.__dataclass_fields__}}
 
+    @property
+    def policy_sha256(self) -> str:
+        """The wrapped controller's (the filter learns nothing)."""
+        return self.inner.policy_sha256
+
     def preflight(self, scenario: Scenario, n_vehicles: int, params: PlatoonParams | None = None
                   ) -> None:
         """The wrapped controller's checks, then the filter's parameters against ``params``."""

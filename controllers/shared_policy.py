@@ -166,6 +166,13 @@ class SharedPolicyController(Controller):
             return Path(self.checkpoint)
         return checkpoint_path(self.algo, source, self.vehicles, self.seed, self.checkpoint_dir)
 
+    @property
+    def policy_sha256(self) -> str:
+        """The loaded checkpoint's content hash (empty before a load, or untrained)."""
+        from marl.checkpoint import weights_id
+
+        return weights_id(self.loaded)
+
     def preflight(self, scenario: Scenario, n_vehicles: int, params: PlatoonParams | None = None
                   ) -> None:
         """Load the policy now: a missing or damaged checkpoint fails before a sweep starts."""

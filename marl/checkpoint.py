@@ -149,6 +149,14 @@ def content_hash(data: dict[str, Any]) -> str:
     return h.hexdigest()
 
 
+def weights_id(data: dict[str, Any]) -> str:
+    """What identifies a loaded checkpoint's policy: its ``sha256`` (format 2), else the
+    :func:`content_hash` of what was loaded (format 1); empty without weights."""
+    if "weights" not in data:
+        return ""
+    return str(data.get("sha256") or content_hash(data))
+
+
 def load_checkpoint(
     path: str | Path,
     *,

@@ -237,6 +237,29 @@ def test_reproduce_refuses_a_used_folder_and_resumes_without_redoing(
                 "--out", str(out), "--resume"]) == 2  # other settings: refused
 
 
+@FULL
+@_ONE_WORKER
+def test_resume_refuses_to_report_a_replaced_policy_with_its_old_runs(
+        tiny_reproduction: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A trained checkpoint replaced by other weights after its evaluation: the resumed command
+    refuses (exit 2) before reporting, and leaves the report as it was."""
+    import shutil
+
+    out = tmp_path / "rep"
+    shutil.copytree(tiny_reproduction, out)
+    ckpt = out / "checkpoints"
+    shutil.copy(ckpt / "bdc__catchup-v1__n8__s1.pt", ckpt / "bdc__catchup-v1__n8__s0.pt")
+    report = (out / "report.md").read_bytes()
+    capsys.readouterr()
+    assert cli(["reproduce", "--budget", "quick", "--algos", "bdc", "--scenarios", "catchup-v1",
+                "--out", str(out), "--resume"]) == 2
+    err = capsys.readouterr().err
+    assert "whose checkpoints changed since they ran" in err and "Traceback" not in err
+    assert f"{out.resolve() / 'runs'} holds 2 runs" in err
+    assert "bdc[checkpoint_dir=checkpoints] on catchup-v1, N = 8" in err
+    assert (out / "report.md").read_bytes() == report
+
+
 @pytest.mark.slow
 def test_quick_budget_reproduces_everything_in_minutes(tmp_path: Path) -> None:
     """The whole quick reproduction (seven algorithms, the ablation, two scenarios)."""

@@ -69,6 +69,7 @@ CASES = [
     ("packet_loss", "1.5", "packet_loss: Input should be less than or equal to 1"),
     ("gap_std_m", "-1.0", "gap_std_m: Input should be greater than or equal to 0"),
     ("options", '"[1]"', "options must be a JSON object"),
+    ("policy_sha256", '"abc"', "policy_sha256: String should match pattern"),
 ]
 
 
