@@ -148,10 +148,12 @@ def run_batches(
     workers: int = 1,
     ray_address: str | None = None,
     keep_trajectory: bool = False,
+    env: dict[str, str] | None = None,
 ) -> Iterator[list[dict]]:
-    """Yield the records of each batch of :func:`batch_keys` as it finishes (any order)."""
+    """Yield the records of each batch of :func:`batch_keys` as it finishes (any order), run in
+    processes holding ``env`` from their start (:func:`map_jobs`)."""
     batches = [(b, keep_trajectory) for b in batch_keys(keys, workers)]
-    yield from map_jobs(_run, batches, executor, workers, ray_address)
+    yield from map_jobs(_run, batches, executor, workers, ray_address, env)
 
 
 def run_keys(

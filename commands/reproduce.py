@@ -164,12 +164,14 @@ def eval_stage(jobs: list[dict[str, Any]], scenarios: Sequence[Scenario], budget
                args: argparse.Namespace, out: Path) -> dict[str, str]:
     """Run every policy and baseline on the evaluation seeds (resumable store)."""
     from commands.run import execute_sweep
+    from marl.arithmetic import process_env
 
     keys, names = eval_keys(jobs, scenarios, budget)
     print(f"evaluation: {len(keys)} runs", file=sys.stderr)
     rc = execute_sweep(keys, out / "runs", resume=True, executor=args.executor,
                        workers=args.workers, ray_address=args.ray_address, quiet=True,
-                       first_seed=min(k.seed for k in keys), pool_seeds=True)
+                       first_seed=min(k.seed for k in keys), pool_seeds=True,
+                       env=process_env(args.arithmetic))
     if rc != 0:
         raise ConfigError(f"some evaluation runs failed (see {out / 'runs' / 'runs.csv'}); fix the "
                           "cause and rerun with --resume")

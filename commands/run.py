@@ -235,8 +235,11 @@ def execute_sweep(
     quiet: bool = False,
     first_seed: int | None = None,
     pool_seeds: bool = False,
+    env: dict[str, str] | None = None,
 ) -> int:
-    """Run the keys not yet stored in ``out``, store each as it finishes, write the CSVs."""
+    """Run the keys not yet stored in ``out``, store each as it finishes, write the CSVs;
+    ``env``: what the processes that run them hold from their start (the training arithmetic,
+    :func:`marl.arithmetic.process_env`)."""
     from benchmark.export import (
         check_csv_targets,
         trajectory_arrays,
@@ -271,7 +274,8 @@ def execute_sweep(
         executor = resolve_executor(todo, executor, workers)
         store.set_meta("last_sweep", {"n_runs": len(keys), "executor": executor})
         progress = Progress(len(todo))
-        for batch in run_batches(todo, executor, workers, ray_address, keep_trajectory=True):
+        for batch in run_batches(todo, executor, workers, ray_address, keep_trajectory=True,
+                                 env=env):
             finished = []
             for rec in batch:
                 traj = rec.pop("_trajectory", None)

@@ -210,6 +210,7 @@ def main(argv: list[str]) -> int:
     from benchmark.suite import seeds_from_episodes
     from commands.policy_training import train_stage
     from commands.run import execute_sweep
+    from marl.arithmetic import process_env
     from marl.config import training_device
 
     args = _parser().parse_args(argv)
@@ -269,7 +270,7 @@ def main(argv: list[str]) -> int:
         print(f"evaluation: {len(keys)} runs", file=sys.stderr)
         rc = execute_sweep(keys, here / "runs", resume=True, executor=args.executor,
                            workers=args.workers, ray_address=args.ray_address, quiet=True,
-                           first_seed=eval_seeds[0])
+                           first_seed=eval_seeds[0], env=process_env(args.arithmetic))
         if rc != 0:
             raise ConfigError(f"some evaluation runs failed (see {out / 'runs' / 'runs.csv'}); "
                               "fix the cause and rerun with --resume")
