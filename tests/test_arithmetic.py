@@ -149,3 +149,53 @@ def test_portable_arithmetic_is_refused_on_a_gpu() -> None:
     check_arithmetic("native", "cuda")
     with pytest.raises(ConfigError, match="portable arithmetic is the CPU's"):
         check_arithmetic("portable", "cuda:0")
+
+
+@pytest.mark.parametrize("mode", ["portable", "native"])
+def test_reproduce_evaluates_with_its_training_arithmetic(monkeypatch, tmp_path: Path,
+                                                          mode: str) -> None:
+    """The evaluation workers hold the training's arithmetic from their start: MKL's kernels
+    also round the policies' sampled actions (with its AVX2 kernels forced, one episode of the
+    paper report's 4,950 came out otherwise, natively)."""
+    from types import SimpleNamespace
+
+    import commands.run
+    from analysis.paper import BUDGETS
+    from commands.reproduce import eval_stage
+    from envs.scenarios import as_scenario
+
+    seen: dict = {}
+
+    def sweep(keys, out, **options):
+        seen.update(options, n=len(keys))
+        return 0
+
+    monkeypatch.setattr(commands.run, "execute_sweep", sweep)
+    args = SimpleNamespace(executor="serial", workers=1, ray_address=None, arithmetic=mode)
+    eval_stage([], [as_scenario("catchup-v1")], BUDGETS["quick"], args, tmp_path)
+    assert seen["n"] > 0 and seen["env"] == arithmetic.process_env(mode)
+
+
+class _Evaluated(Exception):
+    """Raised by a stand-in evaluation, to stop the command there."""
+
+
+@pytest.mark.parametrize("mode", ["portable", "native"])
+def test_sensitivity_evaluates_with_its_training_arithmetic(monkeypatch, tmp_path: Path,
+                                                            mode: str) -> None:
+    import commands.policy_training
+    import commands.run
+
+    seen: dict = {}
+
+    def sweep(keys, out, **options):
+        seen.update(options)
+        raise _Evaluated
+
+    monkeypatch.setattr(commands.policy_training, "train_stage", lambda *a, **k: None)
+    monkeypatch.setattr(commands.run, "execute_sweep", sweep)
+    with pytest.raises(_Evaluated):
+        main(["sensitivity", "--scenarios", "catchup-v1", "--knobs", "qsgd_levels",
+              "--steps", "1800", "--episodes", "2", "--arithmetic", mode,
+              "--out", str(tmp_path)])
+    assert seen["env"] == arithmetic.process_env(mode)
