@@ -364,11 +364,15 @@ def _openacc_section(jobs: list[dict[str, Any]], runs: Any, names: dict[str, str
 
 
 def _arithmetic_sentence(mode: str) -> str:
-    """What the training arithmetic (:mod:`marl.arithmetic`) means for a reader's rerun."""
+    """What the arithmetic of training and evaluation (:mod:`marl.arithmetic`) means for a
+    reader's rerun."""
     if mode == "portable":
-        return ("Training arithmetic **portable**: the policies trained here used MKL's "
-                "`COMPATIBLE` branch, which Intel documents as giving the same results on Intel "
-                "and compatible processors.")
-    return ("Training arithmetic **native**: the policies trained here depend on the processor's "
-            "float32 kernels; on another processor the command trains other weights "
-            "(`--arithmetic portable` trains with MKL's processor-independent branch).")
+        return ("Training arithmetic **portable**: the policies trained here, and every "
+                "evaluation run, used MKL's `COMPATIBLE` branch, which Intel documents as giving "
+                "the same results on Intel and compatible processors; the learned policies' "
+                "compute times are that branch's, many times the native kernels' (`cacc-bench "
+                "perf` times every controller natively).")
+    return ("Training arithmetic **native**: the policies trained here, and the evaluation runs, "
+            "used the processor's fastest float32 kernels; on another processor the command "
+            "trains other weights, and a sampled policy can act otherwise in a rare episode "
+            "(`--arithmetic portable` uses MKL's processor-independent branch for both).")

@@ -12,7 +12,8 @@ AVX2 kernels, but not with PyTorch's scalar ones: a processor without AVX2 train
 (``tests/test_arithmetic.py``). MKL reads it once, at its first product, so it must be in a
 process's environment before that: the executors start such processes with it
 (:func:`benchmark.executors.map_jobs`'s ``env``), and a training job checks it
-(:func:`require`). It costs time: 1.3 to 2.3 times the native training time here (``cacc-bench
+(:func:`require`). ``reproduce`` and ``sensitivity`` evaluate in it too: MKL's kernels also round
+the sampled policies' actions. It costs time: 1.3 to 2.3 times the native training time here (``cacc-bench
 perf`` with ``MKL_CBWR=COMPATIBLE`` in the environment, ``docs/reproduction.md``).
 """
 
