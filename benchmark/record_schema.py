@@ -57,7 +57,7 @@ class RunRecord(BaseModel):
     deterministic: bool | None = None
     version: str
     git_sha: str
-    #: the learned weights' content hash (empty: no learned weights, or stored before it)
+    #: the learned policy's hash (marl.checkpoint.policy_id; empty: none, or stored before it)
     policy_sha256: str = Field(default="", pattern=r"^([0-9a-f]{64})?$")
     # the outcome
     status: Literal["ok", "failed"]

@@ -188,10 +188,10 @@ class Controller(ABC):
 
     @property
     def policy_sha256(self) -> str:
-        """The content hash of the learned weights this controller acts with since its last
-        load (a checkpoint's ``sha256``); empty for a controller without any. The harness
-        stores it with each run, and a resumed sweep refuses stored runs of a policy whose
-        checkpoint has changed since."""
+        """A hash of the learned policy this controller acts with since its last load (its
+        weights and the checkpoint fields that decide how it acts); empty for a controller
+        without learned weights. The harness stores it with each run, and a resumed sweep
+        refuses stored runs of a policy that has changed since."""
         return ""
 
     def preflight(self, scenario: Scenario, n_vehicles: int, params: PlatoonParams | None = None

@@ -246,10 +246,11 @@ class PolicyController(Controller):
 
     @property
     def policy_sha256(self) -> str:
-        """The loaded checkpoint's content hash (empty before a load, or untrained)."""
-        from marl.checkpoint import weights_id
+        """The loaded policy's :func:`marl.checkpoint.policy_id` (empty before a load, or
+        untrained)."""
+        from marl.checkpoint import policy_id
 
-        return weights_id(self.loaded)
+        return policy_id(self.loaded)
 
     def preflight(self, scenario: Any, n_vehicles: int, params: Any = None) -> None:
         """Load the policy for ``scenario`` and N now, so a missing or mismatched checkpoint

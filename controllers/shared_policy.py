@@ -168,10 +168,11 @@ class SharedPolicyController(Controller):
 
     @property
     def policy_sha256(self) -> str:
-        """The loaded checkpoint's content hash (empty before a load, or untrained)."""
-        from marl.checkpoint import weights_id
+        """The loaded policy's :func:`marl.checkpoint.policy_id` (empty before a load, or
+        untrained)."""
+        from marl.checkpoint import policy_id
 
-        return weights_id(self.loaded)
+        return policy_id(self.loaded)
 
     def preflight(self, scenario: Scenario, n_vehicles: int, params: PlatoonParams | None = None
                   ) -> None:

@@ -139,22 +139,31 @@ def save_to_file(payload: dict[str, Any], path: str | Path) -> None:
 def content_hash(data: dict[str, Any]) -> str:
     """SHA-256 over the canonical JSON of every field but ``weights`` and ``sha256``, then each
     weight's name, dtype, shape and bytes in key order."""
-    meta = {k: v for k, v in data.items() if k not in ("weights", "sha256")}
+    return _hash({k: v for k, v in data.items() if k not in ("weights", "sha256")},
+                 data.get("weights", {}))
+
+
+def _hash(meta: dict[str, Any], weights: dict[str, Any]) -> str:
     h = hashlib.sha256(json.dumps(meta, sort_keys=True, separators=(",", ":"),
                                   default=repr).encode())
-    for key in sorted(data.get("weights", {})):
-        t = data["weights"][key].detach().to("cpu").contiguous()
+    for key in sorted(weights):
+        t = weights[key].detach().to("cpu").contiguous()
         h.update(f"\0{key}\0{t.dtype}\0{list(t.shape)}\0".encode())
         h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes())
     return h.hexdigest()
 
 
-def weights_id(data: dict[str, Any]) -> str:
-    """What identifies a loaded checkpoint's policy: its ``sha256`` (format 2), else the
-    :func:`content_hash` of what was loaded (format 1); empty without weights."""
+#: The fields that, with the weights, decide how a checkpoint's policy acts.
+ACTING_FIELDS: tuple[str, ...] = ("algo", "n_vehicles", "config")
+
+
+def policy_id(data: dict[str, Any]) -> str:
+    """SHA-256 of what a loaded checkpoint's policy acts with: :data:`ACTING_FIELDS` and the
+    weights (hashed as :func:`content_hash` does). A run retrained to the same weights has the
+    same id whatever its timings or commit; empty without weights."""
     if "weights" not in data:
         return ""
-    return str(data.get("sha256") or content_hash(data))
+    return _hash({k: data.get(k) for k in ACTING_FIELDS}, data["weights"])
 
 
 def load_checkpoint(

@@ -1,6 +1,6 @@
-"""A run stores the content hash of the learned weights it acted with, and a resumed sweep
-refuses stored runs of a policy whose checkpoint changed since (retrained or replaced): they
-would otherwise stand for weights they never ran."""
+"""A run stores a hash of the learned policy it acted with (its weights, algorithm, N and
+config), and a resumed sweep refuses stored runs of a policy that changed since (retrained to
+other weights, or replaced): they would otherwise stand for weights they never ran."""
 
 from __future__ import annotations
 
@@ -14,21 +14,20 @@ import pytest
 import torch
 
 from commands.cli import main
+from marl.checkpoint import content_hash, load_checkpoint, policy_id
 
 STEM = "ia2c__catchup-v1__n3__s0"
 
 
-def _train(out: Path, steps: int) -> Path:
-    assert main(["train", "--algo", "ia2c", "--scenario", "catchup-v1", "--vehicles", "3",
-                 "--steps", str(steps), "--episodes-parallel", "2", "--out", str(out)]) == 0
-    return out / f"{STEM}.pt"
-
-
 @pytest.fixture(scope="module")
 def policies(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
-    """Two checkpoints of one name with other weights (300 and 600 training steps)."""
+    """A policy and other weights for it (another training seed)."""
     root = tmp_path_factory.mktemp("policies")
-    return _train(root / "a", 300), _train(root / "b", 600)
+    for seed in (0, 1):
+        assert main(["train", "--algo", "ia2c", "--scenario", "catchup-v1", "--vehicles", "3",
+                     "--steps", "300", "--episodes-parallel", "2", "--seed", str(seed),
+                     "--out", str(root / f"s{seed}")]) == 0
+    return root / "s0" / f"{STEM}.pt", root / "s1" / "ia2c__catchup-v1__n3__s1.pt"
 
 
 def _sweep(folder: Path, out: Path, *extra: str) -> int:
@@ -47,17 +46,36 @@ def _digest(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
-def test_each_run_stores_the_hash_of_the_weights_it_acted_with(policies, tmp_path) -> None:
-    """The hash is the checkpoint's own ``sha256`` field (read here with torch), for the policy
-    and behind the safety filter; a controller without learned weights stores none."""
+def _id(path: Path) -> str:
+    return policy_id(load_checkpoint(path))
+
+
+def test_each_run_stores_the_hash_of_the_policy_it_acted_with(policies, tmp_path) -> None:
+    """The policy's hash, alone and behind the safety filter; none for a controller without
+    learned weights; other weights, another hash."""
     a, b = policies
-    want_a, want_b = (torch.load(p, weights_only=True)["sha256"] for p in (a, b))
-    assert want_a != want_b and len(want_a) == 64
+    assert _id(a) != _id(b) and len(_id(a)) == 64
     assert _sweep(a.parent, tmp_path / "r") == 0
     got = _stored(tmp_path / "r")
     assert len(got) == 6
     assert {h for i, h in got.items() if i.startswith("cacc|")} == {""}
-    assert {h for i, h in got.items() if not i.startswith("cacc|")} == {want_a}
+    assert {h for i, h in got.items() if not i.startswith("cacc|")} == {_id(a)}
+
+
+def test_a_policy_retrained_to_the_same_weights_resumes(policies, tmp_path) -> None:
+    """Timings and commit are not the policy: a checkpoint that differs only in them (its own
+    content hash differs) resumes its stored runs."""
+    a, _ = policies
+    folder = tmp_path / "ckpt"
+    shutil.copytree(a.parent, folder)
+    out = tmp_path / "r"
+    assert _sweep(folder, out) == 0
+    data = torch.load(a, weights_only=True)
+    data["curve_summary"] = {**data["curve_summary"], "wall_s": 1.0 + data["curve_summary"]["wall_s"]}
+    data["sha256"] = content_hash(data)
+    torch.save(data, folder / a.name)
+    assert data["sha256"] != torch.load(a, weights_only=True)["sha256"]
+    assert _sweep(folder, out, "--resume") == 0
 
 
 def test_resume_refuses_the_runs_of_a_changed_policy(policies, tmp_path, capsys) -> None:
@@ -70,11 +88,11 @@ def test_resume_refuses_the_runs_of_a_changed_policy(policies, tmp_path, capsys)
     out = tmp_path / "r"
     assert _sweep(folder, out) == 0
     files = {p.name: _digest(p) for p in out.iterdir() if p.suffix in (".sqlite", ".csv")}
-    shutil.copy(b, folder / a.name)  # retrained elsewhere, copied over
+    shutil.copy(b, folder / a.name)  # retrained to other weights, copied over
     capsys.readouterr()
     assert _sweep(folder, out, "--resume") == 2
     err = capsys.readouterr().err
-    old, new = (torch.load(p, weights_only=True)["sha256"][:12] for p in (a, b))
+    old, new = (_id(p)[:12] for p in (a, b))
     assert "holds 4 runs of learned policies whose checkpoints changed since they ran" in err
     assert f"on catchup-v1, N = 3: weights {old} then, {new} now, and 1 more setting" in err
     assert f"{out.resolve()} holds" in err and "Traceback" not in err
@@ -83,7 +101,7 @@ def test_resume_refuses_the_runs_of_a_changed_policy(policies, tmp_path, capsys)
     out.rename(tmp_path / "aside")  # the remedy the message names
     assert _sweep(folder, out, "--resume") == 0
     fresh = set(_stored(out).values())
-    assert fresh == {"", torch.load(b, weights_only=True)["sha256"]}
+    assert fresh == {"", _id(b)}
     shutil.copy(a, folder / a.name)  # the other remedy: the checkpoint put back
     assert _sweep(folder, tmp_path / "aside", "--resume") == 0
 
