@@ -198,9 +198,9 @@ def main(argv: list[str]) -> int:
 
 
 def _refuse_changed_policies(keys: list[RunKey], stored: list[dict], out: Path) -> None:
-    """Refuse (ConfigError) to resume over stored runs of a learned policy whose checkpoint has
-    changed since they ran (retrained or replaced): they would stand for the new weights. Runs
-    stored before records held ``policy_sha256`` cannot be checked."""
+    """Refuse (ConfigError) to resume over stored runs of a learned policy that has changed
+    since they ran (retrained to other weights, or replaced): they would stand for the new
+    weights. Runs stored before records held ``policy_sha256`` cannot be checked."""
     from benchmark.suite import current_policies
 
     ran = {r["id"]: r["policy_sha256"] for r in stored
@@ -215,8 +215,8 @@ def _refuse_changed_policies(keys: list[RunKey], stored: list[dict], out: Path) 
     extra = len(settings) - 1
     more = f", and {extra} more setting{'s' * (extra > 1)}" if extra else ""
     raise ConfigError(
-        f"{out.resolve()} holds {len(changed)} runs of learned policies whose checkpoints "
-        f"changed since they ran ({k.controller} on {k.scenario}, N = {k.n_vehicles}: weights "
+        f"{out.resolve()} holds {len(changed)} runs of learned policies that have changed since "
+        f"they ran ({k.controller} on {k.scenario}, N = {k.n_vehicles}: policy "
         f"{ran[k.id][:12]} then, {now[k][:12] or 'none'} now{more}); stored runs are never "
         "replaced: move that folder aside and run the command again with --resume (its runs "
         "are evaluated again, with the policies as they are now), or put back the checkpoints "

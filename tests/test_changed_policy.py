@@ -93,8 +93,8 @@ def test_resume_refuses_the_runs_of_a_changed_policy(policies, tmp_path, capsys)
     assert _sweep(folder, out, "--resume") == 2
     err = capsys.readouterr().err
     old, new = (_id(p)[:12] for p in (a, b))
-    assert "holds 4 runs of learned policies whose checkpoints changed since they ran" in err
-    assert f"on catchup-v1, N = 3: weights {old} then, {new} now, and 1 more setting" in err
+    assert "holds 4 runs of learned policies that have changed since they ran" in err
+    assert f"on catchup-v1, N = 3: policy {old} then, {new} now, and 1 more setting" in err
     assert f"{out.resolve()} holds" in err and "Traceback" not in err
     assert "move that folder aside and run the command again with --resume" in err
     assert {p.name: _digest(p) for p in out.iterdir() if p.suffix in (".sqlite", ".csv")} == files

@@ -254,7 +254,7 @@ def test_resume_refuses_to_report_a_replaced_policy_with_its_old_runs(
     assert cli(["reproduce", "--budget", "quick", "--algos", "bdc", "--scenarios", "catchup-v1",
                 "--out", str(out), "--resume"]) == 2
     err = capsys.readouterr().err
-    assert "whose checkpoints changed since they ran" in err and "Traceback" not in err
+    assert "that have changed since they ran" in err and "Traceback" not in err
     assert f"{out.resolve() / 'runs'} holds 2 runs" in err
     assert "bdc[checkpoint_dir=checkpoints] on catchup-v1, N = 8" in err
     assert (out / "report.md").read_bytes() == report
