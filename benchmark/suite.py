@@ -195,10 +195,11 @@ def execute_batch(keys: Sequence[RunKey], keep_trajectory: bool = False) -> list
         return [execute_run(k, keep_trajectory) for k in keys]
     wall_s = (time.perf_counter() - t0) / len(keys)
     records = []
+    policy = str(getattr(controller, "policy_sha256", ""))
     for key, traj in zip(keys, trajs, strict=True):
         record = _record(key)
         record["deterministic"] = bool(getattr(controller, "deterministic", True))
-        record["policy_sha256"] = str(getattr(controller, "policy_sha256", ""))
+        record["policy_sha256"] = policy
         _finish(record, traj, scenario.target_gap_m, scenario.target_speed_mps, keep_trajectory)
         record["wall_s"] = wall_s
         records.append(record)

@@ -181,6 +181,7 @@ class Controller(ABC):
     deterministic: bool = True
     needs_observation: bool = False
     batch_invariant: bool = False
+    _policy_sha256: str = ""
 
     def __init__(self) -> None:
         self.solver_failures = 0
@@ -191,8 +192,10 @@ class Controller(ABC):
         """A hash of the learned policy this controller acts with since its last load (its
         weights and the checkpoint fields that decide how it acts); empty for a controller
         without learned weights. The harness stores it with each run, and a resumed sweep
-        refuses stored runs of a policy that has changed since."""
-        return ""
+        refuses stored runs of a policy that has changed since. A controller that loads learned
+        weights sets ``_policy_sha256`` when it loads them
+        (:func:`marl.checkpoint.policy_id`)."""
+        return self._policy_sha256
 
     def preflight(self, scenario: Scenario, n_vehicles: int, params: PlatoonParams | None = None
                   ) -> None:

@@ -212,11 +212,12 @@ class PolicyController(Controller):
         import torch
 
         from marl.acting import acting_net, untrained_net
-        from marl.checkpoint import load_checkpoint, train_command
+        from marl.checkpoint import load_checkpoint, policy_id, train_command
 
         torch.set_num_threads(1)
         if self.untrained:
             self.loaded = {"steps": 0, "scenario": scenario_id}
+            self._policy_sha256 = ""
             return untrained_net(self.algo, n_vehicles, self.seed)
         source = self.scenario or scenario_id
         folder = VARIANT_DIR / self.variant if self.variant else self.checkpoint_dir
@@ -241,16 +242,8 @@ class PolicyController(Controller):
             )
         data = load_checkpoint(path, algo=self.algo, n_vehicles=n_vehicles, scenario=source)
         net = acting_net(self.algo, n_vehicles, data)
-        self.loaded = data
+        self.loaded, self._policy_sha256 = data, policy_id(data)
         return net
-
-    @property
-    def policy_sha256(self) -> str:
-        """The loaded policy's :func:`marl.checkpoint.policy_id` (empty before a load, or
-        untrained)."""
-        from marl.checkpoint import policy_id
-
-        return policy_id(self.loaded)
 
     def preflight(self, scenario: Any, n_vehicles: int, params: Any = None) -> None:
         """Load the policy for ``scenario`` and N now, so a missing or mismatched checkpoint

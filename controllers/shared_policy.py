@@ -166,14 +166,6 @@ class SharedPolicyController(Controller):
             return Path(self.checkpoint)
         return checkpoint_path(self.algo, source, self.vehicles, self.seed, self.checkpoint_dir)
 
-    @property
-    def policy_sha256(self) -> str:
-        """The loaded policy's :func:`marl.checkpoint.policy_id` (empty before a load, or
-        untrained)."""
-        from marl.checkpoint import policy_id
-
-        return policy_id(self.loaded)
-
     def preflight(self, scenario: Scenario, n_vehicles: int, params: PlatoonParams | None = None
                   ) -> None:
         """Load the policy now: a missing or damaged checkpoint fails before a sweep starts."""
@@ -190,7 +182,7 @@ class SharedPolicyController(Controller):
         """Load and verify the checkpoint trained on ``source``."""
         import torch
 
-        from marl.checkpoint import load_checkpoint
+        from marl.checkpoint import load_checkpoint, policy_id
         from marl.ppo_eval import load_actor
 
         torch.set_num_threads(1)
@@ -208,7 +200,7 @@ class SharedPolicyController(Controller):
                                n_vehicles=None if self.checkpoint else self.vehicles)
         self.actor = load_actor(data)
         self.action_mode = data["config"]["action_mode"]
-        self.loaded, self._source = data, source
+        self.loaded, self._source, self._policy_sha256 = data, source, policy_id(data)
 
     # ---------------------------------------------------------------- interface
     def messages(self, ctx: EpisodeContext) -> tuple[Message, ...]:
