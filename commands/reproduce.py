@@ -72,7 +72,7 @@ def _parser() -> argparse.ArgumentParser:
     add_population_argument(p)
     add_device_argument(p)
     # portable, as the committed report (docs/paper-reproduction) was trained: the default
-    # command then retrains the same weights on any processor MKL's COMPATIBLE branch covers
+    # command then retrains its weights on an Intel Xeon (an AMD EPYC trains others)
     add_arithmetic_argument(p, "portable")
     p.add_argument("--ray-address", default=None, help="attach to this Ray cluster")
     p.add_argument("--resume", action="store_true",

@@ -205,8 +205,8 @@ def add_arithmetic_argument(p: argparse.ArgumentParser, default: str) -> None:
     p.add_argument("--arithmetic", choices=ARITHMETIC_MODES, default=default,
                    help="native: the processor's fastest float32 kernels, so a seed's weights "
                         "depend on the processor; portable: MKL_CBWR=COMPATIBLE in the training "
-                        "processes, which Intel documents as giving the same results on Intel "
-                        "and compatible processors, 1.3 to 2.3 times slower; CPU only "
+                        "processes, the same weights whatever the instruction sets (an Intel Xeon "
+                        "and an AMD EPYC train different ones), 1.3 to 2.3 times slower; CPU only "
                         "(default: %(default)s)")
 
 

@@ -1,15 +1,19 @@
-"""Float32 training arithmetic meant to give a seed the same weights on Intel and AMD processors.
+"""Float32 training arithmetic that gives a seed the same weights whatever instruction sets the
+libraries use, on the processors measured (not between an Intel and an AMD one).
 
 PyTorch's CPU products go through Intel MKL, which picks its kernels by processor: an Intel
-Xeon and an AMD EPYC, both with AVX-512, round some float32 products differently, and a sampled
-training run carries that last bit into other weights (``tests/test_marl_losses.py`` pins one
-hash per processor family in the default, ``native``, mode).
+Xeon and an AMD EPYC round some float32 products differently, and a sampled training run
+carries that last bit into other weights (``tests/test_marl_losses.py`` pins one hash per
+processor family in the default, ``native``, mode).
 
 ``portable`` sets MKL's conditional numerical reproducibility branch ``COMPATIBLE`` (the
-environment variable ``MKL_CBWR``), which Intel documents as giving the same results on Intel
-and Intel-compatible processors; the pinned hashes also hold with MKL and PyTorch limited to
-AVX2 kernels, but not with PyTorch's scalar ones: a processor without AVX2 trains other weights
-(``tests/test_arithmetic.py``). MKL reads it once, at its first product, so it must be in a
+environment variable ``MKL_CBWR``). Intel documents it as giving the same results on Intel and
+Intel-compatible processors. Measured, it gives one processor the same weights whatever
+instruction sets MKL and PyTorch use (an Intel Xeon with AVX-512, or with both limited to AVX2,
+AVX or SSE4.2 kernels; an AMD EPYC without AVX-512, with MKL limited to SSE4.2), but the Xeon's
+and the EPYC's weights differ, and PyTorch's scalar kernels (no AVX2) give others again
+(``tests/test_arithmetic.py`` pins one hash per vendor; ``docs/scripts/arithmetic_fingerprint.py``
+compares operations between processors). MKL reads it once, at its first product, so it must be in a
 process's environment before that: the executors start such processes with it
 (:func:`benchmark.executors.map_jobs`'s ``env``), and a training job checks it
 (:func:`require`). ``reproduce`` and ``sensitivity`` evaluate in it too: MKL's kernels also round

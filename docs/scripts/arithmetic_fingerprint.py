@@ -1,0 +1,142 @@
+"""Hash each float32 operation the learners use (and the float64 linear algebra of numpy's
+OpenBLAS, which the MPC controllers use), under each arithmetic setting, on this CPU.
+
+Run it on two processors and compare the JSON files: an operation whose hash differs under the
+same setting is one whose rounding depends on the processor (see
+docs/notes/issue34-clean-clone.md, "Portable arithmetic on an AMD EPYC").
+
+    .venv/bin/python docs/scripts/arithmetic_fingerprint.py > fingerprint-CPU.json
+    .venv/bin/python docs/scripts/arithmetic_fingerprint.py --compare a.json b.json
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import platform
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]
+
+#: Settings, each read by MKL or PyTorch when a process starts (so each runs in its own).
+SETTINGS: dict[str, dict[str, str]] = {
+    "native": {},
+    "mkl_compatible": {"MKL_CBWR": "COMPATIBLE"},
+    "mkl_compatible+aten_avx2": {"MKL_CBWR": "COMPATIBLE", "ATEN_CPU_CAPABILITY": "avx2"},
+    "mkl_compatible+aten_default": {"MKL_CBWR": "COMPATIBLE", "ATEN_CPU_CAPABILITY": "default"},
+    "mkl_avx2": {"MKL_CBWR": "AVX2"},
+    "mkl_avx2+aten_avx2": {"MKL_CBWR": "AVX2", "ATEN_CPU_CAPABILITY": "avx2"},
+    "mkl_sse4_2": {"MKL_CBWR": "SSE4_2"},
+    "mkl_compatible+openblas_haswell": {"MKL_CBWR": "COMPATIBLE", "OPENBLAS_CORETYPE": "Haswell"},
+}
+
+
+def _digest(t) -> str:  # noqa: ANN001 - a torch tensor
+    return hashlib.sha256(t.detach().contiguous().numpy().tobytes()).hexdigest()[:16]
+
+
+def fingerprint() -> dict[str, str]:
+    """Hashes of fixed-input float32 operations in this process (one thread)."""
+    import numpy as np
+    import torch
+
+    torch.set_num_threads(1)
+    g = torch.Generator().manual_seed(0)  # only for the sampling operations themselves
+    rng = np.random.default_rng(0)  # inputs from numpy: torch's own normal_ depends on its kernels
+
+    def rand(*shape: int) -> torch.Tensor:
+        return torch.from_numpy(rng.standard_normal(shape).astype(np.float32))
+
+    a, b = rand(64, 15), rand(15, 64)
+    x3, w3, bias3 = rand(8, 240, 32), rand(8, 32, 64), rand(8, 1, 64)
+    big = rand(4096) * 4
+    out = {
+        "mm_64x15x64": torch.mm(a, b),
+        "addmm_240x32x64": torch.addmm(bias3[0, 0], x3[0], w3[0]),
+        "bmm_8x240x32x64": torch.bmm(x3, w3),
+        "baddbmm_8x240x32x64": torch.baddbmm(bias3, x3, w3),
+        "linear_240x32x64": torch.nn.functional.linear(x3[0], w3[0].T, bias3[0, 0]),
+        "qr_64x15": torch.linalg.qr(a)[0],
+        "exp": torch.exp(big), "log": torch.log(big.abs() + 1e-3), "tanh": torch.tanh(big),
+        "sigmoid": torch.sigmoid(big), "sqrt": torch.sqrt(big.abs()),
+        "softmax": torch.softmax(big.view(-1, 4), -1),
+        "log_softmax": torch.log_softmax(big.view(-1, 4), -1),
+        "pow_1.5": big.abs().pow(1.5), "div": big / (big.abs() + 1.0),
+        "sum_4096": big.sum().reshape(1), "mean_rows": big.view(64, 64).mean(1),
+        "multinomial": torch.multinomial(torch.softmax(big.view(-1, 4), -1), 1, generator=g),
+        "normal": torch.empty(4096).normal_(generator=g),
+    }
+    p = torch.nn.Parameter(rand(64, 64))
+    opt = torch.optim.RMSprop([p], lr=1e-3, alpha=0.99, eps=1e-5)
+    for _ in range(3):
+        p.grad = rand(64, 64)
+        opt.step()
+    out["rmsprop_3_steps"] = p
+    res = {k: _digest(v) for k, v in out.items()}
+    res["numpy_cos_sin_exp_f64"] = hashlib.sha256(b"".join(
+        f(np.linspace(-4, 4, 100_001)).tobytes() for f in (np.cos, np.sin, np.exp))).hexdigest()[:16]
+    # numpy's and scipy's OpenBLAS picks its kernels by processor (OPENBLAS_CORETYPE): the MPC
+    # controllers' float64 linear algebra goes through it
+    m64 = rng.standard_normal((96, 96))
+    spd = m64 @ m64.T + 96 * np.eye(96)
+    blas = {"numpy_matmul_f64": m64 @ m64.T, "numpy_solve_f64": np.linalg.solve(spd, m64[:, :8]),
+            "numpy_cholesky_f64": np.linalg.cholesky(spd)}
+    res.update({k: hashlib.sha256(v.tobytes()).hexdigest()[:16] for k, v in blas.items()})
+    # the short training the tests pin (tests/pinned_training.py), whole
+    sys.path.insert(0, str(ROOT / "tests"))
+    from pinned_training import weights_hash
+
+    res["short_training_bdc"] = weights_hash("bdc")[0]
+    res["torch_cpu_capability"] = torch.backends.cpu.get_cpu_capability()
+    return res
+
+
+def _cpuinfo(field: str) -> str:
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith(field):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return ""
+
+
+def run_all() -> dict[str, object]:
+    """Every setting, each in a fresh process."""
+    import torch
+
+    results: dict[str, object] = {"cpu": _cpuinfo("model name") or platform.processor(),
+                                  "vendor": _cpuinfo("vendor_id"), "torch": torch.__version__}
+    for name, extra in SETTINGS.items():
+        proc = subprocess.run([sys.executable, __file__, "--one"], env={**os.environ, **extra},
+                              capture_output=True, text=True, check=True, cwd=ROOT)
+        results[name] = json.loads(proc.stdout)
+    return results
+
+
+def compare(first: str, second: str) -> int:
+    """Print the operations whose hash differs between two fingerprint files, per setting."""
+    with open(first) as f1, open(second) as f2:
+        a, b = json.load(f1), json.load(f2)
+    print(f"{first}: {a['cpu']}\n{second}: {b['cpu']}")
+    for name in SETTINGS:
+        if name not in a or name not in b:
+            continue
+        diff = [op for op in a[name] if a[name][op] != b[name].get(op)]
+        print(f"{name:30s} {'same' if not diff else 'differ: ' + ', '.join(diff)}")
+    return 0
+
+
+if __name__ == "__main__":
+    if sys.argv[1:2] == ["--one"]:
+        print(json.dumps(fingerprint()))
+    elif sys.argv[1:2] == ["--compare"] and len(sys.argv) == 4:
+        sys.exit(compare(sys.argv[2], sys.argv[3]))
+    elif len(sys.argv) == 1:
+        print(json.dumps(run_all(), indent=1))
+    else:
+        sys.exit("usage: arithmetic_fingerprint.py [--compare FIRST.json SECOND.json]")
