@@ -12,13 +12,14 @@ Intel-compatible processors. Measured, it gives one processor the same weights w
 instruction sets MKL and PyTorch use (an Intel Xeon with AVX-512, or with both limited to AVX2,
 AVX or SSE4.2 kernels; an AMD EPYC without AVX-512, with MKL limited to SSE4.2), but the Xeon's
 and the EPYC's weights differ, and PyTorch's scalar kernels (no AVX2) give others again
-(``tests/test_arithmetic.py`` pins one hash per vendor; ``docs/scripts/arithmetic_fingerprint.py``
-compares operations between processors). MKL reads it once, at its first product, so it must be in a
-process's environment before that: the executors start such processes with it
-(:func:`benchmark.executors.map_jobs`'s ``env``), and a training job checks it
-(:func:`require`). ``reproduce`` and ``sensitivity`` evaluate in it too: MKL's kernels also round
-the sampled policies' actions. It costs time: 1.3 to 2.3 times the native training time here (``cacc-bench
-perf`` with ``MKL_CBWR=COMPATIBLE`` in the environment, ``docs/reproduction.md``).
+(``tests/test_arithmetic.py`` pins one hash per vendor;
+``docs/scripts/arithmetic_fingerprint.py`` compares operations between processors). MKL reads it
+once, at its first product, so it must be in a process's environment before that: the executors
+start such processes with it (:func:`benchmark.executors.map_jobs`'s ``env``), and a training
+job checks it (:func:`require`). ``reproduce`` and ``sensitivity`` evaluate in it too: MKL's
+kernels also round the sampled policies' actions. It costs time: 1.3 to 2.3 times the native
+training time here (``cacc-bench perf`` with ``MKL_CBWR=COMPATIBLE`` in the environment,
+``docs/reproduction.md``).
 """
 
 from __future__ import annotations

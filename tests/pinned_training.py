@@ -13,8 +13,9 @@ from marl import arithmetic
 #: CPU kernels measured, since MKL rounds float32 products differently between processors and
 #: sampled training turns the last bit into other weights. Measured on AMD EPYCs with and
 #: without AVX-512 (first; the same hash) and on an Intel Xeon with AVX-512 and AMX (second).
-#: On another CPU, add its hash after checking the rest of the suite passes there. A change in the learner's arithmetic changes every hash: if
-#: it is intended, say why in the commit and update the pins.
+#: On another CPU, add its hash after checking the rest of the suite passes there. A change in
+#: the learner's arithmetic changes every hash: if it is intended, say why in the commit and
+#: update the pins.
 NATIVE_PINNED = {
     "ia2c": ("49697009249f3d40", "3a9844e581e84a20"),
     "bdc": ("0f5895d5a28a7600", "7e66330e3087ec38"),

@@ -30,7 +30,8 @@ SETTINGS: dict[str, dict[str, str]] = {
     "mkl_avx2": {"MKL_CBWR": "AVX2"},
     "mkl_avx2+aten_avx2": {"MKL_CBWR": "AVX2", "ATEN_CPU_CAPABILITY": "avx2"},
     "mkl_sse4_2": {"MKL_CBWR": "SSE4_2"},
-    "mkl_compatible+openblas_haswell": {"MKL_CBWR": "COMPATIBLE", "OPENBLAS_CORETYPE": "Haswell"},
+    "mkl_compatible+openblas_haswell": {"MKL_CBWR": "COMPATIBLE",
+                                        "OPENBLAS_CORETYPE": "Haswell"},
 }
 
 
@@ -76,9 +77,10 @@ def fingerprint() -> dict[str, str]:
         opt.step()
     out["rmsprop_3_steps"] = p
     res = {k: _digest(v) for k, v in out.items()}
-    res["numpy_cos_sin_exp_f64"] = hashlib.sha256(b"".join(
-        f(np.linspace(-4, 4, 100_001)).tobytes() for f in (np.cos, np.sin, np.exp))).hexdigest()[:16]
-    # numpy's and scipy's OpenBLAS picks its kernels by processor (OPENBLAS_CORETYPE): the MPC
+    grid = np.linspace(-4, 4, 100_001)
+    res["numpy_cos_sin_exp_f64"] = hashlib.sha256(
+        b"".join(f(grid).tobytes() for f in (np.cos, np.sin, np.exp))).hexdigest()[:16]
+    # numpy's OpenBLAS picks its kernels by processor (OPENBLAS_CORETYPE): the MPC
     # controllers' float64 linear algebra goes through it
     m64 = rng.standard_normal((96, 96))
     spd = m64 @ m64.T + 96 * np.eye(96)
