@@ -206,7 +206,7 @@ def add_arithmetic_argument(p: argparse.ArgumentParser, default: str) -> None:
                    help="native: the processor's fastest float32 kernels, so a seed's weights "
                         "depend on the processor; portable: MKL_CBWR=COMPATIBLE in the training "
                         "processes, the same weights whatever the instruction sets (an Intel Xeon "
-                        "and an AMD EPYC train different ones), 1.3 to 2.3 times slower; CPU only "
+                        "and an AMD EPYC train different ones), 1.2 to 2.3 times slower; CPU only "
                         "(default: %(default)s)")
 
 

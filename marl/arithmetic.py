@@ -17,9 +17,9 @@ and the EPYC's weights differ, and PyTorch's scalar kernels (no AVX2) give other
 once, at its first product, so it must be in a process's environment before that: the executors
 start such processes with it (:func:`benchmark.executors.map_jobs`'s ``env``), and a training
 job checks it (:func:`require`). ``reproduce`` and ``sensitivity`` evaluate in it too: MKL's
-kernels also round the sampled policies' actions. It costs time: 1.3 to 2.3 times the native
-training time here (``cacc-bench perf`` with ``MKL_CBWR=COMPATIBLE`` in the environment,
-``docs/reproduction.md``).
+kernels also round the sampled policies' actions. It costs time: 1.2 to 2.3 times the native
+training time on the two processors measured (``cacc-bench perf`` with ``MKL_CBWR=COMPATIBLE``
+in the environment, ``docs/reproduction.md``).
 """
 
 from __future__ import annotations
