@@ -286,7 +286,10 @@ def _assert_gone(pids: set[int]) -> None:
     while [p for p in pids if _alive(p)] and time.monotonic() < deadline:
         time.sleep(0.1)
     left = [p for p in pids if _alive(p)]
-    names = [Path(f"/proc/{p}/cmdline").read_text(errors="replace")[:60] for p in left]
+    # the state (D: SIGKILL waits for the kernel) and parent say why a process outlived the
+    # reaper (seen once under CI load: two Ray agents, the reaper itself gone)
+    names = [(p, Path(f"/proc/{p}/cmdline").read_text(errors="replace").split("\0")[0][:40],
+              "state " + " ppid ".join((_stat(p) or ["?", "?"])[:2])) for p in left]
     for p in left:
         os.kill(p, signal.SIGKILL)
     assert not left, f"left behind: {names}"
