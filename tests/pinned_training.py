@@ -39,16 +39,22 @@ PORTABLE_PINNED: dict[str, dict[str, str]] = {
 PINNED_ALGOS: tuple[str, ...] = ("bdc", "dial", "ia2c")
 
 
-def cpu_vendor() -> str:
-    """This processor's ``vendor_id`` (/proc/cpuinfo), or "" where the file does not say."""
+def cpuinfo(field: str) -> str:
+    """The first ``field`` of /proc/cpuinfo (``vendor_id``, ``model name``), or "" where the
+    file does not say."""
     try:
         with open("/proc/cpuinfo") as f:
             for line in f:
-                if line.startswith("vendor_id"):
+                if line.startswith(field):
                     return line.split(":", 1)[1].strip()
     except OSError:
         pass
     return ""
+
+
+def cpu_vendor() -> str:
+    """This processor's ``vendor_id``, or ""."""
+    return cpuinfo("vendor_id")
 
 
 def portable_pins() -> dict[str, str]:

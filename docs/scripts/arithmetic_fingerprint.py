@@ -20,6 +20,9 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT / "tests"))  # the short training and cpuinfo the tests use
+
+from pinned_training import cpuinfo, weights_hash  # noqa: E402
 
 #: Settings, each read by MKL or PyTorch when a process starts (so each runs in its own).
 SETTINGS: dict[str, dict[str, str]] = {
@@ -88,31 +91,17 @@ def fingerprint() -> dict[str, str]:
             "numpy_cholesky_f64": np.linalg.cholesky(spd)}
     res.update({k: hashlib.sha256(v.tobytes()).hexdigest()[:16] for k, v in blas.items()})
     # the short training the tests pin (tests/pinned_training.py), whole
-    sys.path.insert(0, str(ROOT / "tests"))
-    from pinned_training import weights_hash
-
     res["short_training_bdc"] = weights_hash("bdc")[0]
     res["torch_cpu_capability"] = torch.backends.cpu.get_cpu_capability()
     return res
-
-
-def _cpuinfo(field: str) -> str:
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith(field):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return ""
 
 
 def run_all() -> dict[str, object]:
     """Every setting, each in a fresh process."""
     import torch
 
-    results: dict[str, object] = {"cpu": _cpuinfo("model name") or platform.processor(),
-                                  "vendor": _cpuinfo("vendor_id"), "torch": torch.__version__}
+    results: dict[str, object] = {"cpu": cpuinfo("model name") or platform.processor(),
+                                  "vendor": cpuinfo("vendor_id"), "torch": torch.__version__}
     for name, extra in SETTINGS.items():
         proc = subprocess.run([sys.executable, __file__, "--one"], env={**os.environ, **extra},
                               capture_output=True, text=True, check=True, cwd=ROOT)
