@@ -281,6 +281,15 @@ def _ray_sweep(tmp_path: Path, moment: str = "workers running"
     return proc, _descendants(proc.pid)
 
 
+def _appeared(folder: Path, pattern: str) -> bool:
+    """Whether ``pattern`` matches under ``folder``, read while a command writes there: a folder
+    it removes during the walk (its writability probe, ``.cacc-bench-probe-*``) is "not yet"."""
+    try:
+        return any(folder.rglob(pattern))
+    except FileNotFoundError:
+        return False
+
+
 def _assert_gone(pids: set[int]) -> None:
     deadline = time.monotonic() + 15
     while [p for p in pids if _alive(p)] and time.monotonic() < deadline:
@@ -429,7 +438,7 @@ def test_an_interrupted_tune_records_its_trial_in_flight_as_failed(tmp_path: Pat
     (done,) = trials()
     proc = _start(*argv, "--trials", "3")
     # a trial's folder appears when it ends: the third trial is in flight then
-    _wait_until(lambda: len(list((tmp_path / "tu").rglob("t001"))) > 0, proc)
+    _wait_until(lambda: _appeared(tmp_path / "tu", "t001"), proc)
     sent = time.monotonic()
     proc.send_signal(signal.SIGINT)
     rc, err, took = _end(proc, sent)
