@@ -33,7 +33,7 @@ from envs.params import RewardWeights
 from envs.platoon import PlatoonEnv, StepResult
 from envs.scenarios import Scenario, make_scenario
 from marl.config import A2CConfig, Algorithm, training_device
-from marl.layers import per_agent_clip_, rmsprop_
+from marl.layers import per_agent_clip_, rmsprop_, sqrt
 from marl.networks import AgentNet, State, exchange, neighbour_action_onehot
 
 # ---------------------------------------------------------------------------- config
@@ -299,7 +299,7 @@ def normalise_advantages(adv: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     count = m.sum((0, 1)).clamp(min=1.0)
     mean = (adv * m).sum((0, 1)) / count
     var = ((adv - mean).square() * m).sum((0, 1)) / count
-    return (adv - mean) / (var.sqrt() + 1e-8)
+    return (adv - mean) / (sqrt(var) + 1e-8)
 
 
 def segment_loss(run: Run, seg: Segment, logits: torch.Tensor, values: torch.Tensor,

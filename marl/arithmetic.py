@@ -1,29 +1,37 @@
-"""Float32 training arithmetic that gives a seed the same weights whatever instruction sets the
-libraries use, on the processors measured (not between an Intel and an AMD one).
+"""Float32 training and float64 evaluation arithmetic that give a seed the same numbers whatever
+instruction sets the libraries use, on the processors measured (training: not between an Intel
+and an AMD one).
 
 PyTorch's CPU products go through Intel MKL, which picks its kernels by processor: an Intel
 Xeon and an AMD EPYC round some float32 products differently, and a sampled training run
 carries that last bit into other weights (``tests/test_marl_losses.py`` pins one hash per
 processor family in the default, ``native``, mode).
 
-``portable`` sets MKL's conditional numerical reproducibility branch ``COMPATIBLE`` (the
-environment variable ``MKL_CBWR``). Intel documents it as giving the same results on Intel and
-Intel-compatible processors. Measured, it gives one processor the same weights whatever
-instruction sets MKL and PyTorch use (an Intel Xeon with AVX-512, or with both limited to AVX2,
-AVX or SSE4.2 kernels; an AMD EPYC without AVX-512, with MKL limited to SSE4.2), but the Xeon's
-and the EPYC's weights differ, and PyTorch's scalar kernels (no AVX2) give others again
-(``tests/test_arithmetic.py`` pins one hash per vendor;
-``docs/scripts/arithmetic_fingerprint.py`` compares operations between processors). MKL reads it
-once, at its first product, so it must be in a process's environment before that: the executors
-start such processes with it (:func:`benchmark.executors.map_jobs`'s ``env``), and a training
-job checks it (:func:`require`). ``reproduce`` and ``sensitivity`` evaluate in it too: MKL's
-kernels also round the sampled policies' actions. It costs time: 1.2 to 2.3 times the native
-training time on the two processors measured (``cacc-bench perf`` with ``MKL_CBWR=COMPATIBLE``
-in the environment, ``docs/reproduction.md``).
+``portable`` starts a process with :func:`portable_env`:
+
+- MKL's conditional numerical reproducibility branch ``COMPATIBLE`` (``MKL_CBWR``). Intel
+  documents it as giving the same results on Intel and Intel-compatible processors. Measured,
+  it gives one processor the same weights whatever instruction sets MKL and PyTorch use, but an
+  Intel Xeon's and an AMD EPYC's weights differ (``tests/test_arithmetic.py`` pins one hash per
+  vendor);
+- on a processor with AVX2 and FMA, the AVX2 kernels of PyTorch (``ATEN_CPU_CAPABILITY``), of
+  numpy's OpenBLAS (``OPENBLAS_CORETYPE=Haswell``) and of numpy's own loops (its AVX-512
+  targets disabled): the MPC controllers' float64 linear algebra and numpy's elementwise
+  functions then round alike on an AVX-512 Xeon and an AVX2 EPYC (measured with
+  ``docs/scripts/arithmetic_fingerprint.py --numpy``; natively they do not).
+
+Each library reads its setting once, when the process starts or at its first use, so it must be
+in a process's environment from its start: the executors start such processes with it
+(:func:`benchmark.executors.map_jobs`'s ``env``), and a training job checks it
+(:func:`require`). ``reproduce`` and ``sensitivity`` evaluate in it too: MKL's kernels also
+round the sampled policies' actions. Training costs 1.2 to 2.3 times the native time on the two
+processors measured (``cacc-bench perf`` with ``MKL_CBWR=COMPATIBLE`` in the environment,
+``docs/reproduction.md``).
 """
 
 from __future__ import annotations
 
+import functools
 import os
 
 from envs.errors import ConfigError
@@ -31,8 +39,30 @@ from envs.errors import ConfigError
 #: ``native``: MKL's fastest kernels for this processor; ``portable``: :data:`PORTABLE_ENV`.
 ARITHMETIC_MODES: tuple[str, ...] = ("native", "portable")
 
-#: What a process's environment holds from its start for ``portable`` arithmetic.
+#: What a process's environment holds from its start for ``portable`` arithmetic, on every
+#: processor (:func:`portable_env` adds the AVX2 kernels where the processor has them).
 PORTABLE_ENV: dict[str, str] = {"MKL_CBWR": "COMPATIBLE"}
+
+#: The AVX2 kernels ``portable`` asks for on a processor with AVX2 and FMA (numpy's AVX-512
+#: targets, which differ between numpy versions, are added by :func:`portable_env`).
+AVX2_ENV: dict[str, str] = {"ATEN_CPU_CAPABILITY": "avx2", "OPENBLAS_CORETYPE": "Haswell"}
+
+
+@functools.cache
+def portable_env() -> dict[str, str]:
+    """The environment of a ``portable`` process on this processor: :data:`PORTABLE_ENV`, and
+    with AVX2 and FMA, :data:`AVX2_ENV` plus ``NPY_DISABLE_CPU_FEATURES`` naming numpy's
+    AVX-512 targets (on a processor without AVX2, forcing these kernels would fault)."""
+    try:
+        from numpy._core._multiarray_umath import __cpu_dispatch__, __cpu_features__
+    except ImportError:  # another numpy layout: no AVX2 pins, only MKL's branch
+        return dict(PORTABLE_ENV)
+    if not (__cpu_features__.get("AVX2") and __cpu_features__.get("FMA3")):
+        return dict(PORTABLE_ENV)
+    avx512 = [t for t in __cpu_dispatch__ if t.startswith(("AVX512", "X86_V4"))]
+    extra = {"NPY_DISABLE_CPU_FEATURES": " ".join(avx512)} if avx512 else {}
+    return {**PORTABLE_ENV, **AVX2_ENV, **extra}
+
 
 #: The key a checkpoint's ``curve_summary`` holds (1.0) when its run trained portably; absent
 #: for native runs, so checkpoints trained before the mode existed read as native.
@@ -47,27 +77,32 @@ def check_mode(mode: str) -> str:
 
 
 def process_env(mode: str) -> dict[str, str]:
-    """The environment variables a training process of ``mode`` is started with."""
-    return dict(PORTABLE_ENV) if check_mode(mode) == "portable" else {}
+    """The environment variables a process of ``mode`` is started with."""
+    return dict(portable_env()) if check_mode(mode) == "portable" else {}
 
 
 def current() -> str:
     """The mode this process's environment says (``portable`` when it holds
-    :data:`PORTABLE_ENV`)."""
-    portable = all(os.environ.get(k) == v for k, v in PORTABLE_ENV.items())
+    :func:`portable_env`)."""
+    portable = all(os.environ.get(k) == v for k, v in portable_env().items())
     return "portable" if portable else "native"
 
 
 def require(mode: str) -> None:
     """Refuse (ConfigError) to train ``mode`` in a process whose environment says otherwise: a
-    portable run in a process started without :data:`PORTABLE_ENV` (MKL has already chosen its
-    kernels), or a native run in a portable process."""
-    if current() != check_mode(mode):
-        env = " ".join(f"{k}={v}" for k, v in PORTABLE_ENV.items())
+    portable run in a process started without :func:`portable_env` (the libraries have already
+    chosen their kernels), a native run in a portable process, or either where only part of
+    :func:`portable_env` is set."""
+    env = portable_env()
+    held = [k for k, v in env.items() if os.environ.get(k) == v]
+    if current() != check_mode(mode) or (mode == "native" and held):
+        shown = " ".join(f"{k}={v!r}" if " " in v else f"{k}={v}" for k, v in env.items())
+        state = "portable" if len(held) == len(env) else "partly portable" if held else "native"
         raise ConfigError(
-            f"a {mode} training run in a {current()} process: MKL reads {env} when a process "
-            "starts; run it through the executors (cacc-bench train/reproduce --arithmetic), "
-            f"or start the process with{'' if mode == 'portable' else 'out'} {env}")
+            f"a {mode} training run in a {state} process: the libraries read {shown} when a "
+            "process starts; run it through the executors (cacc-bench train/reproduce "
+            f"--arithmetic), or start the process with{'' if mode == 'portable' else 'out'} "
+            "those variables")
 
 
 def summary(mode: str) -> dict[str, float]:

@@ -9,11 +9,15 @@ separate ``torch.nn.Linear`` / ``torch.nn.LSTMCell`` agents (tested).
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 from typing import Any
 
+import numpy as np
 import torch
 from torch import nn
+
+from marl import arithmetic
 
 
 def _orthogonal_stack(
@@ -194,6 +198,24 @@ class _LSTMSegment(torch.autograd.Function):
         return d_gates, dh, dc, d_w
 
 
+@functools.cache
+def _portable() -> bool:
+    """Whether this process trains portably (its environment is read once, as the libraries
+    read theirs at start)."""
+    return arithmetic.current() == "portable"
+
+
+def sqrt(t: torch.Tensor) -> torch.Tensor:
+    """Square root of a tensor without gradient, as the learners' updates take it: PyTorch's
+    kernel natively; in a portable process the correctly rounded one (numpy's, which is the
+    processor's square-root instruction). PyTorch's float32 CPU kernel rounds about a fifth of
+    its results to a neighbour, and not alike on an Intel Xeon and an AMD EPYC
+    (``docs/scripts/arithmetic_fingerprint.py``)."""
+    if not _portable():
+        return t.sqrt()
+    return torch.from_numpy(np.sqrt(t.detach().numpy()))
+
+
 def per_agent_clip_(
     params: Sequence[torch.Tensor], max_norm: float | torch.Tensor
 ) -> torch.Tensor:
@@ -212,7 +234,7 @@ def per_agent_clip_(
     sq = grads[0].reshape(grads[0].shape[0], -1).square().sum(1)
     for g in grads[1:]:
         sq = sq + g.reshape(g.shape[0], -1).square().sum(1)
-    norm = sq.sqrt()
+    norm = sqrt(sq)
     scale = (max_norm / (norm + 1e-6)).clamp(max=1.0)
     for g in grads:
         g.mul_(scale.reshape((-1,) + (1,) * (g.dim() - 1)))
@@ -226,5 +248,5 @@ def rmsprop_(
     """One RMSprop step in place (no momentum, not centred), in the operation order of
     ``torch.optim.RMSprop``."""
     square_avg.mul_(alpha).addcmul_(grad, grad, value=1 - alpha)
-    avg = square_avg.sqrt().add_(eps)
+    avg = sqrt(square_avg).add_(eps)
     param.addcdiv_(grad, avg, value=-lr)

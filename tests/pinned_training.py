@@ -22,18 +22,15 @@ NATIVE_PINNED = {
     "dial": ("b6fe515744bb9855", "b38960411574c8a0"),
 }
 
-#: The same trainings with portable arithmetic (``MKL_CBWR=COMPATIBLE``): one hash per algorithm
-#: and processor vendor (``vendor_id`` in /proc/cpuinfo). Within a vendor they hold whatever
-#: instruction sets MKL and PyTorch use (Intel Xeon: AVX-512 or forced AVX2, AVX, SSE4.2; AMD
-#: EPYC: its AVX2 kernels, MKL forced to SSE4.2), but not between vendors, although Intel
-#: documents the branch as giving the same results on its and compatible processors; not with
-#: PyTorch's scalar kernels (``ATEN_CPU_CAPABILITY=default``) either.
-PORTABLE_PINNED: dict[str, dict[str, str]] = {
-    "GenuineIntel": {"ia2c": "685e471a8fcad903", "bdc": "8da992d5bd3cac4f",
-                     "dial": "0cab3ab54c7d5b11"},
-    "AuthenticAMD": {"ia2c": "28cda15b6b979309", "bdc": "8003453cd04d269f",
-                     "dial": "1a146437cb072874"},
-}
+#: The same trainings with portable arithmetic (:func:`marl.arithmetic.portable_env`: MKL's
+#: ``COMPATIBLE`` branch, PyTorch's and numpy's AVX2 kernels, the learners' correctly rounded
+#: square root): one hash per algorithm on every processor with AVX2 and FMA. Measured equal on
+#: an AMD EPYC (AVX2) and an Intel Xeon with AVX-512 and AMX (``arithmetic_fingerprint.py
+#: --portable-training``, docs/notes/portable-training-intel-xeon-avx512.json), with PyTorch
+#: 2.13 and 2.11. With MKL's branch alone they differed between the two vendors: PyTorch's
+#: float32 square root rounds otherwise on each.
+PORTABLE_PINNED: dict[str, str] = {"ia2c": "ca472a608caa50da", "bdc": "432410e073a6866a",
+                                   "dial": "8c47229e1d724cda"}
 
 #: The algorithms of the short training.
 PINNED_ALGOS: tuple[str, ...] = ("bdc", "dial", "ia2c")
@@ -52,20 +49,14 @@ def cpuinfo(field: str) -> str:
     return ""
 
 
-def cpu_vendor() -> str:
-    """This processor's ``vendor_id``, or ""."""
-    return cpuinfo("vendor_id")
-
-
 def portable_pins() -> dict[str, str]:
-    """The portable hashes pinned for this processor's vendor (a skip where none are: measure
-    them with :func:`weights_hash` in a portable process, then add them)."""
+    """The portable hashes (a skip on a processor without AVX2 and FMA, where portable
+    arithmetic pins only MKL's branch and PyTorch runs its scalar kernels)."""
     import pytest
 
-    vendor = cpu_vendor()
-    if vendor not in PORTABLE_PINNED:
-        pytest.skip(f"no portable weights hashes pinned for processor vendor {vendor!r}")
-    return PORTABLE_PINNED[vendor]
+    if "ATEN_CPU_CAPABILITY" not in arithmetic.portable_env():
+        pytest.skip("no AVX2 and FMA: no portable weights hashes pinned for such a processor")
+    return PORTABLE_PINNED
 
 
 def weights_hash(name: str) -> tuple[str, str]:

@@ -1,5 +1,6 @@
-"""Portable training arithmetic (marl.arithmetic): MKL's COMPATIBLE branch in fresh processes,
-recorded in the checkpoint, checked on resume, refused where it cannot hold."""
+"""Portable arithmetic (marl.arithmetic): MKL's COMPATIBLE branch and AVX2 kernels in fresh
+processes, the same weights on every processor measured, recorded in the checkpoint, checked on
+resume, refused where it cannot hold."""
 
 from __future__ import annotations
 
@@ -17,9 +18,10 @@ from envs.errors import ConfigError
 from marl import arithmetic
 
 
-def test_portable_training_is_pinned_per_processor_vendor() -> None:
+def test_portable_training_is_pinned_on_every_processor() -> None:
     """The serial executor runs items whose environment this process lacks in a worker process
-    started with it; there the short trainings give this vendor's portable hashes."""
+    started with it; there the short trainings give the portable hashes, which an Intel Xeon
+    and an AMD EPYC share."""
     assert arithmetic.current() == "native"  # this process: MKL's processor-specific kernels
     pins = portable_pins()
     names = list(PINNED_ALGOS)
@@ -30,9 +32,8 @@ def test_portable_training_is_pinned_per_processor_vendor() -> None:
 
 
 def test_portable_hashes_hold_on_avx2_kernels() -> None:
-    """A processor without AVX-512 runs MKL's and PyTorch's AVX2 kernels: forced here, the
-    portable training gives its vendor's pinned hash (both libraries read these variables at
-    start), so within a vendor the hash does not depend on the instruction set."""
+    """MKL forced to its AVX2 kernels as well: the portable training gives the pinned hash
+    (the libraries read these variables at start), whatever instruction sets MKL uses."""
     env = {**arithmetic.process_env("portable"), "MKL_ENABLE_INSTRUCTIONS": "AVX2",
            "ATEN_CPU_CAPABILITY": "avx2"}
     pins = portable_pins()
@@ -67,9 +68,41 @@ def test_ray_workers_train_portably(tmp_path: Path) -> None:
     assert all(torch.equal(a["weights"][k], b["weights"][k]) for k in a["weights"])
 
 
+def test_the_portable_environment_pins_avx2_kernels_where_the_processor_has_them(
+        monkeypatch) -> None:
+    """MKL's branch everywhere; with AVX2 and FMA also PyTorch's, OpenBLAS's and numpy's AVX2
+    kernels (numpy's AVX-512 targets named from numpy's own list); without, none of those."""
+    from numpy._core import _multiarray_umath as umath
+
+    features = umath.__cpu_features__
+    monkeypatch.setitem(features, "AVX2", True)
+    monkeypatch.setitem(features, "FMA3", True)
+    monkeypatch.setattr(umath, "__cpu_dispatch__", ["X86_V3", "X86_V4", "AVX512_ICL"])
+    assert arithmetic.portable_env.__wrapped__() == {
+        "MKL_CBWR": "COMPATIBLE", "ATEN_CPU_CAPABILITY": "avx2", "OPENBLAS_CORETYPE": "Haswell",
+        "NPY_DISABLE_CPU_FEATURES": "X86_V4 AVX512_ICL"}
+    monkeypatch.setitem(features, "AVX2", False)
+    assert arithmetic.portable_env.__wrapped__() == {"MKL_CBWR": "COMPATIBLE"}
+
+
+def test_a_partly_portable_process_trains_neither_way(monkeypatch) -> None:
+    """MKL's branch alone (the portable environment before the AVX2 pins) is neither mode."""
+    from commands.train import _train_job
+
+    monkeypatch.setattr(arithmetic, "portable_env", lambda: {"MKL_CBWR": "COMPATIBLE",
+                                                             "OPENBLAS_CORETYPE": "Haswell"})
+    monkeypatch.setenv("MKL_CBWR", "COMPATIBLE")
+    job = {"algo": "ia2c", "scenario": "catchup-v1", "vehicles": 3, "steps": 300, "seed": 0,
+           "out": "unused", "options": {}, "progress": False}
+    for mode in arithmetic.ARITHMETIC_MODES:
+        with pytest.raises(ConfigError, match=f"a {mode} training run in a partly portable"):
+            _train_job({**job, "arithmetic": mode})
+
+
 def test_modes_and_their_records() -> None:
     assert arithmetic.process_env("native") == {}
-    assert arithmetic.process_env("portable") == {"MKL_CBWR": "COMPATIBLE"}
+    assert arithmetic.process_env("portable") == arithmetic.portable_env()
+    assert arithmetic.portable_env()["MKL_CBWR"] == "COMPATIBLE"
     assert arithmetic.summary("native") == {}
     assert arithmetic.of_summary(arithmetic.summary("portable")) == "portable"
     assert arithmetic.of_summary({"wall_s": 1.0}) == "native"  # checkpoints from before
@@ -78,15 +111,16 @@ def test_modes_and_their_records() -> None:
 
 
 def test_a_portable_run_is_refused_in_a_native_process(monkeypatch) -> None:
-    """MKL reads its branch once, at its first product: a process started without it cannot
-    train portably, and one started with it cannot train natively."""
+    """The libraries read their settings once, at start or first use: a process started without
+    them cannot train portably, and one started with them cannot train natively."""
     from commands.train import _train_job
 
     job = {"algo": "ia2c", "scenario": "catchup-v1", "vehicles": 3, "steps": 300, "seed": 0,
            "out": "unused", "options": {}, "progress": False, "arithmetic": "portable"}
     with pytest.raises(ConfigError, match="portable training run in a native process"):
         _train_job(job)
-    monkeypatch.setenv("MKL_CBWR", "COMPATIBLE")
+    for key, value in arithmetic.portable_env().items():
+        monkeypatch.setenv(key, value)
     with pytest.raises(ConfigError, match="native training run in a portable process"):
         _train_job({**job, "arithmetic": "native"})
 

@@ -7,6 +7,11 @@ docs/notes/issue34-clean-clone.md, "Portable arithmetic on an AMD EPYC").
 
     .venv/bin/python docs/scripts/arithmetic_fingerprint.py > fingerprint-CPU.json
     .venv/bin/python docs/scripts/arithmetic_fingerprint.py --compare a.json b.json
+
+``--portable-training`` prints the tests' short-training hashes in portable processes;
+``--ops`` leaves out the short training (any PyTorch, the project not installed); ``--numpy``
+hashes only numpy's operations, under :data:`NUMPY_SETTINGS`, with no PyTorch (or another
+PyTorch) installed. The same library versions give hashes comparable with a full run's.
 """
 
 from __future__ import annotations
@@ -20,9 +25,9 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(ROOT / "tests"))  # the short training and cpuinfo the tests use
-
-from pinned_training import cpuinfo, weights_hash  # noqa: E402
+# the short training and cpuinfo the tests use (imported where needed: --numpy runs without the
+# project installed)
+sys.path[:0] = [str(ROOT / "tests"), str(ROOT)]
 
 #: Settings, each read by MKL or PyTorch when a process starts (so each runs in its own).
 SETTINGS: dict[str, dict[str, str]] = {
@@ -37,13 +42,29 @@ SETTINGS: dict[str, dict[str, str]] = {
                                         "OPENBLAS_CORETYPE": "Haswell"},
 }
 
+#: Settings read by numpy and its OpenBLAS at import, for ``--numpy``.
+NUMPY_SETTINGS: dict[str, dict[str, str]] = {
+    "native": {},
+    "openblas_haswell": {"OPENBLAS_CORETYPE": "Haswell"},
+    "numpy_x86_v3": {"NPY_DISABLE_CPU_FEATURES": "X86_V4 AVX512_ICL AVX512_SPR"},
+    "openblas_haswell+numpy_x86_v3": {"OPENBLAS_CORETYPE": "Haswell",
+                                      "NPY_DISABLE_CPU_FEATURES": "X86_V4 AVX512_ICL AVX512_SPR"},
+}
+
+#: Shapes of the float32 inputs drawn from the generator before numpy's own operations'
+#: (``--numpy`` draws and drops them, so its numpy inputs are the full run's).
+TORCH_INPUT_SHAPES: tuple[tuple[int, ...], ...] = (
+    (64, 15), (15, 64), (8, 240, 32), (8, 32, 64), (8, 1, 64), (4096,), (64, 64),
+    (64, 64), (64, 64), (64, 64))
+
 
 def _digest(t) -> str:  # noqa: ANN001 - a torch tensor
     return hashlib.sha256(t.detach().contiguous().numpy().tobytes()).hexdigest()[:16]
 
 
-def fingerprint() -> dict[str, str]:
-    """Hashes of fixed-input float32 operations in this process (one thread)."""
+def fingerprint(training: bool = True) -> dict[str, str]:
+    """Hashes of fixed-input float32 operations in this process (one thread); with
+    ``training``, also of the short training the tests pin (needs the project installed)."""
     import numpy as np
     import torch
 
@@ -80,6 +101,21 @@ def fingerprint() -> dict[str, str]:
         opt.step()
     out["rmsprop_3_steps"] = p
     res = {k: _digest(v) for k, v in out.items()}
+    res.update(numpy_hashes(rng))
+    if training:  # the short training the tests pin (tests/pinned_training.py), whole
+        from pinned_training import weights_hash
+
+        res["short_training_bdc"] = weights_hash("bdc")[0]
+    res["torch_cpu_capability"] = torch.backends.cpu.get_cpu_capability()
+    return res
+
+
+def numpy_hashes(rng) -> dict[str, str]:  # noqa: ANN001 - a numpy Generator
+    """Hashes of numpy's float64 elementwise functions and linear algebra, inputs from ``rng``
+    after the float32 inputs (:data:`TORCH_INPUT_SHAPES`)."""
+    import numpy as np
+
+    res: dict[str, str] = {}
     grid = np.linspace(-4, 4, 100_001)
     res["numpy_cos_sin_exp_f64"] = hashlib.sha256(
         b"".join(f(grid).tobytes() for f in (np.cos, np.sin, np.exp))).hexdigest()[:16]
@@ -90,22 +126,80 @@ def fingerprint() -> dict[str, str]:
     blas = {"numpy_matmul_f64": m64 @ m64.T, "numpy_solve_f64": np.linalg.solve(spd, m64[:, :8]),
             "numpy_cholesky_f64": np.linalg.cholesky(spd)}
     res.update({k: hashlib.sha256(v.tobytes()).hexdigest()[:16] for k, v in blas.items()})
-    # the short training the tests pin (tests/pinned_training.py), whole
-    res["short_training_bdc"] = weights_hash("bdc")[0]
-    res["torch_cpu_capability"] = torch.backends.cpu.get_cpu_capability()
     return res
 
 
-def run_all() -> dict[str, object]:
-    """Every setting, each in a fresh process."""
-    import torch
+def _openblas_core() -> str:
+    """The kernel family numpy's OpenBLAS runs (``OPENBLAS_CORETYPE`` forces one)."""
+    import ctypes
+    import glob
 
+    import numpy as np
+
+    for lib in glob.glob(os.path.join(os.path.dirname(np.__file__), os.pardir, "numpy.libs",
+                                      "libscipy_openblas*")):
+        for name in ("scipy_openblas_get_corename64_", "scipy_openblas_get_corename"):
+            fn = getattr(ctypes.CDLL(lib), name, None)
+            if fn is not None:
+                fn.restype = ctypes.c_char_p
+                return str(fn().decode())
+    return "unknown"
+
+
+def numpy_fingerprint() -> dict[str, str]:
+    """:func:`numpy_hashes` with its inputs drawn as :func:`fingerprint` draws them."""
+    import numpy as np
+
+    rng = np.random.default_rng(0)
+    for shape in TORCH_INPUT_SHAPES:
+        rng.standard_normal(shape).astype(np.float32)
+    res = numpy_hashes(rng)
+    res["numpy"] = np.__version__
+    res["openblas_core"] = _openblas_core()
+    return res
+
+
+#: Modes of a run: what each process computes, under which settings.
+MODES: dict[str, tuple[str, dict[str, dict[str, str]]]] = {
+    "all": ("--one", SETTINGS),
+    "ops": ("--ops-one", SETTINGS),  # no short training: any PyTorch, project not installed
+    "numpy": ("--numpy-one", NUMPY_SETTINGS),  # no PyTorch
+}
+
+
+def run_all(mode: str = "all") -> dict[str, object]:
+    """Every setting of ``mode`` (:data:`MODES`), each in a fresh process."""
+    from pinned_training import cpuinfo
+
+    flag, settings = MODES[mode]
     results: dict[str, object] = {"cpu": cpuinfo("model name") or platform.processor(),
-                                  "vendor": cpuinfo("vendor_id"), "torch": torch.__version__}
-    for name, extra in SETTINGS.items():
-        proc = subprocess.run([sys.executable, __file__, "--one"], env={**os.environ, **extra},
+                                  "vendor": cpuinfo("vendor_id")}
+    if mode != "numpy":
+        import torch
+
+        results["torch"] = torch.__version__
+    for name, extra in settings.items():
+        proc = subprocess.run([sys.executable, __file__, flag], env={**os.environ, **extra},
                               capture_output=True, text=True, check=True, cwd=ROOT)
         results[name] = json.loads(proc.stdout)
+    return results
+
+
+def portable_training() -> dict[str, object]:
+    """The short trainings the tests pin (``PINNED_ALGOS``), each in a fresh portable process
+    (:func:`marl.arithmetic.portable_env`): the hashes ``PORTABLE_PINNED`` holds per vendor."""
+    from pinned_training import PINNED_ALGOS, cpuinfo
+
+    from marl.arithmetic import portable_env
+
+    env = portable_env()
+    results: dict[str, object] = {"cpu": cpuinfo("model name") or platform.processor(),
+                                  "vendor": cpuinfo("vendor_id"), "env": env}
+    for algo in PINNED_ALGOS:
+        proc = subprocess.run([sys.executable, __file__, "--training-one", algo],
+                              env={**os.environ, **env}, capture_output=True, text=True,
+                              check=True, cwd=ROOT)
+        results[algo] = json.loads(proc.stdout)
     return results
 
 
@@ -114,10 +208,10 @@ def compare(first: str, second: str) -> int:
     with open(first) as f1, open(second) as f2:
         a, b = json.load(f1), json.load(f2)
     print(f"{first}: {a['cpu']}\n{second}: {b['cpu']}")
-    for name in SETTINGS:
+    for name in {**SETTINGS, **NUMPY_SETTINGS}:
         if name not in a or name not in b:
             continue
-        diff = [op for op in a[name] if a[name][op] != b[name].get(op)]
+        diff = [op for op in a[name] if op in b[name] and a[name][op] != b[name][op]]
         print(f"{name:30s} {'same' if not diff else 'differ: ' + ', '.join(diff)}")
     return 0
 
@@ -125,9 +219,23 @@ def compare(first: str, second: str) -> int:
 if __name__ == "__main__":
     if sys.argv[1:2] == ["--one"]:
         print(json.dumps(fingerprint()))
+    elif sys.argv[1:2] == ["--ops-one"]:
+        print(json.dumps(fingerprint(training=False)))
+    elif sys.argv[1:2] == ["--training-one"] and len(sys.argv) == 3:
+        import torch
+        from pinned_training import weights_hash
+
+        print(json.dumps([*weights_hash(sys.argv[2]), torch.__version__]))
+    elif sys.argv[1:] == ["--portable-training"]:
+        print(json.dumps(portable_training(), indent=1))
+    elif sys.argv[1:2] == ["--numpy-one"]:
+        print(json.dumps(numpy_fingerprint()))
+    elif sys.argv[1:] in (["--numpy"], ["--ops"]):
+        print(json.dumps(run_all(sys.argv[1][2:]), indent=1))
     elif sys.argv[1:2] == ["--compare"] and len(sys.argv) == 4:
         sys.exit(compare(sys.argv[2], sys.argv[3]))
     elif len(sys.argv) == 1:
         print(json.dumps(run_all(), indent=1))
     else:
-        sys.exit("usage: arithmetic_fingerprint.py [--compare FIRST.json SECOND.json]")
+        sys.exit("usage: arithmetic_fingerprint.py [--ops | --numpy | --portable-training | "
+                 "--compare FIRST SECOND]")
