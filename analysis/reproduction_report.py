@@ -368,14 +368,13 @@ def _arithmetic_sentence(mode: str) -> str:
     reader's rerun."""
     if mode == "portable":
         return ("Training arithmetic **portable**: the policies trained here, and every "
-                "evaluation run, used MKL's `COMPATIBLE` branch, with which the command retrains "
-                "the same weights whatever instruction sets the processor has, but other weights "
-                "on another vendor's (an Intel Xeon and an AMD EPYC train different ones); the "
-                "learned policies' compute times are that branch's, "
-                "many times the native kernels' (`cacc-bench perf` times every controller "
-                "natively).")
+                "evaluation run, used MKL's `COMPATIBLE` branch, AVX2 kernels and a correctly "
+                "rounded square root, with which the command retrains the same weights and "
+                "evaluates the same numbers on an Intel Xeon with AVX-512 and on an AMD EPYC "
+                "(the processors measured); the learned policies' compute times are that "
+                "arithmetic's, many times the native kernels' (`cacc-bench perf` times every "
+                "controller natively).")
     return ("Training arithmetic **native**: the policies trained here, and the evaluation runs, "
             "used the processor's fastest float32 kernels; on another processor the command "
             "trains other weights, and a sampled policy can act otherwise in a rare episode "
-            "(`--arithmetic portable` uses MKL's branch that holds them whatever the "
-            "instruction sets).")
+            "(`--arithmetic portable` holds them on every processor measured).")

@@ -72,24 +72,35 @@ def _same_arithmetic(info: dict[str, Any], job: dict[str, Any]) -> bool:
         info.get("arithmetic", "native") == job.get("arithmetic", "native"))
 
 
+def shipped_candidates(job: dict[str, Any]) -> list[Path]:
+    """Where a shipped checkpoint of ``job`` may lie: an ablation (its name not its algorithm's)
+    in the variant folder of its name; any other in the shipped folder, then in each variant
+    folder (the config tells them apart: :func:`shipped_checkpoint`)."""
+    from controllers.policy import CHECKPOINT_DIR, VARIANT_DIR
+
+    name = f"{stem(job)}.pt"
+    if job["name"] != job["algo"]:
+        return [VARIANT_DIR / job["name"] / name]
+    return [CHECKPOINT_DIR / name, *sorted(VARIANT_DIR.glob(f"*/{name}"))]
+
+
 def shipped_checkpoint(job: dict[str, Any]) -> Path | None:
-    """The shipped checkpoint of ``job`` if it has the same config, budget and energy model
+    """The first of :func:`shipped_candidates` with ``job``'s config, budget and energy model
     (verified: a damaged shipped file is refused, :func:`marl.checkpoint.load_checkpoint`)."""
     from commands.train import job_config
-    from controllers.policy import CHECKPOINT_DIR
     from marl.checkpoint import load_checkpoint, same_energy_model
 
-    path = CHECKPOINT_DIR / f"{stem(job)}.pt"
-    curve = path.with_suffix("").with_suffix(".curve.csv")
-    if not path.exists() or not curve.exists():
-        return None
-    data = load_checkpoint(path, algo=job["algo"], n_vehicles=job["vehicles"],
-                           scenario=job["scenario"])
-    total = data.get("curve_summary", {}).get("total_steps", data.get("steps", 0))
-    if data.get("config") != job_config(job) or not same_energy_model(data) or not (
-            job["steps"] <= total <= job["steps"] * (1 + BUDGET_OVERSHOOT)):
-        return None
-    return path
+    for path in shipped_candidates(job):
+        curve = path.with_suffix("").with_suffix(".curve.csv")
+        if not path.exists() or not curve.exists():
+            continue
+        data = load_checkpoint(path, algo=job["algo"], n_vehicles=job["vehicles"],
+                               scenario=job["scenario"])
+        total = data.get("curve_summary", {}).get("total_steps", data.get("steps", 0))
+        if data.get("config") == job_config(job) and same_energy_model(data) and (
+                job["steps"] <= total <= job["steps"] * (1 + BUDGET_OVERSHOOT)):
+            return path
+    return None
 
 
 def _last_commit(path: Path) -> str:
@@ -171,7 +182,7 @@ def train_stage(jobs: list[dict[str, Any]], args: Any, reuse_shipped: bool) -> N
     for job in jobs:
         if is_done(job):
             continue
-        shipped = shipped_checkpoint(job) if reuse_shipped and job["name"] == job["algo"] else None
+        shipped = shipped_checkpoint(job) if reuse_shipped else None
         if shipped is not None:
             copy_shipped(job, shipped)
         else:

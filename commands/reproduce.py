@@ -2,10 +2,10 @@
 
 Stages, each resumable: (1) the MARL policies, three training seeds each, with the configs
 ``cacc-bench tune`` chose (``marl/tuned_configs.json``): trained into ``OUT/checkpoints`` unless
-a finished run with the same config is already there, or (paper budget) a shipped checkpoint
-with that config and budget exists, which is copied with its curve and provenance; (2) every
-policy and the baselines on the evaluation seeds, through the results store; (3)
-``OUT/report.md`` with its figures and the CSV behind every table.
+a finished run with the same config is already there, or (paper budget, without ``--retrain``)
+a shipped checkpoint with that config and budget exists, which is copied with its curve and
+provenance; (2) every policy and the baselines on the evaluation seeds, through the results
+store; (3) ``OUT/report.md`` with its figures and the CSV behind every table.
 
 The command holds OUT's folder lock and works inside OUT (:mod:`benchmark.work_folder`): run
 labels name checkpoint folders relative to it (``bdc[checkpoint_dir=checkpoints,seed=1]``), so
@@ -71,9 +71,12 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--workers", type=int, default=2, help="processes or Ray CPUs (default 2)")
     add_population_argument(p)
     add_device_argument(p)
-    # portable, as the committed report (docs/paper-reproduction) was trained: the default
-    # command then retrains its weights on an Intel Xeon (an AMD EPYC trains others)
+    # portable, as the shipped policies of the committed report (docs/paper-reproduction) were
+    # trained: --retrain gives their weights again on the processor family that trained them
     add_arithmetic_argument(p, "portable")
+    p.add_argument("--retrain", action="store_true",
+                   help="train every policy instead of copying the shipped checkpoints of the "
+                        "same config and budget (--budget paper copies them by default)")
     p.add_argument("--ray-address", default=None, help="attach to this Ray cluster")
     p.add_argument("--resume", action="store_true",
                    help="complete a reproduction in --out (finished training and runs are kept)")
@@ -221,14 +224,15 @@ def main(argv: list[str]) -> int:
             raise UnknownNameError("study", x, STUDIES)
     studies = {x for x in STUDIES if x not in skip}
     settings = {"budget": budget.name, "algos": algos, "scenarios": scenarios,
-                "studies": sorted(studies), "arithmetic": args.arithmetic}
+                "studies": sorted(studies), "arithmetic": args.arithmetic,
+                "retrain": args.retrain}
     previous = json.loads(manifest_path.read_text()) if manifest_path.exists() else None
     if previous is not None:
         if not args.resume:
             raise ConfigError(f"{out} already holds a reproduction; add --resume to complete it, "
                               "or choose another --out")
-        # a reproduction from before --arithmetic existed trained natively
-        if {"arithmetic": "native", **previous.get("settings", {})} != settings:
+        # a reproduction from before --arithmetic (--retrain) existed trained natively (copied)
+        if {"arithmetic": "native", "retrain": False, **previous.get("settings", {})} != settings:
             raise ConfigError(f"{out} holds a reproduction with other settings "
                               f"({previous.get('settings')}); use another --out")
     elif _holds_files(out) and not args.resume:
@@ -244,7 +248,7 @@ def main(argv: list[str]) -> int:
         manifest: dict[str, Any] = {"settings": settings,
                                     "command": command_text("cacc-bench reproduce", argv)}
         write_text(here / MANIFEST, json.dumps({**manifest, "status": "started"}, indent=1))
-        train_stage(jobs, args, reuse_shipped=budget.name == "paper")
+        train_stage(jobs, args, reuse_shipped=budget.name == "paper" and not args.retrain)
         names = eval_stage(jobs, built, budget, args, here)
         train_wall = sum(float(json.loads(source_file(j).read_text()).get("wall_s") or 0.0)
                          for j in jobs)

@@ -1,32 +1,29 @@
-"""Float32 training and float64 evaluation arithmetic that give a seed the same numbers whatever
-instruction sets the libraries use, on the processors measured (training: not between an Intel
-and an AMD one).
+"""Float32 training and float64 evaluation arithmetic that give a seed the same numbers on
+every processor measured: an AMD EPYC (AVX2) and an Intel Xeon with AVX-512.
 
-PyTorch's CPU products go through Intel MKL, which picks its kernels by processor: an Intel
-Xeon and an AMD EPYC round some float32 products differently, and a sampled training run
-carries that last bit into other weights (``tests/test_marl_losses.py`` pins one hash per
-processor family in the default, ``native``, mode).
+PyTorch's CPU kernels pick their instructions by processor: MKL's float32 products, PyTorch's
+own AVX-512 or AVX2 loops, numpy's OpenBLAS and its elementwise loops, and PyTorch's float32
+square root, which rounds about a fifth of its results to a neighbour, otherwise on an Intel
+and an AMD processor. A sampled training run carries any last bit into other weights
+(``tests/test_marl_losses.py`` pins one hash per processor family in the default, ``native``,
+mode).
 
-``portable`` starts a process with :func:`portable_env`:
-
-- MKL's conditional numerical reproducibility branch ``COMPATIBLE`` (``MKL_CBWR``). Intel
-  documents it as giving the same results on Intel and Intel-compatible processors. Measured,
-  it gives one processor the same weights whatever instruction sets MKL and PyTorch use, but an
-  Intel Xeon's and an AMD EPYC's weights differ (``tests/test_arithmetic.py`` pins one hash per
-  vendor);
-- on a processor with AVX2 and FMA, the AVX2 kernels of PyTorch (``ATEN_CPU_CAPABILITY``), of
-  numpy's OpenBLAS (``OPENBLAS_CORETYPE=Haswell``) and of numpy's own loops (its AVX-512
-  targets disabled): the MPC controllers' float64 linear algebra and numpy's elementwise
-  functions then round alike on an AVX-512 Xeon and an AVX2 EPYC (measured with
-  ``docs/scripts/arithmetic_fingerprint.py --numpy``; natively they do not).
+``portable`` starts a process with :func:`portable_env`: MKL's conditional numerical
+reproducibility branch ``COMPATIBLE`` (``MKL_CBWR``) and, on a processor with AVX2 and FMA, the
+AVX2 kernels of PyTorch (``ATEN_CPU_CAPABILITY``), of numpy's OpenBLAS
+(``OPENBLAS_CORETYPE=Haswell``) and of numpy's own loops (its AVX-512 targets disabled); in such
+a process the learners take a correctly rounded square root (:func:`marl.layers.sqrt`). The
+short trainings then give one hash on both processors (``tests/test_arithmetic.py``), and so do
+numpy's linear algebra, which the MPC controllers use, and its elementwise functions
+(``docs/scripts/arithmetic_fingerprint.py``). MKL's branch alone held the weights across
+instruction sets on one processor, but not from the Xeon to the EPYC.
 
 Each library reads its setting once, when the process starts or at its first use, so it must be
 in a process's environment from its start: the executors start such processes with it
 (:func:`benchmark.executors.map_jobs`'s ``env``), and a training job checks it
 (:func:`require`). ``reproduce`` and ``sensitivity`` evaluate in it too: MKL's kernels also
-round the sampled policies' actions. Training costs 1.2 to 2.3 times the native time on the two
-processors measured (``cacc-bench perf`` with ``MKL_CBWR=COMPATIBLE`` in the environment,
-``docs/reproduction.md``).
+round the sampled policies' actions. It costs training time (``cacc-bench perf`` with
+:func:`portable_env` in the environment, ``docs/reproduction.md``).
 """
 
 from __future__ import annotations

@@ -42,6 +42,7 @@ def _ship(folder: Path, job: dict, total_steps: int, energy_model: str | None = 
 @pytest.fixture
 def job(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> dict:
     monkeypatch.setattr(policy, "CHECKPOINT_DIR", tmp_path / "shipped")
+    monkeypatch.setattr(policy, "VARIANT_DIR", tmp_path / "shipped" / "variants")
     (tmp_path / "shipped").mkdir()
     return make_job("bdc", "bdc", "catchup-v1", 8, 0, tmp_path / "out", {"gamma": 0.995},
                     600_000, "main")
@@ -96,3 +97,22 @@ def test_a_copied_run_is_done_and_records_where_it_came_from(tmp_path: Path, job
     assert (Path(job["out"]) / "bdc__catchup-v1__n8__s0.curve.csv").exists()
     longer = {**job, "steps": 700_000}
     assert not is_done(longer)
+
+
+def test_a_shipped_run_is_found_in_a_variant_folder_by_its_config(tmp_path: Path,
+                                                                  job: dict) -> None:
+    """The shipped folder first, then each variant folder: the first with the job's config
+    stands in; an ablation only in the variant folder of its own name."""
+    variants = tmp_path / "shipped" / "variants"
+    (variants / "other").mkdir(parents=True)
+    (variants / "paper").mkdir()
+    _ship(tmp_path / "shipped", job, 600_000, gamma=0.99)  # the leaderboard's: another config
+    _ship(variants / "other", job, 2_000_000)  # another budget
+    assert shipped_checkpoint(job) is None
+    found = _ship(variants / "paper", job, 600_000)
+    assert shipped_checkpoint(job) == found
+    ablation = {**job, "name": "bdc-noqsgd"}
+    assert shipped_checkpoint(ablation) is None  # not in another variant's folder
+    (variants / "bdc-noqsgd").mkdir()
+    own = _ship(variants / "bdc-noqsgd", job, 600_000)
+    assert shipped_checkpoint(ablation) == own

@@ -328,3 +328,32 @@ def test_the_default_command_trains_as_the_committed_report_was_trained() -> Non
     trained = [s for s in sources if s["source"] == "trained"]
     assert len(sources) == 75 and len(trained) == 48
     assert {s.get("arithmetic", "native") for s in trained} == {default}
+
+
+@pytest.mark.parametrize("retrain", [False, True])
+def test_the_paper_budget_copies_shipped_policies_unless_told_to_retrain(
+        monkeypatch, tmp_path: Path, retrain: bool) -> None:
+    """``--budget paper`` hands the training stage the shipped checkpoints to copy; with
+    ``--retrain`` it trains every policy, and a folder started one way is not resumed the
+    other."""
+    import commands.reproduce as reproduce
+
+    seen: dict = {}
+
+    class Trained(Exception):
+        pass
+
+    def stage(jobs, args, reuse_shipped):
+        seen.update(reuse=reuse_shipped, n=len(jobs))
+        raise Trained
+
+    monkeypatch.setattr(reproduce, "train_stage", stage)
+    argv = ["--budget", "paper", "--algos", "bdc", "--scenarios", "catchup-v1",
+            "--skip", "ablations,sizes,openacc", "--out", str(tmp_path / "out")]
+    with pytest.raises(Trained):
+        reproduce.main([*argv, *(["--retrain"] if retrain else [])])
+    assert seen == {"reuse": not retrain, "n": 3}
+    manifest = json.loads((tmp_path / "out" / "reproduce.json").read_text())
+    assert manifest["settings"]["retrain"] is retrain
+    other = [*argv, "--resume", *([] if retrain else ["--retrain"])]
+    assert cli(["reproduce", *other]) == 2  # other settings: refused

@@ -187,7 +187,7 @@ def run_all(mode: str = "all") -> dict[str, object]:
 
 def portable_training() -> dict[str, object]:
     """The short trainings the tests pin (``PINNED_ALGOS``), each in a fresh portable process
-    (:func:`marl.arithmetic.portable_env`): the hashes ``PORTABLE_PINNED`` holds per vendor."""
+    (:func:`marl.arithmetic.portable_env`): the hashes ``PORTABLE_PINNED`` holds."""
     from pinned_training import PINNED_ALGOS, cpuinfo
 
     from marl.arithmetic import portable_env
