@@ -72,7 +72,7 @@ def _parser() -> argparse.ArgumentParser:
     add_population_argument(p)
     add_device_argument(p)
     # portable, as the shipped policies of the committed report (docs/paper-reproduction) were
-    # trained: --retrain gives their weights again on the processor family that trained them
+    # trained: --retrain gives their weights again (on the processors measured, marl.arithmetic)
     add_arithmetic_argument(p, "portable")
     p.add_argument("--retrain", action="store_true",
                    help="train every policy instead of copying the shipped checkpoints of the "

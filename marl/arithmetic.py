@@ -33,7 +33,7 @@ import os
 
 from envs.errors import ConfigError
 
-#: ``native``: MKL's fastest kernels for this processor; ``portable``: :data:`PORTABLE_ENV`.
+#: ``native``: the fastest kernels for this processor; ``portable``: :func:`portable_env`.
 ARITHMETIC_MODES: tuple[str, ...] = ("native", "portable")
 
 #: What a process's environment holds from its start for ``portable`` arithmetic, on every
