@@ -131,6 +131,7 @@ def copy_shipped(job: dict[str, Any], path: Path) -> None:
     """Copy a shipped run's files into the job's folder (each atomically, the source file
     last, so an interrupted copy is not taken as done)."""
     from envs.atomic import StagedFiles
+    from marl.arithmetic import of_summary
     from marl.checkpoint import load_checkpoint
 
     out = Path(job["out"])
@@ -146,6 +147,7 @@ def copy_shipped(job: dict[str, Any], path: Path) -> None:
         staged.write_text(source_file(job), json.dumps({
             "source": "shipped", "path": _shipped_name(path), "commit": _last_commit(path),
             "config": data["config"], "energy_model": data.get("energy_model"),
+            "arithmetic": of_summary(data["curve_summary"]),  # how it was trained
             "steps": int(data["curve_summary"].get("total_steps", 0)),
             "wall_s": data["curve_summary"].get("wall_s"),
         }, indent=1, sort_keys=True))

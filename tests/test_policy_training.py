@@ -94,6 +94,7 @@ def test_a_copied_run_is_done_and_records_where_it_came_from(tmp_path: Path, job
     assert is_done(job)
     info = json.loads(source_file(job).read_text())
     assert info["source"] == "shipped" and info["steps"] == 600_720 and info["wall_s"] == 12.5
+    assert info["arithmetic"] == "native"  # the shipped run's own (no portable key)
     assert (Path(job["out"]) / "bdc__catchup-v1__n8__s0.curve.csv").exists()
     longer = {**job, "steps": 700_000}
     assert not is_done(longer)
