@@ -76,7 +76,8 @@ def write_report(jobs: list[dict[str, Any]], names: dict[str, str], built: Seque
             "",
             f"Command: `{manifest['command']}` (OUT: this folder; every path below is "
             f"relative to it). Budget **{budget.name}**: {budget.description}. "
-            + _arithmetic_sentence(manifest["settings"].get("arithmetic", "native")),
+            + _arithmetic_sentence(manifest["settings"].get("arithmetic", "native"))
+            + " " + _provenance_sentence(jobs),
             f"Code: git {git_sha()}; machine: {_machine()}. This invocation took "
             f"{manifest['wall_s']:.0f} s; the training runs took {manifest['train_wall_s']:.0f} s "
             f"of compute in all (recorded per run), the evaluation runs "
@@ -363,12 +364,29 @@ def _openacc_section(jobs: list[dict[str, Any]], runs: Any, names: dict[str, str
             rp.format_table(t3, cols, 3), ""]
 
 
+def _provenance_sentence(jobs: list[dict[str, Any]]) -> str:
+    """How many policies were copied from the shipped checkpoints and how many trained here,
+    each with the arithmetic it was trained in (its ``source.json``)."""
+    from collections import Counter
+
+    from envs.naming import checkpoint_stem
+
+    seen: Counter[tuple[str, str]] = Counter()
+    for job in jobs:
+        stem = checkpoint_stem(job["algo"], job["scenario"], job["vehicles"], job["seed"])
+        info = json.loads((Path(job["out"]) / f"{stem}.source.json").read_text())
+        seen[(info.get("source", "trained"), info.get("arithmetic", "native"))] += 1
+    parts = [f"{n} {'copied from the shipped checkpoints' if src == 'shipped' else 'trained here'}"
+             f" (trained with {mode} arithmetic)" for (src, mode), n in sorted(seen.items())]
+    return f"Policies: {'; '.join(parts)}." if parts else ""
+
+
 def _arithmetic_sentence(mode: str) -> str:
     """What the arithmetic of training and evaluation (:mod:`marl.arithmetic`) means for a
     reader's rerun."""
     if mode == "portable":
-        return ("Training arithmetic **portable**: the policies trained here, and every "
-                "evaluation run, used MKL's `COMPATIBLE` branch, AVX2 kernels and a correctly "
+        return ("Training arithmetic **portable**: the policies this command trains, and "
+                "every evaluation run, use MKL's `COMPATIBLE` branch, AVX2 kernels and a correctly "
                 "rounded square root, with which the command retrains the same weights and "
                 "evaluates the same numbers on an Intel Xeon with AVX-512 and on an AMD EPYC "
                 "(the processors measured); the learned policies' compute times are that "

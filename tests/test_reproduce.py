@@ -204,6 +204,7 @@ def test_reproduce_writes_the_report_tables_and_claims(tiny_reproduction: Path) 
     sources = [json.loads(p.read_text()) for p in (out / "checkpoints").rglob("*.source.json")]
     assert len(sources) == 16 and {s["arithmetic"] for s in sources} == {"portable"}
     assert "Training arithmetic **portable**" in report
+    assert "Policies: 16 trained here (trained with portable arithmetic)." in report
     sizes = pd.read_csv(out / "sizes.csv")
     assert set(sizes["n_vehicles"]) == {2, 4, 6, 8} and set(sizes["name"]) == {"bdc", "ovm"}
     t3 = pd.read_csv(out / "table3.csv")
