@@ -91,6 +91,8 @@ NOT_IN_MATRIX: tuple[tuple[str, str], ...] = (
     ("variants/paper/*", "the paper reproduction's own policies (slowdown-v1 at the paper's 6e5 "
                          "steps, the size and OpenACC studies' other seeds), which `cacc-bench "
                          "reproduce` copies and judges in its own report"),
+    ("variants/bdc-noqsgd/*", "BDC without QSGD, the paper reproduction's ablation, judged in "
+                              "its report"),
 )
 
 
