@@ -19,6 +19,10 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT))
+
+from envs.atomic import StagedFiles  # noqa: E402
+
 VARIANTS = ROOT / "controllers" / "checkpoints" / "variants"
 #: The variant folder of the report's own (non-ablation) policies.
 PAPER_VARIANT = "paper"
@@ -46,17 +50,19 @@ def ship(out: Path) -> list[Path]:
         missing = [src.relative_to(out).as_posix() for src, _ in pairs if not src.exists()]
         if missing:
             raise SystemExit(f"{', '.join(missing)}: missing (is the run finished?)")
+        todo = []
         for src, dst in pairs:
-            if dst.exists():
-                if not filecmp.cmp(src, dst, shallow=False):
-                    raise SystemExit(f"{dst.relative_to(ROOT)} is shipped with other contents; "
-                                     "nothing shipped is overwritten")
-                continue
-            folder.mkdir(parents=True, exist_ok=True)
-            partial = dst.with_name(dst.name + ".partial")  # an interrupted copy is not shipped
-            shutil.copyfile(src, partial)
-            partial.replace(dst)
-            shipped.append(dst)
+            if not dst.exists():
+                todo.append((src, dst))
+            elif not filecmp.cmp(src, dst, shallow=False):
+                raise SystemExit(f"{dst.relative_to(ROOT)} is shipped with other contents; "
+                                 "nothing shipped is overwritten")
+        folder.mkdir(parents=True, exist_ok=True)
+        with StagedFiles() as staged:  # a run's files land together, or none (interrupted)
+            for src, dst in todo:
+                staged.write_with(dst, lambda tmp, src=src: shutil.copyfile(src, tmp))
+            staged.commit()
+        shipped += [dst for _, dst in todo]
     return shipped
 
 
