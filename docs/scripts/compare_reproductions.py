@@ -1,7 +1,13 @@
-"""Compare two `cacc-bench reproduce` folders: each claim's verdict, and Table II's reward,
-collisions and power per row.
+"""Compare two `cacc-bench reproduce` folders: each claim's verdict, Table II's reward,
+collisions and power per row, and then every table cell by cell as the command wrote it.
 
     .venv/bin/python docs/scripts/compare_reproductions.py docs/paper-reproduction results/paper
+
+The cell-by-cell part reads each CSV as text (so "equal" is to the last printed digit) and leaves
+out the timing columns (``compute_ms_*``: a controller's compute time is the machine's, not the
+result's). The leaderboard is ``leaderboard.csv`` in a published folder and
+``runs/leaderboard.csv`` in a command's own. Exit status, as ``diff``'s: 0 when every table is
+equal, 1 when one differs, 2 when a folder holds no report.
 """
 
 from __future__ import annotations
@@ -11,9 +17,58 @@ from pathlib import Path
 
 import pandas as pd
 
+#: The tables compared cell by cell, as ``reproduce`` writes them.
+TABLES = ("claims.csv", "table1.csv", "table2.csv", "table3.csv", "sizes.csv", "power_basis.csv",
+          "leaderboard.csv")
+#: Column prefixes left out of the cell-by-cell comparison: the machine's timings.
+TIMING = ("compute_ms",)
+
+
+def _table(folder: Path, name: str) -> Path:
+    path = folder / name
+    if name == "leaderboard.csv" and not path.exists():
+        path = folder / "runs" / name
+    return path
+
+
+def differing_cells(first: Path, second: Path) -> dict[str, int] | None:
+    """Per column, how many cells of two CSVs differ as text (timing columns left out);
+    ``None`` when their rows or columns differ, so no cell-by-cell comparison is meaningful."""
+    a, b = (pd.read_csv(p, dtype=str, keep_default_na=False) for p in (first, second))
+    if list(a.columns) != list(b.columns) or len(a) != len(b):
+        return None
+    return {c: int((a[c] != b[c]).sum()) for c in a.columns
+            if not c.startswith(TIMING) and (a[c] != b[c]).any()}
+
+
+def compare_tables(a: Path, b: Path) -> bool:
+    """Print, for each table, whether the two folders agree cell by cell; whether all do."""
+    equal = True
+    for name in TABLES:
+        pa, pb = _table(a, name), _table(b, name)
+        if not (pa.exists() and pb.exists()):
+            print(f"{name}: missing in {a if not pa.exists() else b}")
+            equal = False
+            continue
+        diff = differing_cells(pa, pb)
+        if diff is None:
+            print(f"{name}: other rows or columns")
+        elif diff:
+            print(f"{name}: {sum(diff.values())} cells differ ("
+                  + ", ".join(f"{c} {n}" for c, n in diff.items()) + ")")
+        else:
+            print(f"{name}: equal (timings aside)")
+        equal = equal and diff == {}
+    return equal
+
 
 def main(first: str, second: str) -> int:
     a, b = Path(first), Path(second)
+    for folder in (a, b):
+        if not (folder / "claims.csv").is_file():
+            print(f"{folder}: no claims.csv; give two folders written by `cacc-bench reproduce` "
+                  "(or published by docs/scripts/publish_reproduction.py)", file=sys.stderr)
+            return 2
     ca, cb = pd.read_csv(a / "claims.csv"), pd.read_csv(b / "claims.csv")
     same = 0
     for i, (x, y) in enumerate(zip(ca.itertuples(), cb.itertuples(), strict=True)):
@@ -26,10 +81,13 @@ def main(first: str, second: str) -> int:
                                             on=["scenario", "name"], suffixes=("_1", "_2"))
     print(m[["scenario", "name"] + [f"{c}_{s}" for c in cols for s in "12"]]
           .to_string(index=False, float_format=lambda v: f"{v:.2f}"))
-    return 0
+    equal = compare_tables(a, b)
+    print("every table equal (timings aside)" if equal else "the tables differ")
+    return 0 if equal else 1
 
 
 if __name__ == "__main__":
     if len(sys.argv) != 3:
-        sys.exit("usage: compare_reproductions.py FIRST_FOLDER SECOND_FOLDER")
+        print("usage: compare_reproductions.py FIRST_FOLDER SECOND_FOLDER", file=sys.stderr)
+        sys.exit(2)
     sys.exit(main(sys.argv[1], sys.argv[2]))
