@@ -307,28 +307,51 @@ def test_the_readme_quotes_the_committed_paper_report() -> None:
     for algo, name in (("ia2c", "IA2C"), ("commnet", "CommNet"), ("dial", "DIAL")):
         rate = slow_rates["measured"].iloc[0].split(f"{algo} ")[1].split(" = ")[1].split(" %")[0]
         assert f"{name} {rate} %" in readme
+    for name, label in (("commnet", "CommNet"), ("fprint", "FPrint"), ("dial", "DIAL"),
+                        ("wac", "WAC")):
+        row = t2.loc[(name, "slowdown-v1")]
+        assert f"{label} ({row['reward_mean']:,.0f}, {row['collisions']:.0f}" in readme \
+            or f"against {row['reward_mean']:,.0f}, {label} with fewer collisions, " \
+               f"{row['collisions']:.0f} against {slow['collisions']:.0f}" in readme
+    without = t2.loc[("bdc-noqsgd", "slowdown-v1")]
+    assert (f"without it BDC scores {without['reward_mean']:,.0f} with {without['collisions']:.0f} "
+            f"collisions, with it {slow['reward_mean']:,.0f} with {slow['collisions']:.0f}") in readme
+    by_claim = claims.set_index("claim")["measured"]
+    sizes = by_claim.filter(like="Larger platoons", axis=0).iloc[0]
+    assert f"BDC's N = 8 against N = 2 is {sizes.split('N=8 minus N=2 ')[1].split(';')[0]}" in readme
+    openacc = by_claim.filter(like="OpenACC", axis=0).iloc[0]
+    for window in ("S", "M", "L"):
+        part = openacc.split(f"{window}: IVS std BDC ")[1]
+        bdc_std, real_std = part.split(" m")[0], part.split("vs real ")[1].split(" m")[0]
+        assert f"{bdc_std} against {real_std} m" in readme
     # the page's bullets sort the claims by verdict; these are the verdicts it states
     by_verdict = claims["verdict"].value_counts().to_dict()
-    assert by_verdict == {"holds": 4, "inconclusive": 9, "does not hold": 5, "not testable here": 1}
-    for verdict in ("Holds on catchup-v1:", "Holds on the OpenACC windows:",
+    assert by_verdict == {"holds": 3, "inconclusive": 11, "does not hold": 4, "not testable here": 1}
+    for verdict in ("Holds on catchup-v1:",
                     "Inconclusive on slowdown-v1, where every learned policy collides:",
                     "Inconclusive elsewhere:", "Does not hold:", "Not testable here:"):
         assert verdict in readme
 
 
-def test_the_default_command_trains_as_the_committed_report_was_trained() -> None:
-    """``reproduce``'s default arithmetic is the one the committed report (docs/paper-reproduction)
-    trained with, in its manifest and in every trained policy's source, so the README's command
-    retrains the report's weights rather than other ones."""
+def test_the_default_command_copies_what_the_committed_report_ran() -> None:
+    """The committed report (docs/paper-reproduction) ran the shipped policies, all 75 copied by
+    the default command: the 48 it would otherwise train, shipped in ``variants/`` and trained
+    in the command's default arithmetic, and the 27 of the shipped folder's own; each source
+    names a shipped file, so a clean clone runs the same weights."""
     from commands.reproduce import _parser
 
-    docs = Path(__file__).resolve().parent.parent / "docs" / "paper-reproduction"
+    root = Path(__file__).resolve().parent.parent
+    docs = root / "docs" / "paper-reproduction"
     default = _parser().parse_args([]).arithmetic
-    assert json.loads((docs / "reproduce.json").read_text())["settings"]["arithmetic"] == default
+    manifest = json.loads((docs / "reproduce.json").read_text())
+    assert manifest["settings"]["arithmetic"] == default
+    assert manifest["settings"].get("retrain") is False
     sources = [json.loads(p.read_text()) for p in (docs / "sources").rglob("*.source.json")]
-    trained = [s for s in sources if s["source"] == "trained"]
-    assert len(sources) == 75 and len(trained) == 48
-    assert {s.get("arithmetic", "native") for s in trained} == {default}
+    assert len(sources) == 75 and {s["source"] for s in sources} == {"shipped"}
+    assert all((root / s["path"]).is_file() for s in sources)
+    variants = [s for s in sources if "/variants/" in s["path"]]
+    assert len(variants) == 48
+    assert {s["arithmetic"] for s in variants} == {default}
 
 
 @pytest.mark.parametrize("retrain", [False, True])
