@@ -2,22 +2,18 @@
 
 from __future__ import annotations
 
-import importlib.util
 import shutil
 from pathlib import Path
 
 import pytest
+from doc_scripts import load
 
 ROOT = Path(__file__).resolve().parents[1]
 COMMITTED = ROOT / "docs" / "paper-reproduction"
 
 
 def _module():
-    spec = importlib.util.spec_from_file_location(
-        "compare_reproductions", ROOT / "docs" / "scripts" / "compare_reproductions.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load("compare_reproductions")
 
 
 def _as_command_wrote_it(tmp_path: Path) -> Path:

@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
+
+from doc_scripts import load
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "docs" / "scripts" / "arithmetic_fingerprint.py"
@@ -12,10 +13,7 @@ COMMITTED = ROOT / "docs" / "notes" / "arithmetic-fingerprint-amd-epyc.json"
 
 
 def _module():
-    spec = importlib.util.spec_from_file_location("arithmetic_fingerprint", SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load("arithmetic_fingerprint")
 
 
 def test_compare_names_the_operations_that_differ(tmp_path: Path, capsys) -> None:

@@ -2,21 +2,17 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
 import pytest
+from doc_scripts import load
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def _module():
-    spec = importlib.util.spec_from_file_location(
-        "publish_reproduction", ROOT / "docs" / "scripts" / "publish_reproduction.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load("publish_reproduction")
 
 
 def _out(tmp_path: Path, status: str = "done") -> Path:

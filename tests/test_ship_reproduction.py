@@ -3,20 +3,17 @@ variant folders, never over a shipped file."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
 import pytest
+from doc_scripts import load
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def _module(variants: Path, monkeypatch: pytest.MonkeyPatch):
-    spec = importlib.util.spec_from_file_location(
-        "ship_reproduction", ROOT / "docs" / "scripts" / "ship_reproduction.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = load("ship_reproduction")
     monkeypatch.setattr(mod, "VARIANTS", variants)
     monkeypatch.setattr(mod, "ROOT", variants.parent)
     return mod
