@@ -8,8 +8,6 @@ from pathlib import Path
 import pytest
 from doc_scripts import load
 
-ROOT = Path(__file__).resolve().parents[1]
-
 
 def _module():
     return load("publish_reproduction")

@@ -9,8 +9,6 @@ from pathlib import Path
 import pytest
 from doc_scripts import load
 
-ROOT = Path(__file__).resolve().parents[1]
-
 
 def _module(variants: Path, monkeypatch: pytest.MonkeyPatch):
     mod = load("ship_reproduction")
