@@ -60,6 +60,14 @@ def test_other_rows_are_no_cell_comparison(tmp_path: Path) -> None:
     assert _module().differing_cells(COMMITTED / "sizes.csv", out / "sizes.csv") is None
 
 
+def test_reports_of_other_claim_counts_differ_without_a_traceback(tmp_path: Path, capsys) -> None:
+    out = _as_command_wrote_it(tmp_path)
+    lines = (out / "claims.csv").read_text().splitlines(keepends=True)
+    (out / "claims.csv").write_text("".join(lines[:-1]))
+    assert _module().main(str(COMMITTED), str(out)) == 1
+    assert "not comparable claim by claim" in capsys.readouterr().out
+
+
 def test_a_folder_without_a_report_is_refused(tmp_path: Path, capsys) -> None:
     assert _module().main(str(COMMITTED), str(tmp_path)) == 2
     assert "no claims.csv" in capsys.readouterr().err

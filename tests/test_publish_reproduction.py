@@ -60,3 +60,25 @@ def test_an_unfinished_reproduction_is_refused_and_the_committed_report_kept(
     with pytest.raises(SystemExit, match="no finished reproduction"):
         _module().publish(_out(tmp_path, status="started"), "How.", dest)
     assert (dest / "README.md").read_text() == "committed"
+
+
+def test_an_interrupted_swap_leaves_one_whole_report(tmp_path: Path, monkeypatch) -> None:
+    """If the new report cannot be moved into place, the committed one is back where it was."""
+    mod = _module()
+    out = _out(tmp_path)
+    dest = tmp_path / "docs" / "paper-reproduction"
+    dest.mkdir(parents=True)
+    (dest / "README.md").write_text("the committed report\n")
+    real = Path.replace
+
+    def failing(self: Path, target):
+        if self.name.endswith(".new"):
+            raise KeyboardInterrupt
+        return real(self, target)
+
+    monkeypatch.setattr(Path, "replace", failing)
+    with pytest.raises(KeyboardInterrupt):
+        mod.publish(out, "header", dest)
+    monkeypatch.setattr(Path, "replace", real)
+    assert (dest / "README.md").read_text() == "the committed report\n"
+    assert not dest.with_name(dest.name + ".old").exists()

@@ -37,8 +37,8 @@ def differing_cells(first: Path, second: Path) -> dict[str, int] | None:
     a, b = (pd.read_csv(p, dtype=str, keep_default_na=False) for p in (first, second))
     if list(a.columns) != list(b.columns) or len(a) != len(b):
         return None
-    return {c: int((a[c] != b[c]).sum()) for c in a.columns
-            if not c.startswith(TIMING) and (a[c] != b[c]).any()}
+    counts = {c: int((a[c] != b[c]).sum()) for c in a.columns if not c.startswith(TIMING)}
+    return {c: n for c, n in counts.items() if n}
 
 
 def compare_tables(a: Path, b: Path) -> bool:
@@ -70,6 +70,10 @@ def main(first: str, second: str) -> int:
                   "(or published by docs/scripts/publish_reproduction.py)", file=sys.stderr)
             return 2
     ca, cb = pd.read_csv(a / "claims.csv"), pd.read_csv(b / "claims.csv")
+    if len(ca) != len(cb):
+        print(f"the two reports judge {len(ca)} and {len(cb)} claims: made by other versions of "
+              "the command, so not comparable claim by claim")
+        return 1
     same = 0
     for i, (x, y) in enumerate(zip(ca.itertuples(), cb.itertuples(), strict=True)):
         ok = x.verdict == y.verdict

@@ -18,6 +18,9 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT))
+from envs.atomic import signals_held  # noqa: E402
+
 DEST = ROOT / "docs" / "paper-reproduction"
 #: The report's tables, as ``reproduce`` writes them into OUT.
 TABLES = ("table1.csv", "table2.csv", "table3.csv", "sizes.csv", "power_basis.csv", "claims.csv")
@@ -53,9 +56,22 @@ def publish(out: Path, header: str, dest: Path = DEST) -> list[Path]:
         target = staged / "sources" / src.relative_to(checkpoints)
         target.parent.mkdir(parents=True, exist_ok=True)
         shutil.copyfile(src, target)
-    if dest.exists():
-        shutil.rmtree(dest)
-    staged.replace(dest)
+    # the committed report is set aside, not deleted, until the new one is in its place, and put
+    # back if that fails, so an interruption leaves the old report or the new one, whole
+    old = dest.with_name(dest.name + ".old")
+    if old.exists():
+        shutil.rmtree(old)
+    with signals_held():
+        if dest.exists():
+            dest.replace(old)
+        try:
+            staged.replace(dest)
+        except BaseException:
+            if old.exists():
+                old.replace(dest)
+            raise
+    if old.exists():
+        shutil.rmtree(old)
     return sorted(p for p in dest.rglob("*") if p.is_file())
 
 
