@@ -324,6 +324,24 @@ def test_the_readme_quotes_the_committed_paper_report() -> None:
         part = openacc.split(f"{window}: IVS std BDC ")[1]
         bdc_std, real_std = part.split(" m")[0], part.split("vs real ")[1].split(" m")[0]
         assert f"{bdc_std} against {real_std} m" in readme
+    slow_claims = claims[claims["measured"].str.startswith("slowdown-v1:")].set_index("claim")
+    slow_energy = slow_claims.filter(like="saves the most energy", axis=0)["measured"].iloc[0]
+    savings = [float(slow_energy.split(f"vs {a} ")[1].split(" %")[0]) for a in
+               ("ia2c", "fprint", "commnet")]
+    assert f"BDC uses {min(savings):.0f} to {max(savings):.0f} % less power" in readme
+    stable = slow_claims.filter(like="more stable velocity", axis=0)["measured"].iloc[0]
+    speed = stable.split("speed std (m/s): ")[1].split(";")[0]  # "bdc 3.930, wac 4.221, dcea 4.209"
+    stds = [float(v.split(" ")[1]) for v in speed.split(", ")]
+    assert f"({stds[0]:.2f} against {stds[1]:.2f} and {stds[2]:.2f} m/s)" in readme
+    qsgd = slow_claims.filter(like="QSGD", axis=0)["measured"].iloc[0]
+    diff = qsgd.split("with minus without ")[1].split(", margin")[0]  # "-1069.2 [-2375.5, -18.3]"
+    low, high = (float(v) for v in diff.split("[")[1].rstrip("]").split(", "))
+    assert f"the interval ({float(diff.split(' ')[0]):,.0f} [{low:,.0f}, {high:,.0f}])" in readme
+    converge = slow_claims.filter(like="converges fastest", axis=0)["measured"].iloc[0]
+    words = {0: "none", 1: "one of three"}
+    converged = {algo: 3 - int(converge.split(f"; {algo} ")[1].split(" of 3 seeds not")[0][-1])
+                 for algo in ("bdc", "dcea")}  # "... 2 of 3 seeds not converged)"
+    assert (f"(BDC {words[converged['bdc']]}, DCEA {words[converged['dcea']]})") in readme
     # the page's bullets sort the claims by verdict; these are the verdicts it states
     by_verdict = claims["verdict"].value_counts().to_dict()
     assert by_verdict == {"holds": 3, "inconclusive": 11, "does not hold": 4, "not testable here": 1}
