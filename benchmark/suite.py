@@ -18,6 +18,7 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+from controllers.base import check_fits
 from controllers.registry import canonical_options, controller_label, resolve
 from envs.channel import ChannelConfig
 from envs.errors import ConfigError
@@ -222,7 +223,7 @@ def current_policies(keys: Sequence[RunKey]) -> dict[RunKey, str]:
             if ctrl is None:
                 ctrl = controllers[(key.name, key.options)] = make_controller(
                     key.name, **json.loads(key.options))
-            ctrl.preflight(_scenario(key), key.n_vehicles, _setting(key)[0])
+            check_fits(ctrl, _scenario(key), key.n_vehicles, _setting(key)[0])
             found[setting] = ctrl.policy_sha256
         out[key] = found[setting]
     return out

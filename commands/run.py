@@ -157,6 +157,7 @@ def _preflight(controllers: list[tuple[str, dict[str, str]]], scenarios: list[Sc
                vehicles: list[int], lags_s: list[float]) -> None:
     """Build each controller once and check it against every setting, so bad options, missing
     checkpoints or a loop unstable with the lag fail before any run."""
+    from controllers.base import check_fits
     from controllers.registry import make_controller
     from envs.params import PlatoonParams
 
@@ -165,7 +166,7 @@ def _preflight(controllers: list[tuple[str, dict[str, str]]], scenarios: list[Sc
         for sc in scenarios:
             for n in vehicles:
                 for lag in lags_s:
-                    ctrl.preflight(sc, n, PlatoonParams(lag_s=lag))
+                    check_fits(ctrl, sc, n, PlatoonParams(lag_s=lag))
 
 
 def main(argv: list[str]) -> int:

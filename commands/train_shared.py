@@ -49,13 +49,13 @@ def shared_config(algo: str, overrides: Sequence[str], tuned: dict[str, Any] | N
 def model_expert(name: str) -> Callable[[Any], Callable[[Any], Any]]:
     """A registered model-based controller as :func:`marl.distill.distill`'s expert: for a
     reset env, its commands for the env's states (its V2V through its own ideal channels)."""
-    from controllers.base import EpisodeContext, reset_controller
+    from controllers.base import EpisodeContext, check_fits, reset_controller
     from controllers.registry import make_controller
 
     def make(env: Any) -> Callable[[Any], Any]:
         ctrl = make_controller(name)
         ctx = EpisodeContext(env.scenario, env.n_vehicles, env.seeds, env.params)
-        ctrl.preflight(env.scenario, env.n_vehicles, env.params)
+        check_fits(ctrl, env.scenario, env.n_vehicles, env.params)
         reset_controller(ctrl, ctx)
         return lambda state: ctrl.act(state, None)
 

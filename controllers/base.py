@@ -20,7 +20,8 @@ from typing import Any
 import numpy as np
 
 from envs.channel import ChannelConfig, V2VChannel
-from envs.errors import ControllerContractError
+from envs.errors import ConfigError, ControllerContractError
+from envs.humans import Arrangement
 from envs.params import PlatoonParams
 from envs.platoon import PlatoonState
 from envs.scenarios import Scenario
@@ -59,11 +60,13 @@ class Message:
     bits_per_value: int = 32
     initial: float = 0.0
 
-    def link_list(self, n_vehicles: int) -> list[tuple[int, int]]:
-        """The directed links ``(src, dst)`` for N followers (vehicle 0 is the leader)."""
+    def link_list(self, n_vehicles: int, ring: bool = False) -> list[tuple[int, int]]:
+        """The directed links ``(src, dst)`` for N followers (vehicle 0 is the leader; on a
+        ring, where there is none, follower 1's predecessor is follower N: ``predecessor``
+        starts with ``N -> 1``)."""
         n, links = n_vehicles, self.links
         if links == "predecessor":
-            return [(i - 1, i) for i in range(1, n + 1)]
+            return [(n if ring else 0, 1)] + [(i - 1, i) for i in range(2, n + 1)]
         if links == "neighbours":
             return [(i - 1, i) for i in range(2, n + 1)] + [(i + 1, i) for i in range(1, n)]
         if links == "to_leader":
@@ -128,14 +131,33 @@ class EpisodeContext:
         """Scenario target speed v* (m/s)."""
         return self.scenario.target_speed_mps
 
+    @property
+    def arrangement(self) -> Arrangement:
+        """Which seats are automated and how the human ones drive (the scenario's options)."""
+        return self.scenario.arrangement(self.n_vehicles)
+
+    @property
+    def automated(self) -> np.ndarray:
+        """``(N,)`` booleans: the seats this controller commands; the others are human-driven
+        (the env drives them, they send nothing and their commands are ignored)."""
+        return self.arrangement.mask
+
+    @property
+    def ring(self) -> bool:
+        """A ring road: no leader, follower 1 follows follower N."""
+        return self.scenario.ring
+
     def open_channels(self, messages: Sequence[Message]) -> None:
-        """Open one channel per declared message, with this run's delay and loss."""
+        """Open one channel per declared message, with this run's delay and loss; human seats
+        send nothing (their links never deliver and are not counted)."""
+        silent = tuple(int(i) + 1 for i in np.flatnonzero(~self.automated))
         for m in messages:
             if m.name in self.channels:
                 raise ControllerContractError(f"two messages are named {m.name!r}")
             self.channels[m.name] = V2VChannel(
-                m.link_list(self.n_vehicles), m.width, self.seeds, self.channel_config,
-                m.bits_per_value, name=m.name, initial=m.initial)
+                m.link_list(self.n_vehicles, self.ring), m.width, self.seeds,
+                self.channel_config, m.bits_per_value, name=m.name, initial=m.initial,
+                silent=silent)
 
     def channel(self, name: str) -> V2VChannel:
         """The channel of the declared message ``name``."""
@@ -181,6 +203,11 @@ class Controller(ABC):
     deterministic: bool = True
     needs_observation: bool = False
     batch_invariant: bool = False
+    #: Whether it can command the automated seats of a string with human drivers (False: the
+    #: paper's per-agent policies, trained on homogeneous strings, and other fixed-platoon laws).
+    drives_mixed: bool = True
+    #: Whether it needs a scripted leader (its profile or broadcast): refused on a ring.
+    needs_leader: bool = False
     _policy_sha256: str = ""
 
     def __init__(self) -> None:
@@ -237,6 +264,37 @@ class Controller(ABC):
     def describe(self) -> str:
         """Options as a stable string (recorded in the run's provenance)."""
         return ",".join(f"{k}={v}" for k, v in sorted(self.options.items()))
+
+
+def check_fits(controller: Controller, scenario: Scenario, n_vehicles: int,
+               params: PlatoonParams | None = None) -> None:
+    """Refuse, before any work, a setting ``controller`` cannot run (:class:`ConfigError` naming
+    what works): a string with human drivers for a controller that cannot drive one, a ring for
+    one that needs a leader, a string with no automated vehicle for anything but a human-driver
+    model; then the controller's own :meth:`Controller.preflight`. Every sweep calls this for
+    each setting before its first run."""
+    from controllers.registry import mixed_traffic_controllers
+
+    arrangement = scenario.arrangement(n_vehicles)
+    where = f"{scenario.label or scenario.id} with N = {n_vehicles}"
+    if arrangement.n_automated == 0 and controller.family != "human":
+        raise ConfigError(
+            f"{controller.name} is an automated controller and {where} has no automated "
+            "vehicle; its all-human baseline is a human-driver model (--controllers idm), or "
+            "give the scenario automated vehicles (cav_fraction=0.25, cavs=1, humans=2+5)")
+    if not arrangement.homogeneous and not controller.drives_mixed:
+        raise ConfigError(
+            f"{controller.name} cannot run on {where}: it has human drivers "
+            f"({len(arrangement.automated) - arrangement.n_automated} of "
+            f"{len(arrangement.automated)}) and {controller.name} was made for a string of "
+            "automated vehicles only; the controllers that run on mixed strings: "
+            f"{', '.join(mixed_traffic_controllers())}")
+    if scenario.ring and controller.needs_leader:
+        raise ConfigError(
+            f"{controller.name} needs a scripted leader and {where} is a ring road without one; "
+            "the controllers that run on the ring: "
+            f"{', '.join(mixed_traffic_controllers(ring=True))}")
+    controller.preflight(scenario, n_vehicles, params)
 
 
 def reset_controller(controller: Controller, ctx: EpisodeContext) -> None:

@@ -161,6 +161,7 @@ class CentralisedMPCController(Controller):
 
     name = "cmpc"
     family = "mpc"
+    needs_leader = True  # the plan is made at the leader, which collects every state
     deterministic = True
     needs_observation = False
 

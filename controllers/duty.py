@@ -122,6 +122,8 @@ class _Schedules(Controller):
 
     name = "duty"
     family = "human"
+    drives_mixed = False  # a schedule of the paper's actions, for its homogeneous platoon
+    needs_leader = True
     batch_invariant = True
 
     def __init__(self, ks: np.ndarray) -> None:
@@ -144,6 +146,8 @@ class DutyController(Controller):
 
     name = "duty"
     family = "human"
+    drives_mixed = False  # a schedule of the paper's actions, for its homogeneous platoon
+    needs_leader = True
     deterministic = True
     batch_invariant = True
 

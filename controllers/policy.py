@@ -118,6 +118,9 @@ class PolicyController(Controller):
     """
 
     family = "marl"
+    #: the paper's per-agent policies were trained on homogeneous strings behind a leader
+    drives_mixed = False
+    needs_leader = True
     deterministic = False
     needs_observation = True
 

@@ -173,6 +173,21 @@ def default_controllers() -> list[str]:
     return [name for name in DEFAULT_CONTROLLERS if CONTROLLERS[name].available]
 
 
+def mixed_traffic_controllers(ring: bool = False) -> list[str]:
+    """Names of the available controllers that drive strings with human drivers (with ``ring``:
+    that also run without a scripted leader), read from their classes' ``drives_mixed`` and
+    ``needs_leader`` (imports their modules: for messages, not for ``list``)."""
+    out = []
+    for spec in available_controllers():
+        cls = _factory(spec)
+        if ring and getattr(cls, "needs_leader", False):
+            continue
+        if not ring and not getattr(cls, "drives_mixed", True):
+            continue
+        out.append(spec.name)
+    return out
+
+
 def available_controllers() -> list[ControllerSpec]:
     """Registered controllers whose implementation is present, in registration order."""
     return [s for s in CONTROLLERS.values() if s.available]

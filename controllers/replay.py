@@ -31,6 +31,8 @@ class RealACCRecord(Controller):
 
     name = "openacc-real"
     family = "data"
+    drives_mixed = False  # recorded cars: the real platoon, as it drove
+    needs_leader = True
     deterministic = True
 
     config_cls = RealACCConfig

@@ -338,6 +338,10 @@ class SafetyFilter(Controller):
         self.deterministic = self.inner.deterministic
         self.needs_observation = self.inner.needs_observation
         self.batch_invariant = self.inner.batch_invariant
+        # its intervention counts are over every seat: not yet split between human and
+        # automated ones, so it stays on strings of automated vehicles
+        self.drives_mixed = False
+        self.needs_leader = self.inner.needs_leader
         defaults = SafetyFilterConfig()
         self.options = {**self.inner.options, **{
             f"{OPTION_PREFIX}{k}": getattr(self.config, k)

@@ -115,6 +115,10 @@ class SharedPolicyController(Controller):
     """
 
     family = "marl"
+    #: on a mixed string it sees only what an automated vehicle senses or receives: a human
+    #: predecessor sends nothing (its command reads as the 0 held before any message)
+    drives_mixed = True
+    needs_leader = True  # the leader's broadcast is part of its observation
     deterministic = False
     batch_invariant = True
     needs_observation = False

@@ -78,11 +78,14 @@ def leader_links(n_vehicles: int) -> list[tuple[int, int]]:
 
 
 def open_accel_channels(
-    n_vehicles: int, seeds: Sequence[int] | np.ndarray, config: ChannelConfig = ChannelConfig()
+    n_vehicles: int, seeds: Sequence[int] | np.ndarray, config: ChannelConfig = ChannelConfig(),
+    silent: Sequence[int] = (),
 ) -> tuple[V2VChannel, V2VChannel]:
-    """The two channels of the ``accel`` mode (predecessor, leader) for a batch of episodes."""
+    """The two channels of the ``accel`` mode (predecessor, leader) for a batch of episodes;
+    the vehicles ``silent`` (human seats, 1..N) send nothing."""
     name, width = PRED_MESSAGE
-    pred = V2VChannel(predecessor_links(n_vehicles), width, seeds, config, name=name)
+    pred = V2VChannel(predecessor_links(n_vehicles), width, seeds, config, name=name,
+                      silent=silent)
     name, width = LEADER_MESSAGE
     lead = V2VChannel(leader_links(n_vehicles), width, seeds, config, name=name)
     return pred, lead

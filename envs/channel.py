@@ -108,6 +108,9 @@ class V2VChannel:
         Stream name; two channels of one controller need distinct names.
     initial : float or (B, L, width) array
         What a receiver holds before its first message.
+    silent : sequence of int
+        Vehicles that send nothing (human drivers in a mixed string): their links never deliver
+        (the receiver keeps ``initial``) and they are not counted as senders.
     """
 
     def __init__(
@@ -119,12 +122,16 @@ class V2VChannel:
         bits_per_value: int = 32,
         name: str = "v2v",
         initial: float | np.ndarray = 0.0,
+        silent: Sequence[int] = (),
     ) -> None:
         if width < 1:
             raise ConfigError("a message carries at least one number")
         self.links = np.asarray(links, dtype=np.int64).reshape(-1, 2)
         self.src = self.links[:, 0]
-        self.senders = np.unique(self.src)
+        quiet = np.isin(self.src, np.asarray(list(silent), dtype=np.int64))
+        #: (L,) False on the links of a silent sender (None: every link is live)
+        self._live: np.ndarray | None = ~quiet if quiet.any() else None
+        self.senders = np.unique(self.src[~quiet])
         self.width = int(width)
         self.seeds = np.asarray(seeds, dtype=np.int64).reshape(-1)
         self.config = config
@@ -174,7 +181,11 @@ class V2VChannel:
             if self.config.packet_loss > 0:
                 u = episode_uniforms(self.seeds, self.name, self._step, len(self.links))
                 ok = u >= self.config.packet_loss
+                if self._live is not None:
+                    ok &= self._live[None, :]
                 self._held = np.where(ok[:, :, None], arriving, self._held)
+            elif self._live is not None:
+                self._held = np.where(self._live[None, :, None], arriving, self._held)
             else:
                 self._held = arriving.copy()
         self._step += 1

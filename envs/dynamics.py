@@ -73,10 +73,12 @@ def action_to_command_mps2(
     return ovm_command_mps2(gap_m, speed_mps, pred_speed_mps, _ALPHA[action], _BETA[action], params)
 
 
-def predecessor_speed_mps(leader_speed_mps: FloatArray, speed_mps: FloatArray) -> FloatArray:
-    """Speed of each follower's predecessor ``(B, N)``: the leader for follower 1."""
+def predecessor_speed_mps(leader_speed_mps: FloatArray, speed_mps: FloatArray,
+                          ring: bool = False) -> FloatArray:
+    """Speed of each follower's predecessor ``(B, N)``: the leader for follower 1 (on a ring,
+    follower N)."""
     out = np.empty_like(speed_mps)
-    out[:, 0] = leader_speed_mps
+    out[:, 0] = speed_mps[:, -1] if ring else leader_speed_mps
     out[:, 1:] = speed_mps[:, :-1]
     return out
 
@@ -89,6 +91,7 @@ def physics_step(
     leader_speed_mps: FloatArray,
     leader_speed_next_mps: FloatArray,
     params: PlatoonParams = PlatoonParams(),
+    ring: bool = False,
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
     """Advance all followers by one step ``dt`` from the current state (published rules).
 
@@ -99,7 +102,10 @@ def physics_step(
     command_mps2 : (B, N)
         Acceleration commands; clipped to the bounds here.
     leader_speed_mps, leader_speed_next_mps : (B,)
-        Leader speed at steps t and t+1.
+        Leader speed at steps t and t+1 (ignored on a ring).
+    ring : bool
+        A ring road: follower 1's predecessor is follower N (its speeds at t and t+1 take the
+        leader's place), so the gaps sum to the same length at every step.
 
     Returns
     -------
@@ -120,7 +126,10 @@ def physics_step(
     applied *= 1.0 / dt
     # trapezoidal gap update: gap += dt/2 (v_pred + v_pred_next - v - v_next)
     dv = np.empty_like(speed_mps)
-    dv[:, 0] = leader_speed_mps + leader_speed_next_mps
+    if ring:
+        dv[:, 0] = speed_mps[:, -1] + v_next[:, -1]
+    else:
+        dv[:, 0] = leader_speed_mps + leader_speed_next_mps
     dv[:, 1:] = speed_mps[:, :-1]
     dv[:, 1:] += v_next[:, :-1]
     dv -= speed_mps

@@ -28,6 +28,7 @@ from envs.dynamics import (
     vehicle_blocks,
 )
 from envs.errors import ConfigError
+from envs.humans import HumanDrivers
 from envs.params import PlatoonParams, RewardWeights
 from envs.scenarios import Scenario, as_scenario, check_vehicles
 
@@ -72,22 +73,39 @@ class PlatoonState:
     done: np.ndarray
     collision_step: np.ndarray
     dt_s: float = 0.1
+    automated: np.ndarray | None = None
+    ring: bool = False
+
+    @property
+    def automated_mask(self) -> np.ndarray:
+        """``(N,)`` booleans: the seats the controller commands (the others are human-driven by
+        the env; every seat in the published platoon)."""
+        if self.automated is None:
+            return np.ones(self.speed_mps.shape[1], dtype=bool)
+        return self.automated
 
     @property
     def leader_speed_now_mps(self) -> np.ndarray:
-        """Leader speed at the current step, ``(B,)``."""
+        """Leader speed at the current step, ``(B,)`` (on a ring: follower N's, the speed of
+        follower 1's predecessor)."""
+        if self.ring:
+            return self.speed_mps[:, -1]
         return self.leader_speed_mps[:, min(self.step, self.leader_speed_mps.shape[1] - 1)]
 
     @property
     def leader_accel_now_mps2(self) -> np.ndarray:
-        """Leader acceleration over the coming step ``(v0[t+1] - v0[t]) / dt``, ``(B,)``."""
+        """Leader acceleration over the coming step ``(v0[t+1] - v0[t]) / dt``, ``(B,)`` (on a
+        ring, where nobody's plan is known: follower N's last applied acceleration)."""
+        if self.ring:
+            return self.applied_accel_mps2[:, -1]
         t = min(self.step, self.leader_speed_mps.shape[1] - 2)
         return (self.leader_speed_mps[:, t + 1] - self.leader_speed_mps[:, t]) / self.dt_s
 
     @property
     def pred_speed_mps(self) -> np.ndarray:
-        """Speed of each follower's predecessor, ``(B, N)``."""
-        return predecessor_speed_mps(self.leader_speed_now_mps, self.speed_mps)
+        """Speed of each follower's predecessor, ``(B, N)`` (on a ring, follower N is follower
+        1's)."""
+        return predecessor_speed_mps(self.leader_speed_now_mps, self.speed_mps, self.ring)
 
 
 @dataclass
@@ -206,6 +224,7 @@ class PlatoonEnv:
         self._pred_held = np.zeros((0, 0))
         self._leader_held = np.zeros((0, 0, 2))
         self._channels: tuple[Any, Any] | None = None
+        self._humans: HumanDrivers | None = None
 
     @property
     def obs_dim(self) -> int:
@@ -232,6 +251,10 @@ class PlatoonEnv:
         b, n = len(seeds_arr), self.n_vehicles
         self.seeds = seeds_arr
         self.perturbation = ep.perturbation
+        self.arrangement = self.scenario.arrangement(n)
+        self._humans = (None if self.arrangement.homogeneous else
+                        HumanDrivers(self.arrangement, seeds_arr, self.n_steps, self.params))
+        ring = self.scenario.ring
         # Follower arrays are (B, N) in Fortran order (the batch axis innermost in memory):
         # elementwise physics does not care, and the neighbour shifts of the observation become
         # long contiguous copies (about 10x faster at B = 1024).
@@ -247,15 +270,27 @@ class PlatoonEnv:
             done=np.zeros(b, dtype=bool),
             collision_step=np.full(b, -1, dtype=np.int64),
             dt_s=self.params.dt_s,
+            automated=None if self._humans is None else self.arrangement.mask,
+            ring=ring,
         )
+        if ring:  # no scripted leader: record follower N's speed, follower 1's predecessor
+            self.state.leader_speed_mps[:, 0] = self.state.speed_mps[:, -1]
         # observation storage (15, N, B) viewed as (B, N, 15); the own block is a view into it
         self._obs = np.zeros((OBS_DIM, n, b), dtype=self.dtype).transpose(2, 1, 0)
         self._blocks = self._obs[:, :, 0:BLOCK_DIM]
         if self.action_mode == "accel":
-            self._channels = open_accel_channels(n, seeds_arr, self.channel_config)
+            self._channels = open_accel_channels(n, seeds_arr, self.channel_config,
+                                                 silent=self.silent_senders)
             self._pred_held = np.zeros((b, n))
             self._leader_held = np.zeros((b, n, 2))
         return self.observation() if self.observe else None
+
+    @property
+    def silent_senders(self) -> tuple[int, ...]:
+        """Vehicle indices (1..N) of the human seats: they send nothing over V2V."""
+        if self.state is None or self.state.automated is None:
+            return ()
+        return tuple(int(i) + 1 for i in np.flatnonzero(~self.state.automated))
 
     @property
     def batch_size(self) -> int:
@@ -303,6 +338,9 @@ class PlatoonEnv:
         if s.step >= self.n_steps:
             raise RuntimeError("episode over: call reset()")
         t = s.step
+        if self._humans is not None:  # the human seats take no command: their model drives
+            command_mps2 = self._humans.commands(t, np.asarray(command_mps2, dtype=np.float64),
+                                                 s.gap_m, s.speed_mps, s.pred_speed_mps)
         if self._channels is not None and self.action_mode == "accel":
             self._pred_held, self._leader_held = transmit_accel_messages(
                 *self._channels, np.asarray(command_mps2, dtype=np.float64),
@@ -318,6 +356,7 @@ class PlatoonEnv:
             lead_now,
             lead_next,
             self.params,
+            s.ring,
         )
         power = self.battery_power_kw(v, applied)
         terms = reward_terms(
@@ -360,6 +399,8 @@ class PlatoonEnv:
         s.gap_m, s.speed_mps, s.realised_accel_mps2, s.applied_accel_mps2 = gap, v, a, applied
         s.command_mps2 = command
         s.step = t + 1
+        if s.ring:
+            s.leader_speed_mps[:, t + 1] = v[:, -1]
         if s.step >= self.n_steps:
             s.done[:] = True
         obs = self.observation() if self.observe else None

@@ -8,6 +8,7 @@ controller faces identical episodes.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -15,6 +16,18 @@ from typing import Any
 import numpy as np
 
 from envs.errors import ConfigError, UnknownNameError
+from envs.humans import (
+    HUMAN_MODELS,
+    MAX_HUMAN_NOISE_MPS2,
+    MAX_REACTION_DELAY_S,
+    PLACEMENTS,
+    Arrangement,
+    IDMParams,
+    count_automated,
+    idm_equilibrium_speed_mps,
+    parse_positions,
+    place_automated,
+)
 from envs.naming import coerce_option, format_label, parse_label, parse_named_list
 from envs.params import PlatoonParams
 
@@ -85,6 +98,22 @@ class Scenario:
         default=None, repr=False, compare=False
     )
     label: str = field(default="", repr=False, compare=False)
+    ring: bool = False
+    #: Mixed-traffic metrics start this long after the start (s): the ring's first minute,
+    #: when its waves are still forming, is left out; 0 elsewhere.
+    settle_s: float = 0.0
+
+    def arrangement(self, n_vehicles: int) -> Arrangement:
+        """Which of the ``n_vehicles`` follower seats are automated, and how the human ones drive
+        (the options ``humans``, ``cav_fraction``, ``cavs``, ``placement``, ``placement_seed``,
+        ``human_model``, ``reaction_delay_s``, ``human_noise_mps2``; :mod:`envs.humans`).
+
+        Raises
+        ------
+        ConfigError
+            For human positions beyond ``n_vehicles`` or more automated vehicles than seats.
+        """
+        return arrangement_of(self.options, n_vehicles, self.label or self.id)
 
     def episodes(
         self,
@@ -104,6 +133,7 @@ class Scenario:
             Overrides the published draw ``U`` of each episode.
         """
         check_vehicles(n_vehicles)
+        check_fits(self, n_vehicles)
         seeds_arr = np.asarray(seeds, dtype=np.int64).reshape(-1)
         if perturbation is None:
             u = np.array([published_perturbation(int(s)) for s in seeds_arr], dtype=np.float64)
@@ -125,6 +155,86 @@ def check_vehicles(n_vehicles: int) -> int:
             f"got {n_vehicles!r}"
         )
     return int(n_vehicles)
+
+
+def check_fits(scenario: Scenario, n_vehicles: int) -> None:
+    """Refuse a platoon size the scenario's arrangement or ring cannot take
+    (:class:`ConfigError` naming what works)."""
+    if scenario.ring and n_vehicles != scenario.options["vehicles"]:
+        raise ConfigError(
+            f"{scenario.label or scenario.id} has {scenario.options['vehicles']} vehicles on its "
+            f"ring (its option vehicles), not {n_vehicles}: set the count on the scenario "
+            f"({scenario.id}:vehicles={n_vehicles}) and leave --vehicles out")
+    scenario.arrangement(n_vehicles)
+
+
+# --------------------------------------------------------------------------- arrangements
+
+#: The arrangement options every scenario takes, with their defaults (every follower
+#: automated: the published platoon). ``cavs`` -1 and ``humans`` "" mean "not set".
+ARRANGEMENT_DEFAULTS: dict[str, Any] = {
+    "humans": "",
+    "cav_fraction": 1.0,
+    "cavs": -1,
+    "placement": "random",
+    "placement_seed": 0,
+    "human_model": "idm",
+    "reaction_delay_s": 0.0,
+    "human_noise_mps2": 0.2,
+}
+
+
+#: The options that say which seats are automated (one of them at a time).
+_SEAT_OPTIONS: tuple[str, ...] = ("humans", "cav_fraction", "cavs")
+
+
+def _check_arrangement(scenario_id: str, opts: dict[str, Any]) -> None:
+    """The arrangement options' rules (one place): ranges, names, at most one way to say which
+    seats are automated."""
+    share = opts["cav_fraction"]
+    if not (math.isfinite(share) and 0.0 <= share <= 1.0):
+        raise ConfigError(f"{scenario_id}: cav_fraction is the share of automated followers and "
+                          f"must lie in [0, 1], got {share}")
+    if opts["cavs"] < -1:
+        raise ConfigError(f"{scenario_id}: cavs is a number of automated followers (>= 0), "
+                          f"got {opts['cavs']}")
+    if opts["humans"]:
+        parse_positions(opts["humans"])
+    if opts["placement"] not in PLACEMENTS:
+        raise ConfigError(f"{scenario_id}: placement must be one of {', '.join(PLACEMENTS)}, "
+                          f"got {opts['placement']!r}")
+    if opts["human_model"] not in HUMAN_MODELS:
+        raise ConfigError(f"{scenario_id}: human_model must be one of {', '.join(HUMAN_MODELS)}, "
+                          f"got {opts['human_model']!r}")
+    if not 0.0 <= opts["reaction_delay_s"] <= MAX_REACTION_DELAY_S:
+        raise ConfigError(f"{scenario_id}: reaction_delay_s must lie in [0, "
+                          f"{MAX_REACTION_DELAY_S:g}] s, got {opts['reaction_delay_s']}")
+    if not 0.0 <= opts["human_noise_mps2"] <= MAX_HUMAN_NOISE_MPS2:
+        raise ConfigError(f"{scenario_id}: human_noise_mps2 must lie in [0, "
+                          f"{MAX_HUMAN_NOISE_MPS2:g}] m/s^2, got {opts['human_noise_mps2']}")
+    if opts["placement_seed"] < 0:
+        raise ConfigError(f"{scenario_id}: placement_seed must be >= 0")
+
+
+def arrangement_of(opts: dict[str, Any], n_vehicles: int, who: str) -> Arrangement:
+    """The :class:`envs.humans.Arrangement` of a scenario's options for N followers."""
+    if opts.get("humans"):
+        human = parse_positions(opts["humans"], n_vehicles)
+        automated = tuple(i + 1 not in human for i in range(n_vehicles))
+    else:
+        if opts.get("cavs", -1) >= 0:
+            k = int(opts["cavs"])
+            if k > n_vehicles:
+                raise ConfigError(f"{who}: cavs={k} automated followers but only {n_vehicles} "
+                                  f"followers; cavs runs from 0 to {n_vehicles}")
+        else:
+            k = count_automated(float(opts.get("cav_fraction", 1.0)), n_vehicles)
+        seats = set(place_automated(k, n_vehicles, opts.get("placement", "random"),
+                                    int(opts.get("placement_seed", 0))).tolist())
+        automated = tuple(i in seats for i in range(n_vehicles))
+    return Arrangement(automated, str(opts.get("human_model", "idm")),
+                       float(opts.get("reaction_delay_s", 0.0)),
+                       float(opts.get("human_noise_mps2", 0.2)))
 
 
 # --------------------------------------------------------------------------- builders
@@ -265,6 +375,52 @@ def _openacc_train(sc: Scenario, seeds: np.ndarray, u: np.ndarray, n: int) -> Ep
         speed0[i] = np.clip(leader[i, 0] + rng.normal(0.0, 0.2, n), 0.0, None)
     return EpisodeBatch(seeds=seeds, perturbation=u, gap_m=gap0, speed_mps=speed0,
                         leader_speed_mps=leader)
+
+
+#: Vehicle length on the ring (m): Flow's and SUMO's passenger-car default. The followers of the
+#: other scenarios are points with gaps; on a ring the length decides the density.
+RING_VEHICLE_LENGTH_M: float = 5.0
+
+
+def ring_target_gap_m(length_m: float, vehicles: int) -> float:
+    """The ring's uniform gap (m): ``L / n - vehicle length``."""
+    return length_m / vehicles - RING_VEHICLE_LENGTH_M
+
+
+def _ring(sc: Scenario, seeds: np.ndarray, u: np.ndarray, n: int) -> EpisodeBatch:
+    """``n`` vehicles near uniform spacing on the ring, every one at the IDM's equilibrium speed
+    for the uniform gap; each vehicle's position is moved by a uniform draw in
+    ``[-perturbation_m, perturbation_m]`` from the episode's stream ``ring`` (gaps change, their
+    sum stays the ring's free length). There is no leader: the leader array is filled by the
+    env as the episode runs (follower N's speed, follower 1's predecessor)."""
+    b = len(seeds)
+    d = ring_target_gap_m(sc.options["length_m"], n)
+    shift = np.empty((b, n))
+    for i, seed in enumerate(seeds):
+        shift[i] = sc.options["perturbation_m"] * (2.0 * episode_stream(int(seed), "ring")
+                                                   .random(n) - 1.0)
+    # gap_i (follower i behind i-1; follower 1 behind follower N) = d + x_{i-1} - x_i
+    ahead = np.roll(shift, 1, axis=1)
+    gap = d + ahead - shift
+    return EpisodeBatch(seeds=seeds, perturbation=u, gap_m=gap,
+                        speed_mps=np.full((b, n), sc.target_speed_mps),
+                        leader_speed_mps=np.zeros((b, sc.n_steps + 1)))
+
+
+def _check_ring(opts: dict[str, Any]) -> None:
+    n = opts["vehicles"]
+    if not MIN_VEHICLES <= n <= MAX_VEHICLES:
+        raise ConfigError(f"ring-v1 vehicles must be an integer from {MIN_VEHICLES} to "
+                          f"{MAX_VEHICLES}, got {n}")
+    gap = ring_target_gap_m(opts["length_m"], n)
+    if not (math.isfinite(opts["length_m"]) and gap >= 2 * IDMParams().standstill_m):
+        raise ConfigError(
+            f"ring-v1 length_m={opts['length_m']} leaves {gap:.2f} m between {n} vehicles of "
+            f"{RING_VEHICLE_LENGTH_M:g} m; give at least "
+            f"{n * (RING_VEHICLE_LENGTH_M + 2 * IDMParams().standstill_m):g} m")
+    if not 0.0 <= opts["perturbation_m"] < gap / 2:
+        raise ConfigError(f"ring-v1 perturbation_m must lie in [0, {gap / 2:.2f}) m (half the "
+                          f"uniform gap), got {opts['perturbation_m']}")
 
 
 #: The disturbances the ``mixed`` families draw from (their ``kinds`` option joins a subset with
@@ -414,6 +570,16 @@ class ScenarioSpec:
     published: bool = False
     fixed: dict[str, Any] = field(default_factory=dict)
     check: Callable[[dict[str, Any]], None] | None = None
+    ring: bool = False
+    settle_s: float = 0.0
+
+    @property
+    def all_defaults(self) -> dict[str, Any]:
+        """Its own options and the arrangement options every scenario takes
+        (:data:`ARRANGEMENT_DEFAULTS`; its own defaults override them, as the ring's one
+        automated vehicle)."""
+        return {**self.defaults, **{k: v for k, v in ARRANGEMENT_DEFAULTS.items()
+                                    if k not in self.defaults}}
 
 
 def _openacc_spec(window: str, description: str) -> ScenarioSpec:
@@ -493,6 +659,17 @@ for _spec in (
     _openacc_train_spec("s", 12.0),
     _openacc_train_spec("m", 16.0),
     _openacc_train_spec("l", 20.0),
+    ScenarioSpec(
+        "ring-v1",
+        "single-lane ring road, no leader (Flow's replica of Sugiyama's and Stern's rings): 22 "
+        "vehicles on 260 m, by default 21 IDM humans and one automated vehicle; stop-and-go "
+        "waves form (options length_m, vehicles, perturbation_m; 300 s, metrics after 60 s)",
+        ring_target_gap_m(260.0, 22), idm_equilibrium_speed_mps(ring_target_gap_m(260.0, 22)),
+        3000, _ring, default_vehicles=22,
+        defaults={"length_m": 260.0, "vehicles": 22, "perturbation_m": 1.0, "cavs": 1,
+                  "placement": "front"},
+        check=_check_ring, ring=True, settle_s=60.0,
+    ),
 ):
     register_scenario(_spec)
 
@@ -520,33 +697,56 @@ def make_scenario(scenario_id: str, /, **options: Any) -> Scenario:
         spec = SCENARIOS[scenario_id]
     except KeyError:
         raise UnknownNameError("scenario", scenario_id, SCENARIOS) from None
-    opts = dict(spec.defaults)
+    defaults = spec.all_defaults
+    opts = dict(defaults)
     for key, value in options.items():
-        if key not in spec.defaults:
+        if key not in defaults:
             raise ConfigError(
                 f"scenario {scenario_id} has no option {key!r}; "
-                f"its options are: {', '.join(spec.defaults) or 'none'}"
+                f"its options are: {', '.join(defaults) or 'none'}"
             )
-        kind = type(spec.defaults[key])  # an option takes the type of its default
+        kind = type(defaults[key])  # an option takes the type of its default
         opts[key] = coerce_option(value if isinstance(value, str) else str(value), kind, key,
                                   scenario_id)
     if spec.check is not None:
         spec.check(opts)
+    _check_arrangement(scenario_id, opts)
+    # which seats are automated: one of three ways; the one given replaces the default's
+    given = [k for k in _SEAT_OPTIONS if k in options]
+    if len(given) > 1:
+        raise ConfigError(f"{scenario_id}: {' and '.join(given)} both say which followers are "
+                          "automated; give one of humans (positions, humans=2+5), cav_fraction "
+                          "(a share, cav_fraction=0.25) or cavs (a count, cavs=1)")
+    if given:
+        for k in _SEAT_OPTIONS:
+            if k != given[0]:
+                opts[k] = ARRANGEMENT_DEFAULTS[k]
     # options at their default value are left out, so they never make a second leaderboard row
+    # (the seat option stays when it changes the default arrangement: ring-v1:cav_fraction=1.0)
+    seats_changed = any(opts[k] != defaults[k] for k in _SEAT_OPTIONS)
     changed = {k: repr(opts[k]) if isinstance(opts[k], float) else str(opts[k])
-               for k in options if opts[k] != spec.defaults[k]}
+               for k in options
+               if opts[k] != defaults[k] or (k in _SEAT_OPTIONS and seats_changed)}
     opts.update(spec.fixed)
+    target_gap_m, target_speed_mps, vehicles = (spec.target_gap_m, spec.target_speed_mps,
+                                                spec.default_vehicles)
+    if spec.ring:
+        vehicles = int(opts["vehicles"])
+        target_gap_m = ring_target_gap_m(opts["length_m"], vehicles)
+        target_speed_mps = idm_equilibrium_speed_mps(target_gap_m)
     return Scenario(
         id=scenario_id,
         description=spec.description,
-        target_gap_m=spec.target_gap_m,
-        target_speed_mps=spec.target_speed_mps,
+        target_gap_m=target_gap_m,
+        target_speed_mps=target_speed_mps,
         n_steps=spec.n_steps,
         options=opts,
-        default_vehicles=spec.default_vehicles,
+        default_vehicles=vehicles,
         note=spec.note,
         _builder=spec.builder,
         label=format_label(scenario_id, changed),
+        ring=spec.ring,
+        settle_s=spec.settle_s,
     )
 
 

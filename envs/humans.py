@@ -1,0 +1,315 @@
+"""Human drivers in the string: the arrangement of seats, the human models, their noise.
+
+A follower seat is *automated* (the controller under test commands it) or *human* (the
+environment drives it with a human-driver model; it sends nothing over V2V and takes no command).
+Which seats are human is the scenario's arrangement (:class:`Arrangement`, from the options
+``humans``, ``cav_fraction``, ``cavs``, ``placement`` and ``placement_seed`` that every scenario
+takes); it is the same for every episode of a scenario, so a leaderboard row is one arrangement.
+
+Two human models (sources and parameters: ``docs/concepts/mixed-traffic.md``):
+
+- ``idm``: the Intelligent Driver Model (Treiber, Hennecke, Helbing 2000) with the parameters of
+  the open mixed-autonomy benchmarks (Flow's ``IDMController``: a = 1 m/s^2, b = 1.5 m/s^2,
+  v0 = 30 m/s, T = 1 s, s0 = 2 m, delta = 4) and Gaussian acceleration noise (std 0.2 m/s^2
+  every step, Flow's ring set-up);
+- ``ovm``: the optimal velocity model of the published benchmark with per-vehicle parameters
+  drawn as DeeP-LCC's heterogeneous humans (alpha in [0.4, 0.8], beta in [0.6, 1.0], s_go in
+  [31, 39] m; the ranges of DeeP-LCC's ``data_hdvParameter``), with the same noise.
+
+Both take an optional reaction delay (whole steps of ``dt``): a human acts on what it saw that
+long ago. Every draw (parameters, noise) comes from the episode seed alone, through streams named
+here, so every controller meets the same humans on the same seed, alone or in a batch.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from envs.channel import episode_uniforms
+from envs.errors import ConfigError
+from envs.params import PlatoonParams
+
+#: The human-driver models a scenario's ``human_model`` option takes.
+HUMAN_MODELS: tuple[str, ...] = ("idm", "ovm")
+#: Where ``cav_fraction`` / ``cavs`` put the automated vehicles among the followers.
+PLACEMENTS: tuple[str, ...] = ("random", "front", "rear", "spread")
+#: The longest reaction delay a human may have (s): a limit, checked in one place.
+MAX_REACTION_DELAY_S: float = 2.0
+#: The largest standard deviation of the humans' acceleration noise (m/s^2).
+MAX_HUMAN_NOISE_MPS2: float = 2.0
+#: Stream names of the humans' draws (the episode seed and the name give the numbers).
+NOISE_STREAM = "human-noise"
+PARAMS_STREAM = "human-params"
+PLACEMENT_STREAM = "placement"
+
+
+@dataclass(frozen=True)
+class IDMParams:
+    """Parameters of the Intelligent Driver Model (Flow's ``IDMController`` defaults).
+
+    Attributes
+    ----------
+    accel_max_mps2 : float
+        Maximum acceleration a (1 m/s^2).
+    decel_comfort_mps2 : float
+        Comfortable deceleration b (1.5 m/s^2).
+    desired_speed_mps : float
+        Desired speed v0 (30 m/s).
+    time_gap_s : float
+        Safe time headway T (1 s).
+    standstill_m : float
+        Jam distance s0 (2 m).
+    delta : float
+        Acceleration exponent (4).
+    """
+
+    accel_max_mps2: float = 1.0
+    decel_comfort_mps2: float = 1.5
+    desired_speed_mps: float = 30.0
+    time_gap_s: float = 1.0
+    standstill_m: float = 2.0
+    delta: float = 4.0
+
+
+#: Ranges of the heterogeneous OVM humans' per-vehicle draws (DeeP-LCC ``data_hdvParameter``):
+#: alpha (1/s), beta (1/s), s_go (m); s_st stays the benchmark's 5 m and v_max 30 m/s.
+OVM_ALPHA_RANGE: tuple[float, float] = (0.4, 0.8)
+OVM_BETA_RANGE: tuple[float, float] = (0.6, 1.0)
+OVM_GAP_GO_RANGE_M: tuple[float, float] = (31.0, 39.0)
+
+
+def idm_accel_mps2(gap_m: np.ndarray, speed_mps: np.ndarray, pred_speed_mps: np.ndarray,
+                   p: IDMParams = IDMParams()) -> np.ndarray:
+    """IDM acceleration ``a [1 - (v/v0)^delta - (s*/s)^2]``, ``s* = s0 + v T + v dv/(2 sqrt(ab))``.
+
+    Parameters
+    ----------
+    gap_m, speed_mps, pred_speed_mps : arrays of one shape
+        Bumper-to-bumper gap ``s``, own speed ``v`` and the predecessor's speed.
+    p : IDMParams
+
+    Returns
+    -------
+    array
+        The acceleration (m/s^2), unclipped; a gap at or below 0 is taken as 1 cm (the collision
+        rule ends the episode long before).
+    """
+    v = np.asarray(speed_mps, dtype=np.float64)
+    s_star = p.standstill_m + v * p.time_gap_s
+    s_star += v * (v - pred_speed_mps) / (2.0 * math.sqrt(p.accel_max_mps2 * p.decel_comfort_mps2))
+    s = np.maximum(gap_m, 0.01)
+    ratio = s_star / s
+    return p.accel_max_mps2 * (1.0 - (v / p.desired_speed_mps) ** p.delta - ratio * ratio)
+
+
+def idm_equilibrium_speed_mps(gap_m: float, p: IDMParams = IDMParams()) -> float:
+    """The speed at which the IDM keeps ``gap_m`` behind a predecessor at the same speed (the
+    root of ``1 - (v/v0)^delta = ((s0 + v T)/s)^2`` in ``[0, v0]``, by bisection)."""
+    if gap_m <= p.standstill_m:
+        return 0.0
+    lo, hi = 0.0, p.desired_speed_mps
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        if 1.0 - (mid / p.desired_speed_mps) ** p.delta - ((p.standstill_m + mid * p.time_gap_s)
+                                                           / gap_m) ** 2 > 0:
+            lo = mid
+        else:
+            hi = mid
+    return 0.5 * (lo + hi)
+
+
+def gaussian_noise_mps2(seeds: np.ndarray, step: int, n_seats: int, steps: int,
+                        std_mps2: float) -> np.ndarray:
+    """The humans' acceleration noise, ``(steps, B, n_seats)`` normals of std ``std_mps2``.
+
+    A pure function of (episode seed, step, seat) (Box-Muller on the counter-based uniforms of
+    :func:`envs.channel.episode_uniforms`), so an episode's humans get the same noise alone or in
+    a batch, with any controller, and an ``idm`` controller on a seat gets the noise a human on
+    that seat would.
+    """
+    u = episode_uniforms(seeds, NOISE_STREAM, step, 2 * n_seats, steps)
+    u1 = u[..., :n_seats]
+    u2 = u[..., n_seats:]
+    r = np.sqrt(-2.0 * np.log1p(-u1))  # 1 - u1 in (0, 1]
+    r *= np.cos(2.0 * np.pi * u2)
+    r *= std_mps2
+    return r
+
+
+@dataclass(frozen=True)
+class Arrangement:
+    """Which follower seats are automated, and how the human ones drive.
+
+    Attributes
+    ----------
+    automated : tuple of bool, length N
+        Seat ``i`` (follower ``i + 1``) is automated.
+    human_model : str
+        ``idm`` or ``ovm`` (:data:`HUMAN_MODELS`).
+    reaction_delay_s : float
+        The humans' reaction delay (rounded to whole steps).
+    noise_std_mps2 : float
+        Standard deviation of the humans' Gaussian acceleration noise, every step.
+    """
+
+    automated: tuple[bool, ...]
+    human_model: str = "idm"
+    reaction_delay_s: float = 0.0
+    noise_std_mps2: float = 0.2
+
+    @property
+    def mask(self) -> np.ndarray:
+        """``(N,)`` booleans, True where the seat is automated."""
+        return np.array(self.automated, dtype=bool)
+
+    @property
+    def n_automated(self) -> int:
+        """Automated seats."""
+        return int(sum(self.automated))
+
+    @property
+    def cav_share(self) -> float:
+        """Share of the followers that are automated, in [0, 1]."""
+        return self.n_automated / len(self.automated)
+
+    @property
+    def homogeneous(self) -> bool:
+        """Every seat automated (the published platoon)."""
+        return all(self.automated)
+
+    def delay_steps(self, dt_s: float) -> int:
+        """The reaction delay in whole steps."""
+        return int(round(self.reaction_delay_s / dt_s + 1e-9))
+
+
+def count_automated(cav_fraction: float, n_vehicles: int) -> int:
+    """Automated seats for a share: ``floor(share N + 1/2)`` (half up), at least one for a
+    positive share (0.05 of 8 is one vehicle, not none)."""
+    k = int(math.floor(cav_fraction * n_vehicles + 0.5))
+    return max(k, 1) if cav_fraction > 0 else 0
+
+
+def place_automated(k: int, n_vehicles: int, placement: str, placement_seed: int) -> np.ndarray:
+    """The seats (0-based, sorted) of ``k`` automated vehicles among ``n_vehicles``.
+
+    ``front``: the first k; ``rear``: the last k; ``spread``: ``floor(j N / k)`` for
+    ``j = 0..k-1`` (evenly, the first seat automated); ``random``: drawn without replacement from
+    the stream ``placement`` of ``placement_seed`` (the same for every episode of the scenario).
+    """
+    if placement == "front":
+        seats = np.arange(k)
+    elif placement == "rear":
+        seats = np.arange(n_vehicles - k, n_vehicles)
+    elif placement == "spread":
+        seats = np.array([(j * n_vehicles) // k for j in range(k)], dtype=np.int64)
+    else:
+        from envs.scenarios import episode_stream
+
+        seats = np.sort(episode_stream(int(placement_seed), PLACEMENT_STREAM)
+                        .choice(n_vehicles, size=k, replace=False))
+    return np.asarray(seats, dtype=np.int64)
+
+
+def parse_positions(text: str, n_vehicles: int | None = None) -> tuple[int, ...]:
+    """Human follower positions of the ``humans`` option: ``"2+5"`` -> ``(2, 5)`` (1-based).
+
+    Raises
+    ------
+    ConfigError
+        For an item that is not a positive integer, a repeated one, or (with ``n_vehicles``) a
+        position beyond N.
+    """
+    items = [s.strip() for s in text.split("+")]
+    out: list[int] = []
+    for s in items:
+        if not s.isdigit() or int(s) < 1:
+            raise ConfigError(f"humans={text!r}: positions are follower numbers 1..N joined with "
+                              f"'+' (humans=2+5), got {s!r}")
+        out.append(int(s))
+    if len(set(out)) != len(out):
+        raise ConfigError(f"humans={text!r} names a position twice")
+    if n_vehicles is not None and max(out) > n_vehicles:
+        raise ConfigError(f"humans={text!r}: position {max(out)} is beyond the {n_vehicles} "
+                          f"followers of this run; positions run from 1 to {n_vehicles}")
+    return tuple(sorted(out))
+
+
+class HumanDrivers:
+    """The human seats of a batch of episodes: their parameters, delay buffer and noise.
+
+    Built by the environment at reset; :meth:`commands` returns the commands of every seat with
+    the human ones replaced by the human model's (automated seats keep the controller's).
+
+    Parameters
+    ----------
+    arrangement : Arrangement
+    seeds : (B,) ints
+        Episode seeds (the parameter draws and the noise come from them).
+    n_steps : int
+        Steps of the episode (the noise is drawn for all of them at once).
+    params : PlatoonParams
+        Physics (``dt_s``, the OVM's gaps).
+    """
+
+    def __init__(self, arrangement: Arrangement, seeds: np.ndarray, n_steps: int,
+                 params: PlatoonParams) -> None:
+        self.arrangement = arrangement
+        self.params = params
+        n = len(arrangement.automated)
+        b = len(seeds)
+        self.human = ~arrangement.mask  # (N,)
+        self.model = arrangement.human_model
+        self.delay = arrangement.delay_steps(params.dt_s)
+        self.idm = IDMParams()
+        if self.model == "ovm":
+            draws = np.stack([_ovm_draws(int(s), n) for s in seeds])  # (B, 3, N)
+            self.alpha, self.beta, self.gap_go_m = draws[:, 0], draws[:, 1], draws[:, 2]
+        std = arrangement.noise_std_mps2
+        #: (T, B, N) noise of every step and seat (automated seats' columns unused)
+        self.noise = (gaussian_noise_mps2(seeds, 0, n, n_steps, std) if std > 0
+                      else np.zeros((n_steps, b, n)))
+        self._history: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+
+    def model_accel_mps2(self, gap_m: np.ndarray, speed_mps: np.ndarray,
+                         pred_speed_mps: np.ndarray) -> np.ndarray:
+        """The human model's acceleration for every seat, ``(B, N)``, without noise or delay."""
+        if self.model == "idm":
+            return idm_accel_mps2(gap_m, speed_mps, pred_speed_mps, self.idm)
+        return ovm_hetero_accel_mps2(gap_m, speed_mps, pred_speed_mps, self.alpha, self.beta,
+                                     self.gap_go_m, self.params)
+
+    def commands(self, step: int, command_mps2: np.ndarray, gap_m: np.ndarray,
+                 speed_mps: np.ndarray, pred_speed_mps: np.ndarray) -> np.ndarray:
+        """``command_mps2`` with the human seats' commands put in (a new array)."""
+        seen = (gap_m.copy(), speed_mps.copy(), pred_speed_mps.copy())
+        self._history.append(seen)
+        if len(self._history) > self.delay + 1:
+            self._history.pop(0)
+        g, v, vp = self._history[0]  # what the humans saw `delay` steps ago (the start, before)
+        u = self.model_accel_mps2(g, v, vp)
+        u += self.noise[min(step, len(self.noise) - 1)]
+        return np.where(self.human[None, :], u, command_mps2)
+
+
+def ovm_hetero_accel_mps2(gap_m: np.ndarray, speed_mps: np.ndarray, pred_speed_mps: np.ndarray,
+                          alpha: np.ndarray, beta: np.ndarray, gap_go_m: np.ndarray,
+                          params: PlatoonParams = PlatoonParams()) -> np.ndarray:
+    """The OVM ``alpha (V(s) - v) + beta (v_pred - v)`` with per-vehicle ``alpha``, ``beta`` and
+    ``s_go`` (the benchmark's cosine ``V``: s_st = ``params.gap_stop_m``, v_max 30 m/s)."""
+    span = gap_go_m - params.gap_stop_m
+    g = np.clip(gap_m, params.gap_stop_m, gap_go_m)
+    v_opt = params.ovm_speed_max_mps / 2 * (1 - np.cos(np.pi * (g - params.gap_stop_m) / span))
+    return alpha * (v_opt - speed_mps) + beta * (pred_speed_mps - speed_mps)
+
+
+def _ovm_draws(seed: int, n: int) -> np.ndarray:
+    """``(3, N)``: alpha, beta and s_go of every seat of one episode (uniform in the ranges)."""
+    from envs.scenarios import episode_stream
+
+    rng = episode_stream(seed, PARAMS_STREAM)
+    lo = np.array([OVM_ALPHA_RANGE[0], OVM_BETA_RANGE[0], OVM_GAP_GO_RANGE_M[0]])[:, None]
+    hi = np.array([OVM_ALPHA_RANGE[1], OVM_BETA_RANGE[1], OVM_GAP_GO_RANGE_M[1]])[:, None]
+    return lo + (hi - lo) * rng.random((3, n))
