@@ -7,7 +7,7 @@ import argparse
 from commands.cli import plain
 from controllers.registry import CONTROLLERS, controller_options
 from envs.params import PlatoonParams
-from envs.scenarios import list_scenarios
+from envs.scenarios import ARRANGEMENT_DEFAULTS, list_scenarios
 
 
 def main(argv: list[str]) -> int:
@@ -21,6 +21,9 @@ def main(argv: list[str]) -> int:
         pub = " (published)" if s.published else ""
         print(f"  {s.id:<14} d*={s.target_gap_m:g} m, v*={s.target_speed_mps:g} m/s, "
               f"{s.n_steps} steps, N={s.default_vehicles} by default{pub}: {s.description}{extra}")
+    opts = ", ".join(f"{k}={v!s}" if v != "" else f"{k}=" for k, v in ARRANGEMENT_DEFAULTS.items())
+    print(f"  every scenario also takes the arrangement of human drivers (mixed traffic; "
+          f"docs/concepts/mixed-traffic.md): {opts}")
     print("\naction modes of the learning interface (envs.accel_mode; Gymnasium ids "
           "cacc_bench/<scenario> and cacc_bench_accel/<scenario>):")
     print("  ovm-gain   Discrete(4) per follower: the published OVM gains (alpha, beta); "

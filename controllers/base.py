@@ -24,7 +24,7 @@ from envs.errors import ConfigError, ControllerContractError
 from envs.humans import Arrangement
 from envs.params import PlatoonParams
 from envs.platoon import PlatoonState
-from envs.scenarios import Scenario
+from envs.scenarios import Scenario, check_size_fits
 
 FAMILIES = ("human", "linear", "mpc", "marl", "data")
 
@@ -275,6 +275,7 @@ def check_fits(controller: Controller, scenario: Scenario, n_vehicles: int,
     each setting before its first run."""
     from controllers.registry import mixed_traffic_controllers
 
+    check_size_fits(scenario, n_vehicles)
     arrangement = scenario.arrangement(n_vehicles)
     where = f"{scenario.label or scenario.id} with N = {n_vehicles}"
     if arrangement.n_automated == 0 and controller.family != "human":

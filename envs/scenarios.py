@@ -133,7 +133,7 @@ class Scenario:
             Overrides the published draw ``U`` of each episode.
         """
         check_vehicles(n_vehicles)
-        check_fits(self, n_vehicles)
+        check_size_fits(self, n_vehicles)
         seeds_arr = np.asarray(seeds, dtype=np.int64).reshape(-1)
         if perturbation is None:
             u = np.array([published_perturbation(int(s)) for s in seeds_arr], dtype=np.float64)
@@ -157,7 +157,7 @@ def check_vehicles(n_vehicles: int) -> int:
     return int(n_vehicles)
 
 
-def check_fits(scenario: Scenario, n_vehicles: int) -> None:
+def check_size_fits(scenario: Scenario, n_vehicles: int) -> None:
     """Refuse a platoon size the scenario's arrangement or ring cannot take
     (:class:`ConfigError` naming what works)."""
     if scenario.ring and n_vehicles != scenario.options["vehicles"]:
@@ -701,9 +701,11 @@ def make_scenario(scenario_id: str, /, **options: Any) -> Scenario:
     opts = dict(defaults)
     for key, value in options.items():
         if key not in defaults:
+            own = [k for k in spec.defaults if k not in ARRANGEMENT_DEFAULTS]
             raise ConfigError(
                 f"scenario {scenario_id} has no option {key!r}; "
-                f"its options are: {', '.join(defaults) or 'none'}"
+                f"its options are: {', '.join(own) or 'none'}; and the arrangement of every "
+                f"scenario: {', '.join(ARRANGEMENT_DEFAULTS)}"
             )
         kind = type(defaults[key])  # an option takes the type of its default
         opts[key] = coerce_option(value if isinstance(value, str) else str(value), kind, key,

@@ -11,7 +11,7 @@ from commands.cli import main as cli
 from controllers.registry import canonical_options, controller_label, controller_options
 from envs.errors import ConfigError
 from envs.naming import format_label, parse_label, parse_named_list
-from envs.scenarios import make_scenario, parse_scenario_list, scenario_label
+from envs.scenarios import ARRANGEMENT_DEFAULTS, make_scenario, parse_scenario_list, scenario_label
 
 
 @pytest.mark.parametrize("name, opts, label", [
@@ -54,7 +54,8 @@ def test_scenario_options_on_the_command_line_and_in_labels() -> None:
         "catchup-v1", "sine-v1[amplitude_mps=2.0]"]
     assert scenario_label("sine-v1:amplitude_mps=1") == "sine-v1"  # the default
     sc = make_scenario("sine-v1[amplitude_mps=2.0,frequency_hz=0.5]")
-    assert sc.id == "sine-v1" and sc.options == {"amplitude_mps": 2.0, "frequency_hz": 0.5}
+    assert sc.id == "sine-v1" and sc.options == {"amplitude_mps": 2.0, "frequency_hz": 0.5,
+                                                 **ARRANGEMENT_DEFAULTS}
     with pytest.raises(ConfigError, match="has no option 'nope'"):
         parse_scenario_list("sine-v1:nope=1")
 

@@ -109,9 +109,11 @@ def test_the_label_is_the_one_scenario_label_gives() -> None:
 UNKNOWN = ("cacc-bench: error: unknown scenario 'nope'; valid scenarios are: brake-v1, "
            "catchup-v1, mixed-v1, mixed-v2, openacc-l-v1, openacc-m-v1, openacc-s-v1, "
            "openacc-train-l-v1, "
-           "openacc-train-m-v1, openacc-train-s-v1, sine-v1, slowdown-v1, slowdown-v2\n")
+           "openacc-train-m-v1, openacc-train-s-v1, ring-v1, sine-v1, slowdown-v1, slowdown-v2\n")
 NO_OPTION = ("cacc-bench: error: scenario sine-v1 has no option 'nope'; its options are: "
-             "amplitude_mps, frequency_hz\n")
+             "amplitude_mps, frequency_hz; and the arrangement of every scenario: humans, "
+             "cav_fraction, cavs, placement, placement_seed, human_model, reaction_delay_s, "
+             "human_noise_mps2\n")
 
 
 @pytest.mark.parametrize("argv", [
