@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 from pathlib import Path
 from typing import Any
@@ -12,6 +13,14 @@ from benchmark.rollout import Trajectory
 from benchmark.statistics import bootstrap_ci, hierarchical_bootstrap_ci
 from benchmark.suite import KEY_COLUMNS
 from envs.errors import ConfigError
+
+#: The mixed-traffic columns of runs.csv (:func:`benchmark.metrics.mixed_traffic_metrics`).
+MIXED_COLUMNS: tuple[str, ...] = (
+    "cav_share", "head_to_tail_gain", "speed_std_last_mps", "speed_std_humans_mps",
+    "braking_events", "braking_events_humans", "braking_events_cavs", "braking_events_per_veh_h",
+    "energy_humans_kwh", "energy_cavs_kwh", "controllable_energy_humans_kwh",
+    "controllable_energy_cavs_kwh",
+)
 
 RUN_COLUMNS: tuple[str, ...] = (
     "controller", "family", "scenario", "n_vehicles", "seed", "status", "error", "steps",
@@ -25,6 +34,8 @@ RUN_COLUMNS: tuple[str, ...] = (
     "controller_name", "options", "deterministic", "spacing_string_gain",
     "safety_interventions", "safety_correction_mps2",
     "controllable_energy_kwh", "controllable_energy_kwh_per_100km",
+    # mixed traffic (benchmark.metrics.mixed_traffic_metrics)
+    *MIXED_COLUMNS,
 )
 
 #: Columns a store written before they existed lacks; a finished run there had no safety filter.
@@ -36,6 +47,14 @@ ZERO_WHEN_ABSENT: tuple[str, ...] = ("safety_interventions", "safety_correction_
 #: would not be comparable with the other columns' means over all of them).
 UNKNOWN_WHEN_ABSENT: tuple[str, ...] = (
     "controllable_energy_kwh", "controllable_energy_kwh_per_100km",
+    *(c for c in MIXED_COLUMNS if c != "cav_share"),
+)
+
+#: Mixed-traffic metrics the leaderboard averages over episodes (``cav_share`` is a plain
+#: column: one arrangement per row).
+MIXED_LEADERBOARD_METRICS: tuple[str, ...] = (
+    "head_to_tail_gain", "speed_std_last_mps", "speed_std_humans_mps",
+    "braking_events_per_veh_h", "energy_humans_kwh", "energy_cavs_kwh",
 )
 
 LEADERBOARD_METRICS: tuple[str, ...] = (
@@ -43,6 +62,7 @@ LEADERBOARD_METRICS: tuple[str, ...] = (
     "gap_rmse_m", "speed_mean_mps", "speed_std_mps", "accel_std_mps2", "jerk_rms_mps3",
     "string_gain", "compute_ms_p50", "comm_bits_per_s", "energy_kwh_per_100km", "min_gap_m",
     "controllable_energy_kwh", "controllable_energy_kwh_per_100km",
+    *MIXED_LEADERBOARD_METRICS,
 )
 
 GROUP_COLUMNS: tuple[str, ...] = (
@@ -65,11 +85,25 @@ def runs_frame(records: list[dict[str, Any]]) -> Any:
             for c in ZERO_WHEN_ABSENT:
                 if c not in rec:
                     row[c] = 0.0
+        if row["cav_share"] is None:  # a failed run, or one stored before the column
+            row["cav_share"] = _cav_share(str(rec.get("scenario")), rec.get("n_vehicles"))
         rows.append(row)
     df = pd.DataFrame(rows, columns=list(RUN_COLUMNS))
     if len(df):
         df = df.sort_values(list(KEY_COLUMNS), kind="mergesort").reset_index(drop=True)
     return df
+
+
+@functools.lru_cache(maxsize=256)
+def _cav_share(scenario: str, n_vehicles: Any) -> float:
+    """The share of automated followers of the scenario label's arrangement for ``n_vehicles``
+    (NaN where the label or the size cannot be built: a scenario this version does not know)."""
+    from envs.scenarios import as_scenario
+
+    try:
+        return as_scenario(scenario).arrangement(int(n_vehicles)).cav_share
+    except (ConfigError, KeyError, TypeError, ValueError):  # UnknownNameError is a KeyError
+        return math.nan
 
 
 def pool_training_seeds(runs: Any) -> Any:
@@ -139,6 +173,10 @@ def leaderboard_frame(runs: Any, pool_seeds: bool = False) -> Any:
         row["string_stable_frac"] = float(ok["string_stable"].astype(float).mean()) if len(ok) else math.nan
         train_seeds = sorted(set(ok["train_seed"].dropna().astype(int)))
         row["n_train_seeds"] = len(train_seeds) if train_seeds else None
+        # one arrangement per row (the label carries it): the share of its automated followers
+        shares = (pd.to_numeric(grp["cav_share"], errors="coerce").dropna().tolist()
+                  if "cav_share" in grp else [])
+        row["cav_share"] = float(shares[0]) if shares else math.nan
         for metric in LEADERBOARD_METRICS:
             if metric not in ok:  # a frame of runs from before the column existed
                 vals = np.full(len(ok), np.nan)

@@ -28,6 +28,20 @@ TIMING_COLUMNS: tuple[str, ...] = (
 #: which says nothing about how the controller propagates disturbances.
 STRING_GAIN_SKIP_STEPS = 1
 
+#: A braking event begins where a vehicle's applied acceleration falls below minus this
+#: (m/s^2). Ours (Stern et al. 2018 count braking events on their ring but the threshold they
+#: used could not be checked here): the IDM humans' maximum acceleration, two thirds of their
+#: comfortable deceleration b = 1.5 m/s^2 (``docs/concepts/metrics.md#mixed-traffic``).
+BRAKING_THRESHOLD_MPS2 = 1.0
+#: After an event a vehicle must come back to an acceleration of at least
+#: ``-(BRAKING_THRESHOLD_MPS2 - BRAKING_REARM_MPS2)`` before its next event counts: 2.5 standard
+#: deviations of the humans' per-step acceleration noise (0.2 m/s^2), so that noise around the
+#: threshold does not count one braking as several.
+BRAKING_REARM_MPS2 = 0.5
+#: A head whose speed swings less than this (std, m/s) has no swing to compare the tail's with:
+#: ``head_to_tail_gain`` is NaN there (a constant-speed leader).
+HEAD_TO_TAIL_MIN_STD_MPS = 1e-6
+
 
 def _percentiles(x: np.ndarray, qs: tuple[float, ...]) -> list[float]:
     """Percentiles ``qs`` of ``x`` (one sort; NaN for an empty ``x``)."""
@@ -89,10 +103,123 @@ def controllable_energy_kwh(traj: Trajectory) -> float:
     return float(p.sum() * traj.dt_s / 3600.0) - cruise_energy_kwh(traj)
 
 
+def braking_onsets(accel_mps2: np.ndarray, threshold_mps2: float = BRAKING_THRESHOLD_MPS2,
+                   rearm_mps2: float = BRAKING_REARM_MPS2) -> np.ndarray:
+    """Braking events of each vehicle: onsets of braking harder than ``threshold_mps2``.
+
+    A row ``t >= 1`` is an onset where ``a[t] < -threshold_mps2`` and the vehicle was not braking
+    after row ``t - 1``. A vehicle is braking from an onset until its acceleration comes back to
+    ``a >= -threshold_mps2 + rearm_mps2`` (hysteresis; with ``rearm_mps2 = 0`` every crossing of
+    the threshold from above is an onset). Row 0 is the row before the window: the vehicle starts
+    braking there if ``a[0] < -threshold_mps2`` (that braking is no onset of the window).
+
+    Parameters
+    ----------
+    accel_mps2 : (R, N) array
+        Applied accelerations, row 0 the row before the counted rows ``1 .. R-1``.
+    threshold_mps2, rearm_mps2 : float
+        Non-negative (m/s^2), ``rearm_mps2 <= threshold_mps2``.
+
+    Returns
+    -------
+    (N,) int array
+        Onsets of each vehicle in rows ``1 .. R-1`` (0 for ``R <= 1``).
+    """
+    a = np.asarray(accel_mps2, dtype=np.float64)
+    if a.shape[0] <= 1:
+        return np.zeros(a.shape[1:], dtype=np.int64)
+    below = a < -threshold_mps2
+    above = a >= -threshold_mps2 + rearm_mps2
+    above[0] = ~below[0]  # row 0 decides the state the window starts in
+    rows = np.arange(a.shape[0]).reshape(-1, *([1] * (a.ndim - 1)))
+    last_below = np.maximum.accumulate(np.where(below, rows, -1), axis=0)
+    last_above = np.maximum.accumulate(np.where(above, rows, -1), axis=0)
+    braking = last_below > last_above  # the state after each row
+    return np.asarray((below[1:] & ~braking[:-1]).sum(axis=0), dtype=np.int64)
+
+
+def mixed_traffic_metrics(traj: Trajectory) -> dict[str, float | int]:
+    """The mixed-traffic columns of ``runs.csv``: over the whole string, humans included.
+
+    Every statistic is over the rows after the settle time, ``k + 1 .. T`` with ``k =
+    traj.settle_steps`` (rows ``1 .. T``, those of the other metrics, where ``k = 0``). A sum
+    over an empty group (no human seat, no automated seat) is 0; a mean or a ratio over one, or
+    a statistic over no row, is NaN. Definitions and sources: ``docs/concepts/metrics.md``.
+
+    Parameters
+    ----------
+    traj : Trajectory
+        One run; ``traj.automated`` None reads as every seat automated.
+
+    Returns
+    -------
+    dict
+        ``cav_share``; ``head_to_tail_gain`` (std over time of the last follower's speed over
+        the first vehicle's: the leader, or follower 1 on a ring); ``speed_std_last_mps``,
+        ``speed_std_humans_mps`` (mean over human seats of the std over time of each one's
+        speed); ``braking_events`` and its split ``braking_events_humans``,
+        ``braking_events_cavs`` (counts of :func:`braking_onsets`), ``braking_events_per_veh_h``
+        (all followers, per vehicle per hour of the window); ``energy_humans_kwh``,
+        ``energy_cavs_kwh`` (battery energy of each group over the window),
+        ``controllable_energy_humans_kwh``, ``controllable_energy_cavs_kwh`` (each group's
+        energy above steady cruise at the mean of ``leader_speed_mps`` over the window).
+    """
+    n = traj.speed_mps.shape[1]
+    auto = (np.ones(n, dtype=bool) if traj.automated is None
+            else np.asarray(traj.automated, dtype=bool).reshape(n))
+    human = ~auto
+    k = max(int(traj.settle_steps), 0)
+    rows = slice(k + 1, traj.steps + 1)
+    v = traj.speed_mps[rows]
+    t_rows = v.shape[0]
+    dt = traj.dt_s
+    nan = math.nan
+    head = traj.speed_mps[rows, 0] if traj.ring else traj.leader_speed_mps[rows]
+    if t_rows:
+        std_each = v.std(axis=0)
+        std_head = float(np.std(head))
+        std_last = float(std_each[-1])
+        gain = std_last / std_head if std_head >= HEAD_TO_TAIL_MIN_STD_MPS else nan
+        std_humans = float(std_each[human].mean()) if human.any() else nan
+    else:
+        std_last = gain = std_humans = nan
+    events = braking_onsets(traj.accel_mps2[min(k, traj.steps) : traj.steps + 1])
+    hours = t_rows * dt / 3600.0
+    energy_each = traj.power_kw[rows].sum(axis=0) * dt / 3600.0  # (N,) kWh
+    lead_mean = float(np.mean(traj.leader_speed_mps[rows])) if t_rows else nan
+    if t_rows and lead_mean > 0.0:
+        from envs.energy import battery_power_kw
+
+        cruise_kw = float(battery_power_kw(lead_mean, 0.0))
+        distance_each_m = v.sum(axis=0) * dt
+        controllable_each = energy_each - cruise_kw * (distance_each_m / lead_mean) / 3600.0
+    else:  # no row (a sum of nothing) or a still leader (steady cruise costs nothing per metre)
+        controllable_each = np.full(n, 0.0 if not t_rows else nan)
+
+    def group_sum(x: np.ndarray, seats: np.ndarray) -> float:
+        return float(x[seats].sum()) if seats.any() else 0.0
+
+    return {
+        "cav_share": float(auto.mean()),
+        "head_to_tail_gain": gain,
+        "speed_std_last_mps": std_last,
+        "speed_std_humans_mps": std_humans,
+        "braking_events": int(events.sum()),
+        "braking_events_humans": int(events[human].sum()),
+        "braking_events_cavs": int(events[auto].sum()),
+        "braking_events_per_veh_h": float(events.sum()) / (n * hours) if hours > 0 else nan,
+        "energy_humans_kwh": group_sum(energy_each, human),
+        "energy_cavs_kwh": group_sum(energy_each, auto),
+        "controllable_energy_humans_kwh": group_sum(controllable_each, human),
+        "controllable_energy_cavs_kwh": group_sum(controllable_each, auto),
+    }
+
+
 def run_metrics(
     traj: Trajectory, target_gap_m: float, target_speed_mps: float
 ) -> dict[str, float | int | bool]:
-    """All per-run metrics of ``runs.csv`` that come from the trajectory."""
+    """All per-run metrics of ``runs.csv`` that come from the trajectory (the mixed-traffic ones
+    from :func:`mixed_traffic_metrics`, after the trajectory's ``settle_steps``)."""
     n = traj.gap_m.shape[1]
     dt = traj.dt_s
     steps = traj.steps
@@ -147,4 +274,6 @@ def run_metrics(
         "controllable_energy_kwh": controllable_kwh,
         "controllable_energy_kwh_per_100km": ((controllable_kwh / n) / distance_km * 100.0
                                               if distance_km > 0 else math.nan),
+        # mixed traffic: the whole string, humans included, after the settle time
+        **mixed_traffic_metrics(traj),
     }

@@ -99,6 +99,20 @@ class RunRecord(BaseModel):
     # leaves it empty; it cannot be recomputed without the trajectory)
     controllable_energy_kwh: Metric = None
     controllable_energy_kwh_per_100km: Metric = None
+    # mixed traffic (benchmark.metrics.mixed_traffic_metrics; absent from stores written before
+    # them: runs.csv leaves them empty, cav_share aside, which the scenario label gives)
+    cav_share: NonNegative = Field(default=None, ge=0.0, le=1.0)
+    head_to_tail_gain: NonNegative = Field(default=None, ge=0.0)
+    speed_std_last_mps: NonNegative = Field(default=None, ge=0.0)
+    speed_std_humans_mps: NonNegative = Field(default=None, ge=0.0)
+    braking_events: int | None = Field(default=None, ge=0)
+    braking_events_humans: int | None = Field(default=None, ge=0)
+    braking_events_cavs: int | None = Field(default=None, ge=0)
+    braking_events_per_veh_h: NonNegative = Field(default=None, ge=0.0)
+    energy_humans_kwh: Metric = None
+    energy_cavs_kwh: Metric = None
+    controllable_energy_humans_kwh: Metric = None
+    controllable_energy_cavs_kwh: Metric = None
 
     @field_validator("options")
     @classmethod

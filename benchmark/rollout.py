@@ -47,6 +47,15 @@ class Trajectory:
         :meth:`controllers.base.Controller.intervention_totals`).
     safety_correction_mps2 : float
         Sum over those follower-steps of how much it lowered the applied command (m/s^2).
+    automated : (N,) bool or None
+        The seats the controller commanded (False: a human seat driven by the env,
+        :mod:`envs.humans`); None reads as every seat automated (the published platoon).
+    settle_steps : int
+        Steps left out of the mixed-traffic metrics at the start (the scenario's ``settle_s``
+        in steps: 600 on ``ring-v1``, 0 elsewhere); they use rows ``settle_steps + 1 .. T``.
+    ring : bool
+        A ring road: there is no leader and ``leader_speed_mps`` records follower N's speed
+        (follower 1's predecessor).
     """
 
     gap_m: np.ndarray
@@ -66,6 +75,9 @@ class Trajectory:
     dt_s: float
     safety_interventions: int = 0
     safety_correction_mps2: float = 0.0
+    automated: np.ndarray | None = None
+    settle_steps: int = 0
+    ring: bool = False
 
 
 def rollout(
@@ -157,6 +169,8 @@ def rollout_batch(
             break
     totals_of = getattr(controller, "intervention_totals", None)  # a safety filter's counts
     totals = totals_of() if totals_of is not None else None
+    automated = s.automated_mask.copy()
+    settle = settle_steps(scenario, params)
     out = []
     for k in range(b):
         n_k = int(steps[k])
@@ -183,9 +197,17 @@ def rollout_batch(
                 dt_s=params.dt_s,
                 safety_interventions=int(totals[0][k]) if totals is not None else 0,
                 safety_correction_mps2=float(totals[1][k]) if totals is not None else 0.0,
+                automated=automated.copy(),
+                settle_steps=settle,
+                ring=bool(scenario.ring),
             )
         )
     return out
+
+
+def settle_steps(scenario: Scenario, params: PlatoonParams) -> int:
+    """The scenario's ``settle_s`` in whole steps of ``params.dt_s`` (rounded)."""
+    return int(round(scenario.settle_s / params.dt_s))
 
 
 def _check_command(controller: Controller, command: np.ndarray, b: int, n: int) -> None:
@@ -225,4 +247,6 @@ def _score_recorded(env: PlatoonEnv, rec: dict[str, np.ndarray], params: Platoon
         reward=reward[:steps], tracking_reward=tracking[:steps],
         command_mps2=accel[1 : steps + 1].copy(), compute_s=np.zeros(steps),
         collided=bool(hit.size), steps=steps, bits_sent=0, solver_failures=0, dt_s=params.dt_s,
+        automated=env.scenario.arrangement(env.n_vehicles).mask,  # every seat: the recorded cars
+        settle_steps=settle_steps(env.scenario, params), ring=bool(env.scenario.ring),
     )

@@ -70,6 +70,38 @@ age ``t - stamp``, shifts the plan by that age and extends it with a hold, and f
 so that it starts at the predecessor speed measured by the radar now (own sensors are not V2V).
 Before any message arrives, the predecessor's measured speed is held.
 
+Human drivers
+-------------
+On a mixed string (``humans=2+5``, ``cav_fraction=0.5``, ``ring-v1``) the controller commands
+the automated seats only (``EpisodeContext.automated``, ``PlatoonState.automated_mask``):
+
+- no problem is solved for a human seat (none is counted in ``solve_count``); its command is 0,
+  which the env ignores (the human model drives it), and its "plan" row is never delivered: a
+  human sends nothing over V2V (``envs.channel``: its links are silent).
+- An automated follower behind a human therefore never receives a plan. It predicts the human
+  from its own sensors only (radar: the human's speed now, and the speed one step ago), with
+  the stated model of the option ``human_prediction`` (:func:`human_predecessor_speeds`):
+
+  ``"constant-speed"`` (the default): the measured speed held over the horizon. This is what
+  the V2V rule above already gives for a predecessor that never sends (its message stays
+  ``NaN``), so homogeneous strings are untouched.
+
+  ``"idm"``: the nominal IDM (:class:`envs.humans.IDMParams`, Flow's parameters, whatever human
+  model the scenario drives its humans with) rolled forward over the horizon. The IDM needs
+  the human's own gap and its predecessor's speed, which no automated vehicle senses; they are
+  replaced by a stated assumption: the human follows an unseen vehicle that keeps the human's
+  current speed (speed difference 0 now, that vehicle's speed held), at the gap at which the
+  IDM gives exactly the acceleration the follower measured (the difference of its last two
+  radar speeds over ``dt``; 0 on the first step). The gap is capped at ten times the IDM's
+  desired gap (``r >= IDM_MIN_INTERACTION``) so that a measured acceleration at or above the
+  free-road one does not become an infinite gap. Under this assumption a human measured at
+  constant speed is predicted at constant speed; a braking human is predicted to brake less
+  and less as its gap to the unseen vehicle opens, and to recover its speed.
+
+- Automated predecessors still send plans, received as above (a lost or late plan is aged, a
+  missing one is the measured speed held, whatever ``human_prediction`` says). On the ring
+  (``ring-v1``, no leader) follower 1's predecessor is follower N, by the same rules.
+
 Fallback
 --------
 A solver failure (status not successful, non-finite solution, exception) never ends a run: the
@@ -92,6 +124,7 @@ from controllers.base import Controller, EpisodeContext, Message
 from controllers.registry import build_config
 from envs.channel import V2VChannel
 from envs.errors import ConfigError
+from envs.humans import IDMParams
 from envs.interrupt import raise_if_interrupted
 from envs.params import PlatoonParams
 from envs.platoon import PlatoonState
@@ -100,6 +133,11 @@ if TYPE_CHECKING:
     from envs.energy import PowerPolynomial
 
 TERMINAL_CHOICES = ("lqr", "stage")
+#: How a follower predicts a human predecessor (module docstring, "Human drivers").
+HUMAN_PREDICTIONS = ("constant-speed", "idm")
+#: Smallest IDM interaction term ``(s*/s)^2`` inferred for a human predecessor: its unseen gap is
+#: at most ``s* / sqrt(0.01)`` = ten times its desired gap (``human_prediction="idm"``).
+IDM_MIN_INTERACTION = 0.01
 
 #: Gains of the ACC law used by the fallback: ``u = k_gap (gap - d*) + k_speed (v_pred - v)``.
 FALLBACK_GAIN_GAP = 0.2
@@ -137,6 +175,10 @@ class MPCConfig:
     terminal : {"lqr", "stage"}
         Terminal cost: the Riccati (LQR) cost-to-go of the same model and weights, or just the
         stage cost.
+    human_prediction : {"constant-speed", "idm"}
+        How a follower behind a human driver (who sends no plan) predicts it: its measured
+        speed held, or the nominal IDM under the stated assumption of the module docstring
+        ("Human drivers"). Automated predecessors are never predicted: they send plans.
     """
 
     horizon: int = 20
@@ -150,6 +192,7 @@ class MPCConfig:
     w_slack: float = 1000.0
     w_slack_l1: float = 100.0
     terminal: str = "lqr"
+    human_prediction: str = "constant-speed"
 
     def __post_init__(self) -> None:
         if not 1 <= self.horizon <= 500:
@@ -183,6 +226,11 @@ class MPCConfig:
         if self.terminal not in TERMINAL_CHOICES:
             raise ConfigError(
                 f"terminal must be one of {', '.join(TERMINAL_CHOICES)}, got {self.terminal!r}"
+            )
+        if self.human_prediction not in HUMAN_PREDICTIONS:
+            raise ConfigError(
+                f"human_prediction must be one of {', '.join(HUMAN_PREDICTIONS)}, got "
+                f"{self.human_prediction!r}"
             )
 
 
@@ -506,6 +554,105 @@ def assumed_predecessor_speeds(
     return shifted
 
 
+def human_predecessor_mask(automated: np.ndarray, ring: bool) -> np.ndarray:
+    """``(N,)`` booleans: follower ``i``'s predecessor is a human driver.
+
+    The leader (vehicle 0) is never human; on a ring follower 1's predecessor is follower N.
+    """
+    automated = np.asarray(automated, dtype=bool)
+    out = np.zeros(automated.shape, dtype=bool)
+    out[1:] = ~automated[:-1]
+    if ring:
+        out[0] = not automated[-1]
+    return out
+
+
+def idm_prediction_mps(
+    speed_mps: np.ndarray,
+    accel_mps2: np.ndarray,
+    horizon: int,
+    params: PlatoonParams,
+    idm: IDMParams | None = None,
+) -> np.ndarray:
+    """A human predecessor's speeds ``(..., H+1)`` by the nominal IDM from what a follower senses.
+
+    The unsensed inputs of the IDM (the human's gap and its predecessor's speed) follow the
+    assumption of the module docstring ("Human drivers"): an unseen vehicle ahead of the human
+    keeps the human's current speed ``v_0``, at the gap ``s_0`` at which the IDM gives the
+    measured acceleration ``a_0``, i.e. ``(s*(v_0)/s_0)^2 = r = 1 - (v_0/v0)^delta - a_0/a``
+    with ``r >= IDM_MIN_INTERACTION``. Then, for ``k = 0..H-1`` (the env's bounds and trapezoid
+    rule, no actuator lag)::
+
+        a_k     = clip(IDM(s_k, v_k, v_0), accel_min, accel_max)
+        v_{k+1} = clip(v_k + dt a_k, 0, speed_max)
+        s_{k+1} = s_k + dt/2 (2 v_0 - v_k - v_{k+1})
+
+    Parameters
+    ----------
+    speed_mps, accel_mps2 : arrays of one shape
+        The human's speed and acceleration as measured by the follower's radar.
+    horizon : int
+        ``H``.
+    params : PlatoonParams
+        Step and bounds.
+    idm : IDMParams, optional
+        The nominal IDM (default: Flow's parameters).
+
+    Returns
+    -------
+    array (..., H+1)
+        Predicted speeds, starting at the (clipped) measured speed.
+    """
+    from envs.humans import idm_accel_mps2
+
+    p = IDMParams() if idm is None else idm
+    dt = params.dt_s
+    v0 = np.clip(np.asarray(speed_mps, dtype=np.float64), 0.0, params.speed_max_mps)
+    a0 = np.asarray(accel_mps2, dtype=np.float64)
+    r = 1.0 - (v0 / p.desired_speed_mps) ** p.delta - a0 / p.accel_max_mps2
+    r = np.maximum(r, IDM_MIN_INTERACTION)
+    s = (p.standstill_m + v0 * p.time_gap_s) / np.sqrt(r)
+    out = np.empty(v0.shape + (horizon + 1,))
+    out[..., 0] = v0
+    v = v0
+    for k in range(horizon):
+        a = np.clip(idm_accel_mps2(s, v, v0, p), params.accel_min_mps2, params.accel_max_mps2)
+        v_next = np.clip(v + dt * a, 0.0, params.speed_max_mps)
+        s = s + dt / 2 * (2 * v0 - v - v_next)
+        v = v_next
+        out[..., k + 1] = v
+    return out
+
+
+def human_predecessor_speeds(
+    vp_assumed: np.ndarray,
+    human_pred: np.ndarray,
+    measured_pred_speed_mps: np.ndarray,
+    measured_pred_accel_mps2: np.ndarray,
+    prediction: str,
+    params: PlatoonParams,
+) -> np.ndarray:
+    """``vp_assumed (B, N, H+1)`` with the columns of human predecessors set by ``prediction``.
+
+    ``"constant-speed"``: the measured speed held (what :func:`assumed_predecessor_speeds`
+    already gives for a predecessor that never sent a plan; set again here so that the rule does
+    not hang on the channel's ``initial``); ``"idm"``: :func:`idm_prediction_mps` from the
+    measured speed and acceleration. Automated predecessors' columns are returned unchanged.
+    """
+    if not human_pred.any():
+        return vp_assumed
+    out = vp_assumed.copy()
+    h1 = out.shape[-1]
+    vm = measured_pred_speed_mps[:, human_pred]
+    if prediction == "idm":
+        out[:, human_pred] = idm_prediction_mps(
+            vm, measured_pred_accel_mps2[:, human_pred], h1 - 1, params
+        )
+    else:
+        out[:, human_pred] = vm[..., None]
+    return out
+
+
 # --------------------------------------------------------------------------- the problem
 
 
@@ -746,6 +893,8 @@ class DistributedMPCBase(Controller):
 
     Subclasses set ``config_cls`` and implement :meth:`_build` (once per physics and horizon; kept
     across resets) and :meth:`_solve` (one follower's problem from its parameter vector).
+    ``solve_count`` counts the problems solved: one per automated seat, running episode and step
+    (human seats are not solved; module docstring, "Human drivers").
     """
 
     family = "mpc"
@@ -798,6 +947,8 @@ class DistributedMPCBase(Controller):
         self._plan_step = -1
         self._last_u = np.zeros((b, n))
         self._warm: list[list[Any]] = [[None] * n for _ in range(b)]
+        # radar: each follower's last reading of its predecessor's speed (for its acceleration)
+        self._vp_prev_mps: np.ndarray | None = None
 
     def act(self, state: PlatoonState, observation: np.ndarray | None) -> np.ndarray:
         t = state.step
@@ -806,6 +957,15 @@ class DistributedMPCBase(Controller):
         params = self.params
         vp_meas = state.pred_speed_mps
         vp = assumed_predecessor_speeds(self._received, t, vp_meas)
+        automated = state.automated_mask
+        human_pred = human_predecessor_mask(automated, state.ring)
+        if human_pred.any():  # module docstring, "Human drivers"
+            prev = self._vp_prev_mps
+            ap_meas = np.zeros((b, n)) if prev is None else (vp_meas - prev) / params.dt_s
+            vp = human_predecessor_speeds(
+                vp, human_pred, vp_meas, ap_meas, self.config.human_prediction, params
+            )
+        self._vp_prev_mps = vp_meas.copy()
         if self._plan_v is None:
             vhat = np.repeat(
                 np.clip(state.speed_mps, 0, params.speed_max_mps)[..., None], h + 1, -1
@@ -839,6 +999,8 @@ class DistributedMPCBase(Controller):
             if state.done[bi]:
                 continue
             for i in range(n):
+                if not automated[i]:
+                    continue  # a human seat: the env drives it, its command (0) is ignored
                 try:
                     res, warm = self._solve(p_all[bi, i], self._warm[bi][i])
                     ok = (

@@ -109,6 +109,24 @@ for _spec in (
         "the recorded ACC followers of an OpenACC window (openacc-* scenarios only; paper Table III)",
         "controllers.replay:RealACCRecord",
     ),
+    ControllerSpec(
+        "idm", "human", "none",
+        "Intelligent Driver Model with the human seats' noise and delay: on ring-v1 it is the "
+        "all-human ring",
+        "controllers.idm:IDMController",
+    ),
+    ControllerSpec(
+        "followerstopper", "linear", "none",
+        "Stern et al. 2018 FollowerStopper: a commanded speed from gap and closing speed, "
+        "capped at the set speed U (default: the scenario's target speed)",
+        "controllers.wave_dampers:FollowerStopperController",
+    ),
+    ControllerSpec(
+        "pi-saturation", "linear", "none",
+        "Stern et al. 2018 PI controller with saturation: tracks its own 38 s mean speed, "
+        "blended with the predecessor's speed at short gaps",
+        "controllers.wave_dampers:PISaturationController",
+    ),
 ):
     register_controller(_spec)
 

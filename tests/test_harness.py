@@ -381,7 +381,8 @@ def _batch_invariant_names() -> list[str]:
 
 
 def test_the_batch_invariant_controllers_are_the_cheap_laws() -> None:
-    assert _batch_invariant_names() == ["ovm", "duty", "acc", "cacc", "ia2c", "fprint", "dial",
+    assert _batch_invariant_names() == ["ovm", "duty", "acc", "cacc", "idm", "followerstopper",
+                                        "pi-saturation", "ia2c", "fprint", "dial",
                                         "commnet", "wac", "dcea", "bdc", "ippo", "mappo",
                                         "ippo-bdc", "distill"]
 
