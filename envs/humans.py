@@ -28,7 +28,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from envs.channel import episode_uniforms
 from envs.errors import ConfigError
 from envs.params import PlatoonParams
 
@@ -40,9 +39,7 @@ PLACEMENTS: tuple[str, ...] = ("random", "front", "rear", "spread")
 MAX_REACTION_DELAY_S: float = 2.0
 #: The largest standard deviation of the humans' acceleration noise (m/s^2).
 MAX_HUMAN_NOISE_MPS2: float = 2.0
-#: Stream names of the humans' draws (the episode seed and the name give the numbers).
-NOISE_STREAM = "human-noise"
-PARAMS_STREAM = "human-params"
+#: Stream name of a random placement (with the scenario's ``placement_seed``).
 PLACEMENT_STREAM = "placement"
 
 
@@ -98,11 +95,22 @@ def idm_accel_mps2(gap_m: np.ndarray, speed_mps: np.ndarray, pred_speed_mps: np.
         rule ends the episode long before).
     """
     v = np.asarray(speed_mps, dtype=np.float64)
-    s_star = p.standstill_m + v * p.time_gap_s
-    s_star += v * (v - pred_speed_mps) / (2.0 * math.sqrt(p.accel_max_mps2 * p.decel_comfort_mps2))
-    s = np.maximum(gap_m, 0.01)
-    ratio = s_star / s
-    return p.accel_max_mps2 * (1.0 - (v / p.desired_speed_mps) ** p.delta - ratio * ratio)
+    # s* = s0 + v (T + (v - v_pred) / (2 sqrt(a b)))
+    s_star = v - pred_speed_mps
+    s_star *= 1.0 / (2.0 * math.sqrt(p.accel_max_mps2 * p.decel_comfort_mps2))
+    s_star += p.time_gap_s
+    s_star *= v
+    s_star += p.standstill_m
+    s_star /= np.maximum(gap_m, 0.01)
+    s_star *= s_star  # (s*/s)^2
+    if p.delta == 4.0:  # the common exponent, without a general power (several times faster)
+        free = v / p.desired_speed_mps
+        free *= free
+        free *= free
+    else:
+        free = (v / p.desired_speed_mps) ** p.delta
+    free += s_star
+    return p.accel_max_mps2 * (1.0 - free)
 
 
 def idm_equilibrium_speed_mps(gap_m: float, p: IDMParams = IDMParams()) -> float:
@@ -121,22 +129,71 @@ def idm_equilibrium_speed_mps(gap_m: float, p: IDMParams = IDMParams()) -> float
     return 0.5 * (lo + hi)
 
 
+#: Integer keys of the humans' per-episode streams (``numpy.random.default_rng([seed, key])``:
+#: a few microseconds to start, where a named :func:`envs.scenarios.episode_stream` takes tens).
+NOISE_KEY: int = 0x6E6F697365  # "noise"
+PARAMS_KEY: int = 0x706172616D  # "param"
+#: Levels of the humans' Gaussian noise: a draw is the normal quantile of one of 2^16 equally
+#: likely levels (inverse transform of 16 random bits), rescaled to unit variance; its tails end
+#: at 4.32 standard deviations. Sixteen bits a draw instead of a float64 normal keep an env with
+#: humans within reach of the homogeneous env's speed (``cacc-bench perf``).
+NOISE_LEVELS: int = 1 << 16
+
+
+def _normal_levels() -> np.ndarray:
+    """The :data:`NOISE_LEVELS` quantiles ``Phi^-1((k + 1/2) / 2^16)``, scaled to unit variance."""
+    global _LEVELS
+    if _LEVELS is None:
+        from scipy.special import ndtri
+
+        q = ndtri((np.arange(NOISE_LEVELS) + 0.5) / NOISE_LEVELS)
+        _LEVELS = q / np.sqrt(np.mean(q * q))
+    return _LEVELS
+
+
+_LEVELS: np.ndarray | None = None
+
+
+class HumanNoise:
+    """The humans' acceleration noise of a batch of episodes: Gaussian, std ``std_mps2``, every
+    step and seat.
+
+    A pure function of (episode seed, seat, step): episode ``seed``'s stream
+    ``default_rng([seed, NOISE_KEY])`` gives seat ``i`` the 16-bit draws ``i T .. (i+1) T - 1``
+    (so a seat's noise does not depend on N), each mapped to a level of :func:`_normal_levels`.
+    An episode's humans get the same noise alone or in a batch, with any controller, and an
+    ``idm`` controller on a seat gets the noise a human on that seat would.
+
+    Parameters
+    ----------
+    seeds : (B,) ints
+    n_seats, n_steps : int
+    std_mps2 : float
+    """
+
+    def __init__(self, seeds: np.ndarray, n_seats: int, n_steps: int, std_mps2: float) -> None:
+        seeds = np.asarray(seeds, dtype=np.int64).reshape(-1)
+        raw = np.empty((n_seats, n_steps, len(seeds)), dtype=np.uint16)
+        for k, seed in enumerate(seeds):
+            bits = np.random.default_rng([int(seed), NOISE_KEY]).bytes(2 * n_seats * n_steps)
+            raw[:, :, k] = np.frombuffer(bits, dtype="<u2").reshape(n_seats, n_steps)
+        self._raw = raw
+        self._levels = _normal_levels() * std_mps2
+
+    def at(self, step: int, seats: np.ndarray) -> np.ndarray:
+        """The noise of ``seats`` (0-based) at ``step``, ``(B, len(seats))`` (a Fortran-ordered
+        array, laid out as the env's follower arrays)."""
+        step = min(step, self._raw.shape[1] - 1)
+        return self._levels[self._raw[seats, step, :]].T
+
+
 def gaussian_noise_mps2(seeds: np.ndarray, step: int, n_seats: int, steps: int,
                         std_mps2: float) -> np.ndarray:
-    """The humans' acceleration noise, ``(steps, B, n_seats)`` normals of std ``std_mps2``.
-
-    A pure function of (episode seed, step, seat) (Box-Muller on the counter-based uniforms of
-    :func:`envs.channel.episode_uniforms`), so an episode's humans get the same noise alone or in
-    a batch, with any controller, and an ``idm`` controller on a seat gets the noise a human on
-    that seat would.
-    """
-    u = episode_uniforms(seeds, NOISE_STREAM, step, 2 * n_seats, steps)
-    u1 = u[..., :n_seats]
-    u2 = u[..., n_seats:]
-    r = np.sqrt(-2.0 * np.log1p(-u1))  # 1 - u1 in (0, 1]
-    r *= np.cos(2.0 * np.pi * u2)
-    r *= std_mps2
-    return r
+    """The humans' noise of every seat over ``steps`` steps from ``step``, ``(steps, B,
+    n_seats)`` (:class:`HumanNoise`, for tests and analysis)."""
+    noise = HumanNoise(seeds, n_seats, step + steps, std_mps2)
+    seats = np.arange(n_seats)
+    return np.stack([noise.at(t, seats) for t in range(step, step + steps)])
 
 
 @dataclass(frozen=True)
@@ -249,49 +306,73 @@ class HumanDrivers:
     seeds : (B,) ints
         Episode seeds (the parameter draws and the noise come from them).
     n_steps : int
-        Steps of the episode (the noise is drawn for all of them at once).
+        Steps of the episode.
     params : PlatoonParams
         Physics (``dt_s``, the OVM's gaps).
+    ring : bool
+        A ring road (follower 1's predecessor is follower N).
     """
 
     def __init__(self, arrangement: Arrangement, seeds: np.ndarray, n_steps: int,
-                 params: PlatoonParams) -> None:
+                 params: PlatoonParams, ring: bool = False) -> None:
         self.arrangement = arrangement
         self.params = params
         n = len(arrangement.automated)
-        b = len(seeds)
         self.human = ~arrangement.mask  # (N,)
+        #: the human seats (0-based) and the seats ahead of them (-1: the leader, or N-1 on a ring)
+        self.seats = np.flatnonzero(self.human)
+        self._ahead = self.seats - 1
+        self._behind_leader = (not ring) and bool(self.seats.size) and self.seats[0] == 0
         self.model = arrangement.human_model
         self.delay = arrangement.delay_steps(params.dt_s)
         self.idm = IDMParams()
         if self.model == "ovm":
             draws = np.stack([_ovm_draws(int(s), n) for s in seeds])  # (B, 3, N)
             self.alpha, self.beta, self.gap_go_m = draws[:, 0], draws[:, 1], draws[:, 2]
+            self._own = (self.alpha[:, self.seats], self.beta[:, self.seats],
+                         self.gap_go_m[:, self.seats])
         std = arrangement.noise_std_mps2
-        #: (T, B, N) noise of every step and seat (automated seats' columns unused)
-        self.noise = (gaussian_noise_mps2(seeds, 0, n, n_steps, std) if std > 0
-                      else np.zeros((n_steps, b, n)))
+        self.noise = HumanNoise(seeds, n, n_steps, std) if std > 0 else None
         self._history: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
 
     def model_accel_mps2(self, gap_m: np.ndarray, speed_mps: np.ndarray,
                          pred_speed_mps: np.ndarray) -> np.ndarray:
-        """The human model's acceleration for every seat, ``(B, N)``, without noise or delay."""
+        """The human model's acceleration of the human seats, ``(B, H)``, from their gaps,
+        speeds and predecessors' speeds ``(B, H)``, without noise or delay."""
         if self.model == "idm":
             return idm_accel_mps2(gap_m, speed_mps, pred_speed_mps, self.idm)
-        return ovm_hetero_accel_mps2(gap_m, speed_mps, pred_speed_mps, self.alpha, self.beta,
-                                     self.gap_go_m, self.params)
+        alpha, beta, gap_go = self._own
+        return ovm_hetero_accel_mps2(gap_m, speed_mps, pred_speed_mps, alpha, beta, gap_go,
+                                     self.params)
 
     def commands(self, step: int, command_mps2: np.ndarray, gap_m: np.ndarray,
-                 speed_mps: np.ndarray, pred_speed_mps: np.ndarray) -> np.ndarray:
-        """``command_mps2`` with the human seats' commands put in (a new array)."""
-        seen = (gap_m.copy(), speed_mps.copy(), pred_speed_mps.copy())
-        self._history.append(seen)
-        if len(self._history) > self.delay + 1:
-            self._history.pop(0)
-        g, v, vp = self._history[0]  # what the humans saw `delay` steps ago (the start, before)
+                 speed_mps: np.ndarray, leader_speed_mps: np.ndarray) -> np.ndarray:
+        """``command_mps2`` with the human seats' commands put in (a new array).
+
+        Parameters
+        ----------
+        step : int
+        command_mps2, gap_m, speed_mps : (B, N)
+        leader_speed_mps : (B,)
+            The leader's speed now (unused on a ring).
+        """
+        seats = self.seats
+        g = gap_m[:, seats]
+        v = speed_mps[:, seats]
+        vp = speed_mps[:, self._ahead]
+        if self._behind_leader:
+            vp[:, 0] = leader_speed_mps
+        if self.delay:
+            self._history.append((g, v, vp))
+            if len(self._history) > self.delay + 1:
+                self._history.pop(0)
+            g, v, vp = self._history[0]  # what they saw `delay` steps ago (at first: the start)
         u = self.model_accel_mps2(g, v, vp)
-        u += self.noise[min(step, len(self.noise) - 1)]
-        return np.where(self.human[None, :], u, command_mps2)
+        if self.noise is not None:
+            u += self.noise.at(step, seats)
+        out = np.array(command_mps2, dtype=np.float64, order="F")
+        out[:, seats] = u
+        return out
 
 
 def ovm_hetero_accel_mps2(gap_m: np.ndarray, speed_mps: np.ndarray, pred_speed_mps: np.ndarray,
@@ -306,10 +387,9 @@ def ovm_hetero_accel_mps2(gap_m: np.ndarray, speed_mps: np.ndarray, pred_speed_m
 
 
 def _ovm_draws(seed: int, n: int) -> np.ndarray:
-    """``(3, N)``: alpha, beta and s_go of every seat of one episode (uniform in the ranges)."""
-    from envs.scenarios import episode_stream
-
-    rng = episode_stream(seed, PARAMS_STREAM)
+    """``(3, N)``: alpha, beta and s_go of every seat of one episode (uniform in the ranges,
+    from the stream ``default_rng([seed, PARAMS_KEY])``)."""
+    rng = np.random.default_rng([seed, PARAMS_KEY])
     lo = np.array([OVM_ALPHA_RANGE[0], OVM_BETA_RANGE[0], OVM_GAP_GO_RANGE_M[0]])[:, None]
     hi = np.array([OVM_ALPHA_RANGE[1], OVM_BETA_RANGE[1], OVM_GAP_GO_RANGE_M[1]])[:, None]
     return lo + (hi - lo) * rng.random((3, n))

@@ -253,7 +253,8 @@ class PlatoonEnv:
         self.perturbation = ep.perturbation
         self.arrangement = self.scenario.arrangement(n)
         self._humans = (None if self.arrangement.homogeneous else
-                        HumanDrivers(self.arrangement, seeds_arr, self.n_steps, self.params))
+                        HumanDrivers(self.arrangement, seeds_arr, self.n_steps, self.params,
+                                     self.scenario.ring))
         ring = self.scenario.ring
         # Follower arrays are (B, N) in Fortran order (the batch axis innermost in memory):
         # elementwise physics does not care, and the neighbour shifts of the observation become
@@ -339,8 +340,8 @@ class PlatoonEnv:
             raise RuntimeError("episode over: call reset()")
         t = s.step
         if self._humans is not None:  # the human seats take no command: their model drives
-            command_mps2 = self._humans.commands(t, np.asarray(command_mps2, dtype=np.float64),
-                                                 s.gap_m, s.speed_mps, s.pred_speed_mps)
+            command_mps2 = self._humans.commands(t, command_mps2, s.gap_m, s.speed_mps,
+                                                 s.leader_speed_now_mps)
         if self._channels is not None and self.action_mode == "accel":
             self._pred_held, self._leader_held = transmit_accel_messages(
                 *self._channels, np.asarray(command_mps2, dtype=np.float64),

@@ -714,14 +714,14 @@ def make_scenario(scenario_id: str, /, **options: Any) -> Scenario:
         spec.check(opts)
     _check_arrangement(scenario_id, opts)
     # which seats are automated: one of three ways; the one given replaces the default's
-    given = [k for k in _SEAT_OPTIONS if k in options]
-    if len(given) > 1:
-        raise ConfigError(f"{scenario_id}: {' and '.join(given)} both say which followers are "
+    seat_given = [k for k in _SEAT_OPTIONS if k in options]
+    if len(seat_given) > 1:
+        raise ConfigError(f"{scenario_id}: {' and '.join(seat_given)} both say which followers are "
                           "automated; give one of humans (positions, humans=2+5), cav_fraction "
                           "(a share, cav_fraction=0.25) or cavs (a count, cavs=1)")
-    if given:
+    if seat_given:
         for k in _SEAT_OPTIONS:
-            if k != given[0]:
+            if k != seat_given[0]:
                 opts[k] = ARRANGEMENT_DEFAULTS[k]
     # options at their default value are left out, so they never make a second leaderboard row
     # (the seat option stays when it changes the default arrangement: ring-v1:cav_fraction=1.0)
