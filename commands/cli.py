@@ -38,6 +38,8 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
                         "learned control against MPC: action set, learning, V2V, one report"),
     "generalise": ("commands.generalise",
                    "learned controllers off their training scenario: a matrix on the test seeds"),
+    "penetration": ("commands.penetration",
+                    "mixed traffic: which family damps waves at what share of automated vehicles"),
     "fit-power": ("commands.fit_power", "re-fit the energy polynomial and print its quality"),
     "perf": ("commands.perf", "environment, controller and training throughput"),
 }
@@ -204,7 +206,8 @@ def no_space(exc: BaseException) -> str | None:
 
 
 #: Commands that complete an interrupted invocation with ``--resume``.
-RESUMABLE = ("run", "train", "reproduce", "pareto", "sensitivity", "compare-learned", "generalise")
+RESUMABLE = ("run", "train", "reproduce", "pareto", "sensitivity", "compare-learned", "generalise",
+             "penetration")
 
 
 def _interrupted(exc: KeyboardInterrupt, command: str = "") -> int:

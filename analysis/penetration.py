@@ -1,0 +1,227 @@
+"""The penetration study: which controller family damps waves at what share of automated vehicles.
+
+The design (:func:`design`) crosses the shares of :data:`SHARES` (no automated vehicle, one, a
+quarter, half, three quarters, all) with every family of :data:`FAMILIES` on the scenarios of
+:data:`SCENARIOS`, with several seeded random placements of the automated vehicles for the
+mixed shares; the all-human string (the human model ``idm`` at no automated vehicle) is the
+baseline row of each scenario. :func:`cells` pools a share's placements and episodes into one
+cell with 95 % bootstrap intervals (:func:`benchmark.statistics.bootstrap_ci`); :func:`plot_shares`
+draws the head-to-tail gain and the energy against the share, per family; :func:`write_report`
+writes ``report.md``. Metrics: ``docs/concepts/metrics.md`` (mixed traffic).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from benchmark.statistics import bootstrap_ci
+
+#: The families of the study (the automated seats' controller), in the report's order.
+FAMILIES: tuple[str, ...] = ("acc", "cacc", "mpc-qp", "mpc", "followerstopper", "pi-saturation")
+#: The human-driver model that drives every seat of the all-human baseline.
+BASELINE: str = "idm"
+#: The scenarios of the study (each at its own default N: 8 behind a leader, 4 on the OpenACC
+#: window, 22 on the ring).
+SCENARIOS: tuple[str, ...] = ("catchup-v1", "slowdown-v1", "brake-v1", "ring-v1", "openacc-s-v1")
+
+
+@dataclass(frozen=True)
+class Share:
+    """One level of the share of automated vehicles.
+
+    Attributes
+    ----------
+    name : str
+        As the report prints it.
+    options : dict
+        The scenario options that set it.
+    mixed : bool
+        Humans and automated vehicles both present (the placement is drawn, several times).
+    """
+
+    name: str
+    options: tuple[tuple[str, str], ...]
+    mixed: bool
+
+
+SHARES: tuple[Share, ...] = (
+    Share("0", (("cavs", "0"),), False),
+    Share("one vehicle", (("cavs", "1"),), True),
+    Share("0.25", (("cav_fraction", "0.25"),), True),
+    Share("0.5", (("cav_fraction", "0.5"),), True),
+    Share("0.75", (("cav_fraction", "0.75"),), True),
+    Share("1", (("cav_fraction", "1.0"),), False),
+)
+
+#: The columns a cell reports, with the report's names (mean and 95 % interval over episodes).
+METRICS: tuple[tuple[str, str], ...] = (
+    ("head_to_tail_gain", "head-to-tail gain"),
+    ("speed_std_last_mps", "last vehicle speed std m/s"),
+    ("speed_std_humans_mps", "humans' speed std m/s"),
+    ("braking_events_per_veh_h", "braking events /veh/h"),
+    ("energy_kwh_per_100km", "energy kWh/100 km"),
+    ("energy_humans_kwh", "humans' energy kWh"),
+    ("energy_cavs_kwh", "automated energy kWh"),
+)
+
+
+@dataclass(frozen=True)
+class Setting:
+    """One scenario label of the design: a scenario at one share and placement."""
+
+    scenario: str
+    share: Share
+    placement_seed: int
+
+    @property
+    def text(self) -> str:
+        """The scenario with its options, as ``--scenarios`` takes it."""
+        opts = dict(self.share.options)
+        if self.share.mixed:
+            opts.update(placement="random", placement_seed=str(self.placement_seed))
+        return self.scenario + ":" + ",".join(f"{k}={v}" for k, v in opts.items())
+
+
+def design(scenarios: Sequence[str] = SCENARIOS, placements: int = 3) -> list[Setting]:
+    """The scenario settings of the study: every share of every scenario, the mixed shares at
+    ``placements`` seeded placements (``placement_seed`` 0, 1, ...)."""
+    out = []
+    for sc in scenarios:
+        for share in SHARES:
+            for k in range(placements if share.mixed else 1):
+                out.append(Setting(sc, share, k))
+    return out
+
+
+def controllers_for(share: Share, families: Sequence[str] = FAMILIES) -> list[str]:
+    """The controllers that run at ``share``: the human baseline at no automated vehicle, the
+    families elsewhere."""
+    return [BASELINE] if share.name == "0" else list(families)
+
+
+def cells(runs: Any, settings: Sequence[Setting]) -> Any:
+    """One row per (scenario, family, share): runs, colliding runs, and every metric of
+    :data:`METRICS` as mean and 95 % bootstrap interval over the episodes of all placements.
+
+    Parameters
+    ----------
+    runs : pandas.DataFrame
+        ``runs.csv`` of the study's sweep (columns ``controller``, ``scenario``, the metrics).
+    settings : sequence of Setting
+        The design; a run's scenario label maps back to its setting.
+    """
+    import pandas as pd
+
+    from envs.scenarios import make_scenario
+
+    label_of = {make_scenario(s.text).label: s for s in settings}
+    rows = []
+    ok = runs[runs["scenario"].isin(label_of)].copy()
+    ok["base"] = [label_of[lb].scenario for lb in ok["scenario"]]
+    ok["share"] = [label_of[lb].share.name for lb in ok["scenario"]]
+    for (base, controller, share), g in ok.groupby(["base", "controller", "share"], sort=False):
+        row: dict[str, Any] = {"scenario": base, "controller": controller, "share": share,
+                               "cav_share": float(g["cav_share"].mean()),
+                               "runs": len(g), "collisions": int(g["collision"].astype(bool).sum()),
+                               "placements": int(g["scenario"].nunique())}
+        for col, _ in METRICS:
+            values = pd.to_numeric(g[col], errors="coerce").to_numpy(dtype=np.float64)
+            mean, lo, hi = bootstrap_ci(values)
+            row[col], row[f"{col}_lo"], row[f"{col}_hi"] = mean, lo, hi
+        rows.append(row)
+    order = {s.name: i for i, s in enumerate(SHARES)}
+    fam = {f: i for i, f in enumerate((BASELINE, *FAMILIES))}
+    sc_order = {s: i for i, s in enumerate(dict.fromkeys(s.scenario for s in settings))}
+    out = pd.DataFrame(rows)
+    if out.empty:
+        return out
+    out = out.sort_values(by=["scenario", "controller", "share"],
+                          key=lambda c: c.map({**sc_order, **fam, **order}).fillna(99))
+    return out.reset_index(drop=True)
+
+
+def _fmt(mean: float, lo: float, hi: float) -> str:
+    if not math.isfinite(mean):
+        return "n/a"
+    return f"{mean:.3g} [{lo:.3g}, {hi:.3g}]"
+
+
+def plot_shares(table: Any, out_dir: Path) -> list[Path]:
+    """Per scenario, the head-to-tail gain and the energy per vehicle against the share of
+    automated vehicles, one line per family (the all-human baseline at share 0 a marker every
+    line starts from); ``figures/penetration-<scenario>.png``."""
+    from analysis.plots import _plt, savefig_atomic
+
+    plt = _plt()
+    paths = []
+    out_dir.mkdir(parents=True, exist_ok=True)
+    for scenario, t in table.groupby("scenario", sort=False):
+        fig, axes = plt.subplots(1, 2, figsize=(9.5, 3.6))
+        base = t[t["controller"] == BASELINE]
+        for ax, col, ylabel in ((axes[0], "head_to_tail_gain", "head-to-tail gain"),
+                                (axes[1], "energy_kwh_per_100km", "energy kWh/100 km (all)")):
+            for family in FAMILIES:
+                f = t[t["controller"] == family]
+                if f.empty:
+                    continue
+                f = f.sort_values("cav_share")
+                x = np.concatenate([base["cav_share"].to_numpy(), f["cav_share"].to_numpy()])
+                y = np.concatenate([base[col].to_numpy(), f[col].to_numpy()])
+                ax.plot(x, y, marker="o", ms=3, label=family)
+            if not base.empty:
+                ax.plot(base["cav_share"], base[col], "ks", label="all human (idm)")
+            ax.set_xlabel("share of automated vehicles")
+            ax.set_ylabel(ylabel)
+            ax.grid(alpha=0.3)
+        axes[0].axhline(1.0, color="grey", lw=0.8, ls="--")
+        axes[1].legend(fontsize=7, loc="best")
+        fig.suptitle(str(scenario))
+        fig.tight_layout()
+        path = out_dir / f"penetration-{scenario}.png"
+        savefig_atomic(fig, path, dpi=90)
+        plt.close(fig)
+        paths.append(path)
+    return paths
+
+
+def write_report(table: Any, out: Path, command: str, episodes: int, placements: int,
+                 figures: Sequence[Path], intro: str = "") -> Path:
+    """``report.md``: the command, the design, a table per scenario and the figures (paths
+    relative to ``out``)."""
+    lines = [
+        "# Penetration study: which family damps waves at what share of automated vehicles",
+        "",
+        f"Made by `{command}`. {episodes} test episodes per placement; the mixed shares at "
+        f"{placements} seeded random placements each (pooled: a cell's interval covers "
+        "placements and episodes), 95 % percentile-bootstrap intervals over episodes. Shares "
+        "0 and 1 have one arrangement. The all-human string (every seat the IDM with noise) is "
+        "the row at share 0. Metrics are defined in `docs/concepts/metrics.md` (mixed traffic); "
+        "on `ring-v1` they leave out the first 60 s.",
+        "",
+    ]
+    if intro:
+        lines += [intro, ""]
+    for scenario, t in table.groupby("scenario", sort=False):
+        lines += [f"## {scenario}", ""]
+        head = "| controller | share | runs | collisions | " + " | ".join(
+            name for _, name in METRICS) + " |"
+        lines += [head, "|" + "---|" * (4 + len(METRICS))]
+        for _, r in t.iterrows():
+            cells_ = [_fmt(r[c], r[f"{c}_lo"], r[f"{c}_hi"]) for c, _ in METRICS]
+            lines.append(f"| `{r['controller']}` | {r['share']} ({r['cav_share']:.2f}) | "
+                         f"{r['runs']} | {r['collisions']} | " + " | ".join(cells_) + " |")
+        lines.append("")
+        for fig in figures:
+            if fig.name == f"penetration-{scenario}.png":
+                lines += [f"![{scenario}]({fig.relative_to(out).as_posix()})", ""]
+    path = out / "report.md"
+    from envs.atomic import write_text
+
+    write_text(path, "\n".join(lines) + "\n")
+    return path

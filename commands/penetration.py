@@ -1,0 +1,90 @@
+"""``cacc-bench penetration``: which controller family damps waves at what share of automated
+vehicles, on the test seeds, in one report.
+
+Every family of :data:`analysis.penetration.FAMILIES` at every share of
+:data:`analysis.penetration.SHARES` (the mixed ones at ``--placements`` seeded random placements)
+on the scenarios of :data:`analysis.penetration.SCENARIOS`, beside the all-human string (``idm``
+at no automated vehicle), through the results store (resumable, ``--resume``); writes
+``report.md``, ``cells.csv`` and ``figures/penetration-<scenario>.png`` into ``--out``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from benchmark.executors import add_executor_options
+from commands.cli import plain, report_command
+from envs.errors import ConfigError
+
+#: Most placements a mixed share is drawn at.
+MAX_PLACEMENTS = 20
+
+
+def _parser() -> argparse.ArgumentParser:
+    from analysis.penetration import FAMILIES, SCENARIOS
+
+    p = argparse.ArgumentParser(prog="cacc-bench penetration",
+                                description=plain(__doc__.split("\n\n")[0]))
+    p.add_argument("--episodes", type=int, default=5,
+                   help="first K test seeds per placement (default: %(default)s)")
+    p.add_argument("--placements", type=int, default=3,
+                   help="seeded random placements of each mixed share (default: %(default)s)")
+    p.add_argument("--scenarios", default=",".join(SCENARIOS),
+                   help="comma list of scenario ids (default: %(default)s)")
+    p.add_argument("--controllers", default=",".join(FAMILIES),
+                   help="the families (comma list of registered controllers; default: "
+                        "%(default)s)")
+    p.add_argument("--out", default="results/penetration",
+                   help="output folder (default: %(default)s)")
+    p.add_argument("--resume", action="store_true", help="complete a study in --out")
+    add_executor_options(p, default="process")
+    return p
+
+
+def main(argv: list[str]) -> int:
+    """Entry point of ``cacc-bench penetration``."""
+    import pandas as pd
+
+    from analysis.penetration import cells, controllers_for, design, plot_shares, write_report
+    from benchmark.export import write_csv
+    from benchmark.folder_lock import folder_lock
+    from benchmark.paths import writable_dir
+    from benchmark.suite import build_sweep, seeds_from_set
+    from commands.cli import scenarios_argument
+    from commands.run import _preflight, execute_sweep
+    from controllers.registry import parse_controller_list
+    from envs.limits import check_range
+
+    args = _parser().parse_args(argv)
+    from benchmark.executors import check_ray_address
+
+    check_ray_address(args.ray_address)
+    if args.workers < 1:
+        raise ConfigError(f"--workers must be >= 1, got {args.workers}")
+    check_range(args.placements, "--placements", 1, MAX_PLACEMENTS)
+    seeds = seeds_from_set("test", args.episodes)
+    families = [name for name, opts in parse_controller_list(args.controllers)]
+    bases = [sc.id for sc in scenarios_argument(args.scenarios)]
+    settings = design(bases, args.placements)
+    keys = set()
+    for setting in settings:
+        sc = scenarios_argument(setting.text)
+        specs: list[tuple[str, dict[str, str]]] = [(name, {}) for name in controllers_for(setting.share, families)]
+        n = sc[0].default_vehicles
+        _preflight(specs, sc, [n], [0.0])  # refused before any run, with exit status 2
+        keys.update(build_sweep(specs, sc, [n], seeds, [0.0], [0.0]))
+    out = writable_dir(args.out)
+    command = report_command("penetration", argv)
+    with folder_lock(out):
+        print(f"penetration: {len(settings)} scenario settings x {len(seeds)} test episodes = "
+              f"{len(keys)} runs", file=sys.stderr)
+        rc = execute_sweep(sorted(keys), out / "runs", resume=args.resume,
+                           executor=args.executor, workers=args.workers,
+                           ray_address=args.ray_address, quiet=True, first_seed=seeds[0])
+        table = cells(pd.read_csv(out / "runs" / "runs.csv"), settings)
+        write_csv(table, out / "cells.csv")
+        figures = plot_shares(table, out / "figures")
+        report = write_report(table, out, command, len(seeds), args.placements, figures)
+    print(f"wrote {report} and the table beside it")
+    return rc
