@@ -642,3 +642,28 @@ def test_the_tuning_readings_are_the_committed_trials_and_logs() -> None:
     assert all(c == 32 for _, c in bdc["slowdown-v1"])  # "collides in all 32 ... on every seed"
     bdc_trials = pd.read_csv(root / "docs" / "tuning" / "trials-ippo-bdc.csv")
     assert len(bdc_trials) == 16 and (bdc_trials["selected_eval_collisions_sampled"] > 0).all()
+
+
+def test_on_a_mixed_string_a_shared_policy_receives_nothing_from_a_human() -> None:
+    """Behind a human (seat 3) the predecessor's command never arrives (held at 0); the policy
+    drives the automated seats and the env the human one."""
+    from benchmark.rollout import rollout_batch
+    from controllers.base import EpisodeContext, check_fits, reset_controller
+    from controllers.registry import make_controller
+    from envs.platoon import PlatoonEnv
+    from envs.scenarios import make_scenario
+
+    sc = make_scenario("catchup-v1:humans=3")
+    ctrl = make_controller("ippo")
+    check_fits(ctrl, sc, 8)
+    env = PlatoonEnv(sc, 8, observe=False)
+    env.reset([2000])
+    ctx = EpisodeContext(sc, 8, env.seeds, env.params)
+    reset_controller(ctrl, ctx)
+    for _ in range(30):
+        u = ctrl.act(env.state, None)
+        env.step(u)
+    assert (ctrl._pred_held[:, 3] == 0).all()  # follower 4 is behind the human follower 3
+    assert (ctrl._pred_held[:, 4] != 0).any()  # follower 5 hears automated follower 4
+    (traj,) = rollout_batch(make_controller("ippo"), sc, 8, [2000])
+    assert traj.steps == sc.n_steps

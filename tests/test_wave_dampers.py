@@ -248,11 +248,11 @@ def test_runs_on_every_leader_scenario_and_the_ring_with_and_without_humans(
 
 
 # ---------------------------------------------------------------- the headline on the ring
-def _ring_numbers(name: str) -> dict[str, np.ndarray]:
+def _ring_numbers(name: str, **options: str) -> dict[str, np.ndarray]:
     """Per seed: the last vehicle's speed std, the humans' mean speed std (both over time after
     the first 60 s), the humans' braking steps in that time, and the collision flag."""
     sc = make_scenario("ring-v1")
-    trajs = rollout_batch(make_controller(name), sc, 22, RING_SEEDS)
+    trajs = rollout_batch(make_controller(name, **options), sc, 22, RING_SEEDS)
     humans = np.arange(1, 22)  # seat 0 is the automated one; with idm it is a human too
     k0 = int(round(sc.settle_s / 0.1)) + 1
     out: dict[str, list[float]] = {"last": [], "humans": [], "brakes": [], "collided": []}
@@ -284,3 +284,11 @@ def test_one_damper_halves_the_humans_oscillation_and_braking(
     assert damped["humans"].mean() <= 0.5 * all_human["humans"].mean(), damped["humans"]
     assert damped["brakes"].sum() <= 0.5 * all_human["brakes"].sum(), damped["brakes"]
     assert (damped["humans"] <= 0.5 * all_human["humans"]).all()  # seed by seed too
+
+
+def test_at_flows_default_set_speed_followerstopper_leaves_the_waves(
+        all_human: dict[str, np.ndarray]) -> None:
+    """With U = 15 m/s (Flow's class default) FollowerStopper only follows at its short gaps:
+    the humans keep more than half of their oscillation (the docs say so)."""
+    fast = _ring_numbers("followerstopper", set_speed_mps="15")
+    assert (fast["humans"] > 0.5 * all_human["humans"]).all(), fast["humans"]

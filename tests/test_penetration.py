@@ -1,0 +1,136 @@
+"""``cacc-bench penetration``: the design, the cells and the report in small, the refusals, and
+the committed study's cells recomputed."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pandas as pd
+import pytest
+from run_marks import FULL
+
+from analysis.penetration import BASELINE, FAMILIES, SHARES, controllers_for, design
+from commands.cli import main as cli
+from envs.scenarios import make_scenario
+
+ROOT = Path(__file__).resolve().parent.parent
+COMMITTED = ROOT / "docs" / "penetration"
+
+
+def test_the_design_crosses_every_share_with_placements_for_the_mixed_ones() -> None:
+    settings = design(["catchup-v1", "ring-v1"], placements=3)
+    assert len(settings) == 2 * (2 + 4 * 3)
+    shares = {s.share.name for s in settings}
+    assert shares == {s.name for s in SHARES}
+    ring = [make_scenario(s.text).arrangement(22) for s in settings if s.scenario == "ring-v1"]
+    counts = sorted({a.n_automated for a in ring})
+    assert counts == [0, 1, 6, 11, 17, 22]  # none, one, 0.25, 0.5, 0.75 (half up), all
+    # the placements are other arrangements of the same share
+    half = {make_scenario(s.text).arrangement(8).automated for s in settings
+            if s.scenario == "catchup-v1" and s.share.name == "0.5"}
+    assert len(half) == 3
+    assert controllers_for(SHARES[0]) == [BASELINE]
+    assert controllers_for(SHARES[3]) == list(FAMILIES)
+
+
+def test_the_study_in_small(tmp_path: Path) -> None:
+    out = tmp_path / "pen"
+    assert cli(["penetration", "--episodes", "2", "--placements", "2", "--scenarios",
+                "catchup-v1", "--controllers", "acc,followerstopper", "--executor", "serial",
+                "--out", str(out)]) == 0
+    table = pd.read_csv(out / "cells.csv")
+    base = table[table["controller"] == BASELINE]
+    assert list(base["share"].astype(str)) == ["0"] and base["cav_share"].iloc[0] == 0.0
+    fam = table[table["controller"] == "acc"]
+    assert list(fam["share"].astype(str)) == ["one vehicle", "0.25", "0.5", "0.75", "1"]
+    # mixed shares pool two placements of two episodes, the others one arrangement
+    assert list(fam["runs"]) == [4, 4, 4, 4, 2]
+    runs = pd.read_csv(out / "runs" / "runs.csv")
+    one = runs[(runs["controller"] == "acc") & (runs["cav_share"] == 0.125)]
+    assert len(one) == 4 and table.loc[fam.index[0], "energy_cavs_kwh"] == pytest.approx(
+        one["energy_cavs_kwh"].mean())
+    report = (out / "report.md").read_text()
+    assert "](figures/penetration-catchup-v1.png)" in report and str(tmp_path) not in report
+    assert (out / "figures" / "penetration-catchup-v1.png").is_file()
+
+
+@pytest.mark.parametrize("argv", [
+    ["--placements", "0"], ["--episodes", "0"], ["--scenarios", "nope"],
+    ["--controllers", "bdc"],  # a per-agent policy on a mixed string: refused before any run
+])
+def test_bad_input_is_refused_before_any_run(argv: list[str], tmp_path: Path) -> None:
+    out = tmp_path / "pen"
+    assert cli(["penetration", *argv, "--out", str(out)]) == 2
+    assert not (out / "runs").exists()
+
+
+@FULL
+def test_the_committed_cells_are_what_the_command_computes(tmp_path: Path) -> None:
+    """Two cells of the committed study on ring-v1 (the all-human string and one wave damper
+    among 21 humans), recomputed by the command from scratch."""
+    committed = pd.read_csv(COMMITTED / "cells.csv")
+    out = tmp_path / "pen"
+    assert cli(["penetration", "--scenarios", "ring-v1", "--controllers", "followerstopper",
+                "--placements", "1", "--executor", "serial", "--out", str(out)]) == 0
+    fresh = pd.read_csv(out / "cells.csv")
+    for controller, share in ((BASELINE, "0"), ("followerstopper", "1")):
+        def row(t: pd.DataFrame, c: str = controller, s: str = share) -> pd.Series:
+            m = t[(t["scenario"] == "ring-v1") & (t["controller"] == c)
+                  & (t["share"].astype(str) == s)]
+            assert len(m) == 1
+            return m.iloc[0]
+        a, b = row(committed), row(fresh)
+        for col in ("runs", "collisions", "speed_std_humans_mps", "braking_events_per_veh_h",
+                    "energy_kwh_per_100km", "head_to_tail_gain"):
+            assert a[col] == pytest.approx(b[col], rel=1e-9, nan_ok=True), col
+
+
+def _cell(t: pd.DataFrame, scenario: str, controller: str, share: str) -> pd.Series:
+    m = t[(t["scenario"] == scenario) & (t["controller"] == controller)
+          & (t["share"].astype(str) == share)]
+    assert len(m) == 1, (scenario, controller, share)
+    return m.iloc[0]
+
+
+def test_the_readme_quotes_the_committed_study() -> None:
+    readme = (ROOT / "README.md").read_text()
+    t = pd.read_csv(COMMITTED / "cells.csv")
+    base = _cell(t, "ring-v1", BASELINE, "0")
+    fs = _cell(t, "ring-v1", "followerstopper", "one vehicle")
+    pi = _cell(t, "ring-v1", "pi-saturation", "one vehicle")
+
+    def pct(new: float, old: float) -> str:
+        return f"{100 * (new - old) / old:+.0f} %".replace("+", "")
+
+    assert (f"from {base['speed_std_humans_mps']:.2f} to {fs['speed_std_humans_mps']:.2f} m/s "
+            f"({pct(fs['speed_std_humans_mps'], base['speed_std_humans_mps'])})") in readme
+    assert f"{base['braking_events_per_veh_h']:.1f} per vehicle-hour to none" in readme
+    assert fs["braking_events_per_veh_h"] == 0 and pi["braking_events_per_veh_h"] == 0
+    assert fs["collisions"] == 0 and pi["collisions"] == 0
+    saving = pct(fs["energy_kwh_per_100km"], base["energy_kwh_per_100km"]).lstrip("-")
+    assert f"the string's energy by {saving}" in readme
+    assert (f"(`pi-saturation`: {pi['speed_std_humans_mps']:.2f} m/s, none, "
+            f"{pct(pi['energy_kwh_per_100km'], base['energy_kwh_per_100km'])})") in readme
+    for family in ("mpc", "mpc-qp"):  # neither damps nor collides
+        c = _cell(t, "ring-v1", family, "one vehicle")
+        assert c["collisions"] == 0 and c["speed_std_humans_mps"] > base["speed_std_humans_mps"]
+    for family in ("acc", "cacc"):  # collide in every episode of a mixed ring
+        mixed = t[(t["scenario"] == "ring-v1") & (t["controller"] == family)
+                  & (t["share"].astype(str) != "1")]
+        assert (mixed["collisions"] == mixed["runs"]).all()
+    pi_rows = t[(t["controller"] == "pi-saturation")]
+    for scenario, n in (("slowdown-v1", 8), ("brake-v1", 8), ("openacc-s-v1", 4)):
+        rows = pi_rows[pi_rows["scenario"] == scenario]
+        more = rows[rows["cav_share"] * n > 1.5]  # more than one seat
+        assert len(more) >= 3 and (more["collisions"] > 0).all(), scenario
+    for scenario in ("catchup-v1", "ring-v1"):
+        assert (pi_rows[pi_rows["scenario"] == scenario]["collisions"] == 0).all()
+
+
+def test_the_readme_mixed_traffic_command_runs_in_small(tmp_path: Path) -> None:
+    assert cli(["run", "--controllers", "cacc,mpc-qp,followerstopper,pi-saturation",
+                "--scenarios", "ring-v1,catchup-v1:cav_fraction=0.5", "--episodes", "1",
+                "--out", str(tmp_path / "r")]) == 0
+    runs = pd.read_csv(tmp_path / "r" / "runs.csv")
+    assert set(runs["scenario"]) == {"ring-v1", "catchup-v1[cav_fraction=0.5]"}
+    assert sorted(runs["cav_share"].unique()) == pytest.approx([1 / 22, 0.5])
