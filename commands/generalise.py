@@ -12,7 +12,6 @@ shipped checkpoints no row runs, with why (:data:`analysis.generalisation.NOT_IN
 from __future__ import annotations
 
 import argparse
-import sys
 
 from benchmark.executors import add_executor_options
 from commands.cli import plain, report_command
@@ -68,7 +67,7 @@ def main(argv: list[str]) -> int:
     from benchmark.folder_lock import folder_lock
     from benchmark.paths import writable_dir
     from benchmark.suite import build_sweep, seeds_from_set
-    from commands.run import execute_sweep
+    from commands.run import execute_study_sweep
     from controllers.policy import CHECKPOINT_DIR
     from envs.atomic import write_text
 
@@ -108,11 +107,9 @@ def main(argv: list[str]) -> int:
     out = writable_dir(args.out)
     command = report_command("generalise", argv)
     with folder_lock(out):
-        print(f"generalise: {len(rows)} rows x {len(columns)} columns x {len(seeds)} test "
-              f"episodes = {len(keys)} runs", file=sys.stderr)
-        rc = execute_sweep(sorted(keys), out / "runs", resume=args.resume,
-                           executor=args.executor, workers=args.workers,
-                           ray_address=args.ray_address, quiet=True, first_seed=seeds[0])
+        rc = execute_study_sweep(keys, out, args, f"generalise: {len(rows)} rows x "
+                                 f"{len(columns)} columns x {len(seeds)} test episodes = "
+                                 f"{len(keys)} runs", seeds[0])
         cells = cell_frame(pd.read_csv(out / "runs" / "runs.csv"), rows, columns)
         write_csv(cells, out / "matrix.csv")
         write_csv(filter_cost(cells), out / "filter_cost.csv")

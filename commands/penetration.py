@@ -11,7 +11,6 @@ at no automated vehicle), through the results store (resumable, ``--resume``); w
 from __future__ import annotations
 
 import argparse
-import sys
 
 from benchmark.executors import add_executor_options
 from commands.cli import plain, report_command
@@ -52,7 +51,7 @@ def main(argv: list[str]) -> int:
     from benchmark.paths import writable_dir
     from benchmark.suite import build_sweep, seeds_from_set
     from commands.cli import scenarios_argument
-    from commands.run import _preflight, execute_sweep
+    from commands.run import _preflight, execute_study_sweep
     from controllers.registry import parse_controller_list
     from envs.limits import check_range
 
@@ -77,11 +76,9 @@ def main(argv: list[str]) -> int:
     out = writable_dir(args.out)
     command = report_command("penetration", argv)
     with folder_lock(out):
-        print(f"penetration: {len(settings)} scenario settings x {len(seeds)} test episodes = "
-              f"{len(keys)} runs", file=sys.stderr)
-        rc = execute_sweep(sorted(keys), out / "runs", resume=args.resume,
-                           executor=args.executor, workers=args.workers,
-                           ray_address=args.ray_address, quiet=True, first_seed=seeds[0])
+        rc = execute_study_sweep(keys, out, args, f"penetration: {len(settings)} scenario "
+                                 f"settings x {len(seeds)} test episodes = {len(keys)} runs",
+                                 seeds[0])
         table = cells(pd.read_csv(out / "runs" / "runs.csv"), settings)
         write_csv(table, out / "cells.csv")
         figures = plot_shares(table, out / "figures")

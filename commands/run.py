@@ -224,6 +224,17 @@ def _refuse_changed_policies(keys: list[RunKey], stored: list[dict], out: Path) 
         "those runs used")
 
 
+def execute_study_sweep(keys: set[RunKey], out: Path, args: argparse.Namespace, banner: str,
+                        first_seed: int) -> int:
+    """A study command's sweep (``generalise``, ``penetration``): ``banner`` on standard error,
+    then :func:`execute_sweep` of ``keys`` into ``out/runs`` with the command's ``--resume`` and
+    executor options, quietly."""
+    print(banner, file=sys.stderr)
+    return execute_sweep(sorted(keys), out / "runs", resume=args.resume, executor=args.executor,
+                         workers=args.workers, ray_address=args.ray_address, quiet=True,
+                         first_seed=first_seed)
+
+
 def execute_sweep(
     keys: list[RunKey],
     out: Path,

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+from trajectories import hand_trajectory
 
 from benchmark.export import LEADERBOARD_METRICS, RUN_COLUMNS, leaderboard_frame, runs_frame
 from benchmark.metrics import controllable_energy_kwh, cruise_energy_kwh, run_metrics
@@ -22,18 +23,7 @@ DT_S = 0.1
 def _traj(speed_mps: np.ndarray, accel_mps2: np.ndarray, leader_speed_mps: np.ndarray,
           power_kw: np.ndarray | None = None) -> Trajectory:
     """A trajectory of rows 0..T (row 0 the initial state), powers from the shipped model."""
-    rows, n = speed_mps.shape
-    steps = rows - 1
-    if power_kw is None:
-        power_kw = np.asarray(battery_power_kw(speed_mps, accel_mps2), dtype=float)
-        power_kw[0] = 0.0
-    return Trajectory(
-        gap_m=np.full((rows, n), 20.0), speed_mps=speed_mps, accel_mps2=accel_mps2,
-        power_kw=power_kw, leader_speed_mps=leader_speed_mps,
-        leader_accel_mps2=np.zeros(rows), reward=np.zeros(steps),
-        tracking_reward=np.zeros(steps), command_mps2=accel_mps2[1:].copy(),
-        compute_s=np.full(steps, 1e-3), collided=False, steps=steps, bits_sent=0,
-        solver_failures=0, dt_s=DT_S)
+    return hand_trajectory(speed_mps, leader_speed_mps, accel_mps2=accel_mps2, power_kw=power_kw)
 
 
 # ------------------------------------------------------------------------------ the metric

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from trajectories import hand_trajectory
 
 from benchmark.export import MIXED_COLUMNS, RUN_COLUMNS, leaderboard_frame, runs_frame
 from benchmark.metrics import (
@@ -27,24 +28,8 @@ DT_S = 0.1
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def _traj(speed_mps: np.ndarray, leader_speed_mps: np.ndarray, *,
-          accel_mps2: np.ndarray | None = None, automated: np.ndarray | None = None,
-          settle_steps: int = 0, ring: bool = False) -> Trajectory:
-    """Rows 0..T of N followers (row 0 the initial state), powers from the shipped model."""
-    rows, n = speed_mps.shape
-    steps = rows - 1
-    if accel_mps2 is None:
-        accel_mps2 = np.zeros((rows, n))
-        accel_mps2[1:] = np.diff(speed_mps, axis=0) / DT_S
-    power_kw = np.asarray(battery_power_kw(speed_mps, accel_mps2), dtype=float)
-    power_kw[0] = 0.0
-    return Trajectory(
-        gap_m=np.full((rows, n), 20.0), speed_mps=speed_mps, accel_mps2=accel_mps2,
-        power_kw=power_kw, leader_speed_mps=leader_speed_mps,
-        leader_accel_mps2=np.zeros(rows), reward=np.zeros(steps),
-        tracking_reward=np.zeros(steps), command_mps2=accel_mps2[1:].copy(),
-        compute_s=np.full(steps, 1e-3), collided=False, steps=steps, bits_sent=0,
-        solver_failures=0, dt_s=DT_S, automated=automated, settle_steps=settle_steps, ring=ring)
+def _traj(speed_mps: np.ndarray, leader_speed_mps: np.ndarray, **kwargs: object) -> Trajectory:
+    return hand_trajectory(speed_mps, leader_speed_mps, **kwargs)  # type: ignore[arg-type]
 
 
 def _sine(rows: int, amplitude_mps: float, period_steps: int = 50, phase: float = 0.0,
