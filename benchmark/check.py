@@ -54,7 +54,7 @@ def check_controller(name: str, scenario_id: str | Scenario = "catchup-v1", n_ve
     if not np.array_equal(u1, u2):
         raise AssertionError(
             f"{name}: a rerun of the same episode gave other commands; draw random numbers from "
-            "streams of the episode seed (envs.channel.episode_uniforms)"
+            "streams of the episode seed (envs.streams.episode_uniforms)"
         )
     if bits1 != bits2:
         raise AssertionError(f"{name}: V2V bits differ between identical episodes")

@@ -5,7 +5,7 @@ for the run's scenario and N at :meth:`reset`, keeps every agent's recurrent sta
 each follower's action every step: drawn from the policy (``mode=sampled``, the default: the
 policy as trained) or its argmax (``mode=greedy``). The action becomes the OVM command of the
 published action table. Sampled actions use the uniforms of the stream ``policy-actions`` of
-:func:`envs.channel.episode_uniforms`, a pure function of the episode seed, the agent and the
+:func:`envs.streams.episode_uniforms`, a pure function of the episode seed, the agent and the
 step: reruns, batches and every executor give the same actions, and every policy of a run draws
 the same numbers (common random numbers across algorithms). Every message goes through channels of the episode context, so delay and loss act
 on it and its bits are counted: each follower's 5-float vehicle block to its front and rear
@@ -22,7 +22,6 @@ from typing import Any
 import numpy as np
 
 from controllers.base import Controller, EpisodeContext, Message
-from envs.channel import episode_uniforms
 from envs.dynamics import OBS_DIM, action_to_command_mps2
 from envs.errors import ConfigError
 from envs.limits import MAX_TRAIN_SEED, check_seeds
@@ -30,6 +29,7 @@ from envs.naming import checkpoint_stem, coerce_option
 from envs.params import EVAL_MODES
 from envs.platoon import PlatoonState
 from envs.scenarios import make_scenario
+from envs.streams import episode_uniforms
 
 CHECKPOINT_DIR = Path(__file__).resolve().parent / "checkpoints"
 #: Name of the per-episode uniform stream sampled actions are drawn from.

@@ -38,7 +38,6 @@ from envs.accel_mode import (
     accel_observations,
     leader_links,
 )
-from envs.channel import episode_uniforms
 from envs.dynamics import agent_observations
 from envs.errors import ConfigError
 from envs.limits import MAX_TRAIN_SEED, check_seeds
@@ -46,6 +45,7 @@ from envs.naming import coerce_option
 from envs.params import EVAL_MODES, PlatoonParams
 from envs.platoon import PlatoonState
 from envs.scenarios import Scenario, make_scenario
+from envs.streams import episode_uniforms
 
 #: The shared policies this controller loads: the PPO learners and the MPC distillation.
 SHARED_POLICIES: tuple[str, ...] = ("ippo", "mappo", "distill", "ippo-bdc")

@@ -30,6 +30,7 @@ import numpy as np
 
 from envs.errors import ConfigError
 from envs.params import PlatoonParams
+from envs.streams import episode_stream
 
 #: The human-driver models a scenario's ``human_model`` option takes.
 HUMAN_MODELS: tuple[str, ...] = ("idm", "ovm")
@@ -130,7 +131,7 @@ def idm_equilibrium_speed_mps(gap_m: float, p: IDMParams = IDMParams()) -> float
 
 
 #: Integer keys of the humans' per-episode streams (``numpy.random.default_rng([seed, key])``:
-#: a few microseconds to start, where a named :func:`envs.scenarios.episode_stream` takes tens).
+#: a few microseconds to start, where a named :func:`envs.streams.episode_stream` takes tens).
 NOISE_KEY: int = 0x6E6F697365  # "noise"
 PARAMS_KEY: int = 0x706172616D  # "param"
 #: Levels of the humans' Gaussian noise: a draw is the normal quantile of one of 2^16 equally
@@ -263,8 +264,6 @@ def place_automated(k: int, n_vehicles: int, placement: str, placement_seed: int
     elif placement == "spread":
         seats = np.array([(j * n_vehicles) // k for j in range(k)], dtype=np.int64)
     else:
-        from envs.scenarios import episode_stream
-
         seats = np.sort(episode_stream(int(placement_seed), PLACEMENT_STREAM)
                         .choice(n_vehicles, size=k, replace=False))
     return np.asarray(seats, dtype=np.int64)

@@ -30,6 +30,7 @@ from envs.humans import (
 )
 from envs.naming import coerce_option, format_label, parse_label, parse_named_list
 from envs.params import PlatoonParams
+from envs.streams import episode_stream
 
 MIN_VEHICLES = 2
 MAX_VEHICLES = 64
@@ -38,15 +39,6 @@ MAX_VEHICLES = 64
 def published_perturbation(seed: int) -> float:
     """``U = numpy.random.RandomState(seed).random_sample()``: seed 0 gives 0.5488135039273248."""
     return float(np.random.RandomState(int(seed)).random_sample())
-
-
-def episode_stream(seed: int, stream: str) -> np.random.Generator:
-    """An independent random stream of one episode, named (e.g. ``"loss"``, ``"noise"``).
-
-    Depends only on the episode seed and the stream's name, never on a global state.
-    """
-    key = [int(b) for b in stream.encode()]
-    return np.random.Generator(np.random.PCG64(np.random.SeedSequence([int(seed), *key])))
 
 
 @dataclass(frozen=True)

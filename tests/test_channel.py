@@ -5,8 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from envs.channel import ChannelConfig, V2VChannel, episode_uniforms
+from envs.channel import ChannelConfig, V2VChannel
 from envs.errors import ConfigError
+from envs.streams import episode_uniforms
 
 
 def _chain(n_vehicles: int, width: int, seeds, **kwargs) -> V2VChannel:
