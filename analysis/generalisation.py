@@ -146,12 +146,12 @@ def learned_rows(available: Any) -> list[Row]:
     per-agent policies trained at another N (:data:`OTHER_N_POLICIES`, one seed each, named in
     the label); ``available(controller, options, n_vehicles)`` says whether a checkpoint exists
     (rows lacking one are left out by the caller)."""
-    from controllers.shared_policy import IPPO_VARIANTS, PER_AGENT_POLICIES, SHARED_POLICIES
-    from marl.config import ALGORITHM_NAMES
+    from controllers.shared_policy import IPPO_VARIANTS
+    from marl.learners import PAPER_ALGORITHMS, PER_AGENT_SHARED, SHARED_LEARNERS
 
     rows: list[Row] = []
-    for algo in (*ALGORITHM_NAMES, *SHARED_POLICIES):
-        shared = algo in SHARED_POLICIES and algo not in PER_AGENT_POLICIES
+    for algo in (*PAPER_ALGORITHMS, *SHARED_LEARNERS):
+        shared = algo in SHARED_LEARNERS and algo not in PER_AGENT_SHARED
         for sc in TRAINED_ON:
             rows.append(Row(f"{algo} ({sc})", algo, (("scenario", sc),), True,
                             None if shared else 8))

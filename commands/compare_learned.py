@@ -43,7 +43,7 @@ def controller_specs(scenarios: list[str], n_vehicles: int) -> list[tuple[str, d
     from analysis.learned_report import POLICIES
     from controllers.policy import VARIANT_DIR, checkpoint_path
     from controllers.registry import resolve
-    from controllers.shared_policy import PER_AGENT_POLICIES, SHARED_POLICIES
+    from marl.learners import PER_AGENT_SHARED, SHARED_LEARNERS
 
     specs: list[tuple[str, dict[str, str]]] = []
     for name, (ctrl, opts) in POLICIES.items():
@@ -51,7 +51,7 @@ def controller_specs(scenarios: list[str], n_vehicles: int) -> list[tuple[str, d
             specs.append((ctrl, dict(opts)))
             continue
         folder = VARIANT_DIR / opts["variant"] if "variant" in opts else None
-        shared = ctrl in SHARED_POLICIES and ctrl not in PER_AGENT_POLICIES
+        shared = ctrl in SHARED_LEARNERS and ctrl not in PER_AGENT_SHARED
         trained_n = SHARED_N if shared else n_vehicles  # a shared policy acts at any N
         missing = [(sc, s) for sc in scenarios for s in TRAIN_SEEDS
                    if not checkpoint_path(ctrl, sc, trained_n, s, folder).exists()]

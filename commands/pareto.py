@@ -85,7 +85,7 @@ def settings_for(families: list[str], scenarios: list[str], n_vehicles: int
     options."""
     from controllers.policy import VARIANT_DIR, checkpoint_path
     from controllers.registry import controller_label
-    from marl.config import ALGORITHM_NAMES
+    from marl.learners import PAPER_ALGORITHMS
 
     out: list[dict[str, Any]] = []
 
@@ -102,9 +102,10 @@ def settings_for(families: list[str], scenarios: list[str], n_vehicles: int
             for name in POINTS:
                 add(name, name, {}, "", "")
         if group == "marl":
-            from controllers.shared_policy import IPPO_VARIANTS, SHARED_POLICIES
+            from controllers.shared_policy import IPPO_VARIANTS
+            from marl.learners import SHARED_LEARNERS
 
-            for algo in (*ALGORITHM_NAMES, *SHARED_POLICIES):
+            for algo in (*PAPER_ALGORITHMS, *SHARED_LEARNERS):
                 if not all(checkpoint_path(algo, sc, n_vehicles).exists() for sc in scenarios):
                     continue
                 if algo not in MARL_SWEEPS:

@@ -164,7 +164,7 @@ def main(argv: list[str]) -> int:
     """Measure and print a table (``--json`` for a JSON object)."""
     from controllers.registry import available_controllers
     from envs.errors import ConfigError
-    from envs.params import MARL_ALGORITHMS
+    from marl.learners import PAPER_ALGORITHMS
 
     p = argparse.ArgumentParser(prog="cacc-bench perf", description=plain(__doc__),
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -201,19 +201,19 @@ def main(argv: list[str]) -> int:
         if given:
             for name, opts in specs:
                 make_controller(name, **opts)  # checks the name and every option
-    from marl.ppo_nets import SHARED_ALGORITHMS
+    from marl.learners import PPO_LEARNERS
 
     algos = ([a.strip() for a in args.algos.split(",") if a.strip()] if args.algos is not None
-             else [*MARL_ALGORITHMS, *SHARED_ALGORITHMS])  # "" names nothing: refused below
-    shared_algos = [a for a in algos if a in SHARED_ALGORITHMS]
-    algos = [a for a in algos if a not in SHARED_ALGORITHMS]
+             else [*PAPER_ALGORITHMS, *PPO_LEARNERS])  # "" names nothing: refused below
+    shared_algos = [a for a in algos if a in PPO_LEARNERS]
+    algos = [a for a in algos if a not in PPO_LEARNERS]
     from envs.limits import check_range
 
     check_range(args.population, "--population", 0, MAX_PERF_POPULATION)
-    unknown_algos = [a for a in algos if a not in MARL_ALGORITHMS]
+    unknown_algos = [a for a in algos if a not in PAPER_ALGORITHMS]
     if unknown_algos or not (algos or shared_algos):  # checked whichever parts run
         raise ConfigError(f"--algos: unknown algorithm(s) {unknown_algos or '(none named)'}; "
-                          f"valid: {', '.join([*MARL_ALGORITHMS, *SHARED_ALGORITHMS])}")
+                          f"valid: {', '.join([*PAPER_ALGORITHMS, *PPO_LEARNERS])}")
     if "train" in parts:
         from marl.config import training_device
 
@@ -322,7 +322,7 @@ def _print_table(out: dict[str, Any]) -> None:
             else:
                 print(f"  {name:<{w}} {t}")
     if "train_env_steps_per_s" in out:
-        from controllers.shared_policy import PER_AGENT_POLICIES
+        from marl.learners import PER_AGENT_SHARED
 
         print(f"training on {out['train_device']} (environment steps/s, one process, one torch "
               "thread; median of the runs):")
@@ -337,7 +337,7 @@ def _print_table(out: dict[str, Any]) -> None:
         for algo, rate in out.get("train_shared_env_steps_per_s", {}).items():
             runs = out["train_shared_env_steps_per_s_runs"][algo]
             spread = f", runs {min(runs):,.0f} to {max(runs):,.0f}" if len(runs) > 1 else ""
-            kind = ("a network per follower, BDC's consensus" if algo in PER_AGENT_POLICIES
+            kind = ("a network per follower, BDC's consensus" if algo in PER_AGENT_SHARED
                     else "one policy shared by the followers")
             print(f"  {algo:<10} {rate:10,.0f}  ({kind}, accel mode; target 34,000{spread})")
         if "train_shared_network_bound_env_steps_per_s" in out:

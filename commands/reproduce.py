@@ -191,7 +191,8 @@ def _holds_files(folder: Path) -> bool:
 
 def main(argv: list[str]) -> int:
     """Entry point of ``cacc-bench reproduce``."""
-    from marl.config import ALGORITHM_NAMES, training_device
+    from marl.config import training_device
+    from marl.learners import PAPER_ALGORITHMS
 
     t0 = time.perf_counter()
     args = _parser().parse_args(argv)
@@ -201,12 +202,12 @@ def main(argv: list[str]) -> int:
     budget = BUDGETS[args.budget]
     algos = [a.strip() for a in args.algos.split(",") if a.strip()]
     if algos == ["all"]:
-        algos = list(ALGORITHM_NAMES)
+        algos = list(PAPER_ALGORITHMS)
     if not algos:
         raise ConfigError("--algos: nothing named")
     for a in algos:
-        if a not in ALGORITHM_NAMES:
-            raise UnknownNameError("algorithm", a, ALGORITHM_NAMES)
+        if a not in PAPER_ALGORITHMS:
+            raise UnknownNameError("algorithm", a, PAPER_ALGORITHMS)
     built = scenarios_argument(args.scenarios)
     scenarios = [sc.label for sc in built]  # names of checkpoints, report sections, the manifest
     if args.workers < 1:

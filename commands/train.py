@@ -29,14 +29,14 @@ DEFAULT_OUT = str(Path(__file__).resolve().parent.parent / "controllers" / "chec
 
 
 def _parser() -> argparse.ArgumentParser:
-    from marl.config import ALGORITHM_NAMES
+    from marl.learners import PAPER_ALGORITHMS
 
     p = argparse.ArgumentParser(
         prog="cacc-bench train",
         description="Train a MARL algorithm (one agent per follower) on a scenario.",
     )
     p.add_argument("--algo", required=True,
-                   help=f"one of: {', '.join(ALGORITHM_NAMES)}; a comma list, or all; or the "
+                   help=f"one of: {', '.join(PAPER_ALGORITHMS)}; a comma list, or all; or the "
                         "shared-policy learners ippo, mappo (marl/ppo.py) and distill "
                         "(marl/distill.py), whose config fields --set takes")
     p.add_argument("--scenario", required=True,
@@ -332,11 +332,11 @@ def main(argv: list[str]) -> int:
     """Entry point: ``cacc-bench train --algo NAME --scenario ID [...]``."""
     from benchmark.executors import map_jobs
     from commands.cli import scenarios_argument
-    from commands.train_shared import SHARED_LEARNERS
     from controllers.registry import build_config
     from envs.scenarios import check_vehicles
     from marl.arithmetic import process_env
-    from marl.config import ALGORITHM_NAMES, algorithm, training_device
+    from marl.config import algorithm, training_device
+    from marl.learners import PAPER_ALGORITHMS, SHARED_LEARNERS
 
     args = _parser().parse_args(argv)
     from benchmark.executors import check_ray_address
@@ -344,14 +344,14 @@ def main(argv: list[str]) -> int:
     check_ray_address(args.ray_address)  # an address that does not answer: refused before work
     algos = _names(args.algo, "--algo")
     if algos == ["all"]:
-        algos = list(ALGORITHM_NAMES)
+        algos = list(PAPER_ALGORITHMS)
     shared = [a for a in algos if a in SHARED_LEARNERS]
     if shared and len(shared) != len(algos):
         raise ConfigError(f"--algo: train the shared-policy learners ({', '.join(shared)}) in a "
                           "command of their own (they take other config fields)")
     for a in algos:
-        if a not in ALGORITHM_NAMES and not shared:
-            raise UnknownNameError("algorithm", a, (*ALGORITHM_NAMES, *SHARED_LEARNERS))
+        if a not in PAPER_ALGORITHMS and not shared:
+            raise UnknownNameError("algorithm", a, (*PAPER_ALGORITHMS, *SHARED_LEARNERS))
     built = scenarios_argument(args.scenario, "--scenario")  # each built and checked once
     for one in built:
         if one.label != one.id:

@@ -20,9 +20,6 @@ from typing import Any
 from envs.errors import ConfigError
 from envs.naming import checkpoint_stem
 
-#: The learners of one policy shared by every follower, trained by this module.
-SHARED_LEARNERS: tuple[str, ...] = ("ippo", "mappo", "distill", "ippo-bdc")
-
 
 def shared_config(algo: str, overrides: Sequence[str], tuned: dict[str, Any] | None = None
                   ) -> Any:

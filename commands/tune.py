@@ -48,6 +48,7 @@ from typing import Any
 from benchmark.export import write_csv
 from envs.errors import ConfigError, UnknownNameError
 from envs.limits import step_count
+from marl.learners import PPO_LEARNERS
 
 #: Weight of one colliding validation episode in a trial's score.
 COLLISION_PENALTY = 10_000.0
@@ -60,8 +61,9 @@ MAX_TRIALS = 1000
 EPS_ALGOS = ("dcea", "bdc", "ippo-bdc")
 
 
-#: Learners of one shared policy that ``tune`` also tunes (their own search space).
-SHARED_TUNED = ("ippo", "mappo", "ippo-bdc")
+#: Learners of one shared policy that ``tune`` also tunes (their own search space): the ``ppo``
+#: family of the learner registry.
+SHARED_TUNED = PPO_LEARNERS
 #: The config fields their search space draws (``--set`` cannot fix these: each trial's value
 #: would replace it).
 SHARED_SEARCHED = ("lr", "init_log_std", "gamma", "n_envs", "reward_alpha", "consensus_eps")
@@ -129,13 +131,13 @@ def trial_score(summary: dict[str, float]) -> float:
 
 
 def _parser() -> argparse.ArgumentParser:
-    from marl.config import ALGORITHM_NAMES
+    from marl.learners import PAPER_ALGORITHMS
 
     p = argparse.ArgumentParser(
         prog="cacc-bench tune",
         description="Tune every MARL algorithm with the same budget (Optuna, validation seeds).",
     )
-    p.add_argument("--algos", default=",".join(ALGORITHM_NAMES),
+    p.add_argument("--algos", default=",".join(PAPER_ALGORITHMS),
                    help="comma list of algorithms (default: all seven; also ippo, mappo, "
                         "ippo-bdc)")
     p.add_argument("--scenarios", default="catchup-v1,slowdown-v1",
@@ -265,7 +267,7 @@ def main(argv: list[str]) -> int:
     from benchmark.progress import Progress
     from commands.cli import scenarios_argument
     from envs.scenarios import check_vehicles
-    from marl.config import ALGORITHM_NAMES
+    from marl.learners import PAPER_ALGORITHMS
 
     args = _parser().parse_args(argv)
     from benchmark.executors import check_ray_address
@@ -273,8 +275,8 @@ def main(argv: list[str]) -> int:
     check_ray_address(args.ray_address)  # an address that does not answer: refused before work
     algos = [a.strip() for a in args.algos.split(",") if a.strip()]
     for a in algos:
-        if a not in (*ALGORITHM_NAMES, *SHARED_TUNED):
-            raise UnknownNameError("algorithm", a, (*ALGORITHM_NAMES, *SHARED_TUNED))
+        if a not in (*PAPER_ALGORITHMS, *SHARED_TUNED):
+            raise UnknownNameError("algorithm", a, (*PAPER_ALGORITHMS, *SHARED_TUNED))
     fixed: dict[str, str] = {}
     if args.overrides:
         if not all(a in SHARED_TUNED for a in algos):

@@ -137,7 +137,7 @@ class PolicyController(Controller):
         **options: Any,
     ) -> None:
         super().__init__()
-        from marl.config import ALGORITHM_NAMES
+        from marl.learners import PAPER_ALGORITHMS
 
         if options:
             raise ConfigError(
@@ -148,9 +148,9 @@ class PolicyController(Controller):
             raise ConfigError(f"{algo}: mode must be one of {', '.join(EVAL_MODES)}, got {mode!r}")
         seed = int(coerce_option(seed, int, "seed", algo))  # the one rule for option values
         check_seeds([seed], f"{algo}: seed", MAX_TRAIN_SEED)  # what `train` can make
-        if algo not in ALGORITHM_NAMES:
+        if algo not in PAPER_ALGORITHMS:
             raise ConfigError(
-                f"unknown MARL algorithm {algo!r}; valid: {', '.join(ALGORITHM_NAMES)}"
+                f"unknown MARL algorithm {algo!r}; valid: {', '.join(PAPER_ALGORITHMS)}"
             )
         if variant is not None:
             if checkpoint_dir is not None:

@@ -18,7 +18,7 @@ from typing import Any
 
 from envs.errors import CaccBenchError, ConfigError, UnknownNameError
 from envs.naming import coerce_option, format_label, parse_named_list
-from envs.params import MARL_ALGORITHMS
+from marl.learners import LEARNERS
 
 
 @dataclass(frozen=True)
@@ -130,55 +130,9 @@ for _spec in (
 ):
     register_controller(_spec)
 
-for _algo in MARL_ALGORITHMS:
-    register_controller(
-        ControllerSpec(
-            _algo, "marl", "see docs/spec/marl.md (neighbour blocks, messages)",
-            f"trained {_algo} policy (shipped checkpoint; actions sampled, mode=greedy for argmax)",
-            "controllers.policy:PolicyController",
-            fixed={"algo": _algo},
-        )
-    )
-
-for _algo, _critic in (("ippo", "a critic of its own observation"),
-                      ("mappo", "a centralised critic (its observation and the platoon's mean)")):
-    register_controller(
-        ControllerSpec(
-            _algo, "marl",
-            "accel mode: predecessor's command (1 float), leader's acceleration and speed "
-            "(2 floats); ovm-gain mode: neighbour blocks",
-            f"one policy shared by every follower (PPO, {_critic}), any N; acceleration "
-            "actions by default (shipped N = 8 checkpoint; actions sampled, mode=greedy for "
-            "the mode)",
-            "controllers.shared_policy:SharedPolicyController",
-            fixed={"algo": _algo},
-        )
-    )
-
-register_controller(
-    ControllerSpec(
-        "ippo-bdc", "marl",
-        "predecessor's command (1 float), leader's acceleration and speed (2 floats); in "
-        "training, the critics' sign patterns to the front and rear neighbours",
-        "BDC-MARL's consensus on the acceleration-action learner: an actor and critic per "
-        "follower, critics agreeing by binary differential consensus, QSGD critic gradients "
-        "(shipped N = 8 checkpoint, that N only; actions sampled, mode=greedy for the mode)",
-        "controllers.shared_policy:SharedPolicyController",
-        fixed={"algo": "ippo-bdc"},
-    )
-)
-
-register_controller(
-    ControllerSpec(
-        "distill", "marl",
-        "predecessor's command (1 float), leader's acceleration and speed (2 floats)",
-        "the shared actor trained by imitation of mpc (behaviour cloning, then DAgger on "
-        "training seeds), any N (shipped N = 8 checkpoint; actions sampled from the fitted "
-        "Gaussian, mode=greedy for its mean)",
-        "controllers.shared_policy:SharedPolicyController",
-        fixed={"algo": "distill"},
-    )
-)
+for _learner in LEARNERS.values():  # every learner's policy, from the one learner registry
+    register_controller(ControllerSpec(_learner.name, "marl", _learner.v2v, _learner.description,
+                                       _learner.acting, fixed={"algo": _learner.name}))
 
 #: Controllers of ``cacc-bench run`` when none are named (those available in this install):
 #: the human baseline and its duty schedule, the linear laws, the quadratic MPC and the paper's

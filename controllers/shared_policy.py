@@ -46,11 +46,8 @@ from envs.params import EVAL_MODES, PlatoonParams
 from envs.platoon import PlatoonState
 from envs.scenarios import Scenario, make_scenario
 from envs.streams import episode_uniforms
+from marl.learners import SHARED_LEARNERS
 
-#: The shared policies this controller loads: the PPO learners and the MPC distillation.
-SHARED_POLICIES: tuple[str, ...] = ("ippo", "mappo", "distill", "ippo-bdc")
-#: Those of them with one network per follower: they act at their trained N only.
-PER_AGENT_POLICIES: tuple[str, ...] = ("ippo-bdc",)
 #: Shipped variants of ``ippo`` (``ippo:variant=NAME``, folders below
 #: ``controllers/checkpoints/variants``): a residual on ``cacc``, the same with a time-aware
 #: critic, and the published OVM-gain action set.
@@ -128,9 +125,9 @@ class SharedPolicyController(Controller):
                  vehicles: int | str = 8, variant: str | None = None,
                  mode: str = "sampled") -> None:
         super().__init__()
-        if algo not in SHARED_POLICIES:
+        if algo not in SHARED_LEARNERS:
             raise ConfigError(f"unknown shared-policy algorithm {algo!r}; valid: "
-                              f"{', '.join(SHARED_POLICIES)}")
+                              f"{', '.join(SHARED_LEARNERS)}")
         if mode not in EVAL_MODES:
             raise ConfigError(f"{algo}: mode must be one of {', '.join(EVAL_MODES)}, got {mode!r}")
         seed = int(coerce_option(seed, int, "seed", algo))  # the one rule for option values

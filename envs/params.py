@@ -72,9 +72,6 @@ def check_decision_seeds(seeds: Iterable[int] | np.ndarray, who: str) -> None:
 #: policy, as trained) and ``greedy`` (argmax; a different policy when the trained one stays
 #: stochastic).
 EVAL_MODES: tuple[str, ...] = ("sampled", "greedy")
-#: The MARL algorithms of the paper, in its order: the one list the registry, the trainers and
-#: every command use.
-MARL_ALGORITHMS: tuple[str, ...] = ("ia2c", "fprint", "dial", "commnet", "wac", "dcea", "bdc")
 
 
 @dataclass(frozen=True)

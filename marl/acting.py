@@ -13,11 +13,12 @@ from typing import Any
 import numpy as np
 import torch
 
-from marl.config import ALGORITHM_NAMES, Algorithm, algorithm, config_from_dict
+from marl.config import Algorithm, algorithm, config_from_dict
+from marl.learners import PAPER_ALGORITHMS
 from marl.networks import AgentNet, State, exchange
 
 __all__ = [
-    "ALGORITHM_NAMES",
+    "PAPER_ALGORITHMS",
     "Algorithm",
     "acting_net",
     "algorithm",

@@ -290,9 +290,10 @@ def _check_config_and_shapes(data: dict[str, Any], damaged: Any) -> None:
     """For an algorithm of :mod:`marl.config`: the config's fields exist with the annotated
     types and build a valid config, and every stored weight is one of that network's acting
     weights with its shape (``(N, ...)``). Other algorithms are covered by the hash only."""
-    from marl.config import ALGORITHM_NAMES, algorithm, config_from_dict
+    from marl.config import algorithm, config_from_dict
+    from marl.learners import PAPER_ALGORITHMS
 
-    if data["algo"] not in ALGORITHM_NAMES:
+    if data["algo"] not in PAPER_ALGORITHMS:
         return
     algo = algorithm(data["algo"])
     fields = {f.name: f for f in dataclasses.fields(algo.config_cls)}

@@ -22,8 +22,9 @@ from typing import TYPE_CHECKING, Any, ClassVar
 import numpy as np
 
 from envs.errors import ConfigError, UnknownNameError
-from envs.params import EVAL_MODES, MARL_ALGORITHMS, RewardWeights
+from envs.params import EVAL_MODES, RewardWeights
 from envs.scenarios import Scenario, as_scenario
+from marl.learners import PAPER_ALGORITHMS
 
 if TYPE_CHECKING:
     import torch
@@ -32,7 +33,6 @@ if TYPE_CHECKING:
     from marl.networks import AgentNet
 
 COLLISION_VALUES: tuple[str, ...] = ("absorbing", "published")
-ALGORITHM_NAMES: tuple[str, ...] = MARL_ALGORITHMS
 
 
 # ---------------------------------------------------------------------------- config
@@ -264,8 +264,8 @@ class Algorithm:
 
 def algorithm(name: str) -> Algorithm:
     """The :class:`Algorithm` of a registered name (module ``marl.<name>``)."""
-    if name not in ALGORITHM_NAMES:
-        raise UnknownNameError("algorithm", name, ALGORITHM_NAMES)
+    if name not in PAPER_ALGORITHMS:
+        raise UnknownNameError("algorithm", name, PAPER_ALGORITHMS)
     module = importlib.import_module(f"marl.{name}")
     return module.ALGORITHM
 

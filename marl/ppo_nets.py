@@ -14,10 +14,8 @@ from envs.accel_mode import check_action_mode
 from envs.channel import ChannelConfig
 from envs.errors import ConfigError
 from envs.params import OVM_ACTIONS, PlatoonParams
+from marl.learners import PPO_LEARNERS
 
-#: The learners of this file: one shared policy (``ippo``, ``mappo``), or one actor and critic
-#: per agent whose critics agree by binary differential consensus (``ippo-bdc``).
-SHARED_ALGORITHMS: tuple[str, ...] = ("ippo", "mappo", "ippo-bdc")
 #: Model-based priors a residual policy can add to (``PPOConfig.prior``).
 PRIORS: tuple[str, ...] = ("", "cacc", "cacc-exact")
 #: Uniform stream of sampled evaluation actions (per episode, step and agent).
@@ -131,8 +129,8 @@ class PPOConfig:
     qsgd_bucket: int = 128
 
     def __post_init__(self) -> None:
-        if self.algo not in SHARED_ALGORITHMS:
-            raise ConfigError(f"algo must be one of {', '.join(SHARED_ALGORITHMS)}, got {self.algo!r}")
+        if self.algo not in PPO_LEARNERS:
+            raise ConfigError(f"algo must be one of {', '.join(PPO_LEARNERS)}, got {self.algo!r}")
         check_action_mode(self.action_mode)
         from envs.limits import (
             MAX_EPISODES_PARALLEL,

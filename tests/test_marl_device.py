@@ -12,7 +12,8 @@ from run_marks import representative
 from commands.cli import main as cli
 from envs.dynamics import OBS_DIM
 from envs.errors import ConfigError
-from marl.config import ALGORITHM_NAMES, algorithm, training_device
+from marl.config import algorithm, training_device
+from marl.learners import PAPER_ALGORITHMS
 from marl.population import PopulationTrainer
 from marl.selection import acting_net
 
@@ -45,7 +46,7 @@ def default_device_meta() -> Iterator[None]:
         torch.set_default_device(None)
 
 
-@pytest.mark.parametrize("name", representative(ALGORITHM_NAMES, {"bdc"}))
+@pytest.mark.parametrize("name", representative(PAPER_ALGORITHMS, {"bdc"}))
 def test_training_places_every_tensor_explicitly(name: str, default_device_meta: None) -> None:
     """A population of two trains a batch with the default device elsewhere: every tensor the
     trainer, the networks, the losses, consensus and QSGD make names its device (a GPU run

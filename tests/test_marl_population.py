@@ -10,7 +10,8 @@ from run_marks import FULL, representative
 
 from envs.errors import ConfigError, TrainingDivergedError
 from marl.a2c import Trainer
-from marl.config import ALGORITHM_NAMES, algorithm
+from marl.config import algorithm
+from marl.learners import PAPER_ALGORITHMS
 from marl.population import PopulationTrainer
 from marl.selection import run_population, run_training
 
@@ -44,7 +45,7 @@ def _assert_run_equals_solo(pop: PopulationTrainer, k: int, solo: Trainer) -> No
     assert (a.steps, a.episodes, a.updates, a.bits) == (b.steps, b.episodes, b.updates, b.bits)
 
 
-@pytest.mark.parametrize("name", representative(ALGORITHM_NAMES, {"bdc"}))
+@pytest.mark.parametrize("name", representative(PAPER_ALGORITHMS, {"bdc"}))
 def test_each_run_of_a_population_trains_exactly_as_alone(name: str) -> None:
     """Weights (critics included), step counts, updates and bit tallies of every run equal a
     separate run of the same seed by the single-run learner (:class:`marl.a2c.Trainer`, a

@@ -9,13 +9,14 @@ import torch
 from run_marks import FULL
 
 from marl.a2c import Trainer
-from marl.config import ALGORITHM_NAMES, algorithm
+from marl.config import algorithm
+from marl.learners import PAPER_ALGORITHMS
 from marl.population import PopulationTrainer
 from marl.quantize import qsgd_bits, ternary_bits
 from marl.selection import run_training
 
 
-@pytest.mark.parametrize("algo", ALGORITHM_NAMES)
+@pytest.mark.parametrize("algo", PAPER_ALGORITHMS)
 def test_tiny_training_run(algo) -> None:
     a = algorithm(algo)
     cfg = a.config_cls(episodes_parallel=2, n_step=20)

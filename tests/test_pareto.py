@@ -100,10 +100,11 @@ def test_the_marl_family_shows_the_shared_learners_and_the_ippo_variants() -> No
     """Every shipped shared-policy learner is a point, and so is each shipped ``ippo`` variant
     (the time-aware residual among them), on both published scenarios."""
     from commands.pareto import settings_for
-    from controllers.shared_policy import IPPO_VARIANTS, SHARED_POLICIES
+    from controllers.shared_policy import IPPO_VARIANTS
+    from marl.learners import SHARED_LEARNERS
 
     labels = [s["label"] for s in settings_for(["marl"], ["catchup-v1", "slowdown-v1"], 8)]
-    assert set(SHARED_POLICIES) <= set(labels)
+    assert set(SHARED_LEARNERS) <= set(labels)
     assert [f"ippo[variant={v}]" for v in IPPO_VARIANTS] == [
         x for x in labels if x.startswith("ippo[variant=")]
 

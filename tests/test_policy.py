@@ -18,7 +18,8 @@ from controllers.policy import PolicyController
 from envs.errors import ConfigError, UnknownNameError
 from envs.platoon import PlatoonEnv
 from marl.checkpoint import save_checkpoint
-from marl.config import ALGORITHM_NAMES, algorithm
+from marl.config import algorithm
+from marl.learners import PAPER_ALGORITHMS
 
 
 def _ckpt(tmp_path, algo="ia2c", n=4, scenario="catchup-v1"):
@@ -106,7 +107,7 @@ def test_greedy_takes_the_argmax_and_sampled_draws_all_actions(tmp_path, algo) -
     assert np.all(freq > 0.15), freq
 
 
-@pytest.mark.parametrize("algo", ALGORITHM_NAMES)
+@pytest.mark.parametrize("algo", PAPER_ALGORITHMS)
 def test_policy_controller_sends_its_messages_and_counts_bits(tmp_path, algo) -> None:
     path, _ = _ckpt(tmp_path, algo)
     ctrl = PolicyController(algo, checkpoint=str(path))
@@ -119,7 +120,7 @@ def test_policy_controller_sends_its_messages_and_counts_bits(tmp_path, algo) ->
     assert {"ia2c": 0, "fprint": 4, "dial": 64, "commnet": 64}.get(algo, 0) == ctrl.net.msg_width
 
 
-@pytest.mark.parametrize("algo", representative(ALGORITHM_NAMES, {"bdc", "dial"}))
+@pytest.mark.parametrize("algo", representative(PAPER_ALGORITHMS, {"bdc", "dial"}))
 @pytest.mark.parametrize("mode", ["sampled", "greedy"])
 def test_training_validation_is_the_benchmark_loop(algo, mode) -> None:
     """Training's validation (batched episodes, the live network) gives what the harness's
@@ -141,7 +142,7 @@ def test_training_validation_is_the_benchmark_loop(algo, mode) -> None:
     assert len({round(t.reward.mean(), 6) for t in trajs}) == len(seeds)  # the episodes differ
 
 
-@pytest.mark.parametrize("algo", ALGORITHM_NAMES)
+@pytest.mark.parametrize("algo", PAPER_ALGORITHMS)
 def test_a_network_row_does_not_depend_on_the_batch(algo, monkeypatch) -> None:
     """The probe behind batching policies: an episode's logits and next state are the same, to
     the last bit, whether its row is computed among 64 or in the ``MIN_LANES`` rows (itself
@@ -384,7 +385,7 @@ def test_duty_beats_ovm_on_the_evaluation_seeds(scenario) -> None:
 
 
 @pytest.mark.parametrize("scenario", ["catchup-v1", "slowdown-v1"])
-@pytest.mark.parametrize("name", representative(ALGORITHM_NAMES, {"bdc"}))
+@pytest.mark.parametrize("name", representative(PAPER_ALGORITHMS, {"bdc"}))
 def test_shipped_policies_on_the_evaluation_seeds(name, scenario) -> None:
     """What the README says of the shipped policies, on the 50 published evaluation seeds in the
     default (sampled) mode, pooled over the three shipped training seeds:

@@ -112,7 +112,8 @@ def test_tuned_options(tmp_path: Path, capsys) -> None:
     shipped = json.loads(TUNED_CONFIGS.read_text())
     assert shipped["budget"] == {"trials": 8, "steps_per_trial": 200_000, "seed": 0, "vehicles": 8}
     assert {"bdc/catchup-v1", "bdc/slowdown-v1"} <= set(shipped["configs"])
-    from commands.train_shared import SHARED_LEARNERS, shared_config
+    from commands.train_shared import shared_config
+    from marl.learners import SHARED_LEARNERS
 
     for key in shipped["configs"]:
         a, sc = key.split("/")
