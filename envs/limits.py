@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 from envs.errors import ConfigError
 
 #: Longest V2V delay (s): an episode lasts 60 s, so a longer delay delivers no message at all
@@ -26,6 +28,13 @@ MAX_ROLLOUT_AGENT_STEPS = 2**24
 TRAIN_SEED_STRIDE = 10_000_000
 #: Largest training seed whose episode seeds stay below 2**32 for a longest run (418).
 MAX_TRAIN_SEED = (2**32 - 1 - MAX_TRAIN_STEPS - MAX_EPISODES_PARALLEL) // TRAIN_SEED_STRIDE - 1
+
+
+def training_episode_seeds(run_seed: int, first: int, count: int) -> np.ndarray:
+    """Env seeds of training episodes ``first .. first + count - 1`` of run seed ``run_seed``:
+    ``TRAIN_SEED_STRIDE (run_seed + 1) + k`` (the one rule every learner draws its episodes by;
+    never a validation, evaluation or test seed, :mod:`envs.params`)."""
+    return TRAIN_SEED_STRIDE * (int(run_seed) + 1) + int(first) + np.arange(count)
 
 
 def check_delay(value: float, flag: str) -> float:
@@ -68,6 +77,14 @@ def check_whole_steps(value: float, flag: str, dt_s: float | None = None) -> flo
                           f"of {dt_s:g} s; give a multiple of {dt_s:g} s (0, {dt_s:g}, "
                           f"{2 * dt_s:g}, ...)")
     return float(value)
+
+
+def check_hidden(value: int, flag: str = "hidden") -> int:
+    """``value`` if it is a hidden-layer width in 1..:data:`MAX_HIDDEN`, else a ConfigError (the
+    one rule of every learner's config: the paper's learners, the shared ones, the distiller)."""
+    if not 1 <= value <= MAX_HIDDEN:
+        raise ConfigError(f"{flag} must lie in 1..{MAX_HIDDEN:,}, got {value}")
+    return int(value)
 
 
 def check_packet_loss(value: float, flag: str = "the packet loss") -> float:

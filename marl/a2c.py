@@ -29,6 +29,7 @@ import numpy as np
 import torch
 
 from envs.errors import TrainingDivergedError
+from envs.limits import training_episode_seeds
 from envs.params import RewardWeights
 from envs.platoon import PlatoonEnv, StepResult
 from envs.scenarios import Scenario, make_scenario
@@ -84,8 +85,7 @@ class Run:
 
     def training_seeds(self, batch: int) -> np.ndarray:
         """Env seeds of the run's next ``batch`` training episodes."""
-        base = 10_000_000 * (self.seed + 1)
-        seeds = base + self.episode_counter + np.arange(batch)
+        seeds = training_episode_seeds(self.seed, self.episode_counter, batch)
         self.episode_counter += batch
         return seeds
 

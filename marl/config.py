@@ -135,8 +135,11 @@ class A2CConfig:
     min_active_fraction: float = 0.0
 
     def __post_init__(self) -> None:
-        if self.n_step < 1 or self.hidden < 1 or self.episodes_parallel < 1:
-            raise ConfigError("n_step, hidden and episodes_parallel must be >= 1")
+        from envs.limits import check_hidden
+
+        check_hidden(self.hidden)
+        if self.n_step < 1 or self.episodes_parallel < 1:
+            raise ConfigError("n_step and episodes_parallel must be >= 1")
         if not 0 < self.gamma <= 1:
             raise ConfigError(f"gamma must lie in (0, 1], got {self.gamma}")
         if self.reward_alpha is not None and not 0 <= self.reward_alpha <= 1:

@@ -34,6 +34,7 @@ import torch
 
 from envs.channel import ChannelConfig
 from envs.errors import ConfigError
+from envs.limits import training_episode_seeds
 from envs.params import PlatoonParams
 from envs.platoon import PlatoonEnv, PlatoonState
 from envs.scenarios import check_vehicles, make_scenario
@@ -77,10 +78,11 @@ class DistillConfig:
     hidden: int = 64
 
     def __post_init__(self) -> None:
-        from envs.limits import MAX_EPISODES_PARALLEL, MAX_HIDDEN
+        from envs.limits import MAX_EPISODES_PARALLEL, check_hidden
 
+        check_hidden(self.hidden)
         for name, high in (("rounds", 10**6), ("episodes_per_round", MAX_EPISODES_PARALLEL),
-                           ("grad_steps", 10**6), ("minibatch_rows", 10**6), ("hidden", MAX_HIDDEN)):
+                           ("grad_steps", 10**6), ("minibatch_rows", 10**6)):
             if not 1 <= getattr(self, name) <= high:
                 raise ConfigError(f"{name} must lie in 1..{high:,}, got {getattr(self, name)}")
         if not 0 <= self.beta <= 1:
@@ -122,8 +124,8 @@ def distill(
     steps, t0 = 0, time.perf_counter()
     for rnd in range(cfg.rounds):
         env = PlatoonEnv(sc, n, params, action_mode="accel", channel=ChannelConfig())
-        seeds = 10_000_000 * (seed + 1) + rnd * cfg.episodes_per_round + np.arange(
-            cfg.episodes_per_round)
+        seeds = training_episode_seeds(seed, rnd * cfg.episodes_per_round,
+                                       cfg.episodes_per_round)
         obs = env.reset(seeds)
         expert = make_expert(env)
         n_expert = int(math.floor(cfg.episodes_per_round * cfg.beta**rnd))

@@ -45,7 +45,7 @@ from torch import nn
 
 from envs.channel import ChannelConfig
 from envs.errors import ConfigError
-from envs.limits import MAX_ROLLOUT_AGENT_STEPS
+from envs.limits import MAX_ROLLOUT_AGENT_STEPS, training_episode_seeds
 from envs.params import PlatoonParams
 from envs.platoon import PlatoonEnv
 from envs.scenarios import check_vehicles, make_scenario
@@ -132,7 +132,7 @@ def train(
 
     def new_episodes() -> torch.Tensor:
         nonlocal episode, env, n_now, sharing, ret_acc
-        seeds = 10_000_000 * (seed + 1) + episode + np.arange(b)
+        seeds = training_episode_seeds(seed, episode, b)
         episode += b
         if cfg.randomised:  # this batch's N and V2V, from the run's generator
             n_lo, n_hi = cfg.vehicles_min or n, cfg.vehicles_max or n

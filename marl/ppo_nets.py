@@ -11,7 +11,6 @@ import torch
 from torch import nn
 
 from envs.accel_mode import check_action_mode
-from envs.channel import ChannelConfig
 from envs.errors import ConfigError
 from envs.params import OVM_ACTIONS, PlatoonParams
 from marl.learners import PPO_LEARNERS
@@ -134,13 +133,16 @@ class PPOConfig:
         check_action_mode(self.action_mode)
         from envs.limits import (
             MAX_EPISODES_PARALLEL,
-            MAX_HIDDEN,
             MAX_TRAIN_STEPS,
+            check_delay,
+            check_hidden,
+            check_packet_loss,
             check_whole_steps,
         )
 
+        check_hidden(self.hidden)
         for name, high in (("n_envs", MAX_EPISODES_PARALLEL), ("rollout_steps", 10**4),
-                           ("epochs", 1000), ("minibatch_rows", 10**7), ("hidden", MAX_HIDDEN),
+                           ("epochs", 1000), ("minibatch_rows", 10**7),
                            ("eval_every_steps", MAX_TRAIN_STEPS)):
             if not 1 <= getattr(self, name) <= high:
                 raise ConfigError(f"{name} must lie in 1..{high:,}, got {getattr(self, name)}")
@@ -164,11 +166,11 @@ class PPOConfig:
             raise ConfigError("ippo-bdc has a network per follower: it trains at one N and one "
                               "V2V setting (vehicles_min, vehicles_max, comm_delay_max_s, packet_loss_max: 0)")
         if self.comm_delay_max_s:
-            ChannelConfig(self.comm_delay_max_s, 0.0)
+            check_delay(self.comm_delay_max_s, "comm_delay_max_s")
             if self.comm_delay_max_s < self.comm_delay_s:
                 raise ConfigError("comm_delay_max_s must be 0 or >= comm_delay_s")
         if self.packet_loss_max:
-            ChannelConfig(0.0, self.packet_loss_max)
+            check_packet_loss(self.packet_loss_max, "packet_loss_max")
             if self.packet_loss_max < self.packet_loss:
                 raise ConfigError("packet_loss_max must be 0 or >= packet_loss")
         if not 0 < self.consensus_eps <= 0.5:
@@ -182,7 +184,8 @@ class PPOConfig:
                 raise ConfigError(f"{name} must lie in (0, 1], got {getattr(self, name)}")
         if not (0 < self.clip_coef < 1 and self.vf_coef >= 0 and self.ent_coef >= 0):
             raise ConfigError("clip_coef must lie in (0, 1); vf_coef and ent_coef must be >= 0")
-        ChannelConfig(self.comm_delay_s, self.packet_loss)  # the channel's own checks
+        check_delay(self.comm_delay_s, "comm_delay_s")  # the channel's own rules
+        check_packet_loss(self.packet_loss, "packet_loss")
         for name in ("comm_delay_s", "comm_delay_max_s"):
             check_whole_steps(getattr(self, name), name)
 

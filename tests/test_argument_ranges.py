@@ -219,3 +219,19 @@ def test_a_packet_loss_is_checked_by_one_rule(monkeypatch: pytest.MonkeyPatch) -
     ChannelConfig(0.0, 0.3)
     assert cli(["run", "--packet-loss", "1.5", "--out", "/nonexistent/x"]) == 2
     assert calls == ["the packet loss", "--packet-loss"]
+
+
+def test_the_hidden_width_has_one_rule_for_every_learner() -> None:
+    """``envs.limits.check_hidden``: the paper's learners, the shared ones and the distiller
+    refuse the same widths with the same message."""
+    from envs.errors import ConfigError
+    from envs.limits import MAX_HIDDEN
+    from marl.config import A2CConfig
+    from marl.distill import DistillConfig
+    from marl.ppo_nets import PPOConfig
+
+    for cls in (A2CConfig, PPOConfig, DistillConfig):
+        for bad in (0, MAX_HIDDEN + 1):
+            with pytest.raises(ConfigError, match=f"hidden must lie in 1..{MAX_HIDDEN:,}"):
+                cls(hidden=bad)
+        assert cls(hidden=MAX_HIDDEN).hidden == MAX_HIDDEN

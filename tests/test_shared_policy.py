@@ -34,7 +34,10 @@ def _weights(actor: SharedActor) -> dict[str, torch.Tensor]:
     ("lr", 1e308, r"lr must lie in \(0, 1\]"),
     ("gamma", 1.5, "gamma must lie in"),
     ("reward_alpha", -0.1, "reward_alpha must lie in"),
-    ("packet_loss", 2.0, "packet loss must lie in"),
+    ("packet_loss", 2.0, "packet_loss must lie in"),
+    ("packet_loss_max", 2.0, "packet_loss_max must lie in"),
+    ("comm_delay_s", -0.1, "comm_delay_s must lie in"),
+    ("hidden", 0, "hidden must lie in 1..1,024"),
     ("prior", "mpc", "prior must be one of"),
     ("critic_warmup_updates", -1, "critic_warmup_updates must lie in"),
 ])
