@@ -595,10 +595,25 @@ def _check_sine(opts: dict[str, Any]) -> None:
 SCENARIOS: dict[str, ScenarioSpec] = {}
 
 
+def scenario_family(scenario_id: str) -> str:
+    """The family of a versioned scenario id: the id without its ``-vN`` suffix
+    (``slowdown-v2`` -> ``slowdown``, ``openacc-train-s-v1`` -> ``openacc-train-s``); the one
+    grammar of ids, which :func:`register_scenario` enforces.
+
+    Raises
+    ------
+    ValueError
+        For an id without a version suffix.
+    """
+    family, sep, version = scenario_id.rpartition("-")
+    if not (sep and family and version[:1] == "v" and version[1:].isdigit()):
+        raise ValueError(f"scenario ids carry a version suffix -vN, got {scenario_id!r}")
+    return family
+
+
 def register_scenario(spec: ScenarioSpec) -> None:
     """Add a scenario to the registry (ids carry a version: ``name-vN``)."""
-    if not spec.id.rsplit("-", 1)[-1].startswith("v"):
-        raise ValueError(f"scenario ids carry a version suffix -vN, got {spec.id!r}")
+    scenario_family(spec.id)
     SCENARIOS[spec.id] = spec
 
 

@@ -23,7 +23,7 @@ import numpy as np
 
 from envs.errors import ConfigError, UnknownNameError
 from envs.params import EVAL_MODES, RewardWeights
-from envs.scenarios import Scenario, as_scenario
+from envs.scenarios import Scenario, as_scenario, scenario_family
 from marl.learners import PAPER_ALGORITHMS
 
 if TYPE_CHECKING:
@@ -166,7 +166,7 @@ class A2CConfig:
                 raise ConfigError(f"{name} must be > 0, got {getattr(self, name)}")
 
     #: Published reward sharing (``coop_gamma`` of the published configs) by scenario family
-    #: (the scenario id up to its first ``-``); other scenarios use :attr:`DEFAULT_REWARD_ALPHA`.
+    #: (:func:`envs.scenarios.scenario_family`); other scenarios use :attr:`DEFAULT_REWARD_ALPHA`.
     PUBLISHED_REWARD_ALPHA: ClassVar[dict[str, float]] = {"catchup": 1.0, "slowdown": 0.0}
     DEFAULT_REWARD_ALPHA: ClassVar[float] = 1.0
 
@@ -175,7 +175,7 @@ class A2CConfig:
         ``scenario`` (an id, or a built one; where they were None)."""
         out: A2CConfig = self
         if out.reward_alpha is None:
-            family = (scenario if isinstance(scenario, str) else scenario.id).split("-")[0]
+            family = scenario_family(as_scenario(scenario).id)
             alpha = self.PUBLISHED_REWARD_ALPHA.get(family, self.DEFAULT_REWARD_ALPHA)
             out = dataclasses.replace(out, reward_alpha=alpha)
         if out.power_baseline_kw is None:

@@ -144,3 +144,14 @@ def test_learned_controllers_coerce_options_by_the_one_rule(name: str, key: str,
                        match=rf"^option {key} of {name} must be of type {kind}, got '{value}'$"):
         make_controller(name, **{key: value})
     assert make_controller("bdc", untrained="yes", seed="2").untrained is True
+
+
+def test_a_scenario_family_is_its_id_without_the_version() -> None:
+    from envs.scenarios import SCENARIOS, scenario_family
+
+    assert scenario_family("slowdown-v2") == "slowdown"
+    assert scenario_family("openacc-train-s-v1") == "openacc-train-s"
+    for bad in ("catchup", "catchup-vx", "-v1", "catchup-1"):
+        with pytest.raises(ValueError):
+            scenario_family(bad)
+    assert all(scenario_family(s) for s in SCENARIOS)
