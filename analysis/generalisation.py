@@ -126,7 +126,7 @@ class Row:
         ``controllers/checkpoints`` (``variants/<name>/...`` for a variant); [] if not learned."""
         if not self.learned:
             return []
-        from envs.naming import checkpoint_stem
+        from infra.naming import checkpoint_stem
 
         opts = dict(self.options)
         algo = self.controller.removeprefix("safe:")
@@ -263,7 +263,7 @@ def write_report(cells: Any, out: Path, command: str, episodes: int,
     """``report.md``: the matrix (collisions / episodes, reward [interval], gap RMSE per cell),
     what the safety filter costs, and the shipped checkpoints no row runs (``unrun``, by reason,
     from :func:`unrun_checkpoints`)."""
-    from envs.atomic import write_text
+    from infra.atomic import write_text
 
     cols = [c.name for c in columns]
     lines = [

@@ -288,7 +288,7 @@ def write_report(ep: Any, comp: Any, out: Path, command: str) -> Path:
             if question == "the gap":
                 lines += _decomposition(comp[comp["scenario"] == scenario])
     path = out / "report.md"
-    from envs.atomic import write_text
+    from infra.atomic import write_text
 
     write_text(path, "\n".join(lines).rstrip() + "\n")
     return path

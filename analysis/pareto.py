@@ -35,7 +35,7 @@ ENERGY_LABELS: dict[str, str] = {
 def _energy_metric(energy: str) -> str:
     """The runs.csv column of the energy objective ``energy``; UnknownNameError otherwise."""
     if energy not in ENERGY_METRICS:
-        from envs.errors import UnknownNameError
+        from infra.errors import UnknownNameError
 
         raise UnknownNameError("energy objective", energy, ENERGY_METRICS)
     return ENERGY_METRICS[energy]

@@ -300,7 +300,7 @@ def write_report(table: Any, out: Path, command: str, episodes: int, placements:
             if fig.name == f"penetration-{scenario}.png":
                 lines += [f"![{scenario}]({fig.relative_to(out).as_posix()})", ""]
     path = out / "report.md"
-    from envs.atomic import write_text
+    from infra.atomic import write_text
 
     write_text(path, "\n".join(lines) + "\n")
     return path

@@ -25,8 +25,8 @@ def _plt() -> Any:
 
 def savefig_atomic(fig: Any, path: Path, **kwargs: Any) -> Path:
     """``fig.savefig(path)`` through a temporary file renamed over ``path``: an interrupted
-    write leaves the earlier figure as it was (:func:`envs.atomic.write_with`)."""
-    from envs.atomic import write_with
+    write leaves the earlier figure as it was (:func:`infra.atomic.write_with`)."""
+    from infra.atomic import write_with
 
     return write_with(path, lambda tmp: fig.savefig(tmp, format=path.suffix[1:], **kwargs))
 

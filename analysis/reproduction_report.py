@@ -22,8 +22,8 @@ from analysis.paper import (
     Budget,
 )
 from benchmark.export import write_csv
-from envs.naming import checkpoint_stem
 from envs.scenarios import Scenario
+from infra.naming import checkpoint_stem
 
 
 def _curves(jobs: list[dict[str, Any]], study: str = "main",
@@ -205,7 +205,7 @@ def write_report(jobs: list[dict[str, Any]], names: dict[str, str], built: Seque
                                           ("reason", "why")]))
     lines.append("")
     path = out / "report.md"
-    from envs.atomic import write_text
+    from infra.atomic import write_text
 
     write_text(path, "\n".join(lines))
     return path
@@ -369,7 +369,7 @@ def _provenance_sentence(jobs: list[dict[str, Any]]) -> str:
     each with the arithmetic it was trained in (its ``source.json``)."""
     from collections import Counter
 
-    from envs.naming import checkpoint_stem
+    from infra.naming import checkpoint_stem
 
     seen: Counter[tuple[str, str]] = Counter()
     for job in jobs:

@@ -206,7 +206,7 @@ def write_report(df: Any, out: Path, command: str, steps: int, seeds: list[int],
               "## Communication against performance", "",
               "![training bits against reward](figures/bits_against_reward.png)", ""]
     path = out / "report.md"
-    from envs.atomic import write_text
+    from infra.atomic import write_text
 
     write_text(path, "\n".join(lines))
     return path

@@ -43,8 +43,8 @@ import numpy as np
 from benchmark.string_gain import STRING_GAIN_TOL as STRING_GAIN_TOL
 from benchmark.string_gain import spacing_string_gain as spacing_string_gain
 from benchmark.string_gain import time_domain_string_gain as time_domain_string_gain
-from envs.errors import ConfigError
-from envs.interrupt import raise_if_interrupted
+from infra.errors import ConfigError
+from infra.interrupt import raise_if_interrupted
 
 if TYPE_CHECKING:  # pragma: no cover
     import control

@@ -14,9 +14,9 @@ from benchmark.rollout import rollout
 from controllers.base import FAMILIES, Controller, EpisodeContext
 from controllers.registry import make_controller, resolve
 from envs.channel import ChannelConfig
-from envs.errors import ControllerContractError
 from envs.params import PlatoonParams
 from envs.scenarios import Scenario, as_scenario
+from infra.errors import ControllerContractError
 
 
 def _episode(ctrl: Controller, scenario: Scenario, n: int, seed: int, steps: int,

@@ -13,7 +13,7 @@ from typing import Any
 
 from benchmark.reaper import hand_over
 from benchmark.suite import RunKey, batch_keys, execute_batch
-from envs.errors import ConfigError
+from infra.errors import ConfigError
 
 EXECUTORS = ("serial", "process", "ray")
 
@@ -227,7 +227,7 @@ class _Pool:
         import multiprocessing as mp
         import signal
 
-        from envs.interrupt import held, raise_if_interrupted
+        from infra.interrupt import held, raise_if_interrupted
 
         ctx = mp.get_context("spawn")
         # the workers inherit the blocked mask, so a Ctrl-C to the process group reaches none
@@ -259,7 +259,7 @@ class _Pool:
         """Yield ``fn(item)`` for every item as the workers finish them (any order)."""
         from multiprocessing.connection import wait
 
-        from envs.interrupt import raise_if_interrupted
+        from infra.interrupt import raise_if_interrupted
 
         todo = list(items)[::-1]
         busy: dict[int, bool] = {}
@@ -292,7 +292,7 @@ class _Pool:
                 yield value
 
     def _died(self, i: int) -> None:
-        from envs.interrupt import Interrupted, raise_if_interrupted
+        from infra.interrupt import Interrupted, raise_if_interrupted
 
         proc = self.procs[i]
         proc.join(1.0)
@@ -306,7 +306,7 @@ class _Pool:
     def stop(self, graceful: bool) -> None:
         """End every worker: asked to stop (``graceful``, after the last result), else killed at
         once; reaped either way, so none is left behind. Signals only recorded meanwhile."""
-        from envs.interrupt import held
+        from infra.interrupt import held
 
         with held():
             _LIVE.discard(self)
@@ -433,7 +433,7 @@ def shutdown_ray() -> None:
     import sys
 
     global _reaper
-    from envs.interrupt import held
+    from infra.interrupt import held
 
     with held():
         ray = sys.modules.get("ray")
@@ -468,7 +468,7 @@ def ensure_ray(workers: int, address: str | None = None) -> object:
         ) from None
     import signal
 
-    from envs.interrupt import Interrupted, exit_at_once, held, raise_if_interrupted, reinstall
+    from infra.interrupt import Interrupted, exit_at_once, held, raise_if_interrupted, reinstall
 
     if ray.is_initialized():
         return ray
@@ -535,7 +535,7 @@ def _ray(fn: Callable[[Any], Any], items: Sequence[Any], workers: int,
             for ref in done:
                 yield ray.get(ref)  # type: ignore[attr-defined]
     finally:
-        from envs.interrupt import held
+        from infra.interrupt import held
 
         # only while Ray runs: a generator finalised after ray.shutdown() (the interrupt came
         # while its consumer stored a batch) crashed the process (SIGSEGV) by cancelling then

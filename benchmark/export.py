@@ -12,7 +12,7 @@ import numpy as np
 from benchmark.rollout import Trajectory
 from benchmark.statistics import bootstrap_ci, hierarchical_bootstrap_ci
 from benchmark.suite import KEY_COLUMNS
-from envs.errors import ConfigError
+from infra.errors import ConfigError
 
 #: The mixed-traffic columns of runs.csv (:func:`benchmark.metrics.mixed_traffic_metrics`).
 MIXED_COLUMNS: tuple[str, ...] = (
@@ -254,7 +254,7 @@ def write_csv(df: Any, path: Path, float_format: str | None = None) -> None:
     """Write a data frame as CSV atomically (a temporary file renamed over ``path``): the one
     CSV writer of every command, so a reader never sees half a file. ``float_format`` as in
     pandas (None: every digit)."""
-    from envs.atomic import write_with
+    from infra.atomic import write_with
 
     path = Path(path)
     _check_file_target(path)

@@ -14,7 +14,7 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
-from envs.errors import ConfigError
+from infra.errors import ConfigError
 
 #: The lock and owner files (the results store's names, :mod:`benchmark.store`).
 LOCK_NAME = "store.lock"

@@ -7,7 +7,7 @@ import os
 import tempfile
 from pathlib import Path
 
-from envs.errors import ConfigError
+from infra.errors import ConfigError
 
 #: Longest folder name and path the filesystem takes (POSIX values where unknown).
 _NAME_MAX = 255

@@ -10,11 +10,11 @@ import numpy as np
 
 from controllers.base import Controller, EpisodeContext, reset_controller
 from envs.channel import ChannelConfig
-from envs.errors import ControllerContractError
-from envs.interrupt import raise_if_interrupted
 from envs.params import PlatoonParams
 from envs.platoon import PlatoonEnv
 from envs.scenarios import Scenario
+from infra.errors import ControllerContractError
+from infra.interrupt import raise_if_interrupted
 
 
 @dataclass

@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from envs.errors import ConfigError
+from infra.errors import ConfigError
 
 STORE_NAME = "store.sqlite"
 LOCK_NAME = "store.lock"
@@ -154,7 +154,7 @@ class ResultStore:
         of two runs that become one, the later finished is kept."""
         from benchmark.suite import KEY_COLUMNS, RunKey
         from controllers.registry import canonical_options, controller_label
-        from envs.errors import CaccBenchError
+        from infra.errors import CaccBenchError
 
         rows = self.conn.execute(
             "SELECT id, status, record, finished_at FROM runs ORDER BY finished_at").fetchall()

@@ -21,10 +21,10 @@ from typing import Any
 from controllers.base import check_fits
 from controllers.registry import canonical_options, controller_label, resolve
 from envs.channel import ChannelConfig
-from envs.errors import ConfigError
-from envs.interrupt import raise_if_interrupted
 from envs.params import PlatoonParams
 from envs.scenarios import Scenario, as_scenario
+from infra.errors import ConfigError
+from infra.interrupt import raise_if_interrupted
 
 #: Columns that identify a run (runs.csv is sorted by them).
 KEY_COLUMNS: tuple[str, ...] = (
@@ -210,7 +210,7 @@ def execute_batch(keys: Sequence[RunKey], keep_trajectory: bool = False) -> list
 def current_policies(keys: Sequence[RunKey]) -> dict[RunKey, str]:
     """The ``policy_sha256`` each key's controller would act with now (its checkpoint as it
     is), loading each controller once per setting; a missing or damaged checkpoint raises its
-    :class:`envs.errors.ConfigError`."""
+    :class:`infra.errors.ConfigError`."""
     from controllers.registry import make_controller
 
     controllers: dict[tuple[str, str], Any] = {}

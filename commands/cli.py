@@ -2,7 +2,7 @@
 
 Subcommands with their own option parsers live in their own modules and are imported only when
 called, so ``cacc-bench --help`` and ``cacc-bench list`` start fast. Every user-fixable error
-(:class:`envs.errors.CaccBenchError`) becomes a one-paragraph message and exit status 2.
+(:class:`infra.errors.CaccBenchError`) becomes a one-paragraph message and exit status 2.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ import threading
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING
 
-from envs.errors import CaccBenchError
+from infra.errors import CaccBenchError
 
 if TYPE_CHECKING:
     from envs.scenarios import Scenario
@@ -89,8 +89,8 @@ def scenarios_argument(text: str, option: str = "--scenarios") -> list[Scenario]
     ConfigError
         For an empty list; as :func:`envs.scenarios.make_scenario` for a bad item.
     """
-    from envs.errors import ConfigError
     from envs.scenarios import parse_scenarios
+    from infra.errors import ConfigError
 
     if not text.strip(" ,"):
         raise ConfigError(f"{option}: no scenario named")
@@ -106,11 +106,11 @@ def fail(message: str) -> int:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``cacc-bench`` console script.
 
-    SIGINT and SIGTERM are handled from the first line (:mod:`envs.interrupt`): the command ends
+    SIGINT and SIGTERM are handled from the first line (:mod:`infra.interrupt`): the command ends
     with 128 + the signal's number and one line on stderr, after its worker processes and Ray
     were stopped; repeated signals never interrupt that shutdown.
     """
-    from envs.interrupt import install, set_exit_line
+    from infra.interrupt import install, set_exit_line
 
     on_main_thread = threading.current_thread() is threading.main_thread()
     previous = install() if on_main_thread else {}
@@ -212,7 +212,7 @@ RESUMABLE = ("run", "train", "reproduce", "pareto", "sensitivity", "compare-lear
 
 def _interrupted(exc: KeyboardInterrupt, command: str = "") -> int:
     """Stop what runs (signals only recorded from here on), print one line, 128 + signum."""
-    from envs.interrupt import Interrupted, hold_forever, received
+    from infra.interrupt import Interrupted, hold_forever, received
 
     hold_forever()
     # the first signal received names it (a library may re-raise it as a bare KeyboardInterrupt:
@@ -244,7 +244,7 @@ def _stop_workers() -> None:
 def _end(previous: dict, restore_handlers: bool) -> None:
     """The end of every command: workers and Ray stopped; the signal handlers restored when
     called from Python, kept (recording only) when the process is about to exit."""
-    from envs.interrupt import hold_forever, restore
+    from infra.interrupt import hold_forever, restore
 
     if not restore_handlers:
         hold_forever()  # a signal while the interpreter exits prints no traceback

@@ -14,7 +14,7 @@ import sys
 
 from benchmark.executors import add_executor_options
 from commands.cli import plain, report_command
-from envs.errors import ConfigError
+from infra.errors import ConfigError
 
 #: Training seeds of the shipped learned policies.
 TRAIN_SEEDS: tuple[int, ...] = (0, 1, 2)

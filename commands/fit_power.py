@@ -16,8 +16,9 @@ from pathlib import Path
 
 import numpy as np
 
-from envs import atomic, energy
+from envs import energy
 from envs.energy import power
+from infra import atomic
 
 
 def _parser() -> argparse.ArgumentParser:

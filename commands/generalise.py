@@ -15,7 +15,7 @@ import argparse
 
 from benchmark.executors import add_executor_options
 from commands.cli import plain, report_command
-from envs.errors import ConfigError
+from infra.errors import ConfigError
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -69,7 +69,7 @@ def main(argv: list[str]) -> int:
     from benchmark.suite import build_sweep, seeds_from_set
     from commands.run import execute_study_sweep
     from controllers.policy import CHECKPOINT_DIR
-    from envs.atomic import write_text
+    from infra.atomic import write_text
 
     args = _parser().parse_args(argv)
     from benchmark.executors import check_ray_address

@@ -17,7 +17,7 @@ from typing import Any
 from benchmark.executors import add_executor_options
 from benchmark.export import write_csv
 from commands.cli import plain
-from envs.errors import ConfigError, UnknownNameError
+from infra.errors import ConfigError, UnknownNameError
 
 #: family -> (controller, knob, values). The defaults sit inside each sweep (mpc 0.25, w_accel
 #: 0.1, time gap 0.5 s, kp 0.2).

@@ -14,7 +14,7 @@ import argparse
 
 from benchmark.executors import add_executor_options
 from commands.cli import plain, report_command
-from envs.errors import ConfigError
+from infra.errors import ConfigError
 
 #: Most placements a mixed share is drawn at.
 MAX_PLACEMENTS = 20
@@ -53,7 +53,7 @@ def main(argv: list[str]) -> int:
     from commands.cli import scenarios_argument
     from commands.run import _preflight, execute_study_sweep
     from controllers.registry import parse_controller_list
-    from envs.limits import check_range
+    from infra.limits import check_range
 
     args = _parser().parse_args(argv)
     from benchmark.executors import check_ray_address

@@ -163,7 +163,7 @@ def controller_timing(name: str, n_steps: int = 150, n_vehicles: int = 8,
 def main(argv: list[str]) -> int:
     """Measure and print a table (``--json`` for a JSON object)."""
     from controllers.registry import available_controllers
-    from envs.errors import ConfigError
+    from infra.errors import ConfigError
     from marl.learners import PAPER_ALGORITHMS
 
     p = argparse.ArgumentParser(prog="cacc-bench perf", description=plain(__doc__),
@@ -207,7 +207,7 @@ def main(argv: list[str]) -> int:
              else [*PAPER_ALGORITHMS, *PPO_LEARNERS])  # "" names nothing: refused below
     shared_algos = [a for a in algos if a in PPO_LEARNERS]
     algos = [a for a in algos if a not in PPO_LEARNERS]
-    from envs.limits import check_range
+    from infra.limits import check_range
 
     check_range(args.population, "--population", 0, MAX_PERF_POPULATION)
     unknown_algos = [a for a in algos if a not in PAPER_ALGORITHMS]

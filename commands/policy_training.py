@@ -42,7 +42,7 @@ def tuned_config(algo: str, config_scenario: str, extra: dict[str, Any], label: 
 
 
 def stem(job: dict[str, Any]) -> str:
-    from envs.naming import checkpoint_stem
+    from infra.naming import checkpoint_stem
 
     return checkpoint_stem(job["algo"], job["scenario"], job["vehicles"], job["seed"])
 
@@ -130,7 +130,7 @@ def _copier(src: Path) -> Any:
 def copy_shipped(job: dict[str, Any], path: Path) -> None:
     """Copy a shipped run's files into the job's folder (each atomically, the source file
     last, so an interrupted copy is not taken as done)."""
-    from envs.atomic import StagedFiles
+    from infra.atomic import StagedFiles
     from marl.arithmetic import of_summary
     from marl.checkpoint import load_checkpoint
 
@@ -156,7 +156,7 @@ def copy_shipped(job: dict[str, Any], path: Path) -> None:
 
 def record_trained(job: dict[str, Any]) -> None:
     from benchmark.provenance import git_sha
-    from envs.atomic import write_text
+    from infra.atomic import write_text
     from marl.arithmetic import of_summary
     from marl.checkpoint import load_checkpoint
 

@@ -47,9 +47,9 @@ from commands.train import (
     check_arithmetic,
     check_population,
 )
-from envs.atomic import write_text
-from envs.errors import ConfigError, UnknownNameError
 from envs.scenarios import Scenario
+from infra.atomic import write_text
+from infra.errors import ConfigError, UnknownNameError
 
 MANIFEST = "reproduce.json"
 

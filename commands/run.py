@@ -27,15 +27,15 @@ from benchmark.suite import (
 )
 from commands.cli import scenarios_argument
 from controllers.registry import default_controllers, parse_controller_list
-from envs.errors import ConfigError
-from envs.interrupt import raise_if_interrupted
-from envs.params import SEED_SETS, TEST_SEEDS, VALIDATION_SEEDS
+from envs.params import SEED_SETS, TEST_SEEDS, VALIDATION_SEEDS, PlatoonParams
 from envs.scenarios import (
     DEFAULT_SCENARIOS,
     MAX_VEHICLES,
     MIN_VEHICLES,
     Scenario,
 )
+from infra.errors import ConfigError
+from infra.interrupt import raise_if_interrupted
 
 
 def _csv(kind: str, cast: type) -> Any:
@@ -123,11 +123,11 @@ def _validate(args: argparse.Namespace
             raise ConfigError(
                 f"--vehicles: a platoon needs {MIN_VEHICLES} to {MAX_VEHICLES} followers, got {n}"
             )
-    from envs.limits import check_delay, check_packet_loss, check_whole_steps
+    from infra.limits import check_delay, check_packet_loss, check_whole_steps
 
     for d in args.comm_delay:
         check_delay(d, "--comm-delay")  # one rule with stability's --delay
-        check_whole_steps(d, "--comm-delay")
+        check_whole_steps(d, "--comm-delay", PlatoonParams().dt_s)
     for loss in args.packet_loss:
         check_packet_loss(loss, "--packet-loss")  # one rule with the channel's
     for lag in args.lag:

@@ -24,10 +24,10 @@ from benchmark.executors import add_executor_options
 from benchmark.export import write_csv
 from commands.cli import plain, scenarios_argument
 from commands.train import add_arithmetic_argument, add_device_argument, check_arithmetic
-from envs.atomic import write_text
-from envs.errors import ConfigError, UnknownNameError
-from envs.limits import step_count
 from envs.scenarios import Scenario
+from infra.atomic import write_text
+from infra.errors import ConfigError, UnknownNameError
+from infra.limits import step_count
 
 #: Multiples of the tuned consensus eps tried (two decades and more around it).
 EPS_FACTORS: tuple[float, ...] = (0.01, 0.1, 1.0, 10.0)
@@ -229,7 +229,7 @@ def main(argv: list[str]) -> int:
                              ("--workers", args.workers, 1)):
         if value < low:
             raise ConfigError(f"{flag} must be >= {low}, got {value}")
-    from envs.limits import MAX_TRAIN_SEED, MAX_TRAIN_STEPS, check_range, check_seeds
+    from infra.limits import MAX_TRAIN_SEED, MAX_TRAIN_STEPS, check_range, check_seeds
 
     check_seeds(seeds, "--seeds", MAX_TRAIN_SEED)  # training seeds
     check_range(args.steps, "--steps", 1, MAX_TRAIN_STEPS)

@@ -22,8 +22,8 @@ import numpy as np
 
 from analysis.stability_report import SUMMARY_COLUMNS, Entry, StabilityTables
 from benchmark.export import write_csv
-from envs.errors import ConfigError
 from envs.params import PlatoonParams
+from infra.errors import ConfigError
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -70,11 +70,11 @@ MAX_SWEEP_BYTES = 2**30
 
 
 def _check_args(args: argparse.Namespace) -> None:
-    from envs.limits import check_delay, check_range, check_whole_steps
+    from infra.limits import check_delay, check_range, check_whole_steps
 
     check_delay(args.delay, "--delay")
     if args.empirical:  # the analytic loop takes any delay; the simulated sweeps whole steps
-        check_whole_steps(args.delay, "--delay (with --empirical)")
+        check_whole_steps(args.delay, "--delay (with --empirical)", PlatoonParams().dt_s)
     for flag, value in (
         ("--time-gap", args.time_gap),
         ("--lag", args.lag),

@@ -8,7 +8,7 @@ population (``--population``): one stacked network, each run exactly as it would
 Shows a progress bar on a terminal and stays quiet otherwise.
 
 A run's files are written when it finishes, each atomically and together
-(:mod:`envs.atomic`): an interrupted or failed run leaves the files of an earlier run byte for
+(:mod:`infra.atomic`): an interrupted or failed run leaves the files of an earlier run byte for
 byte as they were. The command holds ``--out``'s folder lock (:mod:`benchmark.folder_lock`).
 """
 
@@ -20,8 +20,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-from envs.errors import ConfigError, UnknownNameError
-from envs.limits import step_count
+from infra.errors import ConfigError, UnknownNameError
+from infra.limits import step_count
 
 #: Default output: the folder the ``marl`` controllers load from (``controllers/checkpoints``
 #: of the installed package), so ``cacc-bench run --controllers NAME`` uses what was trained.
@@ -118,9 +118,9 @@ def _train_job(job: dict) -> dict:
     import torch
 
     from benchmark.policy_eval import validation_evaluator
-    from envs.atomic import StagedFiles, temporary_beside
-    from envs.naming import checkpoint_stem
     from envs.params import VALIDATION_SEEDS
+    from infra.atomic import StagedFiles, temporary_beside
+    from infra.naming import checkpoint_stem
     from marl import arithmetic
     from marl.config import algorithm
     from marl.selection import run_population
@@ -294,7 +294,7 @@ def job_config(job: dict) -> dict:
 def _finished(job: dict) -> bool:
     """Whether ``job``'s run finished in its folder with the same config and budget (a
     different one is an error: a finished run is never overwritten silently)."""
-    from envs.naming import checkpoint_stem
+    from infra.naming import checkpoint_stem
     from marl.checkpoint import energy_model_id, load_checkpoint, same_energy_model
 
     stem = checkpoint_stem(job["algo"], job["scenario"], job["vehicles"], job["seed"])
@@ -361,7 +361,7 @@ def main(argv: list[str]) -> int:
                 f"trained on {one.id}); train on {one.id} and evaluate on {one.label} with run")
     scenarios = [one.id for one in built]  # the trainers take the id: checkpoints are named by it
     check_vehicles(args.vehicles)
-    from envs.limits import (
+    from infra.limits import (
         MAX_EPISODES_PARALLEL,
         MAX_TRAIN_SEED,
         MAX_TRAIN_STEPS,

@@ -4,7 +4,7 @@
 Per run (algorithm x scenario x seed) it writes ``<out>/<algo>__<scenario>__n<N>__s<seed>.pt``
 (the snapshot kept on the validation seeds, acting weights in float16), ``.curve.csv``
 (validation reward and collisions over training) and ``.log``, together and atomically when the
-run finishes (:class:`envs.atomic.StagedFiles`): an interrupted run leaves earlier files byte for
+run finishes (:class:`infra.atomic.StagedFiles`): an interrupted run leaves earlier files byte for
 byte as they were. A finished run with the same config and budget is skipped with ``--resume``.
 """
 
@@ -17,8 +17,8 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from envs.errors import ConfigError
-from envs.naming import checkpoint_stem
+from infra.errors import ConfigError
+from infra.naming import checkpoint_stem
 
 
 def shared_config(algo: str, overrides: Sequence[str], tuned: dict[str, Any] | None = None
@@ -95,7 +95,7 @@ def train_shared(
     """Train one run and write its files; returns the checkpoint's path."""
     import torch
 
-    from envs.atomic import StagedFiles
+    from infra.atomic import StagedFiles
     from marl.ppo import train
 
     stem = checkpoint_stem(algo, scenario, n_vehicles, seed)
@@ -163,7 +163,7 @@ def main_shared(args: Any, algos: list[str], scenarios: list[str], seeds: list[i
                           "the shared-policy learners train one run after another")
     overrides = list(args.overrides)
     if args.episodes_parallel is not None:
-        from envs.limits import MAX_EPISODES_PARALLEL, check_range
+        from infra.limits import MAX_EPISODES_PARALLEL, check_range
 
         check_range(args.episodes_parallel, "--episodes-parallel", 1, MAX_EPISODES_PARALLEL)
         overrides.append(f"n_envs={args.episodes_parallel}")

@@ -46,8 +46,8 @@ from pathlib import Path
 from typing import Any
 
 from benchmark.export import write_csv
-from envs.errors import ConfigError, UnknownNameError
-from envs.limits import step_count
+from infra.errors import ConfigError, UnknownNameError
+from infra.limits import step_count
 from marl.learners import PPO_LEARNERS
 
 #: Weight of one colliding validation episode in a trial's score.
@@ -166,7 +166,7 @@ def _study_job(job: dict) -> list[dict]:
 
     from benchmark.policy_eval import validation_evaluator
     from controllers.registry import build_config
-    from envs.interrupt import held, raise_if_interrupted
+    from infra.interrupt import held, raise_if_interrupted
     from marl.checkpoint import load_checkpoint
     from marl.config import algorithm
     from marl.selection import run_training
@@ -301,7 +301,7 @@ def main(argv: list[str]) -> int:
     if not algos:
         raise ConfigError("--algos and --scenarios must name at least one each")
     check_vehicles(args.vehicles)
-    from envs.limits import MAX_TRAIN_SEED, MAX_TRAIN_STEPS, check_range, check_seeds
+    from infra.limits import MAX_TRAIN_SEED, MAX_TRAIN_STEPS, check_range, check_seeds
 
     check_range(args.trials, "--trials", 1, MAX_TRIALS)
     check_range(args.steps, "--steps", 1, MAX_TRAIN_STEPS)
@@ -330,7 +330,7 @@ def main(argv: list[str]) -> int:
         for a in algos for s in scenarios
     ]
     from benchmark.folder_lock import folder_lock
-    from envs.atomic import write_text
+    from infra.atomic import write_text
 
     # one writer per folder, as `run`: a second tune on --out is refused naming the first
     with folder_lock(out):

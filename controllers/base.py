@@ -20,11 +20,11 @@ from typing import Any
 import numpy as np
 
 from envs.channel import ChannelConfig, V2VChannel
-from envs.errors import ConfigError, ControllerContractError
 from envs.humans import Arrangement
 from envs.params import PlatoonParams
 from envs.platoon import PlatoonState
 from envs.scenarios import Scenario, check_size_fits
+from infra.errors import ConfigError, ControllerContractError
 
 FAMILIES = ("human", "linear", "mpc", "marl", "data")
 
@@ -226,7 +226,7 @@ class Controller(ABC):
 
     def preflight(self, scenario: Scenario, n_vehicles: int, params: PlatoonParams | None = None
                   ) -> None:
-        """Fail now (:class:`envs.errors.ConfigError`) if this controller cannot run
+        """Fail now (:class:`infra.errors.ConfigError`) if this controller cannot run
         ``scenario`` with N followers and ``params``: a sweep calls it for every setting
         before its first run. Default: nothing to check."""
         return None

@@ -59,10 +59,10 @@ from controllers.mpc_common import (
     lqr_terminal_matrix,
 )
 from controllers.registry import build_config
-from envs.errors import ConfigError
-from envs.interrupt import raise_if_interrupted
 from envs.params import PlatoonParams
 from envs.platoon import PlatoonState
+from infra.errors import ConfigError
+from infra.interrupt import raise_if_interrupted
 
 CVXPY_SOLVERS = ("OSQP", "CLARABEL")
 

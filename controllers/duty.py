@@ -19,10 +19,10 @@ import numpy as np
 from controllers.base import ClosedLoop, Controller, EpisodeContext
 from controllers.registry import build_config
 from envs.dynamics import action_to_command_mps2
-from envs.errors import ConfigError
 from envs.params import VALIDATION_SEEDS, PlatoonParams, check_decision_seeds
 from envs.platoon import PlatoonState
 from envs.scenarios import Scenario, as_scenario
+from infra.errors import ConfigError
 
 
 @dataclass(frozen=True)

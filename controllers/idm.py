@@ -23,7 +23,6 @@ import numpy as np
 
 from controllers.base import Controller, EpisodeContext
 from controllers.registry import build_config
-from envs.errors import ConfigError
 from envs.humans import (
     MAX_HUMAN_NOISE_MPS2,
     MAX_REACTION_DELAY_S,
@@ -32,6 +31,7 @@ from envs.humans import (
     idm_accel_mps2,
 )
 from envs.platoon import PlatoonState
+from infra.errors import ConfigError
 
 _DEFAULT = IDMParams()
 

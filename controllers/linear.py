@@ -42,10 +42,10 @@ import numpy as np
 from controllers.base import Controller, EpisodeContext, Message
 from controllers.registry import build_config
 from envs.channel import V2VChannel
-from envs.errors import ConfigError
 from envs.params import PlatoonParams
 from envs.platoon import PlatoonState
 from envs.scenarios import Scenario
+from infra.errors import ConfigError
 
 
 def _finite(value: float, name: str) -> float:

@@ -123,11 +123,11 @@ import numpy as np
 from controllers.base import Controller, EpisodeContext, Message
 from controllers.registry import build_config
 from envs.channel import V2VChannel
-from envs.errors import ConfigError
 from envs.humans import IDMParams
-from envs.interrupt import raise_if_interrupted
 from envs.params import PlatoonParams
 from envs.platoon import PlatoonState
+from infra.errors import ConfigError
+from infra.interrupt import raise_if_interrupted
 
 if TYPE_CHECKING:
     from envs.energy import PowerPolynomial

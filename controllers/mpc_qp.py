@@ -30,7 +30,7 @@ from controllers.mpc_common import (
     SolveResult,
     build_ocp,
 )
-from envs.errors import ConfigError
+from infra.errors import ConfigError
 
 
 @dataclass(frozen=True)

@@ -9,8 +9,8 @@ import numpy as np
 from controllers.base import Controller, EpisodeContext
 from controllers.registry import build_config
 from envs.dynamics import ovm_command_mps2
-from envs.errors import ConfigError
 from envs.platoon import PlatoonState
+from infra.errors import ConfigError
 
 
 @dataclass(frozen=True)

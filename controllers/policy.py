@@ -23,13 +23,13 @@ import numpy as np
 
 from controllers.base import Controller, EpisodeContext, Message
 from envs.dynamics import OBS_DIM, action_to_command_mps2
-from envs.errors import ConfigError
-from envs.limits import MAX_TRAIN_SEED, check_seeds
-from envs.naming import checkpoint_stem, coerce_option
 from envs.params import EVAL_MODES
 from envs.platoon import PlatoonState
 from envs.scenarios import make_scenario
 from envs.streams import episode_uniforms
+from infra.errors import ConfigError
+from infra.limits import MAX_TRAIN_SEED, check_seeds
+from infra.naming import checkpoint_stem, coerce_option
 
 CHECKPOINT_DIR = Path(__file__).resolve().parent / "checkpoints"
 #: Name of the per-episode uniform stream sampled actions are drawn from.

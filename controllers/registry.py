@@ -16,8 +16,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from envs.errors import CaccBenchError, ConfigError, UnknownNameError
-from envs.naming import coerce_option, format_label, parse_named_list
+from infra.errors import CaccBenchError, ConfigError, UnknownNameError
+from infra.naming import coerce_option, format_label, parse_named_list
 from marl.learners import LEARNERS
 
 

@@ -15,10 +15,10 @@ import numpy as np
 
 from controllers.base import Controller, EpisodeContext
 from controllers.registry import build_config
-from envs.errors import ConfigError
 from envs.params import PlatoonParams
 from envs.platoon import PlatoonState
 from envs.scenarios import Scenario, check_vehicles
+from infra.errors import ConfigError
 
 
 @dataclass(frozen=True)

@@ -89,10 +89,10 @@ from typing import Any
 import numpy as np
 
 from controllers.base import Controller, EpisodeContext, Message
-from envs.errors import ConfigError
 from envs.params import PlatoonParams
 from envs.platoon import PlatoonState
 from envs.scenarios import Scenario
+from infra.errors import ConfigError
 
 #: Prefix of the filter's own options among the wrapped controller's (``safe_min_gap_m``).
 OPTION_PREFIX = "safe_"

@@ -39,13 +39,13 @@ from envs.accel_mode import (
     leader_links,
 )
 from envs.dynamics import agent_observations
-from envs.errors import ConfigError
-from envs.limits import MAX_TRAIN_SEED, check_seeds
-from envs.naming import coerce_option
 from envs.params import EVAL_MODES, PlatoonParams
 from envs.platoon import PlatoonState
 from envs.scenarios import Scenario, make_scenario
 from envs.streams import episode_uniforms
+from infra.errors import ConfigError
+from infra.limits import MAX_TRAIN_SEED, check_seeds
+from infra.naming import coerce_option
 from marl.learners import SHARED_LEARNERS
 
 #: Shipped variants of ``ippo`` (``ippo:variant=NAME``, folders below

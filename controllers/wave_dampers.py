@@ -73,8 +73,8 @@ import numpy as np
 
 from controllers.base import Controller, EpisodeContext
 from controllers.registry import build_config
-from envs.errors import ConfigError
 from envs.platoon import PlatoonState
+from infra.errors import ConfigError
 
 #: FollowerStopper's switching gaps at zero closing speed (m) and their decelerations (m/s^2).
 FS_GAPS_M: tuple[float, float, float] = (4.5, 5.25, 6.0)

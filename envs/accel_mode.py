@@ -28,8 +28,8 @@ import numpy as np
 
 from envs.channel import ChannelConfig, V2VChannel
 from envs.dynamics import ovm_speed_mps
-from envs.errors import ConfigError
 from envs.params import PlatoonParams
+from infra.errors import ConfigError
 
 #: The action modes, the published one first.
 ACTION_MODES: tuple[str, ...] = ("ovm-gain", "accel")

@@ -13,8 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from envs.errors import ConfigError
 from envs.streams import episode_uniforms
+from infra.errors import ConfigError
 
 
 @dataclass(frozen=True)
@@ -36,7 +36,7 @@ class ChannelConfig:
     dt_s: float = 0.1
 
     def __post_init__(self) -> None:
-        from envs.limits import check_delay, check_packet_loss
+        from infra.limits import check_delay, check_packet_loss
 
         check_delay(self.delay_s, "the V2V delay")  # one rule with --comm-delay and --delay
         check_packet_loss(self.packet_loss)

@@ -28,9 +28,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from envs.errors import ConfigError
 from envs.params import PlatoonParams
 from envs.streams import episode_stream
+from infra.errors import ConfigError
 
 #: The human-driver models a scenario's ``human_model`` option takes.
 HUMAN_MODELS: tuple[str, ...] = ("idm", "ovm")

@@ -30,7 +30,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from envs.errors import CaccBenchError, ConfigError, UnknownNameError
+from infra.errors import CaccBenchError, ConfigError, UnknownNameError
 
 if TYPE_CHECKING:
     import pandas as pd

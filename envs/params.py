@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from envs.errors import ConfigError
+from infra.errors import ConfigError
 
 #: MARL action index -> (alpha, beta) of the OVM law (published benchmark).
 OVM_ACTIONS: tuple[tuple[float, float], ...] = ((0.0, 0.0), (0.5, 0.0), (0.0, 0.5), (0.5, 0.5))

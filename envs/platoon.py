@@ -27,10 +27,10 @@ from envs.dynamics import (
     reward_terms,
     vehicle_blocks,
 )
-from envs.errors import ConfigError
 from envs.humans import HumanDrivers
 from envs.params import PlatoonParams, RewardWeights
 from envs.scenarios import Scenario, as_scenario, check_vehicles
+from infra.errors import ConfigError
 
 COLLISION_MODES = ("terminate", "published")
 

@@ -15,7 +15,6 @@ from typing import Any
 
 import numpy as np
 
-from envs.errors import ConfigError, UnknownNameError
 from envs.humans import (
     HUMAN_MODELS,
     MAX_HUMAN_NOISE_MPS2,
@@ -28,9 +27,10 @@ from envs.humans import (
     parse_positions,
     place_automated,
 )
-from envs.naming import coerce_option, format_label, parse_label, parse_named_list
 from envs.params import PlatoonParams
 from envs.streams import episode_stream
+from infra.errors import ConfigError, UnknownNameError
+from infra.naming import coerce_option, format_label, parse_label, parse_named_list
 
 MIN_VEHICLES = 2
 MAX_VEHICLES = 64
@@ -547,7 +547,7 @@ class ScenarioSpec:
     fixed : dict
         Settings of the id itself (an OpenACC window, a speed cap), not user options.
     check : callable, optional
-        Raises :class:`envs.errors.ConfigError` for impossible option values.
+        Raises :class:`infra.errors.ConfigError` for impossible option values.
     """
 
     id: str

@@ -28,11 +28,11 @@ from typing import Any
 import numpy as np
 import torch
 
-from envs.errors import TrainingDivergedError
-from envs.limits import training_episode_seeds
 from envs.params import RewardWeights
 from envs.platoon import PlatoonEnv, StepResult
 from envs.scenarios import Scenario, make_scenario
+from infra.errors import TrainingDivergedError
+from infra.limits import training_episode_seeds
 from marl.config import A2CConfig, Algorithm, training_device
 from marl.layers import per_agent_clip_, rmsprop_, sqrt
 from marl.networks import AgentNet, State, exchange, neighbour_action_onehot

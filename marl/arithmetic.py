@@ -31,7 +31,7 @@ from __future__ import annotations
 import functools
 import os
 
-from envs.errors import ConfigError
+from infra.errors import ConfigError
 
 #: ``native``: the fastest kernels for this processor; ``portable``: :func:`portable_env`.
 ARITHMETIC_MODES: tuple[str, ...] = ("native", "portable")

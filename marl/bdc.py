@@ -32,7 +32,7 @@ import functools
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-from envs.errors import ConfigError
+from infra.errors import ConfigError
 from marl.config import Algorithm
 from marl.consensus import bdc
 from marl.consensus_family import ConsensusConfig, build_net, share_critics

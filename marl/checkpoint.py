@@ -6,7 +6,7 @@ every agent (stacked ``(N, ...)`` tensors, float16: the policy controller evalua
 weights, cast back to float32), the algorithm, its config, the scenario, N, the seed, the number of
 training steps, the training curve summary, the fingerprint of the energy model its reward used
 (:func:`energy_model_id`) and a format version. Loading a checkpoint of another
-format version, algorithm or N fails with a :class:`envs.errors.ConfigError` naming the file and
+format version, algorithm or N fails with a :class:`infra.errors.ConfigError` naming the file and
 the command that makes the right one.
 
 Format 2 adds ``sha256``, a content hash over the canonical JSON of every other field and the
@@ -15,7 +15,7 @@ whose hash, weight dtypes or shapes, or config field types do not match (a damag
 or altered file is a :class:`ConfigError` saying what to do, never a traceback). The shipped
 format-1 files (no hash) load only when the whole file's SHA-256 is a shipped one
 (:data:`marl.shipped_digests.FORMAT_1_SHA256`). A checkpoint is written atomically
-(:mod:`envs.atomic`): a reader sees the old file or the new one, never part of one.
+(:mod:`infra.atomic`): a reader sees the old file or the new one, never part of one.
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ from typing import Any
 
 import torch
 
-from envs.errors import ConfigError
+from infra.errors import ConfigError
 
 FORMAT_VERSION = 2
 #: Format 1: no content hash; read only for the shipped files (by their file digest).
@@ -117,7 +117,7 @@ def checkpoint_payload(
 def write_payload(path: str | Path, payload: dict[str, Any], atomic: bool = True) -> None:
     """Write a checkpoint dict (its hash recomputed: fields may have changed); atomically
     unless ``atomic`` is False (``path`` is then itself a temporary file)."""
-    from envs.atomic import write_with
+    from infra.atomic import write_with
 
     payload = {**payload, "sha256": content_hash(payload)}
     if atomic:

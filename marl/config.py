@@ -21,9 +21,9 @@ from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
-from envs.errors import ConfigError, UnknownNameError
 from envs.params import EVAL_MODES, RewardWeights
 from envs.scenarios import Scenario, as_scenario, scenario_family
+from infra.errors import ConfigError, UnknownNameError
 from marl.learners import PAPER_ALGORITHMS
 
 if TYPE_CHECKING:
@@ -135,7 +135,7 @@ class A2CConfig:
     min_active_fraction: float = 0.0
 
     def __post_init__(self) -> None:
-        from envs.limits import check_hidden
+        from infra.limits import check_hidden
 
         check_hidden(self.hidden)
         if self.n_step < 1 or self.episodes_parallel < 1:

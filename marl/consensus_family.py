@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, ClassVar
 
 import torch
 
-from envs.errors import ConfigError
+from infra.errors import ConfigError
 from marl.config import A2CConfig
 from marl.consensus import consensus_round
 from marl.networks import AgentNet, SeparateActorCriticNet

@@ -33,11 +33,11 @@ import numpy as np
 import torch
 
 from envs.channel import ChannelConfig
-from envs.errors import ConfigError
-from envs.limits import training_episode_seeds
 from envs.params import PlatoonParams
 from envs.platoon import PlatoonEnv, PlatoonState
 from envs.scenarios import check_vehicles, make_scenario
+from infra.errors import ConfigError
+from infra.limits import training_episode_seeds
 from marl.ppo import PPOResult
 from marl.ppo_eval import agent_inputs, as_shipped, check_finite_weights, validation_score
 from marl.ppo_nets import PPOConfig, SharedActor, check_learning_rate
@@ -78,7 +78,7 @@ class DistillConfig:
     hidden: int = 64
 
     def __post_init__(self) -> None:
-        from envs.limits import MAX_EPISODES_PARALLEL, check_hidden
+        from infra.limits import MAX_EPISODES_PARALLEL, check_hidden
 
         check_hidden(self.hidden)
         for name, high in (("rounds", 10**6), ("episodes_per_round", MAX_EPISODES_PARALLEL),

@@ -76,12 +76,18 @@ def _ppo_shared(name: str, critic: str) -> LearnerSpec:
         "default (shipped N = 8 checkpoint; actions sampled, mode=greedy for the mode)")
 
 
-#: Every learning algorithm, by name, in the order ``cacc-bench list`` shows them: the paper's
-#: seven in its order, then the shared-policy learners.
+#: Every learning algorithm, by name, in the order ``cacc-bench list`` and the reports show them:
+#: the paper's seven in its order, then the shared-policy learners.
 LEARNERS: dict[str, LearnerSpec] = {s.name: s for s in (
     *(_paper(n) for n in ("ia2c", "fprint", "dial", "commnet", "wac", "dcea", "bdc")),
     _ppo_shared("ippo", "a critic of its own observation"),
     _ppo_shared("mappo", "a centralised critic (its observation and the platoon's mean)"),
+    LearnerSpec(
+        "distill", "distill", "marl.distill",
+        "controllers.shared_policy:SharedPolicyController", False, _ACCEL_V2V,
+        "the shared actor trained by imitation of mpc (behaviour cloning, then DAgger on "
+        "training seeds), any N (shipped N = 8 checkpoint; actions sampled from the fitted "
+        "Gaussian, mode=greedy for its mean)"),
     LearnerSpec(
         "ippo-bdc", "ppo", "marl.ppo",
         "controllers.shared_policy:SharedPolicyController", True,
@@ -89,12 +95,6 @@ LEARNERS: dict[str, LearnerSpec] = {s.name: s for s in (
         "BDC-MARL's consensus on the acceleration-action learner: an actor and critic per "
         "follower, critics agreeing by binary differential consensus, QSGD critic gradients "
         "(shipped N = 8 checkpoint, that N only; actions sampled, mode=greedy for the mode)"),
-    LearnerSpec(
-        "distill", "distill", "marl.distill",
-        "controllers.shared_policy:SharedPolicyController", False, _ACCEL_V2V,
-        "the shared actor trained by imitation of mpc (behaviour cloning, then DAgger on "
-        "training seeds), any N (shipped N = 8 checkpoint; actions sampled from the fitted "
-        "Gaussian, mode=greedy for its mean)"),
 )}
 
 

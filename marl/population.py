@@ -18,9 +18,9 @@ import numpy as np
 import torch
 
 from envs.dynamics import OBS_DIM
-from envs.errors import ConfigError, TrainingDivergedError
 from envs.params import RewardWeights
 from envs.scenarios import Scenario, make_scenario
+from infra.errors import ConfigError, TrainingDivergedError
 from marl.a2c import Batch, Run, Segment, Trainer, segment_loss
 from marl.config import A2CConfig, Algorithm
 from marl.layers import per_agent_clip_, rmsprop_

@@ -44,11 +44,11 @@ import torch
 from torch import nn
 
 from envs.channel import ChannelConfig
-from envs.errors import ConfigError
-from envs.limits import MAX_ROLLOUT_AGENT_STEPS, training_episode_seeds
 from envs.params import PlatoonParams
 from envs.platoon import PlatoonEnv
 from envs.scenarios import check_vehicles, make_scenario
+from infra.errors import ConfigError
+from infra.limits import MAX_ROLLOUT_AGENT_STEPS, training_episode_seeds
 from marl.consensus import bdc, consensus_round
 from marl.ppo_eval import (
     agent_inputs,

@@ -12,11 +12,11 @@ import torch
 
 from envs.accel_mode import position_features
 from envs.channel import ChannelConfig
-from envs.errors import ConfigError, TrainingDivergedError
 from envs.params import VALIDATION_SEEDS, PlatoonParams, check_decision_seeds
 from envs.platoon import PlatoonEnv, PlatoonState
 from envs.scenarios import Scenario
 from envs.streams import episode_uniforms
+from infra.errors import ConfigError, TrainingDivergedError
 from marl.ppo_nets import PPOConfig, SharedActor
 
 #: Uniform stream of sampled evaluation actions (per episode, step and agent).

@@ -11,8 +11,8 @@ import torch
 from torch import nn
 
 from envs.accel_mode import check_action_mode
-from envs.errors import ConfigError
 from envs.params import OVM_ACTIONS, PlatoonParams
+from infra.errors import ConfigError
 from marl.learners import PPO_LEARNERS
 
 #: Model-based priors a residual policy can add to (``PPOConfig.prior``).
@@ -131,7 +131,7 @@ class PPOConfig:
         if self.algo not in PPO_LEARNERS:
             raise ConfigError(f"algo must be one of {', '.join(PPO_LEARNERS)}, got {self.algo!r}")
         check_action_mode(self.action_mode)
-        from envs.limits import (
+        from infra.limits import (
             MAX_EPISODES_PARALLEL,
             MAX_TRAIN_STEPS,
             check_delay,
@@ -187,7 +187,7 @@ class PPOConfig:
         check_delay(self.comm_delay_s, "comm_delay_s")  # the channel's own rules
         check_packet_loss(self.packet_loss, "packet_loss")
         for name in ("comm_delay_s", "comm_delay_max_s"):
-            check_whole_steps(getattr(self, name), name)
+            check_whole_steps(getattr(self, name), name, PlatoonParams().dt_s)
 
     @property
     def randomised(self) -> bool:

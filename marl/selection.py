@@ -24,10 +24,10 @@ from typing import Any
 
 import torch
 
-from envs.errors import ConfigError, TrainingDivergedError
-from envs.naming import checkpoint_stem
 from envs.params import EVAL_MODES
 from envs.scenarios import make_scenario
+from infra.errors import ConfigError, TrainingDivergedError
+from infra.naming import checkpoint_stem
 from marl import arithmetic
 from marl.a2c import Run, Trainer
 from marl.config import A2CConfig, Algorithm
@@ -274,10 +274,10 @@ def _finish(
     snapshot with the run's totals.
 
     Nothing is written before the run finishes, and the three files are written to temporary
-    files and renamed together (:class:`envs.atomic.StagedFiles`), so an interrupted or failed
+    files and renamed together (:class:`infra.atomic.StagedFiles`), so an interrupted or failed
     run leaves the files of an earlier run byte for byte as they were.
     """
-    from envs.atomic import StagedFiles
+    from infra.atomic import StagedFiles
     from marl.checkpoint import checkpoint_payload, write_payload
 
     exec_bits = execution_bits_per_agent_step(net)
@@ -353,7 +353,7 @@ def write_curve(path: Path, curve: list[dict[str, float]]) -> None:
     """Learning curve CSV: episode, steps, train_reward (the learner's own, possibly shaped,
     reward), and per evaluation mode the validation reward and collisions (empty where not
     evaluated). Written atomically."""
-    from envs.atomic import write_with
+    from infra.atomic import write_with
 
     write_with(path, lambda tmp: _write_curve_file(tmp, curve))
 

@@ -12,10 +12,10 @@ from pettingzoo.test import parallel_api_test, parallel_seed_test
 from envs.accel_mode import ACCEL_OBS_DIM, ACCEL_OBS_NAMES, ACTION_MODES
 from envs.adapters import PlatoonGymEnv, PlatoonParallelEnv
 from envs.channel import ChannelConfig
-from envs.errors import ConfigError
 from envs.params import PlatoonParams
 from envs.platoon import PlatoonEnv
 from envs.scenarios import make_scenario
+from infra.errors import ConfigError
 
 
 def test_the_modes_and_the_observation_names() -> None:

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from commands.cli import main as cli
-from envs.limits import MAX_SEED, MAX_TRAIN_SEED
+from infra.limits import MAX_SEED, MAX_TRAIN_SEED
 
 TRAIN = ["train", "--algo", "bdc", "--scenario", "catchup-v1", "--vehicles", "2",
          "--steps", "10"]
@@ -77,7 +77,7 @@ def test_refused_before_any_work_in_one_line(
 def test_the_seed_bounds_are_the_generators() -> None:
     """A training seed's episode seeds (1e7 (seed + 1) + episode) stay in a 32-bit generator's
     range for the longest run; every other seed is a 31-bit one."""
-    from envs.limits import MAX_EPISODES_PARALLEL, MAX_TRAIN_STEPS, TRAIN_SEED_STRIDE
+    from infra.limits import MAX_EPISODES_PARALLEL, MAX_TRAIN_STEPS, TRAIN_SEED_STRIDE
 
     assert MAX_SEED == 2**31 - 1
     top = TRAIN_SEED_STRIDE * (MAX_TRAIN_SEED + 1) + MAX_TRAIN_STEPS + MAX_EPISODES_PARALLEL
@@ -203,29 +203,29 @@ def test_a_closed_pipe_ends_list_quietly() -> None:
 
 
 def test_a_packet_loss_is_checked_by_one_rule(monkeypatch: pytest.MonkeyPatch) -> None:
-    """The channel and `run --packet-loss` both go through envs.limits.check_packet_loss."""
-    import envs.limits
+    """The channel and `run --packet-loss` both go through infra.limits.check_packet_loss."""
+    import infra.limits
     from commands.cli import main as cli
     from envs.channel import ChannelConfig
 
     calls: list[str] = []
-    real = envs.limits.check_packet_loss
+    real = infra.limits.check_packet_loss
 
     def spy(value: float, flag: str = "the packet loss") -> float:
         calls.append(flag)
         return real(value, flag)
 
-    monkeypatch.setattr(envs.limits, "check_packet_loss", spy)
+    monkeypatch.setattr(infra.limits, "check_packet_loss", spy)
     ChannelConfig(0.0, 0.3)
     assert cli(["run", "--packet-loss", "1.5", "--out", "/nonexistent/x"]) == 2
     assert calls == ["the packet loss", "--packet-loss"]
 
 
 def test_the_hidden_width_has_one_rule_for_every_learner() -> None:
-    """``envs.limits.check_hidden``: the paper's learners, the shared ones and the distiller
+    """``infra.limits.check_hidden``: the paper's learners, the shared ones and the distiller
     refuse the same widths with the same message."""
-    from envs.errors import ConfigError
-    from envs.limits import MAX_HIDDEN
+    from infra.errors import ConfigError
+    from infra.limits import MAX_HIDDEN
     from marl.config import A2CConfig
     from marl.distill import DistillConfig
     from marl.ppo_nets import PPOConfig

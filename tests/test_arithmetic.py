@@ -14,7 +14,7 @@ from run_marks import FULL
 
 from benchmark.executors import map_jobs
 from commands.cli import main
-from envs.errors import ConfigError
+from infra.errors import ConfigError
 from marl import arithmetic
 
 

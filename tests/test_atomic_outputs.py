@@ -14,8 +14,8 @@ import torch
 
 from benchmark.folder_lock import folder_lock
 from commands.cli import main as cli
-from envs import atomic
-from envs.errors import ConfigError
+from infra import atomic
+from infra.errors import ConfigError
 from marl.checkpoint import (
     FORMAT_VERSION,
     content_hash,
@@ -210,7 +210,7 @@ def test_an_interrupted_train_leaves_the_finished_files_byte_identical(
     """The issue's case: Ctrl-C after the first evaluation (which used to write a snapshot
     over the finished .pt, .curve.csv and .log) exits 130 and changes nothing."""
     import commands.train as train_cmd
-    from envs.interrupt import Interrupted
+    from infra.interrupt import Interrupted
 
     out = _copy(finished, tmp_path / "out")
     before = _digests(out)

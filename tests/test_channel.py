@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from envs.channel import ChannelConfig, V2VChannel
-from envs.errors import ConfigError
 from envs.streams import episode_uniforms
+from infra.errors import ConfigError
 
 
 def _chain(n_vehicles: int, width: int, seeds, **kwargs) -> V2VChannel:
@@ -160,9 +160,9 @@ def test_declared_messages_get_channels_with_the_runs_settings() -> None:
     """The closed loop opens one channel per declared message, with the run's delay and loss (on
     the run's dt) and the declared links; a controller takes it by name and nothing else."""
     from controllers.base import EpisodeContext, Message
-    from envs.errors import ControllerContractError
     from envs.params import PlatoonParams
     from envs.scenarios import make_scenario
+    from infra.errors import ControllerContractError
 
     ctx = EpisodeContext(make_scenario("catchup-v1"), 3, np.array([5, 6]),
                          PlatoonParams(dt_s=0.2), ChannelConfig(delay_s=0.4, packet_loss=0.1))

@@ -215,7 +215,7 @@ def test_pareto_on_controllable_energy_picks_its_own_front() -> None:
 
 def test_pareto_energy_objective_is_checked_and_an_old_runs_csv_has_no_points() -> None:
     from analysis.pareto import pareto_frame
-    from envs.errors import UnknownNameError
+    from infra.errors import UnknownNameError
 
     with pytest.raises(UnknownNameError, match="controllable"):
         pareto_frame(_pareto_runs(), _settings(), "kinetic")

@@ -9,9 +9,9 @@ import pytest
 
 from commands.cli import main as cli
 from controllers.registry import canonical_options, controller_label, controller_options
-from envs.errors import ConfigError
-from envs.naming import format_label, parse_label, parse_named_list
 from envs.scenarios import ARRANGEMENT_DEFAULTS, make_scenario, parse_scenario_list, scenario_label
+from infra.errors import ConfigError
+from infra.naming import format_label, parse_label, parse_named_list
 
 
 @pytest.mark.parametrize("name, opts, label", [
@@ -104,7 +104,7 @@ def test_the_energy_modules_are_split_by_purpose_and_small() -> None:
 ])
 def test_one_coercion_rule_for_every_option(value: object, kind: object, expected: object
                                             ) -> None:
-    from envs.naming import coerce_option
+    from infra.naming import coerce_option
 
     assert coerce_option(value, kind, "k", "owner") == expected
 
@@ -113,7 +113,7 @@ def test_one_coercion_rule_for_every_option(value: object, kind: object, expecte
                                              ("inf", float | None), ("x", float)])
 def test_the_coercion_rule_refuses_with_the_option_and_its_owner(value: str, kind: object
                                                                  ) -> None:
-    from envs.naming import coerce_option
+    from infra.naming import coerce_option
 
     with pytest.raises(ConfigError, match=f"^option k of owner must be of type .*got '{value}'$"):
         coerce_option(value, kind, "k", "owner")

@@ -9,8 +9,8 @@ from benchmark.rollout import rollout, rollout_batch
 from controllers.duty import DutyController, best_k, duty_scores
 from controllers.ovm import OVMController
 from controllers.registry import make_controller
-from envs.errors import ConfigError
 from envs.scenarios import make_scenario
+from infra.errors import ConfigError
 
 
 @pytest.mark.parametrize("scenario", ["catchup-v1", "slowdown-v1"])

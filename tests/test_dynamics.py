@@ -15,10 +15,10 @@ from envs.dynamics import (
     reward_terms,
     vehicle_blocks,
 )
-from envs.errors import ConfigError, UnknownNameError
 from envs.params import PlatoonParams
 from envs.platoon import PlatoonEnv
 from envs.scenarios import brake_profile_mps, make_scenario
+from infra.errors import ConfigError, UnknownNameError
 
 
 def test_ovm_speed_reference_points() -> None:

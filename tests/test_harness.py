@@ -27,8 +27,8 @@ from controllers.registry import (
     parse_controller_list,
     register_controller,
 )
-from envs.errors import ConfigError
 from envs.scenarios import make_scenario
+from infra.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parent.parent
 GOLDEN = Path(__file__).resolve().parent / "golden" / "smoke_runs.csv"
@@ -384,7 +384,7 @@ def test_the_batch_invariant_controllers_are_the_cheap_laws() -> None:
     assert _batch_invariant_names() == ["ovm", "duty", "acc", "cacc", "idm", "followerstopper",
                                         "pi-saturation", "ia2c", "fprint", "dial",
                                         "commnet", "wac", "dcea", "bdc", "ippo", "mappo",
-                                        "ippo-bdc", "distill"]
+                                        "distill", "ippo-bdc"]
 
 
 def _assert_each_record_equals_its_run_alone(keys, batched) -> None:

@@ -8,7 +8,6 @@ import math
 import numpy as np
 import pytest
 
-from envs.errors import ConfigError
 from envs.humans import (
     OVM_ALPHA_RANGE,
     OVM_GAP_GO_RANGE_M,
@@ -24,6 +23,7 @@ from envs.humans import (
 from envs.params import PlatoonParams
 from envs.platoon import PlatoonEnv
 from envs.scenarios import SCENARIOS, make_scenario
+from infra.errors import ConfigError
 
 
 def test_idm_against_its_closed_form() -> None:

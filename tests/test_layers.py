@@ -13,7 +13,7 @@ import tomllib
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-PACKAGES = ("envs", "marl", "controllers", "benchmark", "analysis", "commands")
+PACKAGES = ("infra", "envs", "marl", "controllers", "benchmark", "analysis", "commands")
 
 
 def _lint(cwd: Path, *config: Path) -> subprocess.CompletedProcess[str]:
@@ -37,7 +37,7 @@ def test_the_repository_keeps_the_layers() -> None:
 
 
 def test_a_planted_upward_import_fails(tmp_path: Path) -> None:
-    """A copy of the sources with one upward import (envs -> commands) breaks the contract."""
+    """A copy of the sources with one upward import (infra -> commands) breaks the contract."""
     for pkg in PACKAGES:
         shutil.copytree(ROOT / pkg, tmp_path / pkg,
                         ignore=lambda d, names: [n for n in names
@@ -45,11 +45,11 @@ def test_a_planted_upward_import_fails(tmp_path: Path) -> None:
                                                  or n == "__pycache__"])
     shutil.copy(ROOT / "pyproject.toml", tmp_path / "pyproject.toml")
     assert _lint(tmp_path).returncode == 0  # the copy alone keeps the layers
-    planted = tmp_path / "envs" / "limits.py"
+    planted = tmp_path / "infra" / "limits.py"
     planted.write_text(planted.read_text() + "\nimport commands.cli  # planted upward import\n")
     res = _lint(tmp_path)
     assert res.returncode != 0
-    assert "envs.limits -> commands.cli" in res.stdout
+    assert "infra.limits -> commands.cli" in res.stdout
 
 
 def test_the_checker_fails_with_the_layers_reversed(tmp_path: Path) -> None:

@@ -15,13 +15,13 @@ from marl.learners import (
 )
 
 ROOT = Path(__file__).resolve().parent.parent
-PACKAGES = ("envs", "marl", "controllers", "benchmark", "analysis", "commands")
+PACKAGES = ("infra", "envs", "marl", "controllers", "benchmark", "analysis", "commands")
 
 
 def test_the_derived_lists() -> None:
     assert PAPER_ALGORITHMS == ("ia2c", "fprint", "dial", "commnet", "wac", "dcea", "bdc")
     assert PPO_LEARNERS == ("ippo", "mappo", "ippo-bdc")
-    assert SHARED_LEARNERS == ("ippo", "mappo", "ippo-bdc", "distill")
+    assert SHARED_LEARNERS == ("ippo", "mappo", "distill", "ippo-bdc")
     assert PER_AGENT_SHARED == ("ippo-bdc",)
     assert {s.family for s in LEARNERS.values()} == set(FAMILIES)
 

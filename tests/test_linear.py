@@ -14,9 +14,9 @@ import pytest
 
 from benchmark.rollout import Trajectory, rollout
 from controllers.registry import make_controller
-from envs.errors import ConfigError
 from envs.params import PlatoonParams
 from envs.scenarios import make_scenario
+from infra.errors import ConfigError
 
 OPTS = {"time_gap_s": "0.6", "kp": "0.3", "kd": "0.9"}
 #: Stiff gains: the command reaches the bounds, so the clip (anti-windup) is exercised.

@@ -11,7 +11,7 @@ from run_marks import representative
 
 from commands.cli import main as cli
 from envs.dynamics import OBS_DIM
-from envs.errors import ConfigError
+from infra.errors import ConfigError
 from marl.config import algorithm, training_device
 from marl.learners import PAPER_ALGORITHMS
 from marl.population import PopulationTrainer

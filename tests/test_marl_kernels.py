@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from envs.errors import ConfigError
+from infra.errors import ConfigError
 from marl.a2c import nstep_returns, share_rewards
 from marl.checkpoint import FORMAT_VERSION, load_checkpoint, save_checkpoint
 from marl.consensus import bdc, consensus_round, dcea, degree, neighbour_sum, wac

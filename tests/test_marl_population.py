@@ -8,7 +8,7 @@ import pytest
 import torch
 from run_marks import FULL, representative
 
-from envs.errors import ConfigError, TrainingDivergedError
+from infra.errors import ConfigError, TrainingDivergedError
 from marl.a2c import Trainer
 from marl.config import algorithm
 from marl.learners import PAPER_ALGORITHMS

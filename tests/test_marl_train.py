@@ -168,7 +168,7 @@ def test_entropy_schedule() -> None:
 
 
 def test_bad_learner_options() -> None:
-    from envs.errors import ConfigError
+    from infra.errors import ConfigError
 
     cls = algorithm("ia2c").config_cls
     for bad in (
@@ -269,7 +269,7 @@ def test_normalise_advantages_per_agent_over_running_entries() -> None:
 def test_diverged_weights_stop_training_with_a_clear_error(monkeypatch) -> None:
     """A NaN weight after an update raises TrainingDivergedError (a CLI error with exit 2),
     naming the tensor, instead of training on with a NaN policy."""
-    from envs.errors import TrainingDivergedError
+    from infra.errors import TrainingDivergedError
 
     a = algorithm("bdc")
     orig = a.after_step
@@ -394,7 +394,7 @@ def test_selection_rule_on_stubbed_scores(tmp_path, sequence, kept_index) -> Non
 
 
 def test_run_training_needs_an_evaluator_to_select(tmp_path) -> None:
-    from envs.errors import ConfigError
+    from infra.errors import ConfigError
 
     a = algorithm("ia2c")
     with pytest.raises(ConfigError, match="validation evaluator"):

@@ -6,7 +6,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from envs.errors import ConfigError
 from envs.scenarios import (
     MIXED_KINDS,
     MIXED_V1_KINDS,
@@ -14,6 +13,7 @@ from envs.scenarios import (
     episode_stream,
     make_scenario,
 )
+from infra.errors import ConfigError
 
 
 def test_an_episode_is_its_seed_alone_or_in_a_batch() -> None:

@@ -27,10 +27,10 @@ from controllers.mpc_common import (
 )
 from controllers.registry import make_controller, parse_controller_list
 from envs.channel import ChannelConfig
-from envs.errors import ConfigError
 from envs.params import EVAL_SEEDS, PlatoonParams
 from envs.platoon import PlatoonEnv
 from envs.scenarios import make_scenario
+from infra.errors import ConfigError
 
 VARIANTS = ("mpc", "mpc-qp", "cmpc")
 SCENARIOS = (

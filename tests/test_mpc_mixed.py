@@ -19,11 +19,11 @@ from controllers.mpc_common import (
     idm_prediction_mps,
 )
 from controllers.registry import make_controller
-from envs.errors import ConfigError
 from envs.humans import IDMParams, idm_accel_mps2
 from envs.params import PlatoonParams
 from envs.platoon import PlatoonEnv, PlatoonState
 from envs.scenarios import Scenario, make_scenario
+from infra.errors import ConfigError
 
 SEEDS = [2000, 2001]
 

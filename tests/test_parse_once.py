@@ -14,8 +14,8 @@ import envs.scenarios as scenarios_module
 from benchmark.suite import KEY_COLUMNS, RunKey, build_sweep, execute_run
 from commands.cli import main as cli
 from commands.cli import scenarios_argument
-from envs.errors import ConfigError
 from envs.scenarios import as_scenario, make_scenario, parse_scenarios
+from infra.errors import ConfigError
 
 
 @pytest.fixture

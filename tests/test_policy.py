@@ -15,8 +15,8 @@ from benchmark.policy_eval import evaluate_policy
 from benchmark.rollout import rollout
 from controllers.base import EpisodeContext, reset_controller
 from controllers.policy import PolicyController
-from envs.errors import ConfigError, UnknownNameError
 from envs.platoon import PlatoonEnv
+from infra.errors import ConfigError, UnknownNameError
 from marl.checkpoint import save_checkpoint
 from marl.config import algorithm
 from marl.learners import PAPER_ALGORITHMS

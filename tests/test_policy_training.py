@@ -16,7 +16,7 @@ from commands.policy_training import (
     source_file,
 )
 from commands.train import job_config
-from envs.errors import ConfigError
+from infra.errors import ConfigError
 from marl.checkpoint import energy_model_id, save_checkpoint
 
 

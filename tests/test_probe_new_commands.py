@@ -13,7 +13,7 @@ from commands.cli import main as cli
 
 #: argument lists that must be refused before any work; ``{OUT}`` is a fresh output folder.
 CASES: list[list[str]] = [
-    # a V2V delay beyond an episode: a MemoryError allocating its buffer (envs.limits.check_delay)
+    # a V2V delay beyond an episode: a MemoryError allocating its buffer (infra.limits.check_delay)
     ["train", "--algo", "ippo", "--scenario", "catchup-v1", "--steps", "200", "--vehicles", "2",
      "--out", "{OUT}", "--set", "comm_delay_max_s=1e9"],
     ["train", "--algo", "ippo", "--scenario", "catchup-v1", "--steps", "200", "--vehicles", "2",
@@ -165,7 +165,7 @@ def test_weights_that_turn_non_finite_stop_the_training_and_write_nothing(
 
 def test_a_step_budget_may_be_written_as_a_float() -> None:
     """``--help`` says "(default 6e5)": ``--steps 6e5`` was refused as an invalid int."""
-    from envs.limits import step_count
+    from infra.limits import step_count
 
     assert [step_count(t) for t in ("600000", "6e5", "2e3", "1_000")] == [600000, 600000, 2000,
                                                                            1000]

@@ -15,7 +15,7 @@ from run_marks import representative
 
 from benchmark.store import ResultStore
 from commands.cli import main as cli
-from envs.errors import ConfigError
+from infra.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parent.parent
 SMALL = ["--controllers", "ovm", "--scenarios", "catchup-v1", "--vehicles", "2", "--episodes",

@@ -140,8 +140,8 @@ def test_plot_of_a_training_folder_draws_learning_curves(tmp_path: Path) -> None
 
 def test_policy_checkpoint_dir_names_the_train_command(tmp_path: Path) -> None:
     from controllers.policy import PolicyController
-    from envs.errors import ConfigError
     from envs.scenarios import make_scenario
+    from infra.errors import ConfigError
 
     ctrl = PolicyController("bdc", checkpoint_dir=str(tmp_path), seed=1)
     with pytest.raises(ConfigError, match=f"--out {tmp_path}"):

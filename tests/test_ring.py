@@ -6,10 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from envs.errors import ConfigError
 from envs.humans import idm_equilibrium_speed_mps
 from envs.platoon import PlatoonEnv
 from envs.scenarios import RING_VEHICLE_LENGTH_M, make_scenario
+from infra.errors import ConfigError
 
 
 def test_the_ring_starts_near_uniform_spacing_at_the_idm_equilibrium() -> None:

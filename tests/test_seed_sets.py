@@ -12,7 +12,6 @@ import pytest
 
 from benchmark.suite import MAX_EPISODES, seeds_from_episodes, seeds_from_set
 from commands.cli import main as cli
-from envs.errors import ConfigError
 from envs.params import (
     EVAL_SEEDS,
     SEED_SETS,
@@ -21,6 +20,7 @@ from envs.params import (
     PlatoonParams,
     check_decision_seeds,
 )
+from infra.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parent.parent
 #: training episode seeds are ``TRAIN_STRIDE (seed + 1) + k`` (marl.a2c, marl.ppo, marl.distill)
@@ -60,16 +60,22 @@ def test_the_training_seeds_never_reach_the_test_or_validation_seeds() -> None:
 
 
 def test_the_learners_build_training_seeds_by_that_formula() -> None:
-    """Ties the formula above to the code: a change of it must pass through this test."""
-    for path, pattern in (("marl/a2c.py", r"10_000_000 \* \(self\.seed \+ 1\)"),
-                          ("marl/ppo.py", r"10_000_000 \* \(seed \+ 1\)"),
-                          ("marl/distill.py", r"10_000_000 \* \(seed \+ 1\)")):
-        assert re.search(pattern, (ROOT / path).read_text()), path
+    """Ties the formula above to the code: the one rule (``infra.limits.training_episode_seeds``)
+    gives it, and every learner draws its episodes through that rule and spells no stride of its
+    own."""
+    from infra.limits import TRAIN_SEED_STRIDE, training_episode_seeds
+
+    assert TRAIN_SEED_STRIDE == TRAIN_STRIDE
+    np.testing.assert_array_equal(training_episode_seeds(3, 40, 5),
+                                  TRAIN_STRIDE * 4 + 40 + np.arange(5))
+    for path in ("marl/a2c.py", "marl/ppo.py", "marl/distill.py"):
+        text = (ROOT / path).read_text()
+        assert "training_episode_seeds(" in text and "10_000_000" not in text, path
 
 
 def test_a_negative_training_seed_is_refused() -> None:
     """With seed >= 0 every training stream starts at 1e7, above every test seed."""
-    from envs.limits import MAX_TRAIN_SEED, check_seeds
+    from infra.limits import MAX_TRAIN_SEED, check_seeds
 
     with pytest.raises(ConfigError):
         check_seeds([-1], "--seed", MAX_TRAIN_SEED)

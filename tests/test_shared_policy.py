@@ -12,8 +12,8 @@ import pytest
 import torch
 from run_marks import FULL, representative
 
-from envs.errors import ConfigError
 from envs.params import PlatoonParams
+from infra.errors import ConfigError
 from marl.ppo import train
 from marl.ppo_eval import as_shipped, load_actor, sample_with_uniforms, validation_score
 from marl.ppo_nets import Critic, PPOConfig, SharedActor

@@ -233,7 +233,7 @@ def test_stability_empirical_stops_at_a_sigint(tmp_path: Path) -> None:
 def test_a_process_pool_job_error_reaches_the_caller_and_no_worker_stays() -> None:
     from benchmark.executors import map_jobs
     from benchmark.suite import seeds_from_episodes
-    from envs.errors import ConfigError
+    from infra.errors import ConfigError
 
     before = _descendants(os.getpid())
     with pytest.raises(ConfigError, match="--episodes must lie in"):
@@ -474,12 +474,12 @@ def test_the_resumable_commands_are_those_that_take_resume(capsys: pytest.Captur
 
 
 def test_exit_at_once_ends_a_process_but_only_holds_inside_python() -> None:
-    """``envs.interrupt.exit_at_once``: with the command line's exit line (its own process) a
+    """``infra.interrupt.exit_at_once``: with the command line's exit line (its own process) a
     signal inside the block ends the process at once with that line; called from Python (no
     line) the signal is held and raised when the block ends."""
     import textwrap
 
-    from envs.interrupt import (
+    from infra.interrupt import (
         Interrupted,
         exit_at_once,
         install,
@@ -490,7 +490,7 @@ def test_exit_at_once_ends_a_process_but_only_holds_inside_python() -> None:
 
     code = textwrap.dedent("""
         import os, signal, time
-        from envs.interrupt import exit_at_once, install, set_exit_line
+        from infra.interrupt import exit_at_once, install, set_exit_line
         install()
         set_exit_line(lambda s: f"ended by {signal.Signals(s).name}")
         with exit_at_once(lambda: print("before exit", flush=True)):

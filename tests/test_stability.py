@@ -12,10 +12,10 @@ from analysis import stability as st
 from controllers.base import EpisodeContext, reset_controller
 from controllers.registry import make_controller
 from envs.channel import ChannelConfig
-from envs.errors import ConfigError
 from envs.params import EVAL_SEEDS, PlatoonParams
 from envs.platoon import PlatoonEnv
 from envs.scenarios import make_scenario
+from infra.errors import ConfigError
 
 # spec/controllers.md, kp = 0.2, kd = 0.7, theta = 0.2 s:
 # (tau, h, ||Gamma||_inf, peak at, ACC ||Gamma||_inf)

@@ -99,7 +99,7 @@ def test_tuned_options(tmp_path: Path, capsys) -> None:
         "lr_scale": 2.0, "power_baseline_kw": None, "consensus_eps": 0.003}
     import pytest
 
-    from envs.errors import ConfigError
+    from infra.errors import ConfigError
 
     with pytest.raises(ConfigError, match="no tuned config for ia2c"):
         tuned_options("ia2c", "catchup-v1", path)

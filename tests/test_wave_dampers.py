@@ -31,10 +31,10 @@ from controllers.wave_dampers import (
     pi_saturation_step,
     pi_window_steps,
 )
-from envs.errors import ConfigError
 from envs.humans import IDMParams, gaussian_noise_mps2, idm_accel_mps2
 from envs.platoon import PlatoonEnv
 from envs.scenarios import make_scenario
+from infra.errors import ConfigError
 
 RING_SEEDS = [0, 1, 2, 3, 4]
 BRAKE_THRESHOLD_MPS2 = -1.0

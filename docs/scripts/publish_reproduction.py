@@ -19,7 +19,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
-from envs.atomic import signals_held  # noqa: E402
+from infra.atomic import signals_held  # noqa: E402
 
 DEST = ROOT / "docs" / "paper-reproduction"
 #: The report's tables, as ``reproduce`` writes them into OUT.

@@ -21,7 +21,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
-from envs.atomic import StagedFiles  # noqa: E402
+from infra.atomic import StagedFiles  # noqa: E402
 
 VARIANTS = ROOT / "controllers" / "checkpoints" / "variants"
 #: The variant folder of the report's own (non-ablation) policies.

@@ -24,7 +24,7 @@ from envs.energy.vehicle import (
     _as_path,
     load_vehicle_params,
 )
-from envs.errors import ConfigError
+from infra.errors import ConfigError
 
 FloatArray = NDArray[np.floating[Any]]
 

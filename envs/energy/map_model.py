@@ -20,7 +20,7 @@ from envs.energy.vehicle import (
     _bilinear,
     _default_vehicle,
 )
-from envs.errors import ConfigError
+from infra.errors import ConfigError
 
 FloatArray = NDArray[np.floating[Any]]
 

@@ -19,7 +19,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from envs.energy.horner import FloatArray, Horner2D, evaluate
 from envs.energy.vehicle import DEFAULT_POLYNOMIAL_FILE, EnergyDataError, _as_path
-from envs.errors import ConfigError
+from infra.errors import ConfigError
 
 #: Model names accepted by :func:`battery_power_kw`.
 MODELS: tuple[str, ...] = ("poly", "map", "vtcpem")

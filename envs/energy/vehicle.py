@@ -14,7 +14,7 @@ from typing import Any, NamedTuple
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from envs.errors import ConfigError
+from infra.errors import ConfigError
 
 FloatArray = NDArray[np.floating[Any]]
 

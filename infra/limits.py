@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 
-from envs.errors import ConfigError
+from infra.errors import ConfigError
 
 #: Longest V2V delay (s): an episode lasts 60 s, so a longer delay delivers no message at all
 #: (and its buffer of delay / dt steps must stay allocatable).
@@ -63,14 +63,10 @@ def step_count(text: str) -> int:
     return int(value)
 
 
-def check_whole_steps(value: float, flag: str, dt_s: float | None = None) -> float:
-    """``value`` if it is a whole number of simulation steps of ``dt_s`` (default the
-    platoon's, :class:`envs.params.PlatoonParams`), else a ConfigError (a V2V delay is delivered
-    after whole steps: 0.05 s would run as 0.1 s and be stored as 0.05)."""
-    if dt_s is None:
-        from envs.params import PlatoonParams
-
-        dt_s = PlatoonParams().dt_s
+def check_whole_steps(value: float, flag: str, dt_s: float) -> float:
+    """``value`` if it is a whole number of simulation steps of ``dt_s`` (the platoon's,
+    :class:`envs.params.PlatoonParams`), else a ConfigError (a V2V delay is delivered after
+    whole steps: 0.05 s would run as 0.1 s and be stored as 0.05)."""
     steps = value / dt_s
     if abs(steps - round(steps)) > 1e-6:
         raise ConfigError(f"{flag} {value:g} s: V2V messages arrive after whole simulation steps "

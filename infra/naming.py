@@ -11,7 +11,7 @@ import math
 import typing
 from typing import Any
 
-from envs.errors import ConfigError
+from infra.errors import ConfigError
 
 
 def parse_named_list(text: str, kind: str, name_prefixes: tuple[str, ...] = ()
