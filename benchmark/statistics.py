@@ -105,6 +105,11 @@ PAIRED_STATISTICS: dict[str, Callable[[np.ndarray, np.ndarray], np.ndarray]] = {
     "difference": lambda ours, other: ours - other,
     "saving": lambda ours, other: 100.0 * (other - ours) / other,
 }
+#: Statistics of :func:`paired_ci` of the two sides' means over the episodes (a ratio of means,
+#: not a mean of per-episode ratios: an episode whose value is near 0 cannot dominate it).
+PAIRED_MEAN_STATISTICS: dict[str, Callable[[np.ndarray, np.ndarray], np.ndarray]] = {
+    "saving-of-means": lambda ours, other: 100.0 * (other - ours) / other,
+}
 
 
 def paired_ci(
@@ -125,8 +130,11 @@ def paired_ci(
     ours, other : (seeds, episodes) arrays
         One row per training seed (any number on each side), one column per episode seed, in
         the same episode order on both sides; no NaN.
-    statistic : {"difference", "saving"}
-        ``ours - other``, or the saving ``100 (other - ours) / other`` in %.
+    statistic : {"difference", "saving", "saving-of-means"}
+        Per episode ``ours - other``, or the saving ``100 (other - ours) / other`` in %; or
+        ``saving-of-means``: the saving of the means over the episodes, ``100 (mean(other) -
+        mean(ours)) / mean(other)`` (the resampled episodes the same for both sides; NaN when
+        other's mean is not positive: a saving in % of it means nothing).
 
     Returns
     -------
@@ -134,19 +142,31 @@ def paired_ci(
         ``mean`` uses all seeds and episodes (seeds averaged per episode). With one seed on
         each side the interval is the paired bootstrap over episodes alone.
     """
-    stat = PAIRED_STATISTICS.get(statistic)
+    of_means = statistic in PAIRED_MEAN_STATISTICS
+    stat = (PAIRED_MEAN_STATISTICS if of_means else PAIRED_STATISTICS).get(statistic)
     if stat is None:
         raise ValueError(f"unknown paired statistic {statistic!r}; valid: "
-                         f"{', '.join(PAIRED_STATISTICS)}")
+                         f"{', '.join([*PAIRED_STATISTICS, *PAIRED_MEAN_STATISTICS])}")
     a, b = np.atleast_2d(np.asarray(ours, float)), np.atleast_2d(np.asarray(other, float))
     if a.shape[1] != b.shape[1] or a.shape[1] == 0:
         raise ValueError(f"the two sides need the same episodes, got {a.shape} and {b.shape}")
-    mean = float(np.mean(stat(a.mean(0), b.mean(0))))
+    if of_means:
+        base = float(b.mean(0).mean())
+        if not base > 0.0:
+            return math.nan, math.nan, math.nan
+        mean = float(stat(np.asarray(a.mean(0).mean()), np.asarray(base)))
+    else:
+        mean = float(np.mean(stat(a.mean(0), b.mean(0))))
     rng = np.random.Generator(np.random.PCG64(seed))
     ra = a[rng.integers(0, a.shape[0], (n_resamples, a.shape[0]))].mean(1)  # (R, episodes)
     rb = b[rng.integers(0, b.shape[0], (n_resamples, b.shape[0]))].mean(1)
     episodes = rng.integers(0, a.shape[1], (n_resamples, a.shape[1]))
-    means = np.take_along_axis(stat(ra, rb), episodes, axis=1).mean(1)
+    if of_means:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            means = stat(np.take_along_axis(ra, episodes, axis=1).mean(1),
+                         np.take_along_axis(rb, episodes, axis=1).mean(1))
+    else:
+        means = np.take_along_axis(stat(ra, rb), episodes, axis=1).mean(1)
     alpha = (1.0 - confidence) / 2.0
     lo, hi = np.quantile(means, [alpha, 1.0 - alpha])
     return mean, float(lo), float(hi)

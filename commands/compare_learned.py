@@ -1,6 +1,6 @@
 """``cacc-bench compare-learned``: learned control against MPC on equal terms, in one report.
 
-Runs the shipped policies of :data:`analysis.learned_report.POLICIES` (learned ones with their
+Runs the shipped policies of :data:`studies.learned_report.POLICIES` (learned ones with their
 three training seeds) on the published evaluation seeds under ideal V2V and under a 0.2 s delay
 with 30 % loss, through the results store (resumable, ``--resume``), then writes
 ``report.md`` (the three questions: action set and information, learning, communication),
@@ -40,10 +40,10 @@ def _parser() -> argparse.ArgumentParser:
 def controller_specs(scenarios: list[str], n_vehicles: int) -> list[tuple[str, dict[str, str]]]:
     """The controllers to run: model-based ones once, learned ones per training seed, those
     with no shipped checkpoint for every scenario left out (said on stderr)."""
-    from analysis.learned_report import POLICIES
     from controllers.policy import VARIANT_DIR, checkpoint_path
     from controllers.registry import resolve
     from marl.learners import PER_AGENT_SHARED, SHARED_LEARNERS
+    from studies.learned_report import POLICIES
 
     specs: list[tuple[str, dict[str, str]]] = []
     for name, (ctrl, opts) in POLICIES.items():
@@ -67,14 +67,6 @@ def main(argv: list[str]) -> int:
     """Entry point of ``cacc-bench compare-learned``."""
     import pandas as pd
 
-    from analysis.learned_report import (
-        DEGRADED,
-        IDEAL,
-        comparisons_frame,
-        episodes_frame,
-        policy_table,
-        write_report,
-    )
     from benchmark.export import write_csv
     from benchmark.folder_lock import folder_lock
     from benchmark.paths import writable_dir
@@ -82,6 +74,14 @@ def main(argv: list[str]) -> int:
     from commands.cli import scenarios_argument
     from commands.run import execute_sweep
     from envs.scenarios import check_vehicles
+    from studies.learned_report import (
+        DEGRADED,
+        IDEAL,
+        comparisons_frame,
+        episodes_frame,
+        policy_table,
+        write_report,
+    )
 
     args = _parser().parse_args(argv)
     from benchmark.executors import check_ray_address

@@ -2,11 +2,11 @@
 
 Every shipped learned policy (per training scenario or family, three training seeds pooled, or
 the one seed shipped of a per-agent policy trained at N = 4), with and without the safety filter,
-and the model-based controllers, on the columns of :data:`analysis.generalisation.COLUMNS` (other
+and the model-based controllers, on the columns of :data:`studies.generalisation.COLUMNS` (other
 scenarios, the OpenACC windows, N = 4 and 12, degraded V2V), through the results store
 (resumable, ``--resume``); writes ``report.md``, ``matrix.csv``, ``filter_cost.csv``,
 ``rows.json`` and ``figures/generalisation.{png,pdf}`` into ``--out``; the report lists the
-shipped checkpoints no row runs, with why (:data:`analysis.generalisation.NOT_IN_MATRIX`).
+shipped checkpoints no row runs, with why (:data:`studies.generalisation.NOT_IN_MATRIX`).
 """
 
 from __future__ import annotations
@@ -50,7 +50,14 @@ def main(argv: list[str]) -> int:
     """Entry point of ``cacc-bench generalise``."""
     import pandas as pd
 
-    from analysis.generalisation import (
+    from benchmark.export import write_csv
+    from benchmark.folder_lock import folder_lock
+    from benchmark.paths import writable_dir
+    from benchmark.suite import build_sweep, seeds_from_set
+    from commands.run import execute_study_sweep
+    from controllers.policy import CHECKPOINT_DIR
+    from infra.atomic import write_text
+    from studies.generalisation import (
         COLUMNS,
         MODEL_BASED,
         Row,
@@ -63,13 +70,6 @@ def main(argv: list[str]) -> int:
         with_safety_filter,
         write_report,
     )
-    from benchmark.export import write_csv
-    from benchmark.folder_lock import folder_lock
-    from benchmark.paths import writable_dir
-    from benchmark.suite import build_sweep, seeds_from_set
-    from commands.run import execute_study_sweep
-    from controllers.policy import CHECKPOINT_DIR
-    from infra.atomic import write_text
 
     args = _parser().parse_args(argv)
     from benchmark.executors import check_ray_address

@@ -1,9 +1,9 @@
 """``cacc-bench penetration``: which controller family damps waves at what share of automated
 vehicles, on the test seeds, in one report.
 
-Every family of :data:`analysis.penetration.FAMILIES` at every share of
-:data:`analysis.penetration.SHARES` (the mixed ones at ``--placements`` seeded random placements)
-on the scenarios of :data:`analysis.penetration.SCENARIOS`, beside the all-human string (``idm``
+Every family of :data:`studies.penetration.FAMILIES` at every share of
+:data:`studies.penetration.SHARES` (the mixed ones at ``--placements`` seeded random placements)
+on the scenarios of :data:`studies.penetration.SCENARIOS`, beside the all-human string (``idm``
 at no automated vehicle), through the results store (resumable, ``--resume``); writes
 ``report.md``, ``cells.csv`` and ``figures/penetration-<scenario>.png`` into ``--out``.
 """
@@ -21,7 +21,7 @@ MAX_PLACEMENTS = 20
 
 
 def _parser() -> argparse.ArgumentParser:
-    from analysis.penetration import FAMILIES, SCENARIOS
+    from studies.penetration import FAMILIES, SCENARIOS
 
     p = argparse.ArgumentParser(prog="cacc-bench penetration",
                                 description=plain(__doc__.split("\n\n")[0]))
@@ -45,7 +45,6 @@ def main(argv: list[str]) -> int:
     """Entry point of ``cacc-bench penetration``."""
     import pandas as pd
 
-    from analysis.penetration import cells, controllers_for, design, plot_shares, write_report
     from benchmark.export import write_csv
     from benchmark.folder_lock import folder_lock
     from benchmark.paths import writable_dir
@@ -54,6 +53,7 @@ def main(argv: list[str]) -> int:
     from commands.run import _preflight, execute_study_sweep
     from controllers.registry import parse_controller_list
     from infra.limits import check_range
+    from studies.penetration import cells, controllers_for, design, plot_shares, write_report
 
     args = _parser().parse_args(argv)
     from benchmark.executors import check_ray_address

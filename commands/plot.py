@@ -76,7 +76,7 @@ def plot_training_folder(folder: Path, out: Path) -> int:
 
     import pandas as pd
 
-    from analysis.reproduction import learning_curve_figure
+    from studies.reproduction import learning_curve_figure
 
     pattern = re.compile(r"^(?P<algo>[^_]+(?:-[^_]+)*)__(?P<scenario>.+)__n(?P<n>\d+)__s(?P<seed>\d+)$")
     groups: dict[tuple[str, int], dict[tuple[str, str, int], object]] = {}

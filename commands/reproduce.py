@@ -22,7 +22,20 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from analysis.paper import (
+from benchmark.executors import EXECUTORS
+from commands.cli import plain, scenarios_argument
+from commands.policy_training import make_job, source_file, train_stage, tuned_config
+from commands.train import (
+    add_arithmetic_argument,
+    add_device_argument,
+    add_population_argument,
+    check_arithmetic,
+    check_population,
+)
+from envs.scenarios import Scenario
+from infra.atomic import write_text
+from infra.errors import ConfigError, UnknownNameError
+from studies.paper import (
     ABLATIONS,
     BASELINES,
     BUDGETS,
@@ -37,19 +50,6 @@ from analysis.paper import (
     STUDIES,
     Budget,
 )
-from benchmark.executors import EXECUTORS
-from commands.cli import plain, scenarios_argument
-from commands.policy_training import make_job, source_file, train_stage, tuned_config
-from commands.train import (
-    add_arithmetic_argument,
-    add_device_argument,
-    add_population_argument,
-    check_arithmetic,
-    check_population,
-)
-from envs.scenarios import Scenario
-from infra.atomic import write_text
-from infra.errors import ConfigError, UnknownNameError
 
 MANIFEST = "reproduce.json"
 
@@ -258,7 +258,7 @@ def main(argv: list[str]) -> int:
         runs = pd.read_csv(here / "runs" / "runs.csv")
         manifest.update({"wall_s": time.perf_counter() - t0, "train_wall_s": train_wall,
                          "eval_wall_s": float(runs["wall_s"].sum())})
-        from analysis.reproduction_report import write_report
+        from studies.reproduction_report import write_report
 
         report = out / write_report(jobs, names, built, budget, here, manifest)
         write_text(here / MANIFEST, json.dumps({**manifest, "status": "done"}, indent=1))

@@ -107,7 +107,7 @@ def _base_value(knob: str, tuned: dict[str, Any]) -> Any:
 def plan(scenarios: list[str], knobs: list[str], seeds: list[int], steps: int,
          validation_episodes: int, out: Path) -> tuple[list[dict[str, Any]],
                                                       list[dict[str, Any]]]:
-    """Training jobs and evaluation settings (see :func:`analysis.sensitivity.sensitivity_frame`;
+    """Training jobs and evaluation settings (see :func:`studies.sensitivity.sensitivity_frame`;
     ``training`` holds the jobs until their summaries are read)."""
     from commands.policy_training import make_job, tuned_config
     from controllers.registry import controller_label
@@ -206,12 +206,12 @@ def main(argv: list[str]) -> int:
     """Entry point of ``cacc-bench sensitivity``."""
     import pandas as pd
 
-    from analysis.sensitivity import sensitivity_frame, write_report
     from benchmark.suite import seeds_from_episodes
     from commands.policy_training import train_stage
     from commands.run import execute_sweep
     from marl.arithmetic import process_env
     from marl.config import training_device
+    from studies.sensitivity import sensitivity_frame, write_report
 
     args = _parser().parse_args(argv)
     from benchmark.executors import check_ray_address

@@ -154,8 +154,8 @@ def test_the_training_stage_records_portable_runs(tmp_path: Path) -> None:
     ``source.json`` says so; the report says what a reader's rerun gives."""
     from types import SimpleNamespace
 
-    from analysis.reproduction_report import _arithmetic_sentence
     from commands.policy_training import make_job, source_file, train_stage
+    from studies.reproduction_report import _arithmetic_sentence
 
     job = make_job("ia2c", "ia2c", "catchup-v1", 3, 0, tmp_path, {"episodes_parallel": 2}, 300,
                    "main", validation_episodes=2)
@@ -200,9 +200,9 @@ def test_reproduce_evaluates_with_its_training_arithmetic(monkeypatch, tmp_path:
     from types import SimpleNamespace
 
     import commands.run
-    from analysis.paper import BUDGETS
     from commands.reproduce import eval_stage
     from envs.scenarios import as_scenario
+    from studies.paper import BUDGETS
 
     seen: dict = {}
 

@@ -1,4 +1,4 @@
-"""The claim rules of ``docs/claim-rules.md`` (``analysis/claims.py``), each on hand-made curves
+"""The claim rules of ``docs/claim-rules.md`` (``studies/claims.py``), each on hand-made curves
 and tables, and the claims of the reproduction report that use them."""
 
 from __future__ import annotations
@@ -11,10 +11,10 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from analysis import claims as cl
-from analysis import reproduction as rp
 from benchmark.export import LEADERBOARD_METRICS, leaderboard_frame
 from benchmark.statistics import paired_ci
+from studies import claims as cl
+from studies import reproduction as rp
 
 ROOT = Path(__file__).resolve().parent.parent
 

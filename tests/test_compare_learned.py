@@ -1,4 +1,4 @@
-"""``cacc-bench compare-learned`` and :mod:`analysis.learned_report`: the comparison rules on
+"""``cacc-bench compare-learned`` and :mod:`studies.learned_report`: the comparison rules on
 hand-made episodes, the command in small form, and the committed report read back."""
 
 from __future__ import annotations
@@ -10,7 +10,8 @@ import pandas as pd
 import pytest
 from run_marks import FULL
 
-from analysis.learned_report import (
+from commands.cli import main
+from studies.learned_report import (
     DEGRADED,
     HIGHER,
     IDEAL,
@@ -20,7 +21,6 @@ from analysis.learned_report import (
     policy_name,
     write_report,
 )
-from commands.cli import main
 
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "compare-learned"
 
@@ -124,10 +124,10 @@ def test_the_committed_report_is_its_episodes_read_again(tmp_path: Path) -> None
     ("ippo (residual on cacc)", "catchup-v1"), ("ippo-bdc", "slowdown-v1"), ("cacc", "catchup-v1")])
 def test_the_committed_episodes_are_the_shipped_policies(policy: str, scenario: str) -> None:
     """A few committed episodes rerun from the shipped checkpoints give the same rewards."""
-    from analysis.learned_report import POLICIES
     from benchmark.rollout import rollout_batch
     from controllers.registry import make_controller
     from envs.scenarios import make_scenario
+    from studies.learned_report import POLICIES
 
     ep = pd.read_csv(DOCS / "episodes.csv")
     ep = ep[(ep["policy"] == policy) & (ep["scenario"] == scenario) & (ep["comm_delay_s"] == 0)

@@ -263,7 +263,10 @@ def _claim_runs(ctrl: dict[str, list[float]], power: dict[str, list[float]] | No
 
 
 def test_ratio_saving_is_of_the_means_with_a_paired_interval() -> None:
-    from analysis.reproduction import paired_ratio_saving_ci
+    from benchmark.statistics import paired_ci
+
+    def paired_ratio_saving_ci(a: np.ndarray, b: np.ndarray) -> tuple[float, float, float]:
+        return paired_ci(a, b, "saving-of-means")
 
     assert paired_ratio_saving_ci(np.array([[1.0, 1.0]]), np.array([[2.0, 2.0]])) == (
         50.0, 50.0, 50.0)
@@ -277,7 +280,7 @@ def test_ratio_saving_is_of_the_means_with_a_paired_interval() -> None:
 
 
 def test_energy_claims_state_the_saving_on_controllable_energy_too() -> None:
-    from analysis import reproduction as rp
+    from studies import reproduction as rp
 
     labels = {"bdc": "bdc", "commnet": "commnet", "ia2c": "ia2c"}
     # total power: BDC 1 % below commnet; controllable: 0.03 against 0.06 kWh = 50 %
@@ -307,7 +310,7 @@ def test_energy_claims_state_the_saving_on_controllable_energy_too() -> None:
 
 
 def test_controllable_power_and_table_two() -> None:
-    from analysis import reproduction as rp
+    from studies import reproduction as rp
 
     runs = _claim_runs({"bdc": [0.05, 0.07]})
     assert rp.controllable_power_kw(runs).tolist() == pytest.approx([3.0, 4.2])  # over 60 s
@@ -320,8 +323,8 @@ def test_controllable_power_and_table_two() -> None:
 def test_power_basis_puts_the_papers_table_two_beside_ours() -> None:
     """Per vehicle (over N = 8) and relative to each model's cruise power: ours P(15, 0) from
     the power model, the paper's CommNet row (its closest to steady cruise)."""
-    from analysis import reproduction as rp
-    from analysis.paper import TABLE_II
+    from studies import reproduction as rp
+    from studies.paper import TABLE_II
 
     runs = _claim_runs({"bdc": [0.05] * 3, "commnet": [0.10] * 3, "cacc": [0.04] * 3},
                        {"bdc": [40.0] * 3, "commnet": [42.0] * 3, "cacc": [39.0] * 3})

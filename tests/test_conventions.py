@@ -126,7 +126,8 @@ def test_every_document_the_code_cites_is_in_the_repository() -> None:
 
     root = Path(__file__).resolve().parent.parent
     cited = set()
-    for pkg in ("envs", "controllers", "marl", "benchmark", "analysis", "commands"):
+    for pkg in ("infra", "envs", "controllers", "marl", "benchmark", "analysis", "studies",
+                "commands"):
         for py in (root / pkg).rglob("*.py"):
             text = py.read_text()
             cited |= set(re.findall(r"docs/[\w./-]+\.md", text))

@@ -1,4 +1,4 @@
-"""``cacc-bench generalise`` and :mod:`analysis.generalisation`: the cell rule on hand-made
+"""``cacc-bench generalise`` and :mod:`studies.generalisation`: the cell rule on hand-made
 runs, the command in small form, every shipped checkpoint a row or a stated reason, and the
 committed matrix: reproduced by the command, its report written from its CSV, its rows the
 command's rows."""
@@ -13,7 +13,10 @@ import pandas as pd
 import pytest
 from run_marks import FULL
 
-from analysis.generalisation import (
+from commands.cli import main
+from commands.generalise import _available
+from controllers.policy import CHECKPOINT_DIR
+from studies.generalisation import (
     COLUMNS,
     MODEL_BASED,
     NOT_IN_MATRIX,
@@ -25,9 +28,6 @@ from analysis.generalisation import (
     with_safety_filter,
     write_report,
 )
-from commands.cli import main
-from commands.generalise import _available
-from controllers.policy import CHECKPOINT_DIR
 
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "generalise"
 

@@ -13,7 +13,8 @@ import tomllib
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-PACKAGES = ("infra", "envs", "marl", "controllers", "benchmark", "analysis", "commands")
+PACKAGES = ("infra", "envs", "marl", "controllers", "benchmark", "analysis", "studies",
+            "commands")
 
 
 def _lint(cwd: Path, *config: Path) -> subprocess.CompletedProcess[str]:

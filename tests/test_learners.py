@@ -15,7 +15,8 @@ from marl.learners import (
 )
 
 ROOT = Path(__file__).resolve().parent.parent
-PACKAGES = ("infra", "envs", "marl", "controllers", "benchmark", "analysis", "commands")
+PACKAGES = ("infra", "envs", "marl", "controllers", "benchmark", "analysis", "studies",
+            "commands")
 
 
 def test_the_derived_lists() -> None:

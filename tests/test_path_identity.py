@@ -46,8 +46,8 @@ def test_a_sensitivity_study_resumes_under_any_spelling_of_its_folder(
 
 def test_reproduction_labels_name_checkpoint_folders_relative_to_the_output() -> None:
     """reproduce plans inside its --out: labels read ``checkpoint_dir=checkpoints[/name]``."""
-    from analysis.paper import BUDGETS, STUDIES
     from commands.reproduce import _train_plan, eval_keys
+    from studies.paper import BUDGETS, STUDIES
 
     jobs = _train_plan(["bdc"], ["catchup-v1"], BUDGETS["quick"], Path("."), set(STUDIES))
     keys, names = eval_keys(jobs, ["catchup-v1"], BUDGETS["quick"])

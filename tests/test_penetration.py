@@ -9,9 +9,9 @@ import pandas as pd
 import pytest
 from run_marks import FULL
 
-from analysis.penetration import BASELINE, FAMILIES, SHARES, controllers_for, design
 from commands.cli import main as cli
 from envs.scenarios import make_scenario
+from studies.penetration import BASELINE, FAMILIES, SHARES, controllers_for, design
 
 ROOT = Path(__file__).resolve().parent.parent
 COMMITTED = ROOT / "docs" / "penetration"

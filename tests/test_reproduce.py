@@ -14,9 +14,9 @@ import pandas as pd
 import pytest
 from run_marks import FULL
 
-from analysis import reproduction as rp
-from analysis.paper import TABLE_I_REWARD, TABLE_II, TABLE_III
 from commands.cli import main as cli
+from studies import reproduction as rp
+from studies.paper import TABLE_I_REWARD, TABLE_II, TABLE_III
 
 VERDICTS = {"holds", "does not hold", "inconclusive", "not testable here"}
 

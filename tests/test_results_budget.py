@@ -34,7 +34,7 @@ def _rows(section: str, header: str) -> dict[str, list[str]]:
 
 
 def test_the_validation_seeds_alone_choose_the_slowdown_budget() -> None:
-    from analysis.reproduction import budget_table
+    from studies.reproduction import budget_table
 
     curves = {(a, "slowdown-v1", s): pd.read_csv(
         ROOT / "controllers" / "checkpoints" / f"{a}__slowdown-v1__n8__s{s}.curve.csv")

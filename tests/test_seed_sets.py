@@ -84,7 +84,8 @@ def test_a_negative_training_seed_is_refused() -> None:
 def test_no_code_names_a_test_seed_outside_envs_params() -> None:
     literal = re.compile(r"\b900_?0\d\d\b")
     hits = [str(p.relative_to(ROOT))
-            for pkg in ("envs", "marl", "controllers", "benchmark", "analysis", "commands")
+            for pkg in ("infra", "envs", "marl", "controllers", "benchmark", "analysis", "studies",
+                        "commands")
             for p in sorted((ROOT / pkg).rglob("*.py"))
             if p.name != "params.py" and literal.search(p.read_text())]
     assert hits == []

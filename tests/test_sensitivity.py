@@ -11,9 +11,9 @@ import pytest
 import torch
 from run_marks import FULL
 
-from analysis.sensitivity import SENSITIVITY_COLUMNS, knob_effects, training_bits
 from commands.cli import main as cli
 from commands.sensitivity import KNOBS, variants
+from studies.sensitivity import SENSITIVITY_COLUMNS, knob_effects, training_bits
 
 TUNED = {"consensus_eps": 2e-4, "qsgd_levels": 1, "share_whole_critic": False, "gamma": 0.99}
 

@@ -2,7 +2,7 @@
 
 Pure functions of the training curves and the stored runs; the command that makes them is
 :mod:`commands.reproduce`. Every verdict follows the written rules of
-:mod:`analysis.claims` (``docs/claim-rules.md``); :func:`convergence_step` is theirs.
+:mod:`studies.claims` (``docs/claim-rules.md``); :func:`convergence_step` is theirs.
 """
 
 from __future__ import annotations
@@ -15,9 +15,10 @@ from typing import Any
 
 import numpy as np
 
-from analysis import claims as cl
-from analysis.claims import convergence_step
-from analysis.paper import ENERGY_SAVING_CLAIM_PCT, SIZE_SCENARIO, TABLE_I_REWARD, TABLE_II
+from benchmark.statistics import paired_ci
+from studies import claims as cl
+from studies.claims import convergence_step
+from studies.paper import ENERGY_SAVING_CLAIM_PCT, SIZE_SCENARIO, TABLE_I_REWARD, TABLE_II
 
 #: Fraction of the last training episodes averaged for the "final" training reward.
 FINAL_FRACTION = 0.1
@@ -337,7 +338,7 @@ def learning_curve_figure(curves: Mapping[CurveKey, Any], algos: Sequence[str], 
 
 @dataclass(frozen=True)
 class Verdict:
-    """One claim of the paper, our measurement and the verdict (:data:`analysis.claims.VERDICTS`),
+    """One claim of the paper, our measurement and the verdict (:data:`studies.claims.VERDICTS`),
     with the paper's sentence it tests (``quote``)."""
 
     claim: str
@@ -363,7 +364,7 @@ def _seeds_by_episodes(runs: Any, labels: Mapping[str, str], scenario: str, colu
 
 def _safety(runs: Any, labels: Mapping[str, str], scenario: str) -> dict[str, cl.Safety]:
     """Collisions and failed runs per name on ``scenario``, as the leaderboard counts them
-    (:func:`analysis.claims.safety_of`; all platoon sizes of a name together)."""
+    (:func:`studies.claims.safety_of`; all platoon sizes of a name together)."""
     out: dict[str, cl.Safety] = {}
     for (name, sc, _), s in cl.safety_of(runs[runs["scenario"] == scenario], labels).items():
         if sc == scenario:
@@ -375,7 +376,7 @@ def _safety(runs: Any, labels: Mapping[str, str], scenario: str) -> dict[str, cl
 
 def _compare_names(table: Any, safety: Mapping[str, cl.Safety], ours: str, other: str,
                    statistic: str = "difference", better: cl.Better = "higher") -> cl.Comparison:
-    """:func:`analysis.claims.compare` of two names of a :func:`_seeds_by_episodes` table on
+    """:func:`studies.claims.compare` of two names of a :func:`_seeds_by_episodes` table on
     their common episodes, flaws from ``safety``."""
     pair = table.loc[[ours, other]].dropna(axis=1)
     return cl.compare(pair.loc[ours].to_numpy(), pair.loc[other].to_numpy(), statistic=statistic,
@@ -383,56 +384,10 @@ def _compare_names(table: Any, safety: Mapping[str, cl.Safety], ours: str, other
                       other_flaws=safety[other].flaws)
 
 
-def paired_ratio_saving_ci(ours: np.ndarray, other: np.ndarray, confidence: float = 0.95,
-                           n_resamples: int = 2000, seed: int = 0) -> tuple[float, float, float]:
-    """Saving of ours against other in % of other's mean, ``100 (mean(other) - mean(ours)) /
-    mean(other)``, with the two-stage percentile-bootstrap interval of
-    :func:`benchmark.statistics.paired_ci` (training seeds drawn on each side, then the same
-    episodes for both sides).
-
-    A ratio of means, not a mean of per-episode ratios: the controllable energy of an episode
-    can be near 0, and one such episode would dominate a mean of ratios.
-
-    Parameters
-    ----------
-    ours, other : (seeds, episodes) arrays
-        Same episodes in the same order; no NaN.
-    confidence : float
-        Coverage of the interval.
-    n_resamples : int
-        Bootstrap resamples.
-    seed : int
-        Seed of the resampling stream.
-
-    Returns
-    -------
-    mean, low, high : float
-        In %; NaN when other's mean is not positive (a saving in % of it means nothing).
-    """
-    a, b = np.atleast_2d(np.asarray(ours, float)), np.atleast_2d(np.asarray(other, float))
-    if a.shape[1] != b.shape[1] or a.shape[1] == 0:
-        raise ValueError(f"the two sides need the same episodes, got {a.shape} and {b.shape}")
-    base = float(b.mean(0).mean())
-    if not base > 0.0:
-        return math.nan, math.nan, math.nan
-    mean = 100.0 * (base - float(a.mean(0).mean())) / base
-    rng = np.random.Generator(np.random.PCG64(seed))
-    ra = a[rng.integers(0, a.shape[0], (n_resamples, a.shape[0]))].mean(1)  # (R, episodes)
-    rb = b[rng.integers(0, b.shape[0], (n_resamples, b.shape[0]))].mean(1)
-    episodes = rng.integers(0, a.shape[1], (n_resamples, a.shape[1]))
-    ma = np.take_along_axis(ra, episodes, axis=1).mean(1)
-    mb = np.take_along_axis(rb, episodes, axis=1).mean(1)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        savings = 100.0 * (mb - ma) / mb
-    alpha = (1.0 - confidence) / 2.0
-    lo, hi = np.quantile(savings, [alpha, 1.0 - alpha])
-    return mean, float(lo), float(hi)
-
-
 def controllable_saving_text(runs: Any, labels: Mapping[str, str], scenario: str,
                              others: Sequence[str], ours: str = "bdc") -> str:
     """Ours' saving on controllable energy (``docs/controllable-energy.md``) against each of
-    ``others`` on the same episodes, in % of the other's mean (:func:`paired_ratio_saving_ci`),
+    ``others`` on the same episodes, in % of the other's mean (:func:`benchmark.statistics.paired_ci`, ``saving-of-means``),
     as a sentence for a claim's measurement. A rival whose mean controllable energy is not
     positive gets the difference in kWh instead; runs stored before the measure say so.
 
@@ -473,12 +428,10 @@ def controllable_saving_text(runs: Any, labels: Mapping[str, str], scenario: str
             parts.append(f"vs {o}: not measured on every episode")
             continue
         a, b = pair.loc[ours].to_numpy(), pair.loc[o].to_numpy()
-        m, lo, hi = paired_ratio_saving_ci(a, b)
+        m, lo, hi = paired_ci(a, b, "saving-of-means")
         if math.isfinite(m):
             parts.append(f"vs {o} {m:+.1f} % [{lo:+.1f}, {hi:+.1f}]")
         else:
-            from benchmark.statistics import paired_ci
-
             d, dlo, dhi = paired_ci(a, b)
             parts.append(f"vs {o}: {o}'s is not positive, no % ({ours} minus {o} "
                          f"{d:+.4f} kWh [{dlo:+.4f}, {dhi:+.4f}])")
@@ -489,9 +442,9 @@ def controllable_saving_text(runs: Any, labels: Mapping[str, str], scenario: str
 def energy_claim(runs: Any, labels: Mapping[str, str], scenario: str,
                  others: Sequence[str] = MARL_RIVALS) -> Verdict:
     """"BDC has the highest energy saving": BDC's platoon power against each other MARL
-    algorithm's on the same episodes, by :func:`analysis.claims.compare` (collisions first, then
+    algorithm's on the same episodes, by :func:`studies.claims.compare` (collisions first, then
     the saving in % with its two-stage interval over training seeds and episodes) and
-    :func:`analysis.claims.all_ahead` (BDC ahead of every one)."""
+    :func:`studies.claims.all_ahead` (BDC ahead of every one)."""
     claim = "BDC-MARL saves the most energy among the five MARL algorithms (Table II, platoon power)"
     quote = cl.PAPER_QUOTES["energy"]
     table = _seeds_by_episodes(runs, labels, scenario, "power_mean_kw")
@@ -516,7 +469,7 @@ def energy_magnitude_claim(runs: Any, labels: Mapping[str, str], scenario: str,
                            against: str = "commnet",
                            target: float = ENERGY_SAVING_CLAIM_PCT) -> Verdict:
     """"Up to 5.8 %": BDC's power saving against CommNet (the paper's 17.85 kW against 18.94 kW)
-    with its interval, judged by :func:`analysis.claims.magnitude` (holds if the interval covers
+    with its interval, judged by :func:`studies.claims.magnitude` (holds if the interval covers
     the paper's figure and excludes 0; judged only when neither side collides)."""
     paper_bdc, paper_other = TABLE_II["bdc"]["power_kw"][0], TABLE_II[against]["power_kw"][0]
     claim = (f"BDC-MARL's energy saving is up to {target} % (against {against}: "
@@ -541,7 +494,7 @@ def collision_claim(runs: Any, labels: Mapping[str, str], scenario: str,
                     bound: float = cl.LOW_COLLISION_RATE) -> Verdict:
     """"Low or zero collisions for all algorithms": each algorithm's share of evaluation
     episodes with a collision, with its two-stage interval over training seeds and episodes,
-    judged by :func:`analysis.claims.rate_at_most` against ``bound`` (one in 50)."""
+    judged by :func:`studies.claims.rate_at_most` against ``bound`` (one in 50)."""
     claim = (f"All five MARL algorithms have low or zero collisions (at most {bound:.0%} of the "
              "test episodes; Table II)")
     quote = cl.PAPER_QUOTES["collisions"]
@@ -565,8 +518,8 @@ def collision_claim(runs: Any, labels: Mapping[str, str], scenario: str,
 def convergence_claim(curves: Mapping[CurveKey, Any], scenario: str,
                       algos: Sequence[str] = ("wac", "dcea", "bdc")) -> Verdict:
     """"BDC converges fastest among WAC, DCEA and BDC" (Fig. 4), per training seed: the step of
-    :func:`analysis.claims.convergence_step` (``NaN``: not converged), compared by
-    :func:`analysis.claims.compare_steps` (seeds that did not converge first, then the
+    :func:`studies.claims.convergence_step` (``NaN``: not converged), compared by
+    :func:`studies.claims.compare_steps` (seeds that did not converge first, then the
     difference of the mean steps of the converged seeds with its interval over seeds)."""
     claim = "BDC-MARL converges fastest among WAC, DCEA and BDC (Fig. 4)"
     quote = cl.PAPER_QUOTES["convergence"]
@@ -597,9 +550,9 @@ def reward_claim(runs: Any, labels: Mapping[str, str], t2: Any, scenario: str,
                  rivals: Sequence[str] = MARL_RIVALS, claim: str | None = None,
                  quote: str | None = None) -> Verdict:
     """"BDC reaches the highest reward" (Tables I and II) on the evaluation episodes: BDC
-    against each rival by :func:`analysis.claims.compare` (collisions first, as the leaderboard
+    against each rival by :func:`studies.claims.compare` (collisions first, as the leaderboard
     ranks, then the reward difference with its two-stage interval over training seeds and
-    episodes), BDC ahead of every one (:func:`analysis.claims.all_ahead`). ``claim`` and
+    episodes), BDC ahead of every one (:func:`studies.claims.all_ahead`). ``claim`` and
     ``quote`` name another claim of the same kind (default: Table II's)."""
     claim = claim or ("BDC-MARL reaches a higher test reward than IA2C, FPrint, CommNet and DIAL "
                       "(Table II)")
@@ -641,8 +594,8 @@ def sharing_reward_claim(runs: Any, labels: Mapping[str, str], t2: Any, scenario
 def stability_claim(runs: Any, labels: Mapping[str, str], scenario: str,
                     rivals: Sequence[str] = SHARING_RIVALS) -> Verdict:
     """"BDC maintains a more stable velocity and acceleration pattern" than WAC and DCEA
-    (Fig. 5), two halves (:func:`analysis.claims.both_halves`): the within-run std of speed and
-    of acceleration, BDC against each rival by :func:`analysis.claims.compare` (collisions
+    (Fig. 5), two halves (:func:`studies.claims.both_halves`): the within-run std of speed and
+    of acceleration, BDC against each rival by :func:`studies.claims.compare` (collisions
     first, then the paired interval; lower is better)."""
     claim = ("BDC-MARL keeps a more stable velocity and acceleration than WAC and DCEA (Fig. 5; "
              "within-run std, two halves)")
@@ -671,11 +624,11 @@ def qsgd_claim(runs: Any, labels: Mapping[str, str], t2: Any, scenario: str,
                ablation: str = "bdc-noqsgd",
                margin: float = cl.SAME_PERFORMANCE_MARGIN) -> Verdict:
     """"QSGD sends fewer bits and keeps performance", judged on both halves
-    (:func:`analysis.claims.both_halves`): fewer bits is not testable here (the quantised critic
+    (:func:`studies.claims.both_halves`): fewer bits is not testable here (the quantised critic
     gradients are applied locally and reach no agent, so the bits exchanged are the same with
     and without); same performance is BDC's reward against BDC without QSGD, collisions first,
     then non-inferiority within ``margin`` of the ablation's mean reward
-    (:func:`analysis.claims.not_worse`)."""
+    (:func:`studies.claims.not_worse`)."""
     claim = ("QSGD on the critic gradients sends fewer bits and keeps BDC's performance "
              "(two halves)")
     quote = cl.PAPER_QUOTES["qsgd"]
@@ -746,10 +699,10 @@ def _size_tables(runs: Any, labels: Mapping[str, str], scenario: str, algo: str,
 def size_claim(sizes: Any, runs: Any, labels: Mapping[str, str], scenario: str = SIZE_SCENARIO,
                algo: str = "bdc", best: int = 6) -> Verdict:
     """"A platoon of 6 is the best balance" by the paper's own criteria (Figs. 7, 8), two
-    halves (:func:`analysis.claims.both_halves`): the lowest variation of power consumption
+    halves (:func:`studies.claims.both_halves`): the lowest variation of power consumption
     (the per-vehicle power's absolute deviation from its size's mean, across episodes) and the
     most consistent IVS (the within-run IVS std), N = ``best`` against every other size by
-    :func:`analysis.claims.compare` (collisions first, then the paired interval over training
+    :func:`studies.claims.compare` (collisions first, then the paired interval over training
     seeds and episodes; lower is better)."""
     claim = (f"A platoon of {best} vehicles is the best balance: lowest variation of power and "
              "the most consistent IVS (Figs. 7, 8; two halves)")
@@ -792,9 +745,9 @@ def size_power_claim(runs: Any, labels: Mapping[str, str], algos: Sequence[str],
                      scenario: str = SIZE_SCENARIO) -> Verdict:
     """"Larger platoons save fuel without increasing power use proportionally" (Sec. V): per
     algorithm, the per-vehicle platoon power of its largest size against its smallest, on the
-    same episodes, by :func:`analysis.claims.compare` (collisions first, then the paired
+    same episodes, by :func:`studies.claims.compare` (collisions first, then the paired
     interval; lower is better); holds if the largest size is ahead for every algorithm
-    (:func:`analysis.claims.all_ahead`)."""
+    (:func:`studies.claims.all_ahead`)."""
     claim = ("Larger platoons use less power per vehicle: the largest size against the smallest, "
              "per algorithm (Fig. 8)")
     quote = cl.PAPER_QUOTES["size_power"]
@@ -839,7 +792,7 @@ def table_three(runs: Any, labels: Mapping[str, str]) -> Any:
     paper's values for the real ACC followers (``openacc-real``) and BDC."""
     import pandas as pd
 
-    from analysis.paper import TABLE_III
+    from studies.paper import TABLE_III
 
     sub = runs[runs["scenario"].isin(list(OPENACC_GROUP_NAMES))
                & runs["controller"].isin(list(labels))].copy()
@@ -870,7 +823,7 @@ def table_three(runs: Any, labels: Mapping[str, str]) -> Any:
 
 def openacc_claim(runs: Any, labels: Mapping[str, str], t3: Any) -> Verdict:
     """"BDC's IVS varies less than real ACC" on every OpenACC group (Table III): BDC against the
-    recorded followers (``openacc-real``) per group by :func:`analysis.claims.compare`
+    recorded followers (``openacc-real``) per group by :func:`studies.claims.compare`
     (collisions first, then the within-run IVS std with its paired interval over training seeds
     and episodes; lower is better); holds if BDC is ahead in every group. The measurement also
     states each side's mean IVS against the window's target spacing."""

@@ -11,7 +11,10 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from analysis.paper import (
+from benchmark.export import write_csv
+from envs.scenarios import Scenario
+from infra.naming import checkpoint_stem
+from studies.paper import (
     BASELINES,
     N_VEHICLES,
     OPENACC_GROUPS,
@@ -21,9 +24,6 @@ from analysis.paper import (
     SIZES,
     Budget,
 )
-from benchmark.export import write_csv
-from envs.scenarios import Scenario
-from infra.naming import checkpoint_stem
 
 
 def _curves(jobs: list[dict[str, Any]], study: str = "main",
@@ -48,12 +48,12 @@ def write_report(jobs: list[dict[str, Any]], names: dict[str, str], built: Seque
     (parsed by the command)."""
     import pandas as pd
 
-    from analysis import reproduction as rp
-    from analysis.paper import PAPER_ALGOS, SHARING_ALGOS, TABLE_II_SCENARIO
     from analysis.plots import plot_radar, plot_time_series
     from benchmark.export import leaderboard_frame, pool_training_seeds, runs_frame
     from benchmark.provenance import git_sha
     from benchmark.store import ResultStore
+    from studies import reproduction as rp
+    from studies.paper import PAPER_ALGOS, SHARING_ALGOS, TABLE_II_SCENARIO
 
     by_label = {sc.label: sc for sc in built}
     scenarios = list(by_label)
@@ -196,7 +196,7 @@ def write_report(jobs: list[dict[str, Any]], names: dict[str, str], built: Seque
     lines += ["## The paper's claims", "",
               f"Table II's scenario in our reading is {sc0}; the claims are tested on both. "
               "Each verdict follows the written rules of `docs/claim-rules.md` "
-              "(`analysis/claims.py`): collisions first, as the leaderboard ranks, then a paired "
+              "(`studies/claims.py`): collisions first, as the leaderboard ranks, then a paired "
               "interval over training seeds and episodes, inconclusive when it covers 0; a "
               "curve that ends at or below its start has not converged; a claim with two halves "
               "is judged on both.", ""]
@@ -216,8 +216,8 @@ def _power_basis_section(t2: Any, scenarios: dict[str, Scenario], out: Path) -> 
     power, with BDC's savings on total and controllable power (``OUT/power_basis.csv``)."""
     import math
 
-    from analysis import reproduction as rp
-    from analysis.paper import TABLE_II, TABLE_II_SCENARIO
+    from studies import reproduction as rp
+    from studies.paper import TABLE_II, TABLE_II_SCENARIO
     sc = TABLE_II_SCENARIO if TABLE_II_SCENARIO in scenarios else next(iter(scenarios))
     target = scenarios[sc].target_speed_mps
     basis = rp.power_basis_table(t2, sc, N_VEHICLES, target)
@@ -268,7 +268,7 @@ def _scenario_reading(t2: Any) -> str:
     against the paper's rows (a measured check of the reading, printed in the report)."""
     import numpy as np
 
-    from analysis.paper import TABLE_II, TABLE_II_SCENARIO
+    from studies.paper import TABLE_II, TABLE_II_SCENARIO
 
     paper_ivs = np.mean([v["ivs_m"][0] for v in TABLE_II.values()])
     paper_v = np.mean([v["speed_mps"][0] for v in TABLE_II.values()])
@@ -291,8 +291,8 @@ def _scenario_reading(t2: Any) -> str:
 def _size_section(jobs: list[dict[str, Any]], runs: Any, names: dict[str, str], fig_dir: Path,
                   out: Path, verdicts: list[Any]) -> list[str]:
     """Platoon size (Figs. 7, 8): curves per N, test metrics per N, the "6 is best" claim."""
-    from analysis import reproduction as rp
-    from analysis.claims import PAPER_QUOTES
+    from studies import reproduction as rp
+    from studies.claims import PAPER_QUOTES
 
     claim = "A platoon of 6 vehicles is the best balance (Figs. 7, 8)"
     size_jobs = [j for j in jobs if j["study"] == "sizes"]
@@ -337,8 +337,8 @@ def _size_section(jobs: list[dict[str, Any]], runs: Any, names: dict[str, str], 
 def _openacc_section(jobs: list[dict[str, Any]], runs: Any, names: dict[str, str], out: Path,
                      verdicts: list[Any]) -> list[str]:
     """Table III: BDC trained on the OpenACC families, tested on the real windows."""
-    from analysis import reproduction as rp
-    from analysis.claims import PAPER_QUOTES
+    from studies import reproduction as rp
+    from studies.claims import PAPER_QUOTES
 
     claim = "BDC-MARL's IVS varies less than real ACC on the OpenACC windows (Table III)"
     if not any(j["study"] == "openacc" for j in jobs):

@@ -316,7 +316,7 @@ def write_report(cells: Any, out: Path, command: str, episodes: int,
     if unrun:
         lines += ["", "## Shipped checkpoints not in the matrix", "",
                   "Every file of `controllers/checkpoints` that no row above loads, with why "
-                  "(`analysis.generalisation.NOT_IN_MATRIX`):", ""]
+                  "(`studies.generalisation.NOT_IN_MATRIX`):", ""]
         for why, files in unrun.items():
             lines.append(f"- {why}: " + ", ".join(f"`{f}`" for f in files))
     path = out / "report.md"
