@@ -149,8 +149,11 @@ class EpisodeContext:
 
     def open_channels(self, messages: Sequence[Message]) -> None:
         """Open one channel per declared message, with this run's delay and loss; human seats
-        send nothing (their links never deliver and are not counted)."""
+        send nothing (their links never deliver and are not counted), nor, on a ring, the
+        leader that is not there (vehicle 0)."""
         silent = tuple(int(i) + 1 for i in np.flatnonzero(~self.automated))
+        if self.ring:
+            silent = (0, *silent)
         for m in messages:
             if m.name in self.channels:
                 raise ControllerContractError(f"two messages are named {m.name!r}")

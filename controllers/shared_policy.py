@@ -115,7 +115,8 @@ class SharedPolicyController(Controller):
     #: on a mixed string it sees only what an automated vehicle senses or receives: a human
     #: predecessor sends nothing (its command reads as the 0 held before any message)
     drives_mixed = True
-    needs_leader = True  # the leader's broadcast is part of its observation
+    #: on a ring the leader's broadcast never arrives (held at 0) and follower 1 hears follower N
+    needs_leader = False
     deterministic = False
     batch_invariant = True
     needs_observation = False

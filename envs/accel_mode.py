@@ -67,9 +67,10 @@ def check_action_mode(mode: str) -> str:
     return mode
 
 
-def predecessor_links(n_vehicles: int) -> list[tuple[int, int]]:
-    """Links ``i-1 -> i`` for followers ``i = 1..N`` (vehicle 0 is the leader)."""
-    return [(i - 1, i) for i in range(1, n_vehicles + 1)]
+def predecessor_links(n_vehicles: int, ring: bool = False) -> list[tuple[int, int]]:
+    """Links ``i-1 -> i`` for followers ``i = 1..N`` (vehicle 0 is the leader; on a ring,
+    follower 1's predecessor is follower N: ``N -> 1``)."""
+    return [(n_vehicles if ring else 0, 1)] + [(i - 1, i) for i in range(2, n_vehicles + 1)]
 
 
 def leader_links(n_vehicles: int) -> list[tuple[int, int]]:
@@ -79,15 +80,18 @@ def leader_links(n_vehicles: int) -> list[tuple[int, int]]:
 
 def open_accel_channels(
     n_vehicles: int, seeds: Sequence[int] | np.ndarray, config: ChannelConfig = ChannelConfig(),
-    silent: Sequence[int] = (),
+    silent: Sequence[int] = (), ring: bool = False,
 ) -> tuple[V2VChannel, V2VChannel]:
     """The two channels of the ``accel`` mode (predecessor, leader) for a batch of episodes;
-    the vehicles ``silent`` (human seats, 1..N) send nothing."""
+    the vehicles ``silent`` (human seats, 1..N) send nothing. On a ring there is no leader: its
+    broadcast never arrives (the followers hold 0, the leader at v* with no acceleration) and
+    follower 1 hears follower N."""
     name, width = PRED_MESSAGE
-    pred = V2VChannel(predecessor_links(n_vehicles), width, seeds, config, name=name,
+    pred = V2VChannel(predecessor_links(n_vehicles, ring), width, seeds, config, name=name,
                       silent=silent)
     name, width = LEADER_MESSAGE
-    lead = V2VChannel(leader_links(n_vehicles), width, seeds, config, name=name)
+    lead = V2VChannel(leader_links(n_vehicles), width, seeds, config, name=name,
+                      silent=(0,) if ring else ())
     return pred, lead
 
 

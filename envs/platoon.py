@@ -281,7 +281,7 @@ class PlatoonEnv:
         self._blocks = self._obs[:, :, 0:BLOCK_DIM]
         if self.action_mode == "accel":
             self._channels = open_accel_channels(n, seeds_arr, self.channel_config,
-                                                 silent=self.silent_senders)
+                                                 silent=self.silent_senders, ring=ring)
             self._pred_held = np.zeros((b, n))
             self._leader_held = np.zeros((b, n, 2))
         return self.observation() if self.observe else None

@@ -670,3 +670,42 @@ def test_on_a_mixed_string_a_shared_policy_receives_nothing_from_a_human() -> No
     assert (ctrl._pred_held[:, 4] != 0).any()  # follower 5 hears automated follower 4
     (traj,) = rollout_batch(make_controller("ippo"), sc, 8, [2000])
     assert traj.steps == sc.n_steps
+
+
+def test_on_the_ring_a_shared_policy_hears_no_leader_and_follower_one_hears_follower_n() -> None:
+    """No leader on ``ring-v1``: its broadcast never arrives (held at 0, not counted), and the
+    predecessor link of follower 1 carries follower N's command."""
+    from benchmark.rollout import rollout_batch
+    from controllers.base import EpisodeContext, check_fits, reset_controller
+    from controllers.registry import make_controller
+    from envs.platoon import PlatoonEnv
+    from envs.scenarios import make_scenario
+
+    sc = make_scenario("ring-v1:cav_fraction=1.0,vehicles=8")
+    ctrl = make_controller("ippo", scenario="catchup-v1")  # no policy trained on the ring
+    check_fits(ctrl, sc, 8)
+    env = PlatoonEnv(sc, 8, observe=False)
+    env.reset([2000])
+    ctx = EpisodeContext(sc, 8, env.seeds, env.params)
+    reset_controller(ctrl, ctx)
+    for _ in range(20):
+        u = ctrl.act(env.state, None)
+        env.step(u)
+    assert (ctrl._leader_held == 0).all()
+    assert ctrl._pred_held[0, 0] == pytest.approx(float(np.clip(u[0, -1], -2.5, 2.5)))
+    assert ctx.channels["accel-leader"].bits_sent == 0
+    (traj,) = rollout_batch(make_controller("ippo", scenario="catchup-v1"),
+                            make_scenario("ring-v1:length_m=100,vehicles=8"), 8, [2000])
+    assert traj.steps > 0
+
+
+def test_the_training_env_on_the_ring_silences_the_leader_and_wraps_the_predecessor() -> None:
+    from envs.platoon import PlatoonEnv
+
+    env = PlatoonEnv("ring-v1:cav_fraction=1.0,vehicles=5", 5, action_mode="accel")
+    env.reset([3])
+    for k in range(5):
+        env.step(np.full((1, 5), 0.1 * (k + 1)) + np.arange(5) * 0.01)
+    pred, lead = env._channels
+    assert lead.bits_sent == 0 and (env._leader_held == 0).all()
+    assert env._pred_held[0, 0] == pytest.approx(0.5 + 0.04)  # follower 5's last command
