@@ -32,9 +32,8 @@ def make_job(name: str, algo: str, scenario: str, vehicles: int, seed: int, fold
 def tuned_config(algo: str, config_scenario: str, extra: dict[str, Any], label: str
                  ) -> dict[str, Any]:
     """The tuned options of ``algo`` on ``config_scenario`` with ``extra`` on top, checked."""
-    from commands.train import tuned_options
     from controllers.registry import build_config
-    from marl.config import algorithm
+    from marl.config import algorithm, tuned_options
 
     options = {**tuned_options(algo, config_scenario), **extra}
     config = build_config(algorithm(algo).config_cls, options, f"{label} (tuned)")

@@ -248,32 +248,6 @@ def population_jobs(jobs: list[dict], size: int | None, executor: str, workers: 
     return out
 
 
-#: The configs chosen by ``cacc-bench tune`` that ship with the package.
-TUNED_CONFIGS = Path(__file__).resolve().parent.parent / "marl" / "tuned_configs.json"
-
-
-def tuned_options(algo: str, scenario: str, path: Path = TUNED_CONFIGS) -> dict[str, object]:
-    """Config overrides chosen by ``cacc-bench tune`` for ``algo`` on ``scenario``."""
-    import json
-
-    shown = "the package's marl/tuned_configs.json" if path == TUNED_CONFIGS else str(path)
-
-    if not path.exists():
-        raise ConfigError(f"--tuned: {shown} is missing; make it with `cacc-bench tune` and copy "
-                          "its tuned_configs.json there")
-    try:
-        configs = json.loads(path.read_text())["configs"]
-    except (ValueError, KeyError) as exc:
-        raise ConfigError(f"--tuned: {shown} is not a tuned_configs.json ({exc})") from None
-    entry = configs.get(f"{algo}/{scenario}")
-    if entry is None:
-        have = ", ".join(sorted(configs)) or "none"
-        raise ConfigError(f"--tuned: no tuned config for {algo} on {scenario} in {shown} "
-                          f"(it has: {have}); run `cacc-bench tune --algos {algo} "
-                          f"--scenarios {scenario}`")
-    return dict(entry["config"])
-
-
 def _names(text: str, flag: str) -> list[str]:
     names = list(dict.fromkeys(x.strip() for x in text.split(",") if x.strip()))
     if not names:
@@ -335,7 +309,7 @@ def main(argv: list[str]) -> int:
     from controllers.registry import build_config
     from envs.scenarios import check_vehicles
     from marl.arithmetic import process_env
-    from marl.config import algorithm, training_device
+    from marl.config import algorithm, training_device, tuned_options
     from marl.learners import PAPER_ALGORITHMS, SHARED_LEARNERS
 
     args = _parser().parse_args(argv)

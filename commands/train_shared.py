@@ -172,7 +172,7 @@ def main_shared(args: Any, algos: list[str], scenarios: list[str], seeds: list[i
         for sc in scenarios:
             tuned = None
             if args.tuned:
-                from commands.train import tuned_options
+                from marl.config import tuned_options
 
                 tuned = tuned_options(a, sc)
             configs[(a, sc)] = shared_config(a, overrides, tuned)

@@ -17,6 +17,7 @@ import importlib
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
@@ -280,3 +281,29 @@ def config_from_dict(algo: Algorithm, values: dict[str, Any]) -> A2CConfig:
     if extra:
         raise ConfigError(f"{algo.name} config has no fields {sorted(extra)}")
     return algo.config_cls(**values)
+
+
+#: The configs chosen by ``cacc-bench tune`` that ship with the package.
+TUNED_CONFIGS = Path(__file__).resolve().parent / "tuned_configs.json"
+
+
+def tuned_options(algo: str, scenario: str, path: Path = TUNED_CONFIGS) -> dict[str, object]:
+    """Config overrides chosen by ``cacc-bench tune`` for ``algo`` on ``scenario``."""
+    import json
+
+    shown = "the package's marl/tuned_configs.json" if path == TUNED_CONFIGS else str(path)
+
+    if not path.exists():
+        raise ConfigError(f"--tuned: {shown} is missing; make it with `cacc-bench tune` and copy "
+                          "its tuned_configs.json there")
+    try:
+        configs = json.loads(path.read_text())["configs"]
+    except (ValueError, KeyError) as exc:
+        raise ConfigError(f"--tuned: {shown} is not a tuned_configs.json ({exc})") from None
+    entry = configs.get(f"{algo}/{scenario}")
+    if entry is None:
+        have = ", ".join(sorted(configs)) or "none"
+        raise ConfigError(f"--tuned: no tuned config for {algo} on {scenario} in {shown} "
+                          f"(it has: {have}); run `cacc-bench tune --algos {algo} "
+                          f"--scenarios {scenario}`")
+    return dict(entry["config"])

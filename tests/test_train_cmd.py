@@ -90,7 +90,7 @@ def test_train_lists_and_resume(tmp_path: Path, capsys) -> None:
 def test_tuned_options(tmp_path: Path, capsys) -> None:
     import json
 
-    from commands.train import TUNED_CONFIGS, tuned_options
+    from marl.config import TUNED_CONFIGS, tuned_options
 
     path = tmp_path / "tuned.json"
     path.write_text(json.dumps({"configs": {"bdc/catchup-v1": {
