@@ -52,6 +52,7 @@ def main(argv: list[str]) -> int:
     from commands.cli import scenarios_argument
     from commands.run import _preflight, execute_study_sweep
     from controllers.registry import parse_controller_list
+    from envs.scenarios import SEAT_OPTIONS, make_scenario
     from infra.limits import check_range
     from studies.penetration import cells, controllers_for, design, plot_shares, write_report
 
@@ -64,8 +65,14 @@ def main(argv: list[str]) -> int:
     check_range(args.placements, "--placements", 1, MAX_PLACEMENTS)
     seeds = seeds_from_set("test", args.episodes)
     families = [name for name, opts in parse_controller_list(args.controllers)]
-    bases = [sc.id for sc in scenarios_argument(args.scenarios)]
-    settings = design(bases, args.placements)
+    bases = []
+    for given in scenarios_argument(args.scenarios):
+        if any(given.options[k] != make_scenario(given.id).options[k] for k in SEAT_OPTIONS):
+            raise ConfigError(f"--scenarios {given.label}: the study sets which followers are "
+                              f"automated itself ({', '.join(SEAT_OPTIONS)}); name the scenario "
+                              "without them")
+        bases.append(given.label.replace("[", ":").rstrip("]"))
+    settings = design(list(dict.fromkeys(bases)), args.placements)
     keys = set()
     for setting in settings:
         sc = scenarios_argument(setting.text)

@@ -30,6 +30,7 @@ from envs.humans import (
 from envs.params import PlatoonParams
 from envs.streams import episode_stream
 from infra.errors import ConfigError, UnknownNameError
+from infra.limits import MAX_SEED
 from infra.naming import coerce_option, format_label, parse_label, parse_named_list
 
 MIN_VEHICLES = 2
@@ -177,7 +178,8 @@ ARRANGEMENT_DEFAULTS: dict[str, Any] = {
 
 
 #: The options that say which seats are automated (one of them at a time).
-_SEAT_OPTIONS: tuple[str, ...] = ("humans", "cav_fraction", "cavs")
+SEAT_OPTIONS: tuple[str, ...] = ("humans", "cav_fraction", "cavs", "placement", "placement_seed")
+_SEAT_OPTIONS: tuple[str, ...] = SEAT_OPTIONS[:3]
 
 
 def _check_arrangement(scenario_id: str, opts: dict[str, Any]) -> None:
@@ -204,8 +206,9 @@ def _check_arrangement(scenario_id: str, opts: dict[str, Any]) -> None:
     if not 0.0 <= opts["human_noise_mps2"] <= MAX_HUMAN_NOISE_MPS2:
         raise ConfigError(f"{scenario_id}: human_noise_mps2 must lie in [0, "
                           f"{MAX_HUMAN_NOISE_MPS2:g}] m/s^2, got {opts['human_noise_mps2']}")
-    if opts["placement_seed"] < 0:
-        raise ConfigError(f"{scenario_id}: placement_seed must be >= 0")
+    if not 0 <= opts["placement_seed"] <= MAX_SEED:
+        raise ConfigError(f"{scenario_id}: placement_seed must lie in 0..{MAX_SEED}, got "
+                          f"{opts['placement_seed']}")
 
 
 def arrangement_of(opts: dict[str, Any], n_vehicles: int, who: str) -> Arrangement:
@@ -369,6 +372,8 @@ def _openacc_train(sc: Scenario, seeds: np.ndarray, u: np.ndarray, n: int) -> Ep
                         leader_speed_mps=leader)
 
 
+#: Longest ring of ``ring-v1`` (m): 10 km, 40 times Flow's 260 m.
+MAX_RING_LENGTH_M: float = 10_000.0
 #: Vehicle length on the ring (m): Flow's and SUMO's passenger-car default. The followers of the
 #: other scenarios are points with gaps; on a ring the length decides the density.
 RING_VEHICLE_LENGTH_M: float = 5.0
@@ -405,6 +410,9 @@ def _check_ring(opts: dict[str, Any]) -> None:
         raise ConfigError(f"ring-v1 vehicles must be an integer from {MIN_VEHICLES} to "
                           f"{MAX_VEHICLES}, got {n}")
     gap = ring_target_gap_m(opts["length_m"], n)
+    if opts["length_m"] > MAX_RING_LENGTH_M:
+        raise ConfigError(f"ring-v1 length_m must be at most {MAX_RING_LENGTH_M:g} m (a ring is "
+                          f"dense traffic; a longer road is a string), got {opts['length_m']:g}")
     if not (math.isfinite(opts["length_m"]) and gap >= 2 * IDMParams().standstill_m):
         raise ConfigError(
             f"ring-v1 length_m={opts['length_m']} leaves {gap:.2f} m between {n} vehicles of "

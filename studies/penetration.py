@@ -82,11 +82,13 @@ class Setting:
 
     @property
     def text(self) -> str:
-        """The scenario with its options, as ``--scenarios`` takes it."""
+        """The scenario with its options, as ``--scenarios`` takes it (``scenario`` may carry
+        options of its own: ``ring-v1:length_m=230``)."""
         opts = dict(self.share.options)
         if self.share.mixed:
             opts.update(placement="random", placement_seed=str(self.placement_seed))
-        return self.scenario + ":" + ",".join(f"{k}={v}" for k, v in opts.items())
+        sep = "," if ":" in self.scenario else ":"
+        return self.scenario + sep + ",".join(f"{k}={v}" for k, v in opts.items())
 
 
 def design(scenarios: Sequence[str] = SCENARIOS, placements: int = 3) -> list[Setting]:

@@ -115,7 +115,8 @@ def test_labels_carry_the_arrangement_and_defaults_add_nothing() -> None:
     {"cav_fraction": "1.5"}, {"cav_fraction": "-0.1"}, {"cav_fraction": "nan"},
     {"cavs": "9"}, {"cavs": "-2"}, {"cav_fraction": "0.5", "humans": "2"},
     {"placement": "middle"}, {"human_model": "krauss"}, {"reaction_delay_s": "5"},
-    {"human_noise_mps2": "-1"},
+    {"human_noise_mps2": "-1"}, {"placement_seed": "-1"},
+    {"placement_seed": "99999999999999999999"},
 ])
 def test_arrangements_that_make_no_sense_are_refused(options: dict[str, str]) -> None:
     with pytest.raises(ConfigError):

@@ -134,3 +134,20 @@ def test_the_readme_mixed_traffic_command_runs_in_small(tmp_path: Path) -> None:
     runs = pd.read_csv(tmp_path / "r" / "runs.csv")
     assert set(runs["scenario"]) == {"ring-v1", "catchup-v1[cav_fraction=0.5]"}
     assert sorted(runs["cav_share"].unique()) == pytest.approx([1 / 22, 0.5])
+
+
+@pytest.mark.parametrize("scenario", ["ring-v1:cavs=0", "catchup-v1:humans=2",
+                                      "catchup-v1:placement=front"])
+def test_the_study_sets_the_arrangement_itself(scenario: str, tmp_path: Path) -> None:
+    out = tmp_path / "pen"
+    assert cli(["penetration", "--scenarios", scenario, "--out", str(out)]) == 2
+    assert not out.exists()
+
+
+def test_a_scenario_keeps_its_own_options_in_the_study(tmp_path: Path) -> None:
+    out = tmp_path / "pen"
+    assert cli(["penetration", "--scenarios", "sine-v1:amplitude_mps=2", "--controllers", "acc",
+                "--episodes", "1", "--placements", "1", "--executor", "serial",
+                "--out", str(out)]) == 0
+    runs = pd.read_csv(out / "runs" / "runs.csv")
+    assert all(s.startswith("sine-v1[amplitude_mps=2.0") for s in runs["scenario"])

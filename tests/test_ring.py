@@ -62,3 +62,10 @@ def test_the_ring_count_is_its_option_not_a_platoon_size() -> None:
     with pytest.raises(ConfigError, match="vehicles=10"):
         sc.episodes([0], 10)
     assert make_scenario("ring-v1:vehicles=10").episodes([0], 10).gap_m.shape == (1, 10)
+
+
+def test_a_ring_longer_than_the_limit_is_refused() -> None:
+    from envs.scenarios import MAX_RING_LENGTH_M
+
+    with pytest.raises(ConfigError, match="at most"):
+        make_scenario(f"ring-v1:length_m={2 * MAX_RING_LENGTH_M}")
