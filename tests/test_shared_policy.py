@@ -647,27 +647,38 @@ def test_the_tuning_readings_are_the_committed_trials_and_logs() -> None:
     assert len(bdc_trials) == 16 and (bdc_trials["selected_eval_collisions_sampled"] > 0).all()
 
 
-def test_on_a_mixed_string_a_shared_policy_receives_nothing_from_a_human() -> None:
-    """Behind a human (seat 3) the predecessor's command never arrives (held at 0); the policy
-    drives the automated seats and the env the human one."""
-    from benchmark.rollout import rollout_batch
+def _drive(ctrl: Any, text: str, steps: int) -> tuple[Any, np.ndarray]:
+    """Step ``ctrl`` by hand on the scenario ``text`` (8 followers, seed 2000); returns the
+    episode context and the last commands."""
     from controllers.base import EpisodeContext, check_fits, reset_controller
-    from controllers.registry import make_controller
     from envs.platoon import PlatoonEnv
     from envs.scenarios import make_scenario
 
-    sc = make_scenario("catchup-v1:humans=3")
-    ctrl = make_controller("ippo")
+    sc = make_scenario(text)
     check_fits(ctrl, sc, 8)
     env = PlatoonEnv(sc, 8, observe=False)
     env.reset([2000])
     ctx = EpisodeContext(sc, 8, env.seeds, env.params)
     reset_controller(ctrl, ctx)
-    for _ in range(30):
+    u = np.zeros((1, 8))
+    for _ in range(steps):
         u = ctrl.act(env.state, None)
         env.step(u)
+    return ctx, u
+
+
+def test_on_a_mixed_string_a_shared_policy_receives_nothing_from_a_human() -> None:
+    """Behind a human (seat 3) the predecessor's command never arrives (held at 0); the policy
+    drives the automated seats and the env the human one."""
+    from benchmark.rollout import rollout_batch
+    from controllers.registry import make_controller
+    from envs.scenarios import make_scenario
+
+    ctrl = make_controller("ippo")
+    _drive(ctrl, "catchup-v1:humans=3", 30)
     assert (ctrl._pred_held[:, 3] == 0).all()  # follower 4 is behind the human follower 3
     assert (ctrl._pred_held[:, 4] != 0).any()  # follower 5 hears automated follower 4
+    sc = make_scenario("catchup-v1:humans=3")
     (traj,) = rollout_batch(make_controller("ippo"), sc, 8, [2000])
     assert traj.steps == sc.n_steps
 
@@ -676,21 +687,11 @@ def test_on_the_ring_a_shared_policy_hears_no_leader_and_follower_one_hears_foll
     """No leader on ``ring-v1``: its broadcast never arrives (held at 0, not counted), and the
     predecessor link of follower 1 carries follower N's command."""
     from benchmark.rollout import rollout_batch
-    from controllers.base import EpisodeContext, check_fits, reset_controller
     from controllers.registry import make_controller
-    from envs.platoon import PlatoonEnv
     from envs.scenarios import make_scenario
 
-    sc = make_scenario("ring-v1:cav_fraction=1.0,vehicles=8")
     ctrl = make_controller("ippo", scenario="catchup-v1")  # no policy trained on the ring
-    check_fits(ctrl, sc, 8)
-    env = PlatoonEnv(sc, 8, observe=False)
-    env.reset([2000])
-    ctx = EpisodeContext(sc, 8, env.seeds, env.params)
-    reset_controller(ctrl, ctx)
-    for _ in range(20):
-        u = ctrl.act(env.state, None)
-        env.step(u)
+    ctx, u = _drive(ctrl, "ring-v1:cav_fraction=1.0,vehicles=8", 20)
     assert (ctrl._leader_held == 0).all()
     assert ctrl._pred_held[0, 0] == pytest.approx(float(np.clip(u[0, -1], -2.5, 2.5)))
     assert ctx.channels["accel-leader"].bits_sent == 0
