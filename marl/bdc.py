@@ -40,7 +40,7 @@ from marl.networks import AgentNet
 from marl.quantize import ErrorFeedbackQSGD, qsgd_bits, ternary_bits
 
 if TYPE_CHECKING:
-    from marl.a2c import Run
+    from marl.config import RunState
 
 
 @dataclass(frozen=True)
@@ -76,7 +76,7 @@ class BDCConfig(ConsensusConfig):
             raise ConfigError(f"qsgd_bucket must be >= 1 or None, got {self.qsgd_bucket}")
 
 
-def setup_qsgd(run: Run) -> None:
+def setup_qsgd(run: RunState) -> None:
     """The run's QSGD compressor with error feedback, on the run's own random stream."""
     cfg = run.config
     assert isinstance(cfg, BDCConfig)
@@ -84,7 +84,7 @@ def setup_qsgd(run: Run) -> None:
                                                cfg.qsgd_bucket)
 
 
-def compress_critic_gradients(run: Run, net: AgentNet) -> None:
+def compress_critic_gradients(run: RunState, net: AgentNet) -> None:
     """Before the optimiser step: every critic gradient tensor replaced by its QSGD
     compression with error feedback (applied locally, its payload tallied)."""
     cfg = run.config
@@ -97,7 +97,7 @@ def compress_critic_gradients(run: Run, net: AgentNet) -> None:
         run.bits["qsgd_local"] += qsgd_bits(g[0].numel(), cfg.qsgd_levels, bucket=cfg.qsgd_bucket)
 
 
-def binary_consensus(run: Run, net: AgentNet) -> None:
+def binary_consensus(run: RunState, net: AgentNet) -> None:
     """After the optimiser step: one synchronous round of binary differential consensus on
     the shared critic weights (sign patterns sent)."""
     cfg = run.config

@@ -18,7 +18,7 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar, Protocol
 
 import numpy as np
 
@@ -30,7 +30,6 @@ from marl.learners import PAPER_ALGORITHMS
 if TYPE_CHECKING:
     import torch
 
-    from marl.a2c import Run
     from marl.networks import AgentNet
 
 COLLISION_VALUES: tuple[str, ...] = ("absorbing", "published")
@@ -235,6 +234,18 @@ def _nothing(*_: object) -> None:
     """No hook."""
 
 
+class RunState(Protocol):
+    """What an algorithm's hooks read and keep of one training run (:class:`marl.a2c.Run` is
+    one): its resolved config, its random stream, its agents' rows in the stacked networks, its
+    bit tallies and the algorithm's own state between updates."""
+
+    config: A2CConfig
+    generator: torch.Generator
+    rows: slice
+    bits: dict[str, float]
+    hook_state: dict[str, Any]
+
+
 @dataclass
 class Algorithm:
     """An algorithm's distinctive parts as plain functions: its network and what it does around
@@ -261,9 +272,9 @@ class Algorithm:
     name: str
     config_cls: type[A2CConfig]
     build_net: Callable[..., AgentNet]
-    setup: Callable[[Run], None] = _nothing
-    before_step: Callable[[Run, AgentNet], None] = _nothing
-    after_step: Callable[[Run, AgentNet], None] = _nothing
+    setup: Callable[[RunState], None] = _nothing
+    before_step: Callable[[RunState, AgentNet], None] = _nothing
+    after_step: Callable[[RunState, AgentNet], None] = _nothing
 
 
 def algorithm(name: str) -> Algorithm:

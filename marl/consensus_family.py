@@ -22,7 +22,7 @@ from marl.consensus import consensus_round
 from marl.networks import AgentNet, SeparateActorCriticNet
 
 if TYPE_CHECKING:
-    from marl.a2c import Run
+    from marl.config import RunState
 
 
 @dataclass(frozen=True)
@@ -60,7 +60,7 @@ def build_net(config: ConsensusConfig, n_agents: int, with_critic: bool = True,
 Rule = Callable[[torch.Tensor], torch.Tensor]
 
 
-def share_critics(run: Run, net: AgentNet, rule: Rule, bits: Callable[[int], float]) -> None:
+def share_critics(run: RunState, net: AgentNet, rule: Rule, bits: Callable[[int], float]) -> None:
     """One synchronous round of ``rule`` on the run's shared critic weights (its rows of
     ``net``); ``bits(n)``, for ``n`` shared weights per agent, is added to the run's consensus
     tally."""

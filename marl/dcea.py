@@ -24,7 +24,7 @@ from marl.consensus_family import ConsensusConfig, build_net, share_critics
 from marl.networks import FLOAT_BITS, AgentNet
 
 if TYPE_CHECKING:
-    from marl.a2c import Run
+    from marl.config import RunState
 
 
 @dataclass(frozen=True)
@@ -40,7 +40,7 @@ class DCEAConfig(ConsensusConfig):
     consensus_eps: float = 0.001
 
 
-def differential_consensus(run: Run, net: AgentNet) -> None:
+def differential_consensus(run: RunState, net: AgentNet) -> None:
     """After every update: one synchronous differential round on the shared critic weights
     (32-bit floats sent)."""
     cfg = run.config

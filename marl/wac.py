@@ -24,7 +24,7 @@ from marl.consensus_family import ConsensusConfig, build_net, share_critics
 from marl.networks import FLOAT_BITS, AgentNet
 
 if TYPE_CHECKING:
-    from marl.a2c import Run
+    from marl.config import RunState
 
 
 @dataclass(frozen=True)
@@ -33,7 +33,7 @@ class WACConfig(ConsensusConfig):
     (:class:`marl.consensus_family.ConsensusConfig`), nothing else."""
 
 
-def average_critics(run: Run, net: AgentNet) -> None:
+def average_critics(run: RunState, net: AgentNet) -> None:
     """After every update: one synchronous averaging round of the shared critic weights with
     the front and rear neighbours (32-bit floats sent)."""
     share_critics(run, net, wac, lambda n: n * FLOAT_BITS)
