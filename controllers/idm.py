@@ -1,11 +1,10 @@
 """The Intelligent Driver Model as a controller: the human-driver baseline ``idm``.
 
-The automated seats drive exactly as the environment's IDM humans do
-(:class:`envs.humans.HumanDrivers`): the same acceleration (:func:`envs.humans.idm_accel_mps2`),
-the same Gaussian noise (:class:`envs.humans.HumanNoise`, a pure function of the episode
-seed, the step and the seat, so seat ``i`` gets the noise a human on seat ``i`` would get) and the
-same reaction delay (act on what was seen ``delay`` steps ago; before that many steps have passed,
-on the first observation). So ``--controllers idm`` on ``ring-v1`` (one automated seat among 21
+The automated seats are driven by the environment's own human drivers
+(:class:`envs.humans.HumanDrivers`, every seat taken as human): the same acceleration
+(:func:`envs.humans.idm_accel_mps2`), the same Gaussian noise (:class:`envs.humans.HumanNoise`, a
+pure function of the episode seed, the step and the seat, so seat ``i`` gets the noise a human on
+seat ``i`` would get) and the same reaction delay. So ``--controllers idm`` on ``ring-v1`` (one automated seat among 21
 IDM humans) *is* the all-human ring ``ring-v1:cavs=0``, to the last bit, for the same seeds: the
 baseline the wave dampers (:mod:`controllers.wave_dampers`) are measured against.
 
@@ -24,11 +23,11 @@ import numpy as np
 from controllers.base import Controller, EpisodeContext
 from controllers.registry import build_config
 from envs.humans import (
-    MAX_HUMAN_NOISE_MPS2,
-    MAX_REACTION_DELAY_S,
-    HumanNoise,
+    Arrangement,
+    HumanDrivers,
     IDMParams,
-    idm_accel_mps2,
+    check_human_noise,
+    check_reaction_delay,
 )
 from envs.platoon import PlatoonState
 from infra.errors import ConfigError
@@ -67,13 +66,10 @@ class IDMConfig:
         for key in ("time_gap_s", "standstill_m"):
             if not getattr(self, key) >= 0:
                 raise ConfigError(f"idm option {key} must be >= 0, got {getattr(self, key)}")
-        if self.noise_mps2 is not None and not 0 <= self.noise_mps2 <= MAX_HUMAN_NOISE_MPS2:
-            raise ConfigError(f"idm option noise_mps2 must lie in [0, {MAX_HUMAN_NOISE_MPS2}] "
-                              f"m/s^2, got {self.noise_mps2}")
-        if (self.reaction_delay_s is not None
-                and not 0 <= self.reaction_delay_s <= MAX_REACTION_DELAY_S):
-            raise ConfigError(f"idm option reaction_delay_s must lie in [0, "
-                              f"{MAX_REACTION_DELAY_S}] s, got {self.reaction_delay_s}")
+        if self.noise_mps2 is not None:
+            check_human_noise(self.noise_mps2, "idm", "noise_mps2")
+        if self.reaction_delay_s is not None:
+            check_reaction_delay(self.reaction_delay_s, "idm")
 
     @property
     def params(self) -> IDMParams:
@@ -101,34 +97,19 @@ class IDMController(Controller):
         super().__init__()
         self.config: IDMConfig = build_config(self.config_cls, options, "idm")
         self.options = dict(options)
-        self.idm = self.config.params
-        self.delay_steps = 0
-        self.noise: HumanNoise | None = None
-        self._seats = np.zeros(0, dtype=np.int64)
-        self._history: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        self._drivers: HumanDrivers | None = None
 
     def reset(self, ctx: EpisodeContext) -> None:
-        arrangement = ctx.arrangement
-        std = (arrangement.noise_std_mps2 if self.config.noise_mps2 is None
-               else self.config.noise_mps2)
-        delay_s = (arrangement.reaction_delay_s if self.config.reaction_delay_s is None
-                   else self.config.reaction_delay_s)
-        # the rule of envs.humans.Arrangement.delay_steps
-        self.delay_steps = int(round(delay_s / ctx.params.dt_s + 1e-9))
-        n_steps = ctx.scenario.n_steps
-        # the very draw HumanDrivers makes, so seat i gets a human's noise of seat i
-        self.noise = HumanNoise(ctx.seeds, ctx.n_vehicles, n_steps, std) if std > 0 else None
-        self._seats = np.arange(ctx.n_vehicles)
-        self._history = []
+        given = ctx.arrangement
+        cfg = self.config
+        every_seat_human = Arrangement(
+            (False,) * ctx.n_vehicles, "idm",
+            given.reaction_delay_s if cfg.reaction_delay_s is None else cfg.reaction_delay_s,
+            given.noise_std_mps2 if cfg.noise_mps2 is None else cfg.noise_mps2)
+        self._drivers = HumanDrivers(every_seat_human, ctx.seeds, ctx.scenario.n_steps,
+                                     ctx.params, ctx.ring, cfg.params)
 
     def act(self, state: PlatoonState, observation: np.ndarray | None) -> np.ndarray:
-        # what HumanDrivers.commands does, for every seat (the env keeps the automated ones)
-        seen = (state.gap_m.copy(), state.speed_mps.copy(), state.pred_speed_mps.copy())
-        self._history.append(seen)
-        if len(self._history) > self.delay_steps + 1:
-            self._history.pop(0)
-        gap, speed, pred_speed = self._history[0]  # seen `delay` steps ago (the start, before)
-        u = idm_accel_mps2(gap, speed, pred_speed, self.idm)
-        if self.noise is not None:
-            u += self.noise.at(state.step, self._seats)
-        return np.asarray(u, dtype=np.float64)
+        assert self._drivers is not None, "reset() first"
+        return self._drivers.commands(state.step, np.zeros_like(state.speed_mps), state.gap_m,
+                                      state.speed_mps, state.leader_speed_now_mps)

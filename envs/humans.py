@@ -44,6 +44,24 @@ MAX_HUMAN_NOISE_MPS2: float = 2.0
 PLACEMENT_STREAM = "placement"
 
 
+def check_reaction_delay(value: float, who: str) -> float:
+    """``value`` if it is a reaction delay in [0, :data:`MAX_REACTION_DELAY_S`] s, else a
+    ConfigError naming ``who`` (a scenario's option, the ``idm`` controller's)."""
+    if not 0.0 <= value <= MAX_REACTION_DELAY_S:
+        raise ConfigError(f"{who}: reaction_delay_s must lie in [0, {MAX_REACTION_DELAY_S:g}] s, "
+                          f"got {value}")
+    return float(value)
+
+
+def check_human_noise(value: float, who: str, name: str = "human_noise_mps2") -> float:
+    """``value`` if it is a noise standard deviation in [0, :data:`MAX_HUMAN_NOISE_MPS2`]
+    m/s^2, else a ConfigError naming ``who`` and the option ``name``."""
+    if not 0.0 <= value <= MAX_HUMAN_NOISE_MPS2:
+        raise ConfigError(f"{who}: {name} must lie in [0, {MAX_HUMAN_NOISE_MPS2:g}] m/s^2, "
+                          f"got {value}")
+    return float(value)
+
+
 @dataclass(frozen=True)
 class IDMParams:
     """Parameters of the Intelligent Driver Model (Flow's ``IDMController`` defaults).
@@ -310,10 +328,13 @@ class HumanDrivers:
         Physics (``dt_s``, the OVM's gaps).
     ring : bool
         A ring road (follower 1's predecessor is follower N).
+    idm : IDMParams
+        The IDM humans' parameters (Flow's by default).
     """
 
     def __init__(self, arrangement: Arrangement, seeds: np.ndarray, n_steps: int,
-                 params: PlatoonParams, ring: bool = False) -> None:
+                 params: PlatoonParams, ring: bool = False, idm: IDMParams = IDMParams()
+                 ) -> None:
         self.arrangement = arrangement
         self.params = params
         n = len(arrangement.automated)
@@ -324,7 +345,7 @@ class HumanDrivers:
         self._behind_leader = (not ring) and bool(self.seats.size) and self.seats[0] == 0
         self.model = arrangement.human_model
         self.delay = arrangement.delay_steps(params.dt_s)
-        self.idm = IDMParams()
+        self.idm = idm
         if self.model == "ovm":
             draws = np.stack([_ovm_draws(int(s), n) for s in seeds])  # (B, 3, N)
             self.alpha, self.beta, self.gap_go_m = draws[:, 0], draws[:, 1], draws[:, 2]

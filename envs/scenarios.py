@@ -17,11 +17,11 @@ import numpy as np
 
 from envs.humans import (
     HUMAN_MODELS,
-    MAX_HUMAN_NOISE_MPS2,
-    MAX_REACTION_DELAY_S,
     PLACEMENTS,
     Arrangement,
     IDMParams,
+    check_human_noise,
+    check_reaction_delay,
     count_automated,
     idm_equilibrium_speed_mps,
     parse_positions,
@@ -200,12 +200,8 @@ def _check_arrangement(scenario_id: str, opts: dict[str, Any]) -> None:
     if opts["human_model"] not in HUMAN_MODELS:
         raise ConfigError(f"{scenario_id}: human_model must be one of {', '.join(HUMAN_MODELS)}, "
                           f"got {opts['human_model']!r}")
-    if not 0.0 <= opts["reaction_delay_s"] <= MAX_REACTION_DELAY_S:
-        raise ConfigError(f"{scenario_id}: reaction_delay_s must lie in [0, "
-                          f"{MAX_REACTION_DELAY_S:g}] s, got {opts['reaction_delay_s']}")
-    if not 0.0 <= opts["human_noise_mps2"] <= MAX_HUMAN_NOISE_MPS2:
-        raise ConfigError(f"{scenario_id}: human_noise_mps2 must lie in [0, "
-                          f"{MAX_HUMAN_NOISE_MPS2:g}] m/s^2, got {opts['human_noise_mps2']}")
+    check_reaction_delay(opts["reaction_delay_s"], scenario_id)
+    check_human_noise(opts["human_noise_mps2"], scenario_id)
     if not 0 <= opts["placement_seed"] <= MAX_SEED:
         raise ConfigError(f"{scenario_id}: placement_seed must lie in 0..{MAX_SEED}, got "
                           f"{opts['placement_seed']}")
