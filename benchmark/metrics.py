@@ -75,10 +75,16 @@ def cruise_energy_kwh(traj: Trajectory) -> float:
     v_bar_mps = float(np.mean(traj.leader_speed_mps[1 : traj.steps + 1]))
     if not v_bar_mps > 0.0:
         return math.nan
+    return float(_cruise_kwh(float(traj.speed_mps[1:].sum() * traj.dt_s), v_bar_mps))
+
+
+def _cruise_kwh(distance_m: float | np.ndarray, v_bar_mps: float) -> float | np.ndarray:
+    """Battery energy (kWh) of ``distance_m`` driven at steady cruise at ``v_bar_mps`` > 0:
+    ``P(v_bar, 0) d / v_bar`` (the one formula of the controllable energy, whole string or per
+    seat)."""
     from envs.energy import battery_power_kw
 
     cruise_kw = float(battery_power_kw(v_bar_mps, 0.0))
-    distance_m = float(traj.speed_mps[1:].sum() * traj.dt_s)
     return cruise_kw * (distance_m / v_bar_mps) / 3600.0
 
 
@@ -188,11 +194,7 @@ def mixed_traffic_metrics(traj: Trajectory) -> dict[str, float | int]:
     energy_each = traj.power_kw[rows].sum(axis=0) * dt / 3600.0  # (N,) kWh
     lead_mean = float(np.mean(traj.leader_speed_mps[rows])) if t_rows else nan
     if t_rows and lead_mean > 0.0:
-        from envs.energy import battery_power_kw
-
-        cruise_kw = float(battery_power_kw(lead_mean, 0.0))
-        distance_each_m = v.sum(axis=0) * dt
-        controllable_each = energy_each - cruise_kw * (distance_each_m / lead_mean) / 3600.0
+        controllable_each = energy_each - _cruise_kwh(v.sum(axis=0) * dt, lead_mean)
     else:  # no row (a sum of nothing) or a still leader (steady cruise costs nothing per metre)
         controllable_each = np.full(n, 0.0 if not t_rows else nan)
 

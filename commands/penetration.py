@@ -52,7 +52,7 @@ def main(argv: list[str]) -> int:
     from commands.cli import scenarios_argument
     from commands.run import _preflight, execute_study_sweep
     from controllers.registry import parse_controller_list
-    from envs.scenarios import SEAT_OPTIONS, make_scenario
+    from envs.scenarios import PLACEMENT_OPTIONS, SEAT_OPTIONS, make_scenario
     from infra.limits import check_range
     from studies.penetration import cells, controllers_for, design, plot_shares, write_report
 
@@ -66,16 +66,17 @@ def main(argv: list[str]) -> int:
     seeds = seeds_from_set("test", args.episodes)
     families = [name for name, opts in parse_controller_list(args.controllers)]
     bases = []
+    set_by_study = (*SEAT_OPTIONS, *PLACEMENT_OPTIONS)
     for given in scenarios_argument(args.scenarios):
-        if any(given.options[k] != make_scenario(given.id).options[k] for k in SEAT_OPTIONS):
+        if any(given.options[k] != make_scenario(given.id).options[k] for k in set_by_study):
             raise ConfigError(f"--scenarios {given.label}: the study sets which followers are "
-                              f"automated itself ({', '.join(SEAT_OPTIONS)}); name the scenario "
+                              f"automated itself ({', '.join(set_by_study)}); name the scenario "
                               "without them")
-        bases.append(given.label.replace("[", ":").rstrip("]"))
+        bases.append(given.label)
     settings = design(list(dict.fromkeys(bases)), args.placements)
     keys = set()
     for setting in settings:
-        sc = scenarios_argument(setting.text)
+        sc = [setting.build()]
         specs: list[tuple[str, dict[str, str]]] = [(name, {}) for name in controllers_for(setting.share, families)]
         n = sc[0].default_vehicles
         _preflight(specs, sc, [n], [0.0])  # refused before any run, with exit status 2

@@ -177,9 +177,10 @@ ARRANGEMENT_DEFAULTS: dict[str, Any] = {
 }
 
 
-#: The options that say which seats are automated (one of them at a time).
-SEAT_OPTIONS: tuple[str, ...] = ("humans", "cav_fraction", "cavs", "placement", "placement_seed")
-_SEAT_OPTIONS: tuple[str, ...] = SEAT_OPTIONS[:3]
+#: The options that say which seats are automated (one of them at a time), and where a share or
+#: a count puts them.
+SEAT_OPTIONS: tuple[str, ...] = ("humans", "cav_fraction", "cavs")
+PLACEMENT_OPTIONS: tuple[str, ...] = ("placement", "placement_seed")
 
 
 def _check_arrangement(scenario_id: str, opts: dict[str, Any]) -> None:
@@ -725,21 +726,21 @@ def make_scenario(scenario_id: str, /, **options: Any) -> Scenario:
         spec.check(opts)
     _check_arrangement(scenario_id, opts)
     # which seats are automated: one of three ways; the one given replaces the default's
-    seat_given = [k for k in _SEAT_OPTIONS if k in options]
+    seat_given = [k for k in SEAT_OPTIONS if k in options]
     if len(seat_given) > 1:
         raise ConfigError(f"{scenario_id}: {' and '.join(seat_given)} both say which followers are "
                           "automated; give one of humans (positions, humans=2+5), cav_fraction "
                           "(a share, cav_fraction=0.25) or cavs (a count, cavs=1)")
     if seat_given:
-        for k in _SEAT_OPTIONS:
+        for k in SEAT_OPTIONS:
             if k != seat_given[0]:
                 opts[k] = ARRANGEMENT_DEFAULTS[k]
     # options at their default value are left out, so they never make a second leaderboard row
     # (the seat option stays when it changes the default arrangement: ring-v1:cav_fraction=1.0)
-    seats_changed = any(opts[k] != defaults[k] for k in _SEAT_OPTIONS)
+    seats_changed = any(opts[k] != defaults[k] for k in SEAT_OPTIONS)
     changed = {k: repr(opts[k]) if isinstance(opts[k], float) else str(opts[k])
                for k in options
-               if opts[k] != defaults[k] or (k in _SEAT_OPTIONS and seats_changed)}
+               if opts[k] != defaults[k] or (k in SEAT_OPTIONS and seats_changed)}
     opts.update(spec.fixed)
     target_gap_m, target_speed_mps, vehicles = (spec.target_gap_m, spec.target_speed_mps,
                                                 spec.default_vehicles)

@@ -16,11 +16,14 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from benchmark.statistics import bootstrap_ci
+
+if TYPE_CHECKING:
+    from envs.scenarios import Scenario
 
 #: The families of the study (the automated seats' controller), in the report's order.
 FAMILIES: tuple[str, ...] = ("acc", "cacc", "mpc-qp", "mpc", "followerstopper", "pi-saturation")
@@ -74,21 +77,21 @@ METRICS: tuple[tuple[str, str], ...] = (
 
 @dataclass(frozen=True)
 class Setting:
-    """One scenario label of the design: a scenario at one share and placement."""
+    """One setting of the design: a scenario (its label) at one share and placement."""
 
     scenario: str
     share: Share
     placement_seed: int
 
-    @property
-    def text(self) -> str:
-        """The scenario with its options, as ``--scenarios`` takes it (``scenario`` may carry
-        options of its own: ``ring-v1:length_m=230``)."""
+    def build(self) -> Scenario:
+        """The scenario at this share and placement (``scenario`` is a label that may carry
+        options of its own: ``ring-v1[length_m=230.0]``)."""
+        from envs.scenarios import make_scenario
+
         opts = dict(self.share.options)
         if self.share.mixed:
             opts.update(placement="random", placement_seed=str(self.placement_seed))
-        sep = "," if ":" in self.scenario else ":"
-        return self.scenario + sep + ",".join(f"{k}={v}" for k, v in opts.items())
+        return make_scenario(self.scenario, **opts)
 
 
 def design(scenarios: Sequence[str] = SCENARIOS, placements: int = 3) -> list[Setting]:
@@ -121,9 +124,7 @@ def cells(runs: Any, settings: Sequence[Setting]) -> Any:
     """
     import pandas as pd
 
-    from envs.scenarios import make_scenario
-
-    label_of = {make_scenario(s.text).label: s for s in settings}
+    label_of = {s.build().label: s for s in settings}
     rows = []
     ok = runs[runs["scenario"].isin(label_of)].copy()
     ok["base"] = [label_of[lb].scenario for lb in ok["scenario"]]

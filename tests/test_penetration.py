@@ -10,7 +10,6 @@ import pytest
 from run_marks import FULL
 
 from commands.cli import main as cli
-from envs.scenarios import make_scenario
 from studies.penetration import BASELINE, FAMILIES, SHARES, controllers_for, design
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -22,11 +21,11 @@ def test_the_design_crosses_every_share_with_placements_for_the_mixed_ones() -> 
     assert len(settings) == 2 * (2 + 4 * 3)
     shares = {s.share.name for s in settings}
     assert shares == {s.name for s in SHARES}
-    ring = [make_scenario(s.text).arrangement(22) for s in settings if s.scenario == "ring-v1"]
+    ring = [s.build().arrangement(22) for s in settings if s.scenario == "ring-v1"]
     counts = sorted({a.n_automated for a in ring})
     assert counts == [0, 1, 6, 11, 17, 22]  # none, one, 0.25, 0.5, 0.75 (half up), all
     # the placements are other arrangements of the same share
-    half = {make_scenario(s.text).arrangement(8).automated for s in settings
+    half = {s.build().arrangement(8).automated for s in settings
             if s.scenario == "catchup-v1" and s.share.name == "0.5"}
     assert len(half) == 3
     assert controllers_for(SHARES[0]) == [BASELINE]
