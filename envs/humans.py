@@ -206,15 +206,6 @@ class HumanNoise:
         return self._levels[self._raw[seats, step, :]].T
 
 
-def gaussian_noise_mps2(seeds: np.ndarray, step: int, n_seats: int, steps: int,
-                        std_mps2: float) -> np.ndarray:
-    """The humans' noise of every seat over ``steps`` steps from ``step``, ``(steps, B,
-    n_seats)`` (:class:`HumanNoise`, for tests and analysis)."""
-    noise = HumanNoise(seeds, n_seats, step + steps, std_mps2)
-    seats = np.arange(n_seats)
-    return np.stack([noise.at(t, seats) for t in range(step, step + steps)])
-
-
 @dataclass(frozen=True)
 class Arrangement:
     """Which follower seats are automated, and how the human ones drive.

@@ -12,9 +12,9 @@ from envs.humans import (
     OVM_ALPHA_RANGE,
     OVM_GAP_GO_RANGE_M,
     HumanDrivers,
+    HumanNoise,
     IDMParams,
     count_automated,
-    gaussian_noise_mps2,
     idm_accel_mps2,
     idm_equilibrium_speed_mps,
     ovm_hetero_accel_mps2,
@@ -56,13 +56,19 @@ def test_heterogeneous_ovm_is_the_benchmark_ovm_at_the_nominal_parameters() -> N
     np.testing.assert_allclose(got, ovm_command_mps2(g, v, vp, 0.6, 0.9))
 
 
+def gaussian_noise_mps2(seeds: np.ndarray, n_seats: int, steps: int, std: float) -> np.ndarray:
+    """Every seat's noise over ``steps`` steps, ``(steps, B, n_seats)``."""
+    noise, seats = HumanNoise(seeds, n_seats, steps, std), np.arange(n_seats)
+    return np.stack([noise.at(t, seats) for t in range(steps)])
+
+
 def test_noise_is_gaussian_with_its_std_and_a_function_of_the_seed_alone() -> None:
-    x = gaussian_noise_mps2(np.arange(200), 0, 8, 100, 0.2)
+    x = gaussian_noise_mps2(np.arange(200), 8, 100, 0.2)
     assert x.shape == (100, 200, 8)
     assert abs(x.mean()) < 0.005 and x.std() == pytest.approx(0.2, rel=0.02)
-    one = gaussian_noise_mps2(np.array([57]), 0, 8, 100, 0.2)
+    one = gaussian_noise_mps2(np.array([57]), 8, 100, 0.2)
     np.testing.assert_array_equal(one[:, 0], x[:, 57])
-    fewer_seats = gaussian_noise_mps2(np.array([57]), 0, 3, 100, 0.2)
+    fewer_seats = gaussian_noise_mps2(np.array([57]), 3, 100, 0.2)
     np.testing.assert_array_equal(fewer_seats[:, 0], x[:, 57, :3])  # a seat's noise is its own
     assert np.unique(x).size > 0.9 * min(x.size, 1 << 16)  # the 2^16 levels are all in use
 

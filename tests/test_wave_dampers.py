@@ -31,7 +31,7 @@ from controllers.wave_dampers import (
     pi_saturation_step,
     pi_window_steps,
 )
-from envs.humans import IDMParams, gaussian_noise_mps2, idm_accel_mps2
+from envs.humans import HumanNoise, IDMParams, idm_accel_mps2
 from envs.platoon import PlatoonEnv
 from envs.scenarios import make_scenario
 from infra.errors import ConfigError
@@ -161,7 +161,7 @@ def test_idm_controller_is_idm_accel_plus_the_seat_noise_on_a_hand_built_state()
     s.speed_mps[:] = [[10.0, 12.0, 14.0], [3.0, 4.0, 5.0]]
     s.step = 5
     u = ctrl.act(s, None)
-    noise = gaussian_noise_mps2(seeds, 0, 3, sc.n_steps, 0.2)[5]
+    noise = HumanNoise(seeds, 3, sc.n_steps, 0.2).at(5, np.arange(3))
     expected = idm_accel_mps2(s.gap_m, s.speed_mps, s.pred_speed_mps, IDMParams()) + noise
     np.testing.assert_array_equal(u, expected)
     # by hand, seat 2 of episode 0: v = 12, v_pred = 10, s = 20
