@@ -1,7 +1,7 @@
 """``cacc-bench penetration``: which controller family damps waves at what share of automated
 vehicles, on the test seeds, in one report.
 
-Every family of :data:`studies.penetration.FAMILIES` at every share of
+Every family of :data:`studies.penetration.DEFAULT_FAMILIES` at every share of
 :data:`studies.penetration.SHARES` (the mixed ones at ``--placements`` seeded random placements)
 on the scenarios of :data:`studies.penetration.SCENARIOS`, beside the all-human string (``idm``
 at no automated vehicle), through the results store (resumable, ``--resume``); writes
@@ -21,7 +21,7 @@ MAX_PLACEMENTS = 20
 
 
 def _parser() -> argparse.ArgumentParser:
-    from studies.penetration import FAMILIES, SCENARIOS
+    from studies.penetration import DEFAULT_FAMILIES, SCENARIOS
 
     p = argparse.ArgumentParser(prog="cacc-bench penetration",
                                 description=plain(__doc__.split("\n\n")[0]))
@@ -31,7 +31,7 @@ def _parser() -> argparse.ArgumentParser:
                    help="seeded random placements of each mixed share (default: %(default)s)")
     p.add_argument("--scenarios", default=",".join(SCENARIOS),
                    help="comma list of scenario ids (default: %(default)s)")
-    p.add_argument("--controllers", default=",".join(FAMILIES),
+    p.add_argument("--controllers", default=",".join(DEFAULT_FAMILIES),
                    help="the families (comma list of registered controllers; default: "
                         "%(default)s)")
     p.add_argument("--out", default="results/penetration",

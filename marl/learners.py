@@ -23,7 +23,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 #: The training families, in the order above.
-FAMILIES: tuple[str, ...] = ("a2c", "ppo", "distill")
+LEARNER_FAMILIES: tuple[str, ...] = ("a2c", "ppo", "distill")
 
 _PAPER_V2V = "see docs/spec/marl.md (neighbour blocks, messages)"
 _ACCEL_V2V = "predecessor's command (1 float), leader's acceleration and speed (2 floats)"
@@ -38,7 +38,7 @@ class LearnerSpec:
     name : str
         What ``--algo`` and ``--controllers`` take.
     family : str
-        One of :data:`FAMILIES`: the loop that trains it.
+        One of :data:`LEARNER_FAMILIES`: the loop that trains it.
     module : str
         The module that defines it (its config and networks; for the ``a2c`` family, its
         ``ALGORITHM`` record).

@@ -1,7 +1,7 @@
 """The penetration study: which controller family damps waves at what share of automated vehicles.
 
 The design (:func:`design`) crosses the shares of :data:`SHARES` (no automated vehicle, one, a
-quarter, half, three quarters, all) with every family of :data:`FAMILIES` on the scenarios of
+quarter, half, three quarters, all) with every family of :data:`DEFAULT_FAMILIES` on the scenarios of
 :data:`SCENARIOS`, with several seeded random placements of the automated vehicles for the
 mixed shares; the all-human string (the human model ``idm`` at no automated vehicle) is the
 baseline row of each scenario. :func:`cells` pools a share's placements and episodes into one
@@ -25,8 +25,9 @@ from benchmark.statistics import bootstrap_ci
 if TYPE_CHECKING:
     from envs.scenarios import Scenario
 
-#: The families of the study (the automated seats' controller), in the report's order.
-FAMILIES: tuple[str, ...] = ("acc", "cacc", "mpc-qp", "mpc", "followerstopper", "pi-saturation")
+#: The families the study runs by default (the automated seats' controller), in the report's
+#: order; a table holds the controllers the command was given.
+DEFAULT_FAMILIES: tuple[str, ...] = ("acc", "cacc", "mpc-qp", "mpc", "followerstopper", "pi-saturation")
 #: The human-driver model that drives every seat of the all-human baseline.
 BASELINE: str = "idm"
 #: The scenarios of the study (each at its own default N: 8 behind a leader, 4 on the OpenACC
@@ -105,7 +106,7 @@ def design(scenarios: Sequence[str] = SCENARIOS, placements: int = 3) -> list[Se
     return out
 
 
-def controllers_for(share: Share, families: Sequence[str] = FAMILIES) -> list[str]:
+def controllers_for(share: Share, families: Sequence[str] = DEFAULT_FAMILIES) -> list[str]:
     """The controllers that run at ``share``: the human baseline at no automated vehicle, the
     families elsewhere."""
     return [BASELINE] if share.name == "0" else list(families)
@@ -140,7 +141,7 @@ def cells(runs: Any, settings: Sequence[Setting]) -> Any:
             row[col], row[f"{col}_lo"], row[f"{col}_hi"] = mean, lo, hi
         rows.append(row)
     order = {s.name: i for i, s in enumerate(SHARES)}
-    fam = {f: i for i, f in enumerate((BASELINE, *FAMILIES))}
+    fam = {f: i for i, f in enumerate((BASELINE, *DEFAULT_FAMILIES))}
     sc_order = {s: i for i, s in enumerate(dict.fromkeys(s.scenario for s in settings))}
     out = pd.DataFrame(rows)
     if out.empty:
@@ -148,6 +149,11 @@ def cells(runs: Any, settings: Sequence[Setting]) -> Any:
     out = out.sort_values(by=["scenario", "controller", "share"],
                           key=lambda c: c.map({**sc_order, **fam, **order}).fillna(99))
     return out.reset_index(drop=True)
+
+
+def families_of(table: Any) -> list[str]:
+    """The controllers of a cells table other than the all-human baseline, in its order."""
+    return [c for c in dict.fromkeys(table["controller"]) if c != BASELINE]
 
 
 def _fmt(mean: float, lo: float, hi: float) -> str:
@@ -171,7 +177,7 @@ def plot_shares(table: Any, out_dir: Path) -> list[Path]:
         base = t[t["controller"] == BASELINE]
         for ax, col, ylabel in ((axes[0], "head_to_tail_gain", "head-to-tail gain"),
                                 (axes[1], "energy_kwh_per_100km", "energy kWh/100 km (all)")):
-            for family in FAMILIES:
+            for family in families_of(t):
                 f = t[t["controller"] == family]
                 if f.empty:
                     continue
@@ -234,7 +240,7 @@ def findings(table: Any) -> list[str]:
                   "and hour, energy per vehicle and 100 km of the whole string, mean speed):", "",
                   "| family | collisions | humans' speed std | braking events | energy | "
                   "mean speed |", "|---|---|---|---|---|---|"]
-        for family in FAMILIES:
+        for family in families_of(table):
             c = _cell(table, "ring-v1", family, "one vehicle")
             if c is None:
                 continue

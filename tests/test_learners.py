@@ -6,7 +6,7 @@ from pathlib import Path
 
 from controllers.registry import CONTROLLERS
 from marl.learners import (
-    FAMILIES,
+    LEARNER_FAMILIES,
     LEARNERS,
     PAPER_ALGORITHMS,
     PER_AGENT_SHARED,
@@ -24,7 +24,7 @@ def test_the_derived_lists() -> None:
     assert PPO_LEARNERS == ("ippo", "mappo", "ippo-bdc")
     assert SHARED_LEARNERS == ("ippo", "mappo", "distill", "ippo-bdc")
     assert PER_AGENT_SHARED == ("ippo-bdc",)
-    assert {s.family for s in LEARNERS.values()} == set(FAMILIES)
+    assert {s.family for s in LEARNERS.values()} == set(LEARNER_FAMILIES)
 
 
 def test_every_learner_is_a_controller_acting_with_its_checkpoints() -> None:
