@@ -50,7 +50,7 @@ def main(argv: list[str]) -> int:
     from benchmark.paths import writable_dir
     from benchmark.suite import build_sweep, seeds_from_set
     from commands.cli import scenarios_argument
-    from commands.run import _preflight, execute_study_sweep
+    from commands.run import execute_study_sweep, preflight
     from controllers.registry import parse_controller_list
     from envs.scenarios import PLACEMENT_OPTIONS, SEAT_OPTIONS, make_scenario
     from infra.limits import check_range
@@ -79,7 +79,7 @@ def main(argv: list[str]) -> int:
         sc = [setting.build()]
         specs: list[tuple[str, dict[str, str]]] = [(name, {}) for name in controllers_for(setting.share, families)]
         n = sc[0].default_vehicles
-        _preflight(specs, sc, [n], [0.0])  # refused before any run, with exit status 2
+        preflight(specs, sc, [n], [0.0])  # refused before any run, with exit status 2
         keys.update(build_sweep(specs, sc, [n], seeds, [0.0], [0.0]))
     out = writable_dir(args.out)
     command = report_command("penetration", argv)

@@ -153,7 +153,7 @@ def _validate(args: argparse.Namespace
     return controllers, scenarios, seed_list
 
 
-def _preflight(controllers: list[tuple[str, dict[str, str]]], scenarios: list[Scenario],
+def preflight(controllers: list[tuple[str, dict[str, str]]], scenarios: list[Scenario],
                vehicles: list[int], lags_s: list[float]) -> None:
     """Build each controller once and check it against every setting, so bad options, missing
     checkpoints or a loop unstable with the lag fail before any run."""
@@ -190,7 +190,7 @@ def main(argv: list[str]) -> int:
         vehicles = args.vehicles or [sc.default_vehicles]
         keys += build_sweep(controllers, [sc], vehicles, seeds, args.comm_delay,
                             args.packet_loss, args.lag)
-        _preflight(controllers, [sc], vehicles, args.lag)
+        preflight(controllers, [sc], vehicles, args.lag)
     keys = sorted(set(keys))
     return execute_sweep(keys, Path(args.out), resume=args.resume, trajectories=args.trajectories,
                          executor=args.executor, workers=args.workers,
