@@ -2,19 +2,14 @@
 
 The reference of what full communication could buy: one quadratic problem per episode and
 step over all ``N`` followers jointly, with the same model, weights, soft constraints and LQR
-terminal cost as the distributed variants (:mod:`controllers.mpc_common`), but where every
-follower's predecessor is a decision variable of the same problem instead of an assumed
-trajectory (so there is no self-deviation term). The leader is not controlled: its assumed
-trajectory is its current speed held, as in the distributed variants. No energy term (the
-problem is a convex QP, comparable with ``mpc-qp``).
+terminal cost as the distributed variants but every follower's predecessor a decision variable
+(:class:`controllers.mpc_optimiser.CentralisedProblem`, built once with cvxpy Parameters; a step
+only assigns their values and re-solves). No energy term: comparable with ``mpc-qp``.
 
 Full information is this controller's premise: it reads the true state of every follower.
 Each step every follower's ``[gap, speed, acceleration]`` is still sent to the coordinator (the
 leader) through a V2V channel so that its communication load is counted like everyone else's;
 the channel's delay and loss do not act on it (an idealised reference).
-
-The problem is written once with cvxpy ``Parameter`` objects (DPP): a step only assigns the
-parameter values and re-solves (OSQP, warm-started), never rebuilds.
 
 Human drivers
 -------------
@@ -50,16 +45,10 @@ from typing import Any
 
 import numpy as np
 
-from controllers.base import Controller, EpisodeContext, Message
-from controllers.mpc_common import (
-    MPCConfig,
-    VehicleModel,
-    acc_fallback_mps2,
-    feasible_lag_accel,
-    lqr_terminal_matrix,
-)
-from controllers.registry import build_config
-from envs.params import PlatoonParams
+from controllers.base import EpisodeContext, Message
+from controllers.mpc_controller import MPCController, acc_fallback_mps2
+from controllers.mpc_model import VehicleModel, feasible_lag_accel, human_predecessor_mask
+from controllers.mpc_optimiser import CentralisedProblem, MPCConfig
 from envs.platoon import PlatoonState
 from infra.errors import ConfigError
 from infra.interrupt import raise_if_interrupted
@@ -98,136 +87,15 @@ class CMPCConfig(MPCConfig):
             )
 
 
-class CentralisedProblem:
-    """The platoon's QP, built once with cvxpy Parameters for ``N`` followers.
-
-    Parameters (set per solve): ``gap0, v0, a0, ulast0`` (N,), ``v_lead`` (H+1,) and its clipped
-    copy ``v_lead_ref``, targets ``d_star``, ``v_star``.
-
-    Parameters
-    ----------
-    config : MPCConfig
-    params : PlatoonParams
-    n_vehicles : int
-        Followers N.
-    automated : (N,) bools, optional
-        The seats the plan commands (default: all). A human seat's input is fixed at 0 and its
-        row carries no cost and no minimum-gap constraint (module docstring, "Human drivers").
-    """
-
-    def __init__(
-        self,
-        config: MPCConfig,
-        params: PlatoonParams,
-        n_vehicles: int,
-        automated: np.ndarray | None = None,
-    ) -> None:
-        import cvxpy as cp
-
-        model = VehicleModel.from_params(params)
-        h, n, dt = config.horizon, n_vehicles, params.dt_s
-        self.n, self.h = n, h
-        auto = np.ones(n, dtype=bool) if automated is None else np.asarray(automated, dtype=bool)
-        humans = np.flatnonzero(~auto)
-        # the rows that carry a cost: all (the same expressions as ever) or the automated ones
-        rows: Any = slice(None) if humans.size == 0 else np.flatnonzero(auto)
-        self.gap0 = cp.Parameter(n, name="gap0")
-        self.v0 = cp.Parameter(n, name="v0")
-        self.a0 = cp.Parameter(n, name="a0")
-        self.ulast0 = cp.Parameter(n, name="ulast0")
-        self.v_lead = cp.Parameter(h + 1, name="v_lead")
-        self.v_lead_ref = cp.Parameter(h + 1, name="v_lead_ref")
-        self.d_star = cp.Parameter(name="d_star")
-        self.v_star = cp.Parameter(name="v_star")
-        self.u = cp.Variable((n, h), name="u")
-        self.s = cp.Variable((n, h), nonneg=True, name="slack")
-        self.v = cp.Variable((n, h + 1), name="v")
-        self.gap = cp.Variable((n, h + 1), name="gap")
-        u, s, v, gap = self.u, self.s, self.v, self.gap
-        cons = [v[:, 0] == self.v0, gap[:, 0] == self.gap0]
-        cons += [u >= params.accel_min_mps2, u <= params.accel_max_mps2]
-        if model.has_lag:
-            self.a = cp.Variable((n, h + 1), name="a")
-            a = self.a
-            g = model.lag_gain
-            cons += [a[:, 0] == self.a0, a[:, 1:] == (1 - g) * a[:, :-1] + g * u]
-            a_next = a[:, 1:]
-        else:
-            a_next = u
-        cons += [v[:, 1:] == v[:, :-1] + dt * a_next]
-        vpred = cp.vstack([cp.reshape(self.v_lead, (1, h + 1), order="C"), v[:-1, :]])
-        cons += [
-            gap[:, 1:]
-            == gap[:, :-1] + dt / 2 * (vpred[:, :-1] + vpred[:, 1:] - v[:, :-1] - v[:, 1:])
-        ]
-        cons += [
-            gap[rows, 1:] + s[rows] >= config.gap_safe_m,
-            v[:, 1:] >= 0,
-            v[:, 1:] <= params.speed_max_mps,
-        ]
-        if humans.size:  # the stated model of a human: input 0 (constant speed)
-            cons += [u[humans, :] == 0]
-        vref = cp.vstack([cp.reshape(self.v_lead_ref, (1, h + 1), order="C"), v[:-1, :]])
-        u_prev = cp.hstack([cp.reshape(self.ulast0, (n, 1), order="C"), u[:, :-1]])
-        last = h - 1 if config.terminal == "lqr" else h
-        cost = config.w_gap * cp.sum_squares(gap[rows, 1 : last + 1] - self.d_star)
-        cost += config.w_speed_pred * cp.sum_squares(
-            v[rows, 1 : last + 1] - vref[rows, 1 : last + 1]
-        )
-        cost += config.w_speed_target * cp.sum_squares(v[rows, 1 : last + 1] - self.v_star)
-        cost += config.w_accel * cp.sum_squares(u) + config.w_jerk * cp.sum_squares(u - u_prev)
-        cost += config.w_slack * cp.sum_squares(s) + config.w_slack_l1 * cp.sum(s)
-        if config.terminal == "lqr":
-            p_term = lqr_terminal_matrix(config, model)
-            w_vc = config.w_speed_pred + config.w_speed_target
-            v_c = (config.w_speed_pred * vref[:, h] + config.w_speed_target * self.v_star) / w_vc
-            cols = [gap[:, h] - self.d_star, v[:, h] - v_c]
-            if model.has_lag:
-                cols.append(self.a[:, h])
-            cols.append(u[:, h - 1])
-            zt: Any = cp.vstack(cols)  # (nx, N)
-            if humans.size:
-                zt = zt[:, rows]
-            # sum_i zt_i' P zt_i = ||L' zt||_F^2 with P = L L'
-            w, vecs = np.linalg.eigh(p_term)
-            lt = (vecs * np.sqrt(np.clip(w, 0, None))).T
-            cost += cp.sum_squares(lt @ zt)
-        self.problem = cp.Problem(cp.Minimize(cost), cons)
-        if not self.problem.is_dpp():  # pragma: no cover - a formulation bug
-            raise RuntimeError("the centralised MPC problem is not DPP")
-
-    def solve(self, solver: str, eps: float) -> tuple[bool, np.ndarray]:
-        """Solve with the current parameter values; returns (success, u (N, H))."""
-        import cvxpy as cp
-
-        kwargs: dict[str, Any] = {"warm_start": True}
-        if solver == "OSQP":
-            kwargs.update(eps_abs=eps, eps_rel=eps, max_iter=20000, polishing=False)
-        try:
-            self.problem.solve(solver=solver, **kwargs)
-        except cp.error.SolverError:
-            return False, np.full((self.n, self.h), np.nan)
-        ok = self.problem.status == cp.OPTIMAL and self.u.value is not None
-        if not ok:
-            return False, np.full((self.n, self.h), np.nan)
-        return True, np.asarray(self.u.value)
-
-
-class CentralisedMPCController(Controller):
+class CentralisedMPCController(MPCController):
     """Centralised MPC with full information (registered as ``cmpc``), cvxpy with Parameters."""
 
     name = "cmpc"
-    family = "mpc"
     needs_leader = True  # the plan is made at the leader, which collects every state
-    deterministic = True
-    needs_observation = False
-
     config_cls = CMPCConfig
 
     def __init__(self, **options: Any) -> None:
-        super().__init__()
-        self.config: CMPCConfig = build_config(self.config_cls, options, "cmpc")
-        self.options = dict(options)
+        super().__init__(**options)
         self._problems: dict[tuple[Any, ...], CentralisedProblem] = {}
 
     def messages(self, ctx: EpisodeContext) -> tuple[Message, ...]:
@@ -329,4 +197,4 @@ def human_watchers(automated: np.ndarray) -> list[int]:
     """Vehicle indices (1..N) of the automated followers directly behind a human driver: the
     ones whose radar senses a human's speed (none on a homogeneous string)."""
     auto = np.asarray(automated, dtype=bool)
-    return [i + 1 for i in range(1, len(auto)) if auto[i] and not auto[i - 1]]
+    return [int(i) + 1 for i in np.flatnonzero(auto & human_predecessor_mask(auto, ring=False))]

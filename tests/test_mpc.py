@@ -13,18 +13,15 @@ import pytest
 
 from benchmark.rollout import rollout_batch
 from controllers.base import EpisodeContext, reset_controller
-from controllers.mpc_common import (
-    DistributedMPCBase,
+from controllers.mpc_controller import DistributedMPCBase
+from controllers.mpc_model import (
     ParamLayout,
-    SolveResult,
     VehicleModel,
     assumed_predecessor_speeds,
-    kinetic_energy_rate,
-    lqr_weights,
     make_parameters,
     shift_and_hold,
-    smooth_max,
 )
+from controllers.mpc_optimiser import SolveResult, kinetic_energy_rate, lqr_weights, smooth_max
 from controllers.registry import make_controller, parse_controller_list
 from envs.channel import ChannelConfig
 from envs.params import EVAL_SEEDS, PlatoonParams
@@ -485,7 +482,7 @@ def test_mpc_degraded_v2v_ten_seeds(scenario: str) -> None:
 def test_fallback_law_and_its_emergency_brake(gap, v, v_pred, target, want) -> None:
     """The fallback ``u = 0.2 (gap - d*) + 0.7 (v_pred - v)`` clipped to [-2.5, 2.5], with a
     full brake when the gap is below 2 gap_min (2 m) and closing (values by hand)."""
-    from controllers.mpc_common import acc_fallback_mps2
+    from controllers.mpc_controller import acc_fallback_mps2
 
     got = float(acc_fallback_mps2(gap, v, v_pred, target, PlatoonParams()))
     assert got == pytest.approx(want, abs=1e-12)
@@ -494,7 +491,7 @@ def test_fallback_law_and_its_emergency_brake(gap, v, v_pred, target, want) -> N
 def test_fallback_brake_threshold_scales_with_gap_min() -> None:
     """The emergency threshold is 2 gap_min for any gap_min (the default is 1 m): with
     gap_min = 2 m a gap of 3.5 m is below it, and with gap_min = 0.5 m a gap of 1.5 m is not."""
-    from controllers.mpc_common import acc_fallback_mps2
+    from controllers.mpc_controller import acc_fallback_mps2
 
     assert float(acc_fallback_mps2(3.5, 10.0, 9.5, 2.0, PlatoonParams(gap_min_m=2.0))) == -2.5
     law = 0.2 * (1.5 - 2.0) + 0.7 * -0.5
@@ -614,7 +611,7 @@ def test_feasible_lag_accel_keeps_the_coasting_speed_in_bounds(lag_s: float) -> 
     ``dt a (1-g) / g`` to the speed in all (a geometric series, summed here step by step):
     the clipped a takes a speed of 1 m/s exactly to 0, and 29 m/s exactly to 30 (speed_max);
     accelerations that stay in bounds pass unchanged; without a lag nothing is clipped."""
-    from controllers.mpc_common import VehicleModel, feasible_lag_accel
+    from controllers.mpc_model import VehicleModel, feasible_lag_accel
 
     params = PlatoonParams(lag_s=lag_s)
     model = VehicleModel.from_params(params)

@@ -14,7 +14,7 @@ import pytest
 from benchmark.rollout import rollout_batch
 from controllers.base import EpisodeContext, check_fits, reset_controller
 from controllers.cmpc import human_watchers
-from controllers.mpc_common import (
+from controllers.mpc_model import (
     human_predecessor_mask,
     idm_prediction_mps,
 )
