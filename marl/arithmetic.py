@@ -15,7 +15,7 @@ AVX2 kernels of PyTorch (``ATEN_CPU_CAPABILITY``), of numpy's OpenBLAS
 a process the learners take a correctly rounded square root (:func:`marl.layers.sqrt`). The
 short trainings then give one hash on both processors (``tests/test_arithmetic.py``), and so do
 numpy's linear algebra, which the MPC controllers use, and its elementwise functions
-(``docs/scripts/arithmetic_fingerprint.py``). MKL's branch alone held the weights across
+(:mod:`marl.arithmetic_fingerprint`). MKL's branch alone held the weights across
 instruction sets on one processor, but not from the Xeon to the EPYC.
 
 Each library reads its setting once, when the process starts or at its first use, so it must be

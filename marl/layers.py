@@ -210,7 +210,7 @@ def sqrt(t: torch.Tensor) -> torch.Tensor:
     kernel natively; in a portable process the correctly rounded one (numpy's, which is the
     processor's square-root instruction). PyTorch's float32 CPU kernel rounds about a fifth of
     its results to a neighbour, and not alike on an Intel Xeon and an AMD EPYC
-    (``docs/scripts/arithmetic_fingerprint.py``)."""
+    (:mod:`marl.arithmetic_fingerprint`)."""
     if not _portable():
         return t.sqrt()
     return torch.from_numpy(np.sqrt(t.detach().numpy()))

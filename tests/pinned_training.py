@@ -2,11 +2,10 @@
 
 from __future__ import annotations
 
-import hashlib
-
 import torch
 
 from marl import arithmetic
+from marl.arithmetic_fingerprint import weights_hash
 
 #: Weights after three batches of 4 followers on slowdown-v1, seed 3, advantage_norm (torch
 #: 2.13 CPU, one thread; :func:`weights_hash`) with native arithmetic: one hash per family of
@@ -25,28 +24,12 @@ NATIVE_PINNED = {
 #: The same trainings with portable arithmetic (:func:`marl.arithmetic.portable_env`: MKL's
 #: ``COMPATIBLE`` branch, PyTorch's and numpy's AVX2 kernels, the learners' correctly rounded
 #: square root): one hash per algorithm on every processor with AVX2 and FMA. Measured equal on
-#: an AMD EPYC (AVX2) and an Intel Xeon with AVX-512 and AMX (``arithmetic_fingerprint.py
-#: --portable-training``, docs/notes/portable-training-intel-xeon-avx512.json), with PyTorch
-#: 2.13 and 2.11. With MKL's branch alone they differed between the two vendors: PyTorch's
+#: an AMD EPYC (AVX2) and an Intel Xeon with AVX-512 and AMX (``python -m
+#: marl.arithmetic_fingerprint --portable-training``,
+#: docs/notes/portable-training-intel-xeon-avx512.json), with PyTorch 2.13 and 2.11. With MKL's branch alone they differed between the two vendors: PyTorch's
 #: float32 square root rounds otherwise on each.
 PORTABLE_PINNED: dict[str, str] = {"ia2c": "ca472a608caa50da", "bdc": "432410e073a6866a",
                                    "dial": "8c47229e1d724cda"}
-
-#: The algorithms of the short training.
-PINNED_ALGOS: tuple[str, ...] = ("bdc", "dial", "ia2c")
-
-
-def cpuinfo(field: str) -> str:
-    """The first ``field`` of /proc/cpuinfo (``vendor_id``, ``model name``), or "" where the
-    file does not say."""
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith(field):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return ""
 
 
 def portable_pins() -> dict[str, str]:
@@ -57,22 +40,6 @@ def portable_pins() -> dict[str, str]:
     if "ATEN_CPU_CAPABILITY" not in arithmetic.portable_env():
         pytest.skip("no AVX2 and FMA: no portable weights hashes pinned for such a processor")
     return PORTABLE_PINNED
-
-
-def weights_hash(name: str) -> tuple[str, str]:
-    """The short-training weights hash of ``name`` in this process, and the process's mode
-    (top level: the executors' worker processes run it)."""
-    from marl.a2c import Trainer
-    from marl.config import algorithm
-
-    torch.set_num_threads(1)
-    a = algorithm(name)
-    trainer = Trainer(a, a.config_cls(advantage_norm=True), "slowdown-v1", 4, 3)
-    trainer.runs[0].total_steps = 3000
-    for _ in range(3):
-        trainer.run_batch()
-    blob = b"".join(p.detach().numpy().tobytes() for p in trainer.net.parameters())
-    return hashlib.sha256(blob).hexdigest()[:16], arithmetic.current()
 
 
 def weights_hash_and_kernels(name: str) -> tuple[str, str, str]:

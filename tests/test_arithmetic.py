@@ -9,13 +9,14 @@ from pathlib import Path
 
 import pytest
 import torch
-from pinned_training import PINNED_ALGOS, portable_pins, weights_hash, weights_hash_and_kernels
+from pinned_training import portable_pins, weights_hash, weights_hash_and_kernels
 from run_marks import FULL
 
 from benchmark.executors import map_jobs
 from commands.cli import main
 from infra.errors import ConfigError
 from marl import arithmetic
+from marl.arithmetic_fingerprint import PINNED_ALGOS
 
 
 def test_portable_training_is_pinned_on_every_processor() -> None:

@@ -1,4 +1,4 @@
-"""docs/scripts/compare_reproductions.py: two reproduce folders compared cell by cell."""
+"""studies/compare_reproductions.py: two reproduce folders compared cell by cell."""
 
 from __future__ import annotations
 
@@ -6,21 +6,18 @@ import shutil
 from pathlib import Path
 
 import pytest
-from doc_scripts import load
+
+from studies import compare_reproductions as mod
 
 ROOT = Path(__file__).resolve().parents[1]
 COMMITTED = ROOT / "docs" / "paper-reproduction"
-
-
-def _module():
-    return load("compare_reproductions")
 
 
 def _as_command_wrote_it(tmp_path: Path) -> Path:
     """The committed report laid out as the command's own folder (leaderboard under runs/)."""
     out = tmp_path / "out"
     (out / "runs").mkdir(parents=True)
-    for name in _module().TABLES:
+    for name in mod.TABLES:
         src = COMMITTED / name
         shutil.copyfile(src, out / ("runs" if name == "leaderboard.csv" else "") / name)
     return out
@@ -28,16 +25,15 @@ def _as_command_wrote_it(tmp_path: Path) -> Path:
 
 def test_a_folder_equals_its_published_copy(tmp_path: Path, capsys) -> None:
     out = _as_command_wrote_it(tmp_path)
-    assert _module().main(str(COMMITTED), str(out)) == 0
+    assert mod.main(str(COMMITTED), str(out)) == 0
     printed = capsys.readouterr().out
     assert "every table equal (timings aside)" in printed
-    assert printed.count("equal (timings aside)") == len(_module().TABLES) + 1
+    assert printed.count("equal (timings aside)") == len(mod.TABLES) + 1
 
 
 def test_timings_are_left_out_and_one_changed_digit_is_found(tmp_path: Path, capsys) -> None:
     import pandas as pd
 
-    mod = _module()
     out = _as_command_wrote_it(tmp_path)
     board = out / "runs" / "leaderboard.csv"
     text = pd.read_csv(board, dtype=str, keep_default_na=False)
@@ -57,19 +53,19 @@ def test_other_rows_are_no_cell_comparison(tmp_path: Path) -> None:
     out = _as_command_wrote_it(tmp_path)
     lines = (out / "sizes.csv").read_text().splitlines(keepends=True)
     (out / "sizes.csv").write_text("".join(lines[:-1]))
-    assert _module().differing_cells(COMMITTED / "sizes.csv", out / "sizes.csv") is None
+    assert mod.differing_cells(COMMITTED / "sizes.csv", out / "sizes.csv") is None
 
 
 def test_reports_of_other_claim_counts_differ_without_a_traceback(tmp_path: Path, capsys) -> None:
     out = _as_command_wrote_it(tmp_path)
     lines = (out / "claims.csv").read_text().splitlines(keepends=True)
     (out / "claims.csv").write_text("".join(lines[:-1]))
-    assert _module().main(str(COMMITTED), str(out)) == 1
+    assert mod.main(str(COMMITTED), str(out)) == 1
     assert "not comparable claim by claim" in capsys.readouterr().out
 
 
 def test_a_folder_without_a_report_is_refused(tmp_path: Path, capsys) -> None:
-    assert _module().main(str(COMMITTED), str(tmp_path)) == 2
+    assert mod.main(str(COMMITTED), str(tmp_path)) == 2
     assert "no claims.csv" in capsys.readouterr().err
 
 
@@ -78,6 +74,5 @@ def test_usage(argv: list[str]) -> None:
     import subprocess
     import sys
 
-    done = subprocess.run([sys.executable, str(ROOT / "docs" / "scripts" / "compare_reproductions.py"),
-                           *argv], capture_output=True, text=True)
+    done = subprocess.run([sys.executable, "-m", mod.__name__, *argv], capture_output=True, text=True)
     assert done.returncode == 2 and "usage:" in done.stderr

@@ -1,23 +1,17 @@
-"""docs/scripts/arithmetic_fingerprint.py: the per-operation hashes two processors compare."""
+"""marl/arithmetic_fingerprint.py: the per-operation hashes two processors compare."""
 
 from __future__ import annotations
 
 import json
 from pathlib import Path
 
-from doc_scripts import load
+from marl import arithmetic_fingerprint as mod
 
 ROOT = Path(__file__).resolve().parents[1]
-SCRIPT = ROOT / "docs" / "scripts" / "arithmetic_fingerprint.py"
 COMMITTED = ROOT / "docs" / "notes" / "arithmetic-fingerprint-amd-epyc.json"
 
 
-def _module():
-    return load("arithmetic_fingerprint")
-
-
 def test_compare_names_the_operations_that_differ(tmp_path: Path, capsys) -> None:
-    mod = _module()
     ops = {"mm": "a", "exp": "b"}
     first = {"cpu": "one", "native": ops, "mkl_compatible": ops}
     second = {"cpu": "two", "native": ops, "mkl_compatible": {**ops, "mm": "c"}}
@@ -33,7 +27,6 @@ def test_the_committed_fingerprint_holds_every_operation_and_setting() -> None:
     """The AMD file a later run is compared with covers what the script now hashes."""
     import torch
 
-    mod = _module()
     committed = json.loads(COMMITTED.read_text())
     assert set(mod.SETTINGS) <= set(committed)
     threads = torch.get_num_threads()
@@ -72,8 +65,8 @@ def test_portable_numpy_arithmetic_is_pinned_across_processors() -> None:
     if pins is None:
         pytest.skip(f"numpy {np.__version__}: no hashes pinned (run --numpy-one portably on two "
                     "processors and add them)")
-    proc = subprocess.run([sys.executable, str(SCRIPT), "--numpy-one"], capture_output=True,
-                          text=True, check=True, env={**os.environ, **env})
+    proc = subprocess.run([sys.executable, "-m", mod.__name__, "--numpy-one"],
+                          capture_output=True, text=True, check=True, env={**os.environ, **env})
     got = json.loads(proc.stdout)
     assert got["openblas_core"] == "Haswell"
     assert {k: got[k] for k in pins} == pins

@@ -1,4 +1,4 @@
-"""docs/scripts/publish_reproduction.py: a finished reproduce folder as the committed report."""
+"""studies/publish_reproduction.py: a finished reproduce folder as the committed report."""
 
 from __future__ import annotations
 
@@ -6,11 +6,9 @@ import json
 from pathlib import Path
 
 import pytest
-from doc_scripts import load
 
-
-def _module():
-    return load("publish_reproduction")
+from infra.errors import ConfigError
+from studies import publish_reproduction as mod
 
 
 def _out(tmp_path: Path, status: str = "done") -> Path:
@@ -22,7 +20,7 @@ def _out(tmp_path: Path, status: str = "done") -> Path:
     (out / "checkpoints" / "bdc-noqsgd").mkdir(parents=True)
     (out / "reproduce.json").write_text(json.dumps({"status": status, "command": "c --out OUT"}))
     (out / "report.md").write_text("# The report\n\n![radar](figures/radar.png)\n")
-    for name in _module().TABLES:
+    for name in mod.TABLES:
         (out / name).write_text(f"{name}\n1\n")
     (out / "runs" / "leaderboard.csv").write_text("rank\n1\n")
     (out / "runs" / "runs.csv").write_text("id\n1\n")
@@ -35,7 +33,6 @@ def _out(tmp_path: Path, status: str = "done") -> Path:
 
 def test_the_report_its_tables_figures_and_sources_replace_the_committed_ones(
         tmp_path: Path) -> None:
-    mod = _module()
     dest = tmp_path / "docs" / "paper-reproduction"
     (dest / "figures").mkdir(parents=True)
     (dest / "figures" / "stale.png").write_bytes(b"old")
@@ -57,14 +54,13 @@ def test_an_unfinished_reproduction_is_refused_and_the_committed_report_kept(
     dest = tmp_path / "docs" / "paper-reproduction"
     dest.mkdir(parents=True)
     (dest / "README.md").write_text("committed")
-    with pytest.raises(SystemExit, match="no finished reproduction"):
-        _module().publish(_out(tmp_path, status="started"), "How.", dest)
+    with pytest.raises(ConfigError, match="no finished reproduction"):
+        mod.publish(_out(tmp_path, status="started"), "How.", dest)
     assert (dest / "README.md").read_text() == "committed"
 
 
 def test_an_interrupted_swap_leaves_one_whole_report(tmp_path: Path, monkeypatch) -> None:
     """If the new report cannot be moved into place, the committed one is back where it was."""
-    mod = _module()
     out = _out(tmp_path)
     dest = tmp_path / "docs" / "paper-reproduction"
     dest.mkdir(parents=True)

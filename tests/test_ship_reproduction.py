@@ -1,4 +1,4 @@
-"""docs/scripts/ship_reproduction.py: a reproduction's trained policies into the shipped
+"""studies/ship_reproduction.py: a reproduction's trained policies into the shipped
 variant folders, never over a shipped file."""
 
 from __future__ import annotations
@@ -7,14 +7,15 @@ import json
 from pathlib import Path
 
 import pytest
-from doc_scripts import load
+
+from infra.errors import ConfigError
+from studies import ship_reproduction
 
 
 def _module(variants: Path, monkeypatch: pytest.MonkeyPatch):
-    mod = load("ship_reproduction")
-    monkeypatch.setattr(mod, "VARIANTS", variants)
-    monkeypatch.setattr(mod, "ROOT", variants.parent)
-    return mod
+    monkeypatch.setattr(ship_reproduction, "VARIANT_DIR", variants)
+    monkeypatch.setattr(ship_reproduction, "ROOT", variants.parent)
+    return ship_reproduction
 
 
 def _run(folder: Path, stem: str, source: str, payload: str = "w") -> None:
@@ -36,7 +37,7 @@ def test_trained_runs_ship_to_their_variant_and_copied_ones_stay(tmp_path: Path,
         f"variants/bdc-noqsgd/bdc__catchup-v1__n8__s1{x}" for x in mod.SUFFIXES}
     assert mod.ship(out) == []  # equal files: nothing more, nothing refused
     _run(out / "checkpoints", "bdc__slowdown-v1__n8__s0", "trained", payload="other")
-    with pytest.raises(SystemExit, match="shipped with other contents"):
+    with pytest.raises(ConfigError, match="shipped with other contents"):
         mod.ship(out)
     assert (tmp_path / "repo" / "variants" / "paper" / "bdc__slowdown-v1__n8__s0.pt"
             ).read_text() == "w.pt"
@@ -47,6 +48,6 @@ def test_an_unfinished_run_ships_nothing(tmp_path: Path, monkeypatch) -> None:
     out = tmp_path / "out"
     _run(out / "checkpoints", "ia2c__catchup-v1__n2__s1", "trained")
     (out / "checkpoints" / "ia2c__catchup-v1__n2__s1.log").unlink()
-    with pytest.raises(SystemExit, match="missing"):
+    with pytest.raises(ConfigError, match="missing"):
         mod.ship(out)
     assert not (tmp_path / "repo" / "variants").exists()

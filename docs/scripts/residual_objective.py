@@ -55,7 +55,7 @@ def main(steps: int) -> None:
                     lr=3e-4, init_log_std=-4.0, n_envs=64, eval_every_steps=10**7)
     torch.manual_seed(0)
     untrained = SharedActor(cfg, PlatoonParams(), 0)
-    trained = ppo.train(SCENARIO, 8, 0, steps, cfg, validate=False).actor
+    trained = ppo.train(SCENARIO, 8, 0, steps, cfg).actor
     for name, actor in (("untrained", untrained), ("trained", trained)):
         actor.eval()
         reward, _, per_step = score(actor, False, cfg.gamma)

@@ -1,7 +1,7 @@
 """Publish a finished paper-budget ``cacc-bench reproduce`` folder as the committed report
 (``docs/paper-reproduction``), replacing the one there.
 
-    .venv/bin/python docs/scripts/publish_reproduction.py OUT HEADER.md
+    .venv/bin/python -m studies.publish_reproduction OUT HEADER.md
 
 ``README.md`` is ``HEADER.md`` (how the run was made, written by hand) followed by
 ``OUT/report.md`` as the command wrote it; beside it the CSV behind every table,
@@ -17,13 +17,13 @@ import shutil
 import sys
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(ROOT))
-from infra.atomic import signals_held  # noqa: E402
+from infra.atomic import signals_held
+from infra.errors import ConfigError
 
+ROOT = Path(__file__).resolve().parents[1]
 DEST = ROOT / "docs" / "paper-reproduction"
 #: The report's tables, as ``reproduce`` writes them into OUT.
-TABLES = ("table1.csv", "table2.csv", "table3.csv", "sizes.csv", "power_basis.csv", "claims.csv")
+TABLES = ("claims.csv", "table1.csv", "table2.csv", "table3.csv", "sizes.csv", "power_basis.csv")
 COLOURS = 128
 
 
@@ -31,8 +31,8 @@ def publish(out: Path, header: str, dest: Path = DEST) -> list[Path]:
     """Write ``dest`` from ``out``; the files written."""
     manifest = json.loads((out / "reproduce.json").read_text())
     if manifest.get("status") != "done" or not (out / "report.md").exists():
-        raise SystemExit(f"{out}: no finished reproduction (reproduce.json status "
-                         f"{manifest.get('status')!r}); complete it with --resume first")
+        raise ConfigError(f"{out}: no finished reproduction (reproduce.json status "
+                          f"{manifest.get('status')!r}); complete it with --resume first")
     from PIL import Image
 
     staged = dest.with_name(dest.name + ".new")
@@ -40,7 +40,7 @@ def publish(out: Path, header: str, dest: Path = DEST) -> list[Path]:
         shutil.rmtree(staged)
     (staged / "figures").mkdir(parents=True)
     (staged / "README.md").write_text(
-        f"<!-- Copied from OUT/report.md by docs/scripts/publish_reproduction.py (figures "
+        f"<!-- Copied from OUT/report.md by studies/publish_reproduction.py (figures "
         f"re-encoded with {COLOURS} colours; every number as the command printed it). -->\n\n"
         f"{header.strip()}\n\n{(out / 'report.md').read_text()}")
     for name in TABLES:
@@ -77,6 +77,9 @@ def publish(out: Path, header: str, dest: Path = DEST) -> list[Path]:
 
 if __name__ == "__main__":
     if len(sys.argv) != 3:
-        sys.exit("usage: publish_reproduction.py OUT HEADER.md")
-    written = publish(Path(sys.argv[1]), Path(sys.argv[2]).read_text())
+        sys.exit("usage: python -m studies.publish_reproduction OUT HEADER.md")
+    try:
+        written = publish(Path(sys.argv[1]), Path(sys.argv[2]).read_text())
+    except ConfigError as err:
+        sys.exit(str(err))
     print(f"wrote {len(written)} files into {DEST.relative_to(ROOT)}")

@@ -1,17 +1,18 @@
-"""Hash each float32 operation the learners use (and the float64 linear algebra of numpy's
-OpenBLAS, which the MPC controllers use), under each arithmetic setting, on this CPU.
+"""Hashes of each float32 operation the learners use (and of the float64 linear algebra of
+numpy's OpenBLAS, which the MPC controllers use) under each arithmetic setting, on this CPU.
 
 Run it on two processors and compare the JSON files: an operation whose hash differs under the
-same setting is one whose rounding depends on the processor (see
-docs/notes/issue34-clean-clone.md, "Portable arithmetic on an AMD EPYC").
+same setting is one whose rounding depends on the processor (docs/notes/issue34-clean-clone.md,
+"Portable arithmetic on an AMD EPYC"). From the repository root:
 
-    .venv/bin/python docs/scripts/arithmetic_fingerprint.py > fingerprint-CPU.json
-    .venv/bin/python docs/scripts/arithmetic_fingerprint.py --compare a.json b.json
+    .venv/bin/python -m marl.arithmetic_fingerprint > fingerprint-CPU.json
+    .venv/bin/python -m marl.arithmetic_fingerprint --compare a.json b.json
 
-``--portable-training`` prints the tests' short-training hashes in portable processes;
-``--ops`` leaves out the short training (any PyTorch, the project not installed); ``--numpy``
-hashes only numpy's operations, under :data:`NUMPY_SETTINGS`, with no PyTorch (or another
-PyTorch) installed. The same library versions give hashes comparable with a full run's.
+``--portable-training`` prints the tests' short-training hashes (:func:`weights_hash`) in
+portable processes; ``--ops`` leaves out the short training (any PyTorch, the project's other
+dependencies not installed); ``--numpy`` hashes only numpy's operations, under
+:data:`NUMPY_SETTINGS`, with no PyTorch (or another PyTorch) installed. The same library
+versions give hashes comparable with a full run's.
 """
 
 from __future__ import annotations
@@ -23,11 +24,12 @@ import platform
 import subprocess
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-ROOT = Path(__file__).resolve().parents[2]
-# the short training and cpuinfo the tests use (imported where needed: --numpy runs without the
-# project installed)
-sys.path[:0] = [str(ROOT / "tests"), str(ROOT)]
+from marl import arithmetic
+
+if TYPE_CHECKING:
+    import numpy as np
 
 #: Settings, each read by MKL or PyTorch when a process starts (so each runs in its own).
 SETTINGS: dict[str, dict[str, str]] = {
@@ -51,33 +53,65 @@ NUMPY_SETTINGS: dict[str, dict[str, str]] = {
                                       "NPY_DISABLE_CPU_FEATURES": "X86_V4 AVX512_ICL AVX512_SPR"},
 }
 
-#: Shapes of the float32 inputs drawn from the generator before numpy's own operations'
-#: (``--numpy`` draws and drops them, so its numpy inputs are the full run's).
+#: Shapes of the float32 inputs, drawn in this order from the generator before numpy's own
+#: operations' (``--numpy`` draws and drops them, so its numpy inputs are the full run's).
 TORCH_INPUT_SHAPES: tuple[tuple[int, ...], ...] = (
     (64, 15), (15, 64), (8, 240, 32), (8, 32, 64), (8, 1, 64), (4096,), (64, 64),
     (64, 64), (64, 64), (64, 64))
 
+#: The algorithms of the short training (:func:`weights_hash`).
+PINNED_ALGOS: tuple[str, ...] = ("bdc", "dial", "ia2c")
 
-def _digest(t) -> str:  # noqa: ANN001 - a torch tensor
-    return hashlib.sha256(t.detach().contiguous().numpy().tobytes()).hexdigest()[:16]
+
+def _hash(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()[:16]
+
+
+def cpuinfo(field: str) -> str:
+    """The first ``field`` of /proc/cpuinfo (``vendor_id``, ``model name``), or "" where the
+    file does not say."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith(field):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return ""
+
+
+def weights_hash(name: str) -> tuple[str, str]:
+    """The weights hash after the short training the tests pin (three batches of 4 followers
+    on slowdown-v1, seed 3, ``advantage_norm``, one thread) of ``name`` in this process, and
+    the process's arithmetic mode (top level: the executors' worker processes run it)."""
+    import torch
+
+    from marl.a2c import Trainer
+    from marl.config import algorithm
+
+    torch.set_num_threads(1)
+    a = algorithm(name)
+    trainer = Trainer(a, a.config_cls(advantage_norm=True), "slowdown-v1", 4, 3)
+    trainer.runs[0].total_steps = 3000
+    for _ in range(3):
+        trainer.run_batch()
+    blob = b"".join(p.detach().numpy().tobytes() for p in trainer.net.parameters())
+    return _hash(blob), arithmetic.current()
 
 
 def fingerprint(training: bool = True) -> dict[str, str]:
     """Hashes of fixed-input float32 operations in this process (one thread); with
-    ``training``, also of the short training the tests pin (needs the project installed)."""
+    ``training``, also of the short training (:func:`weights_hash`, needs the project's
+    dependencies)."""
     import numpy as np
     import torch
 
     torch.set_num_threads(1)
     g = torch.Generator().manual_seed(0)  # only for the sampling operations themselves
     rng = np.random.default_rng(0)  # inputs from numpy: torch's own normal_ depends on its kernels
-
-    def rand(*shape: int) -> torch.Tensor:
-        return torch.from_numpy(rng.standard_normal(shape).astype(np.float32))
-
-    a, b = rand(64, 15), rand(15, 64)
-    x3, w3, bias3 = rand(8, 240, 32), rand(8, 32, 64), rand(8, 1, 64)
-    big = rand(4096) * 4
+    a, b, x3, w3, bias3, big, p0, *grads = (
+        torch.from_numpy(rng.standard_normal(s).astype(np.float32)) for s in TORCH_INPUT_SHAPES)
+    big = big * 4
     out = {
         "mm_64x15x64": torch.mm(a, b),
         "addmm_240x32x64": torch.addmm(bias3[0, 0], x3[0], w3[0]),
@@ -94,38 +128,35 @@ def fingerprint(training: bool = True) -> dict[str, str]:
         "multinomial": torch.multinomial(torch.softmax(big.view(-1, 4), -1), 1, generator=g),
         "normal": torch.empty(4096).normal_(generator=g),
     }
-    p = torch.nn.Parameter(rand(64, 64))
+    p = torch.nn.Parameter(p0)
     opt = torch.optim.RMSprop([p], lr=1e-3, alpha=0.99, eps=1e-5)
-    for _ in range(3):
-        p.grad = rand(64, 64)
+    for grad in grads:
+        p.grad = grad
         opt.step()
     out["rmsprop_3_steps"] = p
-    res = {k: _digest(v) for k, v in out.items()}
+    res = {k: _hash(v.detach().contiguous().numpy().tobytes()) for k, v in out.items()}
     res.update(numpy_hashes(rng))
-    if training:  # the short training the tests pin (tests/pinned_training.py), whole
-        from pinned_training import weights_hash
-
+    if training:
         res["short_training_bdc"] = weights_hash("bdc")[0]
     res["torch_cpu_capability"] = torch.backends.cpu.get_cpu_capability()
     return res
 
 
-def numpy_hashes(rng) -> dict[str, str]:  # noqa: ANN001 - a numpy Generator
+def numpy_hashes(rng: np.random.Generator) -> dict[str, str]:
     """Hashes of numpy's float64 elementwise functions and linear algebra, inputs from ``rng``
     after the float32 inputs (:data:`TORCH_INPUT_SHAPES`)."""
     import numpy as np
 
-    res: dict[str, str] = {}
     grid = np.linspace(-4, 4, 100_001)
-    res["numpy_cos_sin_exp_f64"] = hashlib.sha256(
-        b"".join(f(grid).tobytes() for f in (np.cos, np.sin, np.exp))).hexdigest()[:16]
+    res = {"numpy_cos_sin_exp_f64": _hash(b"".join(f(grid).tobytes()
+                                                   for f in (np.cos, np.sin, np.exp)))}
     # numpy's OpenBLAS picks its kernels by processor (OPENBLAS_CORETYPE): the MPC
     # controllers' float64 linear algebra goes through it
     m64 = rng.standard_normal((96, 96))
     spd = m64 @ m64.T + 96 * np.eye(96)
     blas = {"numpy_matmul_f64": m64 @ m64.T, "numpy_solve_f64": np.linalg.solve(spd, m64[:, :8]),
             "numpy_cholesky_f64": np.linalg.cholesky(spd)}
-    res.update({k: hashlib.sha256(v.tobytes()).hexdigest()[:16] for k, v in blas.items()})
+    res.update({k: _hash(v.tobytes()) for k, v in blas.items()})
     return res
 
 
@@ -167,39 +198,38 @@ MODES: dict[str, tuple[str, dict[str, dict[str, str]]]] = {
 }
 
 
+def _in_process(args: list[str], env: dict[str, str]) -> object:
+    """What this module prints with ``args`` in a fresh process started with ``env`` added."""
+    proc = subprocess.run([sys.executable, "-m", __spec__.name, *args],
+                          env={**os.environ, **env}, capture_output=True, text=True, check=True,
+                          cwd=Path(__file__).resolve().parents[1])
+    return json.loads(proc.stdout)
+
+
+def _machine() -> dict[str, object]:
+    return {"cpu": cpuinfo("model name") or platform.processor(), "vendor": cpuinfo("vendor_id")}
+
+
 def run_all(mode: str = "all") -> dict[str, object]:
     """Every setting of ``mode`` (:data:`MODES`), each in a fresh process."""
-    from pinned_training import cpuinfo
-
     flag, settings = MODES[mode]
-    results: dict[str, object] = {"cpu": cpuinfo("model name") or platform.processor(),
-                                  "vendor": cpuinfo("vendor_id")}
+    results = _machine()
     if mode != "numpy":
         import torch
 
         results["torch"] = torch.__version__
     for name, extra in settings.items():
-        proc = subprocess.run([sys.executable, __file__, flag], env={**os.environ, **extra},
-                              capture_output=True, text=True, check=True, cwd=ROOT)
-        results[name] = json.loads(proc.stdout)
+        results[name] = _in_process([flag], extra)
     return results
 
 
 def portable_training() -> dict[str, object]:
-    """The short trainings the tests pin (``PINNED_ALGOS``), each in a fresh portable process
-    (:func:`marl.arithmetic.portable_env`): the hashes ``PORTABLE_PINNED`` holds."""
-    from pinned_training import PINNED_ALGOS, cpuinfo
-
-    from marl.arithmetic import portable_env
-
-    env = portable_env()
-    results: dict[str, object] = {"cpu": cpuinfo("model name") or platform.processor(),
-                                  "vendor": cpuinfo("vendor_id"), "env": env}
+    """The short trainings (:data:`PINNED_ALGOS`), each in a fresh portable process
+    (:func:`marl.arithmetic.portable_env`): the hashes the tests' ``PORTABLE_PINNED`` holds."""
+    env = arithmetic.portable_env()
+    results = {**_machine(), "env": env}
     for algo in PINNED_ALGOS:
-        proc = subprocess.run([sys.executable, __file__, "--training-one", algo],
-                              env={**os.environ, **env}, capture_output=True, text=True,
-                              check=True, cwd=ROOT)
-        results[algo] = json.loads(proc.stdout)
+        results[algo] = _in_process(["--training-one", algo], env)
     return results
 
 
@@ -217,25 +247,21 @@ def compare(first: str, second: str) -> int:
 
 
 if __name__ == "__main__":
-    if sys.argv[1:2] == ["--one"]:
-        print(json.dumps(fingerprint()))
-    elif sys.argv[1:2] == ["--ops-one"]:
-        print(json.dumps(fingerprint(training=False)))
-    elif sys.argv[1:2] == ["--training-one"] and len(sys.argv) == 3:
+    args = sys.argv[1:]
+    if args in (["--one"], ["--ops-one"]):
+        print(json.dumps(fingerprint(training=args == ["--one"])))
+    elif args[:1] == ["--training-one"] and len(args) == 2:
         import torch
-        from pinned_training import weights_hash
 
-        print(json.dumps([*weights_hash(sys.argv[2]), torch.__version__]))
-    elif sys.argv[1:] == ["--portable-training"]:
-        print(json.dumps(portable_training(), indent=1))
-    elif sys.argv[1:2] == ["--numpy-one"]:
+        print(json.dumps([*weights_hash(args[1]), torch.__version__]))
+    elif args == ["--numpy-one"]:
         print(json.dumps(numpy_fingerprint()))
-    elif sys.argv[1:] in (["--numpy"], ["--ops"]):
-        print(json.dumps(run_all(sys.argv[1][2:]), indent=1))
-    elif sys.argv[1:2] == ["--compare"] and len(sys.argv) == 4:
-        sys.exit(compare(sys.argv[2], sys.argv[3]))
-    elif len(sys.argv) == 1:
-        print(json.dumps(run_all(), indent=1))
+    elif args == ["--portable-training"]:
+        print(json.dumps(portable_training(), indent=1))
+    elif args in ([], ["--ops"], ["--numpy"]):
+        print(json.dumps(run_all(args[0][2:] if args else "all"), indent=1))
+    elif args[:1] == ["--compare"] and len(args) == 3:
+        sys.exit(compare(args[1], args[2]))
     else:
-        sys.exit("usage: arithmetic_fingerprint.py [--ops | --numpy | --portable-training | "
-                 "--compare FIRST SECOND]")
+        sys.exit("usage: python -m marl.arithmetic_fingerprint [--ops | --numpy | "
+                 "--portable-training | --compare FIRST SECOND]")

@@ -1,7 +1,7 @@
 """Compare two `cacc-bench reproduce` folders: each claim's verdict, Table II's reward,
 collisions and power per row, and then every table cell by cell as the command wrote it.
 
-    .venv/bin/python docs/scripts/compare_reproductions.py docs/paper-reproduction results/paper
+    .venv/bin/python -m studies.compare_reproductions docs/paper-reproduction results/paper
 
 The cell-by-cell part reads each CSV as text (so "equal" is to the last printed digit) and leaves
 out the timing columns (``compute_ms_*``: a controller's compute time is the machine's, not the
@@ -17,9 +17,10 @@ from pathlib import Path
 
 import pandas as pd
 
+from studies import publish_reproduction
+
 #: The tables compared cell by cell, as ``reproduce`` writes them.
-TABLES = ("claims.csv", "table1.csv", "table2.csv", "table3.csv", "sizes.csv", "power_basis.csv",
-          "leaderboard.csv")
+TABLES = (*publish_reproduction.TABLES, "leaderboard.csv")
 #: Column prefixes left out of the cell-by-cell comparison: the machine's timings.
 TIMING = ("compute_ms",)
 
@@ -63,23 +64,22 @@ def compare_tables(a: Path, b: Path) -> bool:
 
 
 def main(first: str, second: str) -> int:
+    """Print the comparison of two reproduce folders; the exit status (module docstring)."""
     a, b = Path(first), Path(second)
     for folder in (a, b):
         if not (folder / "claims.csv").is_file():
             print(f"{folder}: no claims.csv; give two folders written by `cacc-bench reproduce` "
-                  "(or published by docs/scripts/publish_reproduction.py)", file=sys.stderr)
+                  "(or published by studies/publish_reproduction.py)", file=sys.stderr)
             return 2
     ca, cb = pd.read_csv(a / "claims.csv"), pd.read_csv(b / "claims.csv")
     if len(ca) != len(cb):
         print(f"the two reports judge {len(ca)} and {len(cb)} claims: made by other versions of "
               "the command, so not comparable claim by claim")
         return 1
-    same = 0
-    for i, (x, y) in enumerate(zip(ca.itertuples(), cb.itertuples(), strict=True)):
-        ok = x.verdict == y.verdict
-        same += ok
-        print(f"{i:2d} {'==' if ok else '!='} {x.verdict:18s} {y.verdict:18s} {x.claim[:70]}")
-    print(f"verdicts equal: {same} of {len(ca)}")
+    rows = zip(ca["verdict"].tolist(), cb["verdict"].tolist(), ca["claim"].tolist(), strict=True)
+    for i, (x, y, claim) in enumerate(rows):
+        print(f"{i:2d} {'==' if x == y else '!='} {x:18s} {y:18s} {claim[:70]}")
+    print(f"verdicts equal: {int((ca['verdict'] == cb['verdict']).sum())} of {len(ca)}")
     cols = ["reward_mean", "collisions", "power_kw_avg"]
     m = pd.read_csv(a / "table2.csv").merge(pd.read_csv(b / "table2.csv"),
                                             on=["scenario", "name"], suffixes=("_1", "_2"))
@@ -92,6 +92,7 @@ def main(first: str, second: str) -> int:
 
 if __name__ == "__main__":
     if len(sys.argv) != 3:
-        print("usage: compare_reproductions.py FIRST_FOLDER SECOND_FOLDER", file=sys.stderr)
+        print("usage: python -m studies.compare_reproductions FIRST_FOLDER SECOND_FOLDER",
+              file=sys.stderr)
         sys.exit(2)
     sys.exit(main(sys.argv[1], sys.argv[2]))
