@@ -1,7 +1,8 @@
-"""Validation of MARL policies through the benchmark's own closed loop.
+"""Validation of learned policies through the benchmark's own closed loop.
 
 Training selects its snapshots with :func:`validation_evaluator`: the weights being trained act
-through :class:`controllers.policy.PolicyController` in :func:`benchmark.rollout.rollout_batch`,
+through :class:`controllers.policy.PolicyController` (:meth:`~controllers.policy.PolicyController.from_net`:
+a paper learner's network or a shared learner's actor) in :func:`benchmark.rollout.rollout_batch`,
 so a validation score is exactly what ``cacc-bench run`` would report for those weights on those
 seeds (the episodes run batched; the same code, not a second loop).
 """
@@ -14,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from benchmark.rollout import rollout_batch
+from envs.channel import ChannelConfig
 from envs.params import VALIDATION_SEEDS, check_decision_seeds
 from envs.scenarios import Scenario, as_scenario
 
@@ -25,9 +27,10 @@ def evaluate_policy(
     n_vehicles: int,
     seeds: Sequence[int],
     mode: str = "sampled",
+    channel: ChannelConfig = ChannelConfig(),
 ) -> dict[str, float]:
     """Episodes of an in-memory policy network in the benchmark's closed loop (on ``scenario``,
-    built or a label: :func:`envs.scenarios.as_scenario`).
+    built or a label: :func:`envs.scenarios.as_scenario`; V2V through ``channel``).
 
     Returns
     -------
@@ -40,7 +43,7 @@ def evaluate_policy(
 
     sc = as_scenario(scenario)
     ctrl = PolicyController.from_net(algo, net, sc.id, n_vehicles, mode)
-    trajs = rollout_batch(ctrl, sc, n_vehicles, seeds)
+    trajs = rollout_batch(ctrl, sc, n_vehicles, seeds, channel=channel)
     return {
         "reward": float(np.mean([t.reward.mean() for t in trajs])),
         "tracking_reward": float(np.mean([t.tracking_reward.mean() for t in trajs])),
@@ -51,9 +54,11 @@ def evaluate_policy(
 
 def validation_evaluator(
     algo: str, scenario: str | Scenario, n_vehicles: int,
-    seeds: Sequence[int] = VALIDATION_SEEDS,
+    seeds: Sequence[int] = VALIDATION_SEEDS, channel: ChannelConfig = ChannelConfig(),
 ) -> Callable[[Any, str], dict[str, float]]:
-    """The evaluator :func:`marl.selection.run_training` takes: ``(net, mode) -> summary``.
+    """The evaluator the trainers take (:func:`marl.selection.run_training`,
+    :func:`marl.ppo.train`, :func:`marl.distill.distill`): ``(net, mode) -> summary``, V2V
+    through ``channel`` (a shared learner's: :attr:`marl.ppo_nets.PPOConfig.validation_channel`).
 
     Its scores choose the kept snapshot (and, through ``cacc-bench tune``, the tuned configs):
     a decision, so test seeds are refused (:func:`envs.params.check_decision_seeds`).
@@ -68,6 +73,6 @@ def validation_evaluator(
     sc = as_scenario(scenario)  # built once, for every snapshot it scores
 
     def evaluate(net: Any, mode: str) -> dict[str, float]:
-        return evaluate_policy(algo, net, sc, n_vehicles, seeds, mode)
+        return evaluate_policy(algo, net, sc, n_vehicles, seeds, mode, channel)
 
     return evaluate

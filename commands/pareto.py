@@ -102,7 +102,7 @@ def settings_for(families: list[str], scenarios: list[str], n_vehicles: int
             for name in POINTS:
                 add(name, name, {}, "", "")
         if group == "marl":
-            from controllers.shared_policy import IPPO_VARIANTS
+            from controllers.policy import IPPO_VARIANTS
             from marl.learners import SHARED_LEARNERS
 
             for algo in (*PAPER_ALGORITHMS, *SHARED_LEARNERS):

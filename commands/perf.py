@@ -132,8 +132,8 @@ def shared_train_throughput(algo: str, steps: int = 131_072, n_vehicles: int = 8
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        return float(train("catchup-v1", n_vehicles, 0, steps, PPOConfig(algo=algo),
-                           validate=False).env_steps_per_s)
+        return float(train("catchup-v1", n_vehicles, 0, steps, PPOConfig(algo=algo))
+                     .env_steps_per_s)
     finally:
         torch.set_num_threads(threads)
 

@@ -52,16 +52,17 @@ def source_file(job: dict[str, Any]) -> Path:
 
 def is_done(job: dict[str, Any]) -> bool:
     """Finished in the output folder (trained there, or a shipped copy with the same config)."""
-    from commands.train import _finished, job_config
-    from marl.checkpoint import same_energy_model
+    from commands.train import job_key
+    from marl.checkpoint import finished, same_energy_model
 
+    key = job_key(job)
     src = source_file(job)
     if src.exists():
         info = json.loads(src.read_text())
-        if (info.get("config") == job_config(job) and info.get("steps", 0) >= job["steps"]
+        if (info.get("config") == key.stored_config() and info.get("steps", 0) >= job["steps"]
                 and same_energy_model(info) and _same_arithmetic(info, job)):
             return (Path(job["out"]) / f"{stem(job)}.pt").exists()
-    return _finished(job)
+    return finished(key)
 
 
 def _same_arithmetic(info: dict[str, Any], job: dict[str, Any]) -> bool:
@@ -86,9 +87,10 @@ def shipped_candidates(job: dict[str, Any]) -> list[Path]:
 def shipped_checkpoint(job: dict[str, Any]) -> Path | None:
     """The first of :func:`shipped_candidates` with ``job``'s config, budget and energy model
     (verified: a damaged shipped file is refused, :func:`marl.checkpoint.load_checkpoint`)."""
-    from commands.train import job_config
+    from commands.train import job_key
     from marl.checkpoint import load_checkpoint, same_energy_model
 
+    config = job_key(job).stored_config()
     for path in shipped_candidates(job):
         curve = path.with_suffix("").with_suffix(".curve.csv")
         if not path.exists() or not curve.exists():
@@ -96,7 +98,7 @@ def shipped_checkpoint(job: dict[str, Any]) -> Path | None:
         data = load_checkpoint(path, algo=job["algo"], n_vehicles=job["vehicles"],
                                scenario=job["scenario"])
         total = data.get("curve_summary", {}).get("total_steps", data.get("steps", 0))
-        if data.get("config") == job_config(job) and same_energy_model(data) and (
+        if data.get("config") == config and same_energy_model(data) and (
                 job["steps"] <= total <= job["steps"] * (1 + BUDGET_OVERSHOOT)):
             return path
     return None
@@ -174,7 +176,7 @@ def train_stage(jobs: list[dict[str, Any]], args: Any, reuse_shipped: bool) -> N
     ``reuse_shipped``, copy shipped checkpoints of the same config and budget instead."""
     from benchmark.executors import map_jobs
     from benchmark.progress import Progress
-    from commands.train import _train_job, population_jobs
+    from commands.train import job_key, populations, train_job
     from marl.arithmetic import process_env
 
     mode = getattr(args, "arithmetic", "native")
@@ -193,9 +195,9 @@ def train_stage(jobs: list[dict[str, Any]], args: Any, reuse_shipped: bool) -> N
     progress = Progress(len(todo), "training runs")
     by_key = {str(Path(j["out"]) / f"{stem(j)}.pt"): j for j in todo}
     device = getattr(args, "device", "cpu")  # where to train; the jobs' results do not say
-    populations = population_jobs([{**j, "device": device} for j in todo],
-                                  getattr(args, "population", None), args.executor, args.workers)
-    for res in map_jobs(_train_job, populations, args.executor, args.workers, args.ray_address,
+    keys = populations([job_key({**j, "device": device}) for j in todo],
+                       getattr(args, "population", None), args.executor, args.workers)
+    for res in map_jobs(train_job, keys, args.executor, args.workers, args.ray_address,
                         process_env(mode)):
         for run in res["runs"]:
             job = by_key[str(Path(run["checkpoint"]))]

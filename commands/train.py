@@ -1,11 +1,13 @@
-"""``cacc-bench train``: train MARL algorithms on scenarios and store the policies.
+"""``cacc-bench train``: train any learner of :data:`marl.learners.LEARNERS` on scenarios and
+store the policies.
 
-Writes ``<out>/<algo>__<scenario>__n<N>__s<seed>.pt`` (the snapshot selected on the validation
-seeds), ``.final.pt`` (the final weights), ``.curve.csv`` (episode, steps, training reward,
-validation reward and collisions in both evaluation modes) and ``.log`` (evaluations, bits
-communicated) per run. Several seeds of one algorithm and scenario train in one process as a
-population (``--population``): one stacked network, each run exactly as it would alone.
-Shows a progress bar on a terminal and stays quiet otherwise.
+Each job is a :class:`marl.training.TrainingKey` (scenario and config built once, here). Writes
+``<out>/<algo>__<scenario>__n<N>__s<seed>.pt`` (the snapshot selected on the validation seeds),
+``.final.pt`` (the final weights; the paper's learners), ``.curve.csv``
+(:data:`marl.checkpoint.CURVE_COLUMNS`) and ``.log`` (evaluations, bits communicated) per run.
+Several seeds of one of the paper's algorithms and scenario train in one process as a population
+(``--population``): one stacked network, each run exactly as it would alone; a shared-policy
+learner's run is a population of one. Shows progress on a terminal and stays quiet otherwise.
 
 A run's files are written when it finishes, each atomically and together
 (:mod:`infra.atomic`): an interrupted or failed run leaves the files of an earlier run byte for
@@ -17,11 +19,16 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from collections.abc import Callable, Sequence
+from dataclasses import replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from infra.errors import ConfigError, UnknownNameError
 from infra.limits import step_count
+
+if TYPE_CHECKING:
+    from marl.training import TrainingKey
 
 #: Default output: the folder the ``marl`` controllers load from (``controllers/checkpoints``
 #: of the installed package), so ``cacc-bench run --controllers NAME`` uses what was trained.
@@ -29,16 +36,16 @@ DEFAULT_OUT = str(Path(__file__).resolve().parent.parent / "controllers" / "chec
 
 
 def _parser() -> argparse.ArgumentParser:
-    from marl.learners import PAPER_ALGORITHMS
+    from marl.learners import LEARNERS
 
     p = argparse.ArgumentParser(
         prog="cacc-bench train",
         description="Train a MARL algorithm (one agent per follower) on a scenario.",
     )
     p.add_argument("--algo", required=True,
-                   help=f"one of: {', '.join(PAPER_ALGORITHMS)}; a comma list, or all; or the "
-                        "shared-policy learners ippo, mappo (marl/ppo.py) and distill "
-                        "(marl/distill.py), whose config fields --set takes")
+                   help=f"one of: {', '.join(LEARNERS)} (the paper's seven, then the "
+                        "shared-policy learners of marl/ppo.py and marl/distill.py); a comma "
+                        "list, or all (the paper's seven)")
     p.add_argument("--scenario", required=True,
                    help="scenario id, e.g. catchup-v1, or a comma list")
     p.add_argument("--steps", type=step_count, default=600_000, help="environment steps (default 6e5)")
@@ -58,12 +65,13 @@ def _parser() -> argparse.ArgumentParser:
                    help="output folder (default: the package's controllers/checkpoints, where "
                         "the marl controllers load from)")
     p.add_argument(
-        "--episodes-parallel", type=int, default=None, help="B episodes stepped together"
+        "--episodes-parallel", type=int, default=None,
+        help="B episodes stepped together (a shared-policy learner's n_envs)"
     )
     p.add_argument(
         "--resume", action="store_true",
-        help="skip runs that finished in --out (their .final.pt exists with the same config); "
-             "an interrupted run starts again",
+        help="skip runs that finished in --out (their .final.pt, a shared-policy learner's "
+             ".pt, exists with the same config); an interrupted run starts again",
     )
     p.add_argument(
         "--tuned", action="store_true",
@@ -109,36 +117,56 @@ class _Bar:
             self._bar.close()
 
 
-def _train_job(job: dict) -> dict:
-    """Train one job's runs, its ``seeds`` (or its one ``seed``), as one population in this
-    process (top level, so process and Ray executors can run it). Returns ``{"runs": [...]}``,
-    one summary per run."""
+def model_expert(name: str) -> Callable[[Any], Callable[[Any], Any]]:
+    """A registered model-based controller as :func:`marl.distill.distill`'s expert: for a
+    reset env, its commands for the env's states (its V2V through its own ideal channels)."""
+    from controllers.base import EpisodeContext, check_fits, reset_controller
+    from controllers.registry import make_controller
+
+    def make(env: Any) -> Callable[[Any], Any]:
+        ctrl = make_controller(name)
+        ctx = EpisodeContext(env.scenario, env.n_vehicles, env.seeds, env.params)
+        check_fits(ctrl, env.scenario, env.n_vehicles, env.params)
+        reset_controller(ctrl, ctx)
+        return lambda state: ctrl.act(state, None)
+
+    return make
+
+
+def _evaluator(key: TrainingKey) -> Callable[[Any, str], dict[str, float]]:
+    """The validation seeds' scores of a policy of ``key``'s learner, ``(net, mode) -> dict``
+    (:func:`benchmark.policy_eval.validation_evaluator`), V2V as the learner trains with."""
+    from benchmark.policy_eval import validation_evaluator
+    from envs.channel import ChannelConfig
+    from envs.params import VALIDATION_SEEDS
+
+    channel = ChannelConfig() if key.family == "a2c" else (  # a distilled actor: its own
+        key.config.actor_config() if key.family == "distill" else key.config).validation_channel
+    seeds = VALIDATION_SEEDS[: key.validation_episodes or len(VALIDATION_SEEDS)]
+    return validation_evaluator(key.algo, key.scenario, key.n_vehicles, seeds, channel)
+
+
+def train_job(key: TrainingKey) -> dict[str, Any]:
+    """Train ``key``'s runs (its seeds) as one population in this process (top level, so
+    process and Ray executors can run it). Returns ``{"runs": [...]}``, one summary per run."""
     import contextlib
 
     import torch
 
-    from benchmark.policy_eval import validation_evaluator
-    from envs.params import VALIDATION_SEEDS
     from infra.atomic import StagedFiles, temporary_beside
-    from infra.naming import checkpoint_stem
     from marl import arithmetic
-    from marl.config import algorithm
-    from marl.selection import run_population
 
-    arithmetic.require(job.get("arithmetic", "native"))  # before this process's first product
+    arithmetic.require(key.arithmetic)  # before this process's first product
     torch.set_num_threads(1)
-    seeds = list(job.get("seeds", [job["seed"]]))
-    algo = algorithm(job["algo"])
-    config = algo.config_cls(**job["options"])
-    out = Path(job["out"])
-    out.mkdir(parents=True, exist_ok=True)
-    log_paths = [out / (checkpoint_stem(job["algo"], job["scenario"], job["vehicles"], s) + ".log")
-                 for s in seeds]
+    seeds = list(key.seeds)
+    key.out.mkdir(parents=True, exist_ok=True)
+    log_paths = [key.out / f"{key.stem(s)}.log" for s in seeds]
     # each log grows in a hidden temporary file beside it (``.<stem>.log.*.tmp``, to follow
     # with tail -f) and replaces the .log only once its run's files are written: an interrupted
     # or failed run leaves an earlier run's log as it was
     tmp_logs = [temporary_beside(p) for p in log_paths]
     done = [False] * len(seeds)
+    echo = key.progress and key.family != "a2c"  # on a terminal: a bar, or the learner's lines
     try:
         with contextlib.ExitStack() as stack:
             handles = [stack.enter_context(open(p, "w")) for p in tmp_logs]
@@ -147,7 +175,9 @@ def _train_job(job: dict) -> dict:
                 def log(line: str) -> None:
                     fh.write(time.strftime("%H:%M:%S ") + line + "\n")
                     fh.flush()
-                    if line.startswith("done:"):  # run_population wrote the run's files
+                    if echo:
+                        print(line, file=sys.stderr)
+                    if line.startswith("done:"):  # the run's files are written
                         done[k] = True
                 return log
 
@@ -155,18 +185,21 @@ def _train_job(job: dict) -> dict:
             together = (f", in a population of {len(seeds)} (seeds {seeds})"
                         if len(seeds) > 1 else "")
             for seed, log in zip(seeds, logs, strict=True):
-                log(
-                    f"train {job['algo']} on {job['scenario']}, N = {job['vehicles']}, seed "
-                    f"{seed}, {job['steps']} steps{together}, config "
-                    f"{config.resolved(job['scenario'])}"
-                )
-            results = run_population(
-                algo, [config] * len(seeds), job["scenario"], job["vehicles"], job["steps"],
-                seeds, out, progress=_Bar(job["progress"] and len(seeds) == 1), logs=logs,
-                evaluate=validation_evaluator(
-                    job["algo"], job["scenario"], job["vehicles"],
-                    VALIDATION_SEEDS[: job.get("validation_episodes") or len(VALIDATION_SEEDS)]),
-                device=job.get("device", "cpu"))
+                log(f"train {key.algo} on {key.scenario.id}, N = {key.n_vehicles}, seed {seed}, "
+                    f"{key.steps} steps{together}, config {key.resolved_config()}")
+            if key.family == "a2c":
+                from marl.config import algorithm
+                from marl.selection import run_population
+
+                results = run_population(
+                    algorithm(key.algo), [key.config] * len(seeds), key.scenario,
+                    key.n_vehicles, key.steps, seeds, key.out,
+                    progress=_Bar(key.progress and len(seeds) == 1), logs=logs,
+                    evaluate=_evaluator(key), device=key.device)
+            else:
+                from marl.training import run_shared
+
+                results = [run_shared(key, logs[0], _evaluator(key), model_expert)]
     finally:
         with StagedFiles() as staged:
             for tmp, path, finished in zip(tmp_logs, log_paths, done, strict=True):
@@ -176,7 +209,7 @@ def _train_job(job: dict) -> dict:
         for tmp in tmp_logs:
             tmp.unlink(missing_ok=True)
     return {"runs": [
-        {"algo": job["algo"], "scenario": job["scenario"], "seed": res.seed,
+        {"algo": key.algo, "scenario": key.scenario.id, "seed": res.seed,
          "checkpoint": str(res.checkpoint), "curve": str(res.curve_csv), "log": str(path),
          "env_steps_per_s": res.env_steps_per_s, "population": len(seeds)}
         for res, path in zip(results, log_paths, strict=True)]}
@@ -223,28 +256,31 @@ def check_population(population: int | None) -> None:
         raise ConfigError(f"--population must be >= 1, got {population}")
 
 
-def population_jobs(jobs: list[dict], size: int | None, executor: str, workers: int) -> list[dict]:
-    """Group runs that differ only in their seed into population jobs (``seeds``).
+def populations(keys: Sequence[TrainingKey], size: int | None, executor: str, workers: int
+                ) -> list[TrainingKey]:
+    """Group runs that differ only in their seed into population keys (several ``seeds``).
 
     ``size``: most runs per population; None: all runs of a group in one population with the
-    serial executor, else split evenly over the ``workers``. Each population trains in one
-    process (:func:`_train_job`); every run's numbers are the same whatever the grouping.
+    serial executor, else split evenly over the ``workers``. A shared-policy learner's run trains
+    alone (a population of one). Each population trains in one process (:func:`train_job`);
+    every run's numbers are the same whatever the grouping.
     """
-    import json
     import math
 
-    groups: dict[str, list[dict]] = {}
-    for job in jobs:
-        key = json.dumps({k: v for k, v in job.items() if k not in ("seed", "progress")},
-                         sort_keys=True, default=str)
-        groups.setdefault(key, []).append(job)
+    groups: list[list[TrainingKey]] = []
+    for key in keys:
+        alike = [g for g in groups if replace(g[0], seeds=()) == replace(key, seeds=())]
+        if alike:
+            alike[0].append(key)
+        else:
+            groups.append([key])
     out = []
-    for members in groups.values():
-        cap = size or (len(members) if executor == "serial"
-                       else math.ceil(len(members) / max(workers, 1)))
+    for members in groups:
+        cap = 1 if members[0].family != "a2c" else size or (
+            len(members) if executor == "serial" else math.ceil(len(members) / max(workers, 1)))
         for i in range(0, len(members), cap):
-            chunk = members[i:i + cap]
-            out.append({**chunk[0], "seeds": [j["seed"] for j in chunk]})
+            out.append(replace(members[0], seeds=tuple(s for m in members[i:i + cap]
+                                                       for s in m.seeds)))
     return out
 
 
@@ -255,86 +291,55 @@ def _names(text: str, flag: str) -> list[str]:
     return names
 
 
-def job_config(job: dict) -> dict:
-    """The whole resolved config a training job runs with (as recorded in its checkpoint)."""
+def set_options(items: Sequence[str]) -> dict[str, str]:
+    """``--set KEY=VALUE`` items (repeatable; a later one wins) as options, untyped: the one
+    parser of ``train`` and ``tune`` (:func:`learner_config` types and checks them)."""
+    options: dict[str, str] = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise ConfigError(f"--set {item!r}: expected KEY=VALUE, e.g. --set gamma=0.995")
+        if key.strip() == "algo":
+            raise ConfigError("--set algo: name the learner with --algo")
+        options[key.strip()] = value.strip()
+    return options
+
+
+def learner_config(algo: str, options: dict[str, Any], owner: str = "") -> Any:
+    """The config of ``algo`` (:func:`marl.training.config_class`) with ``options`` (strings
+    typed, values checked by :func:`controllers.registry.build_config`, the one option rule)."""
     import dataclasses
 
-    from marl.config import algorithm
+    from controllers.registry import build_config
+    from marl.training import config_class
 
-    config = algorithm(job["algo"]).config_cls(**job["options"]).resolved(job["scenario"])
-    return dataclasses.asdict(config)
+    cls = config_class(algo)
+    if "algo" in {f.name for f in dataclasses.fields(cls)}:  # one config for several learners
+        options = {**options, "algo": algo}
+    return build_config(cls, options, owner or f"{algo} (--set)")
 
 
-def _finished(job: dict) -> bool:
-    """Whether ``job``'s run finished in its folder with the same config and budget (a
-    different one is an error: a finished run is never overwritten silently)."""
-    from infra.naming import checkpoint_stem
-    from marl.checkpoint import energy_model_id, load_checkpoint, same_energy_model
+def job_key(job: dict[str, Any]) -> TrainingKey:
+    """The key of a job dict of :mod:`commands.policy_training` (``algo``, ``scenario``,
+    ``vehicles``, ``seed`` or ``seeds``, ``steps``, ``out``, ``options``; ``arithmetic``,
+    ``device`` and ``validation_episodes`` when given)."""
+    from envs.scenarios import as_scenario
+    from marl.training import TrainingKey
 
-    stem = checkpoint_stem(job["algo"], job["scenario"], job["vehicles"], job["seed"])
-    final = Path(job["out"]) / f"{stem}.final.pt"
-    if not final.exists():
-        return False
-    try:  # verified: a damaged or truncated file is refused, naming what to do
-        data = load_checkpoint(final, algo=job["algo"], n_vehicles=job["vehicles"],
-                               scenario=job["scenario"])
-    except ConfigError as exc:
-        raise ConfigError(f"{exc} (or remove {final} to train this run again)") from None
-    if data["config"] != job_config(job) or data["steps"] < job["steps"]:
-        raise ConfigError(
-            f"{final} holds a finished run with another config or fewer steps than asked "
-            f"({data['steps']} < {job['steps']} or config differs); use another --out, or "
-            "remove it to train again"
-        )
-    from marl.arithmetic import of_summary
-
-    mode = job.get("arithmetic", "native")
-    if of_summary(data["curve_summary"]) != mode:
-        raise ConfigError(
-            f"{final} holds a run trained with {of_summary(data['curve_summary'])} arithmetic, "
-            f"not {mode} (--arithmetic); use another --out, or remove it to train again")
-    if not same_energy_model(data):
-        raise ConfigError(
-            f"{final} holds a run trained with another energy model (fingerprint "
-            f"{data.get('energy_model')}, this cacc-bench's is {energy_model_id()}: its reward "
-            "differs); use another --out, or remove it to train again"
-        )
-    return True
+    return TrainingKey(job["algo"], as_scenario(job["scenario"]), job["vehicles"],
+                       tuple(job.get("seeds", [job["seed"]])), job["steps"],
+                       learner_config(job["algo"], job["options"]), Path(job["out"]),
+                       job.get("arithmetic", "native"), job.get("device", "cpu"),
+                       job.get("validation_episodes"))
 
 
 def main(argv: list[str]) -> int:
     """Entry point: ``cacc-bench train --algo NAME --scenario ID [...]``."""
-    from benchmark.executors import map_jobs
+    from benchmark.executors import check_ray_address, map_jobs
+    from benchmark.folder_lock import folder_lock
+    from benchmark.paths import writable_dir
     from commands.cli import scenarios_argument
-    from controllers.registry import build_config
     from envs.scenarios import check_vehicles
-    from marl.arithmetic import process_env
-    from marl.config import algorithm, training_device, tuned_options
-    from marl.learners import PAPER_ALGORITHMS, SHARED_LEARNERS
-
-    args = _parser().parse_args(argv)
-    from benchmark.executors import check_ray_address
-
-    check_ray_address(args.ray_address)  # an address that does not answer: refused before work
-    algos = _names(args.algo, "--algo")
-    if algos == ["all"]:
-        algos = list(PAPER_ALGORITHMS)
-    shared = [a for a in algos if a in SHARED_LEARNERS]
-    if shared and len(shared) != len(algos):
-        raise ConfigError(f"--algo: train the shared-policy learners ({', '.join(shared)}) in a "
-                          "command of their own (they take other config fields)")
-    for a in algos:
-        if a not in PAPER_ALGORITHMS and not shared:
-            raise UnknownNameError("algorithm", a, (*PAPER_ALGORITHMS, *SHARED_LEARNERS))
-    built = scenarios_argument(args.scenario, "--scenario")  # each built and checked once
-    for one in built:
-        if one.label != one.id:
-            raise ConfigError(
-                f"--scenario {one.label}: training takes plain scenario ids (checkpoints are "
-                f"named and loaded by id, so a policy trained with options would be read as "
-                f"trained on {one.id}); train on {one.id} and evaluate on {one.label} with run")
-    scenarios = [one.id for one in built]  # the trainers take the id: checkpoints are named by it
-    check_vehicles(args.vehicles)
     from infra.limits import (
         MAX_EPISODES_PARALLEL,
         MAX_TRAIN_SEED,
@@ -342,13 +347,39 @@ def main(argv: list[str]) -> int:
         check_range,
         check_seeds,
     )
+    from marl.arithmetic import process_env
+    from marl.checkpoint import finished
+    from marl.config import training_device, tuned_options
+    from marl.learners import LEARNERS, PAPER_ALGORITHMS
+    from marl.training import TrainingKey
 
-    if args.steps < 1:
-        raise ConfigError(f"--steps must be >= 1, got {args.steps}")
+    args = _parser().parse_args(argv)
+    check_ray_address(args.ray_address)  # an address that does not answer: refused before work
+    algos = _names(args.algo, "--algo")
+    if algos == ["all"]:
+        algos = list(PAPER_ALGORITHMS)
+    for a in algos:
+        if a not in LEARNERS:
+            raise UnknownNameError("algorithm", a, tuple(LEARNERS))
+    built = scenarios_argument(args.scenario, "--scenario")  # each built and checked once
+    for one in built:
+        if one.label != one.id:
+            raise ConfigError(
+                f"--scenario {one.label}: training takes plain scenario ids (checkpoints are "
+                f"named and loaded by id, so a policy trained with options would be read as "
+                f"trained on {one.id}); train on {one.id} and evaluate on {one.label} with run")
+    check_vehicles(args.vehicles)
     check_range(args.steps, "--steps", 1, MAX_TRAIN_STEPS)
     check_population(args.population)
     training_device(args.device)  # ConfigError for an unknown device or a missing GPU
     check_arithmetic(args.arithmetic, args.device)
+    if any(LEARNERS[a].family != "a2c" for a in algos):
+        if args.arithmetic != "native":
+            raise ConfigError("--arithmetic portable: the shared-policy learners train natively; "
+                              "portable arithmetic is for the paper's learners")
+        if args.device not in (None, "cpu"):
+            raise ConfigError(f"--device {args.device}: the shared-policy learners train on "
+                              "the CPU")
     if args.seeds is not None:
         try:
             seeds = list(dict.fromkeys(int(x) for x in args.seeds.split(",") if x.strip()))
@@ -360,54 +391,38 @@ def main(argv: list[str]) -> int:
         seeds = [args.seed]
     # training episode seeds derive from the run's seed in 32-bit generators: one bound
     check_seeds(seeds, "--seeds" if args.seeds is not None else "--seed", MAX_TRAIN_SEED)
-    if shared:
-        from commands.train_shared import main_shared
-
-        if args.arithmetic != "native":
-            raise ConfigError("--arithmetic portable: the shared-policy learners train natively "
-                              "in this process (one run after another); portable arithmetic "
-                              "is for the paper's learners")
-        return main_shared(args, shared, scenarios, seeds)
-    overrides: dict[str, object] = {}
-    for pair in args.overrides:
-        key, sep, value = pair.partition("=")
-        if not sep or not key.strip():
-            raise ConfigError(f"--set {pair!r}: expected KEY=VALUE, e.g. --set gamma=0.995")
-        overrides[key.strip()] = value.strip()
+    options: dict[str, Any] = set_options(args.overrides)
     if args.episodes_parallel is not None:
         check_range(args.episodes_parallel, "--episodes-parallel", 1, MAX_EPISODES_PARALLEL)
-        overrides["episodes_parallel"] = args.episodes_parallel
-    # typed from the config's fields and validated before anything starts
-    configs: dict[tuple[str, str], dict[str, object]] = {}
+    configs = {}  # typed from the config's fields and validated before anything starts
     for a in algos:
-        for sc in scenarios:
-            options = {**(tuned_options(a, sc) if args.tuned else {}), **overrides}
-            config = build_config(algorithm(a).config_cls, options, f"{a} (--set)")
-            configs[(a, sc)] = {f: getattr(config, f) for f in options}
-    from benchmark.paths import writable_dir
-
+        batch = {} if args.episodes_parallel is None else {
+            "episodes_parallel" if LEARNERS[a].family == "a2c" else "n_envs":
+            args.episodes_parallel}
+        for sc in built:
+            tuned = tuned_options(a, sc.id) if args.tuned else {}
+            configs[(a, sc.id)] = learner_config(a, {**tuned, **options, **batch})
     writable_dir(args.out)
-    tty = sys.stderr.isatty()
     single = len(seeds) * len(configs) == 1 and args.executor == "serial"
-    jobs = [
-        {"algo": a, "scenario": sc, "vehicles": args.vehicles, "steps": args.steps,
-         "seed": seed, "out": args.out, "options": configs[(a, sc)],
-         "progress": tty and single, "device": args.device, "arithmetic": args.arithmetic}
-        for seed in seeds for sc in scenarios for a in algos
-    ]
-    from benchmark.folder_lock import folder_lock
-
+    keys = [TrainingKey(a, sc, args.vehicles, (seed,), args.steps, configs[(a, sc.id)],
+                        Path(args.out), args.arithmetic, args.device,
+                        progress=sys.stderr.isatty() and single)
+            for seed in seeds for sc in built for a in algos]
     with folder_lock(args.out):  # one writer per folder, as `run`; refused naming the holder
-        if args.resume:
-            done = [j for j in jobs if _finished(j)]
-            if done:
-                print(f"resuming: {len(done)} of {len(jobs)} runs already finished in "
+        if args.resume:  # every finished run checked before any training
+            done = [finished(k) for k in keys]
+            for k in (k for k, d in zip(keys, done, strict=True) if d):
+                print(f"{k.stem(k.seeds[0])}: finished before, skipped (--resume)",
+                      file=sys.stderr)
+            if any(done):
+                print(f"resuming: {sum(done)} of {len(keys)} runs already finished in "
                       f"{args.out}", file=sys.stderr)
-            jobs = [j for j in jobs if j not in done]
-        populations = population_jobs(jobs, args.population, args.executor, args.workers)
+            keys = [k for k, d in zip(keys, done, strict=True) if not d]
         try:
-            for res in map_jobs(_train_job, populations, args.executor, args.workers,
-                                args.ray_address, process_env(args.arithmetic)):
+            for res in map_jobs(train_job,
+                                populations(keys, args.population, args.executor, args.workers),
+                                args.executor, args.workers, args.ray_address,
+                                process_env(args.arithmetic)):
                 for run in res["runs"]:
                     together = (f" (population of {run['population']})"
                                 if run["population"] > 1 else "")

@@ -245,14 +245,17 @@ def _study_job(job: dict) -> list[dict]:
 def _shared_trial(job: dict, options: dict[str, Any], run_dir: Path) -> dict[str, float]:
     """Train one ``ippo``/``mappo`` trial (fixed ``--set`` fields, then the trial's) and return
     its kept snapshot's validation numbers under the paper learners' summary keys."""
-    from commands.train_shared import shared_config, train_shared
-    from marl.checkpoint import load_checkpoint
+    from commands.train import learner_config, train_job
+    from envs.scenarios import as_scenario
+    from marl.checkpoint import finished, load_checkpoint
+    from marl.training import TrainingKey
 
-    fixed = [f"{key}={value}" for key, value in {**job["fixed"], **options}.items()]
-    config = shared_config(job["algo"], fixed)
-    path = train_shared(job["algo"], job["scenario"], job["vehicles"], job["seed"], job["steps"],
-                        run_dir, config, resume=True, log=lambda line: None)
-    best = load_checkpoint(path)["curve_summary"]
+    key = TrainingKey(job["algo"], as_scenario(job["scenario"]), job["vehicles"], (job["seed"],),
+                      job["steps"], learner_config(job["algo"], {**job["fixed"], **options}),
+                      run_dir)
+    if not finished(key):  # a trial interrupted after its files were written is not redone
+        train_job(key)
+    best = load_checkpoint(key.finished_file(job["seed"]))["curve_summary"]
     return {"selected_eval_reward_sampled": best["best_reward"],
             "selected_eval_collisions_sampled": best["best_collisions"],
             "selected_eval_reward_greedy": math.nan, "selected_eval_collisions_greedy": math.nan,
@@ -282,19 +285,16 @@ def main(argv: list[str]) -> int:
         if not all(a in SHARED_TUNED for a in algos):
             raise ConfigError(f"--set fixes a field of {'/'.join(SHARED_TUNED)} only; tune "
                               "the paper's algorithms without it")
-        from commands.train_shared import shared_config
+        from commands.train import learner_config, set_options
 
-        for item in args.overrides:
-            key, sep, value = item.partition("=")
-            if not sep or not key.strip():
-                raise ConfigError(f"--set {item!r}: expected KEY=VALUE, e.g. --set prior=cacc")
-            if key.strip() in SHARED_SEARCHED:
-                raise ConfigError(f"--set {key.strip()}: tune searches this field itself (it "
+        fixed = set_options(args.overrides)
+        for key in fixed:
+            if key in SHARED_SEARCHED:
+                raise ConfigError(f"--set {key}: tune searches this field itself (it "
                                   f"searches {', '.join(SHARED_SEARCHED)}); fix another field, "
                                   "or train with --set instead of tuning")
-            fixed[key.strip()] = value.strip()
         for a in algos:  # typed and checked now, before any trial
-            shared_config(a, [f"{k}={v}" for k, v in fixed.items()])
+            learner_config(a, fixed)
     args.fixed = fixed
     # each built and checked once, here; the studies train by label (their files' names)
     scenarios = [sc.label for sc in scenarios_argument(args.scenarios)]
@@ -307,11 +307,10 @@ def main(argv: list[str]) -> int:
     check_range(args.steps, "--steps", 1, MAX_TRAIN_STEPS)
     check_seeds([args.seed], "--seed", MAX_TRAIN_SEED)  # the trials' training seed
     if any(a in SHARED_TUNED for a in algos):  # every trial's rollout fits its budget
-        from commands.train_shared import shared_config
+        from commands.train import learner_config
 
         rollout = max(SHARED_N_ENVS) * max(
-            shared_config(a, [f"{k}={v}" for k, v in fixed.items()]).rollout_steps
-            for a in algos if a in SHARED_TUNED)
+            learner_config(a, fixed).rollout_steps for a in algos if a in SHARED_TUNED)
         if rollout > args.steps:
             raise ConfigError(f"--steps {args.steps}: a trial may step {max(SHARED_N_ENVS)} "
                               f"episodes x rollout_steps, {rollout:,} environment steps per "

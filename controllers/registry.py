@@ -132,7 +132,8 @@ for _spec in (
 
 for _learner in LEARNERS.values():  # every learner's policy, from the one learner registry
     register_controller(ControllerSpec(_learner.name, "marl", _learner.v2v, _learner.description,
-                                       _learner.acting, fixed={"algo": _learner.name}))
+                                       "controllers.policy:PolicyController",
+                                       fixed={"algo": _learner.name}))
 
 #: Controllers of ``cacc-bench run`` when none are named (those available in this install):
 #: the human baseline and its duty schedule, the linear laws, the quadratic MPC and the paper's
@@ -148,10 +149,13 @@ def default_controllers() -> list[str]:
 def mixed_traffic_controllers(ring: bool = False) -> list[str]:
     """Names of the available controllers that drive strings with human drivers (with ``ring``:
     that also run without a scripted leader), read from their classes' ``drives_mixed`` and
-    ``needs_leader`` (imports their modules: for messages, not for ``list``)."""
+    ``needs_leader``, or a class's ``traits(**fixed)`` (imports their modules: for messages,
+    not for ``list``)."""
     out = []
     for spec in available_controllers():
         cls = _factory(spec)
+        traits = getattr(cls, "traits", None)  # one class for several (the learned policies)
+        cls = cls if traits is None else traits(**spec.fixed)
         if ring and getattr(cls, "needs_leader", False):
             continue
         if not ring and not getattr(cls, "drives_mixed", True):
@@ -227,7 +231,7 @@ def controller_options(name: str) -> dict[str, Any]:
     fields, or its constructor's keyword arguments)."""
     spec = resolve(name)
     factory = _factory(spec)
-    options_of = getattr(factory, "options_of", None)  # a wrapper: its inner's and its own
+    options_of = getattr(factory, "options_of", None)  # a wrapper's, a learned policy's
     if options_of is not None:
         return dict(options_of(**spec.fixed))
     config_cls = getattr(factory, "config_cls", None)

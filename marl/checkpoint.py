@@ -20,18 +20,24 @@ format-1 files (no hash) load only when the whole file's SHA-256 is a shipped on
 
 from __future__ import annotations
 
+import csv
 import dataclasses
 import hashlib
 import io
 import json
 import math
 import re
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 
+from envs.params import EVAL_MODES
 from infra.errors import ConfigError
+
+if TYPE_CHECKING:
+    from marl.training import TrainingKey
 
 FORMAT_VERSION = 2
 #: Format 1: no content hash; read only for the shipped files (by their file digest).
@@ -124,6 +130,83 @@ def write_payload(path: str | Path, payload: dict[str, Any], atomic: bool = True
         write_with(path, lambda tmp: save_to_file(payload, tmp))
     else:
         save_to_file(payload, path)
+
+
+#: Validation numbers a learning curve records per evaluation mode (``eval_<key>_<mode>``).
+CURVE_EVAL_KEYS: tuple[str, ...] = ("reward", "collisions")
+#: The columns of a learning curve (``<stem>.curve.csv``), every learner's: the episodes and
+#: environment steps so far, the learner's own (possibly shaped) training reward, and per
+#: evaluation mode the validation reward and collisions; a cell is empty where not measured (a
+#: shared-policy learner records no episode or training reward, and validates sampled actions
+#: only). Curves written before hold ``steps,validation_reward,validation_collisions``.
+CURVE_COLUMNS: tuple[str, ...] = ("episode", "steps", "train_reward", *(
+    f"eval_{k}_{m}" for m in EVAL_MODES for k in CURVE_EVAL_KEYS))
+
+
+def write_run(out: Path, stem: str, curve: Sequence[dict[str, float]],
+              checkpoints: dict[str, dict[str, Any]]) -> None:
+    """Write a finished run's files together: ``<stem>.curve.csv`` (:data:`CURVE_COLUMNS`) and
+    each checkpoint (``suffix -> payload``: ``.final.pt``, ``.pt``), each to a temporary file,
+    then all renamed (:class:`infra.atomic.StagedFiles`): an interrupted or failed run leaves the
+    files of an earlier run byte for byte as they were."""
+    from infra.atomic import StagedFiles
+
+    def write_curve(path: Path) -> None:
+        with open(path, "w", newline="") as fh:
+            w = csv.writer(fh)
+            w.writerow(CURVE_COLUMNS)
+            for row in curve:
+                cells = [row.get(k, math.nan) for k in CURVE_COLUMNS]
+                w.writerow(["" if math.isnan(v) else f"{v:.0f}" if k < 2 else f"{v:.4f}"
+                            for k, v in enumerate(cells)])
+
+    out.mkdir(parents=True, exist_ok=True)
+    with StagedFiles() as staged:
+        staged.write_with(out / f"{stem}.curve.csv", write_curve)
+        for suffix, payload in checkpoints.items():
+            staged.write_with(out / f"{stem}{suffix}", _writer(payload))
+        staged.commit()
+
+
+def _writer(payload: dict[str, Any]) -> Callable[[Path], None]:
+    return lambda tmp: write_payload(tmp, payload, atomic=False)
+
+
+def finished(key: TrainingKey) -> bool:
+    """Whether the run of ``key`` (one seed) finished in its folder with the same config,
+    budget, arithmetic and energy model; a damaged file, or a finished run of another setting,
+    is a ConfigError saying what to do (``--resume`` never trains over a finished run)."""
+    from marl.arithmetic import of_summary
+
+    (seed,) = key.seeds
+    path = key.finished_file(seed)
+    if not path.exists():
+        return False
+    try:  # verified: a damaged or truncated file is refused, naming what to do
+        data = load_checkpoint(path, algo=key.algo, n_vehicles=key.n_vehicles,
+                               scenario=key.scenario.id)
+    except ConfigError as exc:
+        raise ConfigError(f"{exc} (or remove {path} to train this run again)") from None
+    want, got, summary = key.stored_config(), data["config"], data["curve_summary"]
+    diff = sorted(k for k in {*want, *got} if got.get(k) != want.get(k))
+    budget = summary.get("budget_steps")  # the shared learners record it; the others stop past it
+    why = (f"config fields {', '.join(diff)} differ" if diff
+           else f"budget {budget:.0f} steps, not {key.steps}" if budget not in (None, key.steps)
+           else f"{data['steps']} steps, fewer than the {key.steps} asked"
+           if budget is None and data["steps"] < key.steps else "")
+    again = "use another --out, or remove it to train again"
+    if why:
+        raise ConfigError(f"{path} holds a finished run of another config or budget ({why}); "
+                          f"--resume never trains over it: {again}")
+    if of_summary(summary) != key.arithmetic:
+        raise ConfigError(f"{path} holds a run trained with {of_summary(summary)} arithmetic, "
+                          f"not {key.arithmetic} (--arithmetic); {again}")
+    if not same_energy_model(data):
+        raise ConfigError(
+            f"{path} holds a run trained with another energy model (fingerprint "
+            f"{data.get('energy_model')}, this cacc-bench's is {energy_model_id()}: its reward "
+            f"differs); {again}")
+    return True
 
 
 def save_to_file(payload: dict[str, Any], path: str | Path) -> None:

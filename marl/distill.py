@@ -18,7 +18,7 @@ command space over the squash's slope at zero, ``h`` (so "actions as trained" ar
 Gaussian; the maximum-likelihood value in ``z`` is dominated by the few labels at the bounds,
 where ``atanh`` diverges). It is the
 reference of what this network can represent, and of how fast a learned controller is beside
-the solver it copies. The expert comes from the layer above (:mod:`commands.train_shared`
+the solver it copies. The expert comes from the layer above (:func:`commands.train.model_expert`
 builds ``mpc``): here it is any ``make_expert(env) -> act(state) -> (B, N) commands``.
 """
 
@@ -35,12 +35,18 @@ import torch
 from envs.channel import ChannelConfig
 from envs.params import PlatoonParams
 from envs.platoon import PlatoonEnv, PlatoonState
-from envs.scenarios import check_vehicles, make_scenario
+from envs.scenarios import Scenario, as_scenario, check_vehicles
 from infra.errors import ConfigError
 from infra.limits import training_episode_seeds
-from marl.ppo import PPOResult
-from marl.ppo_eval import agent_inputs, as_shipped, check_finite_weights, validation_score
-from marl.ppo_nets import PPOConfig, SharedActor, check_learning_rate
+from marl.acting import agent_inputs
+from marl.ppo import Evaluator, PPOResult, validation
+from marl.ppo_nets import (
+    PPOConfig,
+    SharedActor,
+    as_shipped,
+    check_finite_weights,
+    check_learning_rate,
+)
 
 #: ``make_expert(env)`` after ``env.reset(seeds)``: the expert's ``act(state) -> (B, N)``.
 ExpertFactory = Callable[[PlatoonEnv], Callable[[PlatoonState], np.ndarray]]
@@ -95,21 +101,22 @@ class DistillConfig:
 
 
 def distill(
-    scenario: str,
+    scenario: str | Scenario,
     make_expert: ExpertFactory,
     n_vehicles: int = 8,
     seed: int = 0,
     config: DistillConfig = DistillConfig(),
     params: PlatoonParams = PlatoonParams(),
     log: Callable[[str], None] | None = None,
+    evaluate: Evaluator | None = None,
 ) -> PPOResult:
     """Distil the expert into the shared actor on ``scenario`` with N followers.
 
     Returns the round whose actor has the fewest validation collisions, then the best validation
-    reward (actions sampled as trained), as :class:`marl.ppo.PPOResult` (``steps``: environment
-    steps collected).
+    reward (actions sampled as trained, scored by ``evaluate``), as :class:`marl.ppo.PPOResult`
+    (``steps``: environment steps collected); the last round when ``evaluate`` is None.
     """
-    cfg, sc = config, make_scenario(scenario)
+    cfg, sc = config, as_scenario(scenario)
     n = check_vehicles(n_vehicles)
     torch.manual_seed(int(seed))
     gen = torch.Generator().manual_seed(int(seed))
@@ -156,7 +163,10 @@ def distill(
         check_finite_weights((actor,), f"distill {cfg.expert} on {sc.id}, seed {seed}",
                              f"round {rnd}")
         shipped = as_shipped(actor)
-        score = validation_score(shipped, sc.id, n, params, actor_cfg)
+        if evaluate is None:
+            best_state = shipped.state_dict()
+            continue
+        score = validation(evaluate, shipped)
         curve.append({"steps": float(steps), **score})
         if log:
             log(f"distill {cfg.expert} {sc.id} seed {seed}: round {rnd} ({len(data_u)} labels), "

@@ -1,26 +1,30 @@
 """The one registry of learning algorithms: every list of learners anywhere derives from it.
 
-An entry names the algorithm, its family (which training loop trains it), where its config and
-its training entry point live, the controller that acts with its checkpoints, whether it has one
-network per follower, what it sends over V2V and a line for ``cacc-bench list``. This module
-imports nothing heavy (no torch), so the controller registry and ``cacc-bench list`` read it
-without loading a learner.
+An entry names the algorithm, its family (which training loop trains it), its config class, the
+module that trains it, the class that acts with its checkpoints (every learned policy is the
+one controller :class:`controllers.policy.PolicyController`; what differs is its acting class in
+:mod:`marl.acting`), whether it has one network per follower, what it sends over V2V and a line
+for ``cacc-bench list``. This module imports nothing heavy (no torch), so the controller
+registry and ``cacc-bench list`` read it without loading a learner (:func:`load` imports what
+an entry names, when it is needed).
 
 Families:
 
 - ``a2c``: the paper's seven algorithms, one file each under ``marl/`` (its ``ALGORITHM`` record),
-  trained by :mod:`marl.a2c` (one per-agent actor-critic per follower) and acted by
-  :class:`controllers.policy.PolicyController`;
+  trained by :mod:`marl.a2c` (one per-agent actor-critic per follower), acting through
+  :class:`marl.acting.PaperActing`;
 - ``ppo``: the acceleration-action learners of :mod:`marl.ppo` (one policy shared by every
-  follower, or one per follower for ``ippo-bdc``), acted by
-  :class:`controllers.shared_policy.SharedPolicyController`;
-- ``distill``: the shared actor fitted to ``mpc`` by :mod:`marl.distill`, acted as the ``ppo``
+  follower), and :mod:`marl.ippo_bdc` (one per follower, its update overridden), acting
+  through :class:`marl.acting.SharedActing`;
+- ``distill``: the shared actor fitted to ``mpc`` by :mod:`marl.distill`, acting as the ``ppo``
   family's.
 """
 
 from __future__ import annotations
 
+import importlib
 from dataclasses import dataclass
+from typing import Any
 
 #: The training families, in the order above.
 LEARNER_FAMILIES: tuple[str, ...] = ("a2c", "ppo", "distill")
@@ -39,11 +43,14 @@ class LearnerSpec:
         What ``--algo`` and ``--controllers`` take.
     family : str
         One of :data:`LEARNER_FAMILIES`: the loop that trains it.
+    config : str
+        ``module:Class`` of its config (the fields ``--set`` takes).
     module : str
-        The module that defines it (its config and networks; for the ``a2c`` family, its
-        ``ALGORITHM`` record).
+        The module that trains it (for the ``a2c`` family, its ``ALGORITHM`` record; for the
+        ``ppo`` family, its ``TRAINER`` class).
     acting : str
-        ``module:Class`` of the controller that acts with its checkpoints.
+        ``module:Class`` of the acting class (:mod:`marl.acting`) the one policy controller
+        acts with its checkpoints through.
     per_agent : bool
         One network per follower (it acts at its trained N only).
     v2v : str
@@ -54,6 +61,7 @@ class LearnerSpec:
 
     name: str
     family: str
+    config: str
     module: str
     acting: str
     per_agent: bool
@@ -61,16 +69,20 @@ class LearnerSpec:
     description: str
 
 
-def _paper(name: str) -> LearnerSpec:
+def _paper(name: str, config: str) -> LearnerSpec:
     return LearnerSpec(
-        name, "a2c", f"marl.{name}", "controllers.policy:PolicyController", True,
+        name, "a2c", f"marl.{name}:{config}", f"marl.{name}", "marl.acting:PaperActing", True,
         _PAPER_V2V,
         f"trained {name} policy (shipped checkpoint; actions sampled, mode=greedy for argmax)")
 
 
+_PPO_CONFIG = "marl.ppo_nets:PPOConfig"
+_SHARED_ACTING = "marl.acting:SharedActing"
+
+
 def _ppo_shared(name: str, critic: str) -> LearnerSpec:
     return LearnerSpec(
-        name, "ppo", "marl.ppo", "controllers.shared_policy:SharedPolicyController", False,
+        name, "ppo", _PPO_CONFIG, "marl.ppo", _SHARED_ACTING, False,
         f"accel mode: {_ACCEL_V2V}; ovm-gain mode: neighbour blocks",
         f"one policy shared by every follower (PPO, {critic}), any N; acceleration actions by "
         "default (shipped N = 8 checkpoint; actions sampled, mode=greedy for the mode)")
@@ -79,18 +91,20 @@ def _ppo_shared(name: str, critic: str) -> LearnerSpec:
 #: Every learning algorithm, by name, in the order ``cacc-bench list`` and the reports show them:
 #: the paper's seven in its order, then the shared-policy learners.
 LEARNERS: dict[str, LearnerSpec] = {s.name: s for s in (
-    *(_paper(n) for n in ("ia2c", "fprint", "dial", "commnet", "wac", "dcea", "bdc")),
+    *(_paper(n, c) for n, c in (("ia2c", "IA2CConfig"), ("fprint", "FPrintConfig"),
+                                ("dial", "DIALConfig"), ("commnet", "CommNetConfig"),
+                                ("wac", "WACConfig"), ("dcea", "DCEAConfig"),
+                                ("bdc", "BDCConfig"))),
     _ppo_shared("ippo", "a critic of its own observation"),
     _ppo_shared("mappo", "a centralised critic (its observation and the platoon's mean)"),
     LearnerSpec(
-        "distill", "distill", "marl.distill",
-        "controllers.shared_policy:SharedPolicyController", False, _ACCEL_V2V,
+        "distill", "distill", "marl.distill:DistillConfig", "marl.distill", _SHARED_ACTING,
+        False, _ACCEL_V2V,
         "the shared actor trained by imitation of mpc (behaviour cloning, then DAgger on "
         "training seeds), any N (shipped N = 8 checkpoint; actions sampled from the fitted "
         "Gaussian, mode=greedy for its mean)"),
     LearnerSpec(
-        "ippo-bdc", "ppo", "marl.ppo",
-        "controllers.shared_policy:SharedPolicyController", True,
+        "ippo-bdc", "ppo", _PPO_CONFIG, "marl.ippo_bdc", _SHARED_ACTING, True,
         f"{_ACCEL_V2V}; in training, the critics' sign patterns to the front and rear neighbours",
         "BDC-MARL's consensus on the acceleration-action learner: an actor and critic per "
         "follower, critics agreeing by binary differential consensus, QSGD critic gradients "
@@ -108,8 +122,13 @@ def learners(*families: str) -> tuple[str, ...]:
 PAPER_ALGORITHMS: tuple[str, ...] = learners("a2c")
 #: The learners of :mod:`marl.ppo` (the ``ppo`` family).
 PPO_LEARNERS: tuple[str, ...] = learners("ppo")
-#: The learners that :class:`controllers.shared_policy.SharedPolicyController` acts for and the
-#: shared-policy trainer trains (the ``ppo`` and ``distill`` families).
+#: The shared-policy learners (the ``ppo`` and ``distill`` families).
 SHARED_LEARNERS: tuple[str, ...] = learners("ppo", "distill")
 #: Those shared-policy learners with one network per follower (they act at their trained N).
 PER_AGENT_SHARED: tuple[str, ...] = tuple(n for n in SHARED_LEARNERS if LEARNERS[n].per_agent)
+
+
+def load(ref: str) -> Any:
+    """What a ``module:Name`` reference of an entry names (imports the module)."""
+    module, _, name = ref.partition(":")
+    return getattr(importlib.import_module(module), name)

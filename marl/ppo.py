@@ -1,10 +1,11 @@
 """IPPO and MAPPO with one policy shared by every follower, in either action mode.
 
-Read top to bottom, as CleanRL's ``ppo_continuous_action.py`` reads: the rollout, the returns
-(GAE), the clipped PPO loss and the update. The config and the networks are in
-:mod:`marl.ppo_nets`, acting, validation and loading in :mod:`marl.ppo_eval` (what the
-controller imports without the trainer). What is this project's own, and why it is written here rather than taken from a
-library, is in ``docs/notes/marl-library-choice.md``.
+Read top to bottom, as CleanRL's ``ppo_continuous_action.py`` reads: the config and the networks
+(:mod:`marl.ppo_nets`), then here the training world, the rollout, the returns (GAE), the
+clipped PPO loss and the update, each a method of :class:`PPOTrainer` in that order. ``ippo-bdc``
+differs only in its update (a network per follower, compressed critic gradients, consensus):
+its own file, :mod:`marl.ippo_bdc`, overrides those steps. What is this project's own, and why
+it is written here rather than taken from a library, is in ``docs/notes/marl-library-choice.md``.
 
 - **Shared policy**: one actor for all followers; each agent's observation carries its position
   (first, last, ``i / N``: :func:`envs.accel_mode.position_features`), so one checkpoint acts at
@@ -22,18 +23,22 @@ library, is in ``docs/notes/marl-library-choice.md``.
   optimum, a centred value), divided by the running standard deviation of the discounted return
   and clipped to +-10 (Stable-Baselines3's and CleanRL's reward normalisation; the quadratic
   costs of a platoon drifting apart are unbounded otherwise). Observations are normalised by
-  running statistics kept in the actor (frozen in the checkpoint). A collision ends the episode with the
-  collision penalty at every remaining scheduled step, discounted (the absorbing value of
-  ``marl.a2c``), so ending early never pays; the time limit is a truncation (bootstrapped).
+  running statistics kept in the actor (frozen in the checkpoint). A collision ends the episode
+  with the collision penalty at every remaining scheduled step, discounted (the absorbing value
+  of ``marl.a2c``), so ending early never pays; the time limit is a truncation (bootstrapped).
+- **Domain randomisation** (:attr:`marl.ppo_nets.PPOConfig.randomised`): each batch of episodes
+  may draw its N, its V2V delay and loss, its scenario (``scenarios``, a comma list) and its share of
+  automated followers with a random placement (``cav_share_min``..``cav_share_max``: the
+  other seats are human drivers, :mod:`envs.humans`). Human seats take no command, so their
+  agent-steps enter neither the loss nor the statistics.
 - **Determinism**: every random number comes from the run's ``torch.Generator`` (the action
-  noise, minibatch order, initial weights) and the training episodes' seeds from the run's seed,
-  so a seed gives the same weights, on one thread count.
+  noise, minibatch order, initial weights, the batches' draws) and the training episodes'
+  seeds from the run's seed, so a seed gives the same weights, on one thread count.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
 import time
 from collections.abc import Callable
@@ -46,22 +51,23 @@ from torch import nn
 from envs.channel import ChannelConfig
 from envs.params import PlatoonParams
 from envs.platoon import PlatoonEnv
-from envs.scenarios import check_vehicles, make_scenario
+from envs.scenarios import Scenario, as_scenario, check_vehicles, make_scenario, parse_scenarios
 from infra.errors import ConfigError
-from infra.limits import MAX_ROLLOUT_AGENT_STEPS, training_episode_seeds
-from marl.consensus import bdc, consensus_round
-from marl.ppo_eval import (
-    agent_inputs,
-    as_shipped,
-    check_finite_weights,
-    to_command,
-    validation_score,
-)
-from marl.ppo_nets import Critic, PPOConfig, SharedActor
-from marl.quantize import ErrorFeedbackQSGD, qsgd_bits, ternary_bits
+from infra.limits import MAX_ROLLOUT_AGENT_STEPS, MAX_SEED, training_episode_seeds
+from marl.acting import agent_inputs, to_command
+from marl.ppo_nets import Critic, PPOConfig, SharedActor, as_shipped, check_finite_weights
+
+#: Scores a policy on the validation seeds: ``(actor, mode) -> {"reward", "collisions", ...}``
+#: (:func:`benchmark.policy_eval.validation_evaluator`, given by the layer above).
+Evaluator = Callable[[SharedActor, str], dict[str, float]]
 
 
-# ---------------------------------------------------------------------------- training
+def validation(evaluate: Evaluator, actor: SharedActor) -> dict[str, float]:
+    """The validation reward and collisions of ``actor``, actions sampled as trained."""
+    score = evaluate(actor, "sampled")
+    return {"reward": float(score["reward"]), "collisions": float(score["collisions"])}
+
+
 @dataclass
 class PPOResult:
     """What :func:`train` returns: the kept actor (acting weights), its validation score, the
@@ -76,132 +82,196 @@ class PPOResult:
     bits_per_agent: dict[str, float] = dataclasses.field(default_factory=dict)
 
 
-def train(
-    scenario: str,
-    n_vehicles: int = 8,
-    seed: int = 0,
-    total_steps: int = 1_000_000,
-    config: PPOConfig = PPOConfig(),
-    params: PlatoonParams = PlatoonParams(),
-    log: Callable[[str], None] | None = None,
-    validate: bool = True,
-) -> PPOResult:
-    """Train one shared policy on ``scenario`` with N followers for ``total_steps`` environment
-    steps (one step of one episode each).
+# ---------------------------------------------------------------------------- the world
+@dataclass
+class World:
+    """The road one batch of training episodes runs on: its env (scenario, N, V2V, humans),
+    the reward sharing over its N, the cruise-power baseline and its automated seats."""
 
-    Returns the snapshot with the fewest validation collisions, then the best validation reward
-    (actions sampled as trained), or the last one when ``validate`` is False.
-    """
-    cfg, sc = config, make_scenario(scenario)
-    n = check_vehicles(n_vehicles)
-    rollout = cfg.n_envs * cfg.rollout_steps  # environment steps per update
-    if rollout * max(n, cfg.vehicles_max) > MAX_ROLLOUT_AGENT_STEPS:
-        raise ConfigError(f"one rollout of n_envs x rollout_steps x N = {cfg.n_envs} x "
-                          f"{cfg.rollout_steps} x {max(n, cfg.vehicles_max)} agent-steps exceeds "
-                          f"{MAX_ROLLOUT_AGENT_STEPS:,}; lower n_envs or rollout_steps")
-    if rollout > total_steps:
-        raise ConfigError(f"one rollout is n_envs x rollout_steps = {rollout:,} environment "
-                          f"steps, more than the {total_steps:,} asked (--steps); raise --steps "
-                          "or lower n_envs or rollout_steps")
-    gen = torch.Generator().manual_seed(int(seed))
-    torch.manual_seed(int(seed))  # nn.init draws from the global generator
-    n_agents = n if cfg.per_agent else 0
-    actor, critic = SharedActor(cfg, params, n_agents), Critic(cfg, n_agents)
-    bits = {"consensus": 0.0, "qsgd_local": 0.0}  # per agent, ippo-bdc
-    qsgd = ErrorFeedbackQSGD(max(cfg.qsgd_levels, 1), gen, cfg.qsgd_bucket)
-    opt = torch.optim.Adam([*actor.parameters(), *critic.parameters()], lr=cfg.lr, eps=1e-5)
-    def make_env(n_b: int, delay_s: float, loss: float) -> PlatoonEnv:
-        return PlatoonEnv(sc, n_b, params, training=True, action_mode=cfg.action_mode,
-                          channel=ChannelConfig(delay_s, loss, params.dt_s))
+    env: PlatoonEnv
+    n: int
+    sharing: torch.Tensor   # (N, N): agent i learns from sum_j alpha^|i-j| r_j
+    baseline: float         # minus the power weight times the cruise power P(v*, 0)
+    automated: torch.Tensor  # (N,) bool: seats the policy drives
 
-    env = make_env(n, cfg.comm_delay_s, cfg.packet_loss)
-    targets = (sc.target_gap_m, sc.target_speed_mps)
-    p0 = float(env.power(np.array([sc.target_speed_mps]), np.array([0.0]))[0])
-    baseline = -env.weights.power * p0  # the cruise power's constant part, per running agent-step
-    b, t_len = cfg.n_envs, cfg.rollout_steps
-    episode = 0
+    @property
+    def targets(self) -> tuple[float, float]:
+        """The scenario's target gap (m) and speed (m/s): a prior's targets."""
+        sc = self.env.scenario
+        return sc.target_gap_m, sc.target_speed_mps
 
-    def sharing_of(n_b: int) -> torch.Tensor:
-        idx_n = torch.arange(n_b, dtype=torch.float32)
-        return cfg.reward_alpha ** (idx_n[:, None] - idx_n[None, :]).abs()  # (N, N)
 
-    sharing = sharing_of(n)
-    n_now = n                                          # followers of the batch running now
-    ret_acc = torch.zeros(b, n, dtype=torch.float64)   # discounted return so far, per agent
-    ret_stats = [1e-4, 0.0, 1.0]                       # count, mean, var of those returns
+class RewardScale:
+    """The running standard deviation of the discounted return of the live agent-steps
+    (Stable-Baselines3's ``VecNormalize`` reward; Chan et al.'s parallel update)."""
 
-    def new_episodes() -> torch.Tensor:
-        nonlocal episode, env, n_now, sharing, ret_acc
-        seeds = training_episode_seeds(seed, episode, b)
-        episode += b
-        if cfg.randomised:  # this batch's N and V2V, from the run's generator
-            n_lo, n_hi = cfg.vehicles_min or n, cfg.vehicles_max or n
-            if n_lo > n_hi:
-                raise ConfigError(f"the vehicles range {n_lo}..{n_hi} is empty")
-            n_now = n_lo + int(torch.randint(n_hi - n_lo + 1, (1,), generator=gen))
-            steps_hi = round(max(cfg.comm_delay_max_s, cfg.comm_delay_s) / params.dt_s)
-            steps_lo = round(cfg.comm_delay_s / params.dt_s)
-            delay = params.dt_s * (steps_lo + int(torch.randint(
-                steps_hi - steps_lo + 1, (1,), generator=gen)))
-            loss_hi = max(cfg.packet_loss_max, cfg.packet_loss)
-            loss = cfg.packet_loss + (loss_hi - cfg.packet_loss) * float(
-                torch.rand(1, generator=gen, dtype=torch.float64))
-            env = make_env(n_now, delay, loss)
-            sharing = sharing_of(n_now)
-            ret_acc = torch.zeros(b, n_now, dtype=torch.float64)
-        ret_acc.zero_()
-        return torch.from_numpy(agent_inputs(env.reset(seeds), cfg.action_mode))
+    def __init__(self, gamma: float) -> None:
+        self.gamma = gamma
+        self.count, self.mean, self.var = 1e-4, 0.0, 1.0
+        self.returns = torch.zeros(0, dtype=torch.float64)
 
-    def reward_std(reward: torch.Tensor, live: torch.Tensor) -> float:
-        """Update the running variance of the discounted return with this step's rewards."""
-        ret_acc.mul_(cfg.gamma).add_(reward.double())
-        x = ret_acc[live]
+    def reset(self, b: int, n: int) -> None:
+        """New episodes: ``(B, N)`` returns from zero."""
+        self.returns = torch.zeros(b, n, dtype=torch.float64)
+
+    def __call__(self, reward: torch.Tensor, live: torch.Tensor) -> float:
+        """Add this step's rewards, merge the live returns (``live``: ``(B,)`` or ``(B, N)``)
+        into the statistics, return the standard deviation."""
+        self.returns.mul_(self.gamma).add_(reward.double())
+        x = self.returns[live]
         if len(x):
-            n_a, mean_a, var_a = ret_stats
             n_b, mean_b, var_b = float(x.numel()), float(x.mean()), float(x.var(unbiased=False))
-            tot = n_a + n_b
-            delta = mean_b - mean_a
-            ret_stats[:] = [tot, mean_a + delta * n_b / tot,
-                            (var_a * n_a + var_b * n_b + delta**2 * n_a * n_b / tot) / tot]
-        return math.sqrt(ret_stats[2] + 1e-8)
+            tot = self.count + n_b
+            delta = mean_b - self.mean
+            self.var = (self.var * self.count + var_b * n_b
+                        + delta**2 * self.count * n_b / tot) / tot
+            self.mean, self.count = self.mean + delta * n_b / tot, tot
+        return math.sqrt(self.var + 1e-8)
 
-    obs = new_episodes()
-    steps, updates, next_eval = 0, 0, 0
-    curve: list[dict[str, float]] = []
-    best: dict[str, float] = {}
-    best_state = as_shipped(actor).state_dict()
-    n_updates = max(1, math.ceil(total_steps / (b * t_len)))
-    d = cfg.obs_dim
-    t0 = time.perf_counter()
-    while steps < total_steps:
-        if validate and steps >= next_eval:
-            shipped = as_shipped(actor)
-            score = validation_score(shipped, sc, n, params, cfg)
-            curve.append({"steps": float(steps), **score})
-            if not best or (score["collisions"], -score["reward"]) <= (best["collisions"], -best["reward"]):
-                best = {"steps": float(steps), **score}
-                best_state = shipped.state_dict()
-            if log:
-                log(f"{cfg.algo} {sc.id} seed {seed}: {steps} steps, validation reward "
-                    f"{score['reward']:.1f}, collisions {score['collisions']:.0f}")
-            next_eval += cfg.eval_every_steps
-        # ---- rollout: T steps of B episodes (fewer where a randomised batch ends)
-        n_r = n_now
-        buf_obs = torch.zeros(t_len, b, n_r, d)
-        buf_cobs = torch.zeros(t_len, b, n_r, d * (2 if critic.central else 1) + critic.timed)
-        buf_act = torch.zeros(t_len, b, n_r)
-        buf_logp = torch.zeros(t_len, b, n_r)
-        buf_val = torch.zeros(t_len + 1, b, n_r)
-        buf_rew = torch.zeros(t_len, b, n_r)
-        buf_live = torch.zeros(t_len, b)     # the step belongs to a running episode
-        buf_cont = torch.zeros(t_len, b)     # the episode goes on after the step
-        buf_term_value = torch.zeros(t_len, b, n_r)  # value after an ending: absorbing or bootstrap
+
+@dataclass
+class Rollout:
+    """``T`` steps of ``B`` episodes of ``N`` agents (T shorter where a randomised batch ended)."""
+
+    obs: torch.Tensor         # (T, B, N, D) normalised observations
+    critic_obs: torch.Tensor  # (T, B, N, D') the critic's inputs
+    action: torch.Tensor      # (T, B, N)
+    logp: torch.Tensor        # (T, B, N)
+    value: torch.Tensor       # (T + 1, B, N)
+    reward: torch.Tensor      # (T, B, N) normalised, clipped
+    live: torch.Tensor        # (T, B, N) bool: a running episode's automated seat
+    cont: torch.Tensor        # (T, B) the episode goes on after the step
+    end_value: torch.Tensor   # (T, B, N) value after an ending: absorbing or bootstrap
+
+    def cut(self, t_len: int) -> Rollout:
+        """The first ``t_len`` steps (every episode ended at the last of them)."""
+        fields = {f.name: getattr(self, f.name)[: t_len + (f.name == "value")]
+                  for f in dataclasses.fields(self)}
+        return Rollout(**fields)
+
+
+# ---------------------------------------------------------------------------- the trainer
+class PPOTrainer:
+    """One run: the networks, the training world, and the loop (rollout, returns, update).
+
+    Parameters
+    ----------
+    scenario : Scenario
+        The run's scenario (validation's and the checkpoint's; the training batches draw
+        from ``config.scenarios`` when it names others).
+    n_vehicles, seed, total_steps : int
+        The run's N (the batches' N where not randomised), seed and environment steps.
+    config : PPOConfig
+    params : PlatoonParams
+    """
+
+    def __init__(self, scenario: Scenario, n_vehicles: int, seed: int, total_steps: int,
+                 config: PPOConfig, params: PlatoonParams = PlatoonParams()) -> None:
+        cfg = self.cfg = config
+        self.sc, self.params = scenario, params
+        self.n, self.seed, self.total_steps = check_vehicles(n_vehicles), int(seed), total_steps
+        roads = self.roads = parse_scenarios(cfg.scenarios) if cfg.scenarios else [scenario]
+        rollout = cfg.n_envs * cfg.rollout_steps  # environment steps per update
+        widest = max([self.n, cfg.vehicles_max] + [s.default_vehicles for s in roads if s.ring])
+        if rollout * widest > MAX_ROLLOUT_AGENT_STEPS:
+            raise ConfigError(f"one rollout of n_envs x rollout_steps x N = {cfg.n_envs} x "
+                              f"{cfg.rollout_steps} x {widest} agent-steps exceeds "
+                              f"{MAX_ROLLOUT_AGENT_STEPS:,}; lower n_envs or rollout_steps")
+        if rollout > total_steps:
+            raise ConfigError(f"one rollout is n_envs x rollout_steps = {rollout:,} environment "
+                              f"steps, more than the {total_steps:,} asked (--steps); raise "
+                              "--steps or lower n_envs or rollout_steps")
+        self.gen = torch.Generator().manual_seed(self.seed)
+        torch.manual_seed(self.seed)  # nn.init draws from the global generator
+        n_agents = self.n if cfg.per_agent else 0
+        self.actor, self.critic = SharedActor(cfg, params, n_agents), Critic(cfg, n_agents)
+        self.setup()
+        self.opt = torch.optim.Adam([*self.actor.parameters(), *self.critic.parameters()],
+                                    lr=cfg.lr, eps=1e-5)
+        self.world = self.make_world(scenario, self.n, cfg.comm_delay_s, cfg.packet_loss)
+        self.scale = RewardScale(cfg.gamma)
+        self.scale.reset(cfg.n_envs, self.n)
+        self.episode = self.steps = self.updates = 0
+        self.obs = self.new_episodes()
+        self.curve: list[dict[str, float]] = []  # validations: steps, reward, collisions
+        self.best: dict[str, float] = {}  # the kept snapshot's validation
+        self.best_state: dict[str, torch.Tensor] = {}
+
+    def setup(self) -> None:
+        """What a learner adds before its optimiser (``ippo-bdc``: its compressor)."""
+
+    # ---- the world each batch of episodes runs on
+    def make_world(self, sc: Scenario, n: int, delay_s: float, loss: float) -> World:
+        """The env and what the rewards read for ``sc`` with ``n`` followers."""
+        env = PlatoonEnv(sc, n, self.params, training=True, action_mode=self.cfg.action_mode,
+                         channel=ChannelConfig(delay_s, loss, self.params.dt_s))
+        idx = torch.arange(n, dtype=torch.float32)
+        sharing = self.cfg.reward_alpha ** (idx[:, None] - idx[None, :]).abs()
+        p0 = float(env.power(np.array([sc.target_speed_mps]), np.array([0.0]))[0])
+        automated = torch.from_numpy(np.asarray(sc.arrangement(n).automated, dtype=bool))
+        return World(env, n, sharing, -env.weights.power * p0, automated)
+
+    def draw_world(self) -> World:
+        """This batch's road, from the run's generator: its scenario, N, V2V and automated
+        seats (in that order; each draw only where the config randomises it)."""
+        cfg, gen, dt = self.cfg, self.gen, self.params.dt_s
+        n_lo, n_hi = cfg.vehicles_min or self.n, cfg.vehicles_max or self.n
+        if n_lo > n_hi:
+            raise ConfigError(f"the vehicles range {n_lo}..{n_hi} is empty")
+        n = n_lo + int(torch.randint(n_hi - n_lo + 1, (1,), generator=gen))
+        steps_lo = round(cfg.comm_delay_s / dt)
+        steps_hi = round(max(cfg.comm_delay_max_s, cfg.comm_delay_s) / dt)
+        delay = dt * (steps_lo + int(torch.randint(steps_hi - steps_lo + 1, (1,), generator=gen)))
+        loss_hi = max(cfg.packet_loss_max, cfg.packet_loss)
+        loss = cfg.packet_loss + (loss_hi - cfg.packet_loss) * float(
+            torch.rand(1, generator=gen, dtype=torch.float64))
+        sc = self.sc
+        if cfg.scenarios:
+            sc = self.roads[int(torch.randint(len(self.roads), (1,), generator=gen))]
+        if sc.ring:
+            n = sc.default_vehicles
+        if cfg.mixed_traffic:
+            share = cfg.cav_share_min + (cfg.cav_share_max - cfg.cav_share_min) * float(
+                torch.rand(1, generator=gen, dtype=torch.float64))
+            placement_seed = int(torch.randint(MAX_SEED + 1, (1,), generator=gen))
+            sc = make_scenario(sc.label, cav_fraction=share, placement="random",
+                               placement_seed=placement_seed)
+        return self.make_world(sc, n, delay, loss)
+
+    def new_episodes(self) -> torch.Tensor:
+        """Start the next ``B`` training episodes (a newly drawn world where randomised);
+        their observations."""
+        b = self.cfg.n_envs
+        seeds = training_episode_seeds(self.seed, self.episode, b)
+        self.episode += b
+        if self.cfg.randomised:
+            self.world = self.draw_world()
+        self.scale.reset(b, self.world.n)
+        obs = self.world.env.reset(seeds)
+        return torch.from_numpy(agent_inputs(obs, self.cfg.action_mode))
+
+    # ---- rollout: T steps of B episodes (fewer where a randomised batch ends)
+    def collect(self) -> Rollout:
+        """Act in the world for up to ``rollout_steps`` steps, recording what the update
+        needs; new episodes start where all end."""
+        cfg, actor, critic, gen = self.cfg, self.actor, self.critic, self.gen
+        w = self.world
+        env, n_r, b, t_len, d = w.env, w.n, cfg.n_envs, cfg.rollout_steps, cfg.obs_dim
+        ro = Rollout(
+            obs=torch.zeros(t_len, b, n_r, d),
+            critic_obs=torch.zeros(t_len, b, n_r, d * (2 if critic.central else 1) + critic.timed),
+            action=torch.zeros(t_len, b, n_r), logp=torch.zeros(t_len, b, n_r),
+            value=torch.zeros(t_len + 1, b, n_r), reward=torch.zeros(t_len, b, n_r),
+            live=torch.zeros(t_len, b, n_r, dtype=torch.bool), cont=torch.zeros(t_len, b),
+            end_value=torch.zeros(t_len, b, n_r))
+        obs = self.obs
         for t in range(t_len):
             s = env.state
             assert s is not None
-            live = ~s.done
+            live = torch.from_numpy(~s.done)
+            live_seats = live[:, None] & w.automated[None, :]
             with torch.no_grad():
-                actor.update_obs_stats(obs[torch.from_numpy(live)])
+                actor.update_obs_stats(obs[live_seats])
                 nobs = actor.normalise(obs)
                 out = actor.policy(nobs)
                 if actor.continuous:
@@ -210,24 +280,22 @@ def train(
                     u = torch.rand(out.shape, generator=gen).clamp_(1e-12, 1.0)
                     action = (out - torch.log(-torch.log(u))).argmax(-1).to(out.dtype)
                 logp, _ = actor.log_prob_entropy(out, action)
-                buf_cobs[t] = critic.inputs(nobs, s.step / env.n_steps)
-                buf_val[t] = critic.body(buf_cobs[t])[..., 0]
-            res = env.step(to_command(actor, action, env.state, env.params, obs.numpy(), targets))
-            buf_obs[t], buf_act[t], buf_logp[t] = nobs, action, logp
-            live_t = torch.from_numpy(live)
-            buf_live[t] = live_t.float()
-            reward = (torch.from_numpy(res.reward.astype(np.float32)) + baseline) * live_t[:, None]
+                ro.critic_obs[t] = critic.inputs(nobs, s.step / env.n_steps)
+                ro.value[t] = critic.body(ro.critic_obs[t])[..., 0]
+            res = env.step(to_command(actor, action, env.state, env.params, obs.numpy(),
+                                      w.targets))
+            ro.obs[t], ro.action[t], ro.logp[t], ro.live[t] = nobs, action, logp, live_seats
+            reward = (torch.from_numpy(res.reward.astype(np.float32)) + w.baseline) * live[:, None]
             if cfg.reward_alpha > 0:
-                reward = reward @ sharing
-            std = reward_std(reward, live_t)
-            buf_rew[t] = (reward / std).clamp_(-cfg.reward_clip, cfg.reward_clip)
-            ended = torch.from_numpy(res.done & live)
-            collided = torch.from_numpy(res.collided & live)
-            buf_cont[t] = (~ended).float()
-            remaining = env.n_steps - s.step
-            absorbing = _absorbing(env.weights.collision, cfg.gamma, remaining) / std
+                reward = reward @ w.sharing
+            std = self.scale(reward, live_seats)
+            ro.reward[t] = (reward / std).clamp_(-cfg.reward_clip, cfg.reward_clip)
+            ended = torch.from_numpy(res.done) & live
+            collided = torch.from_numpy(res.collided) & live
+            ro.cont[t] = (~ended).float()
+            absorbing = _absorbing(env.weights.collision, cfg.gamma, env.n_steps - s.step) / std
             if res.done.all():
-                next_obs = new_episodes()
+                next_obs = self.new_episodes()
                 with torch.no_grad():  # truncated at the time limit: bootstrap from the last
                     # state; a time-aware critic knows the time is up (a finite horizon: 0)
                     last = torch.zeros(b, n_r) if cfg.critic_time else critic(actor.normalise(
@@ -239,109 +307,138 @@ def train(
                 if last is None:
                     with torch.no_grad():
                         last = critic(actor.normalise(next_obs), s.step / env.n_steps)
-                term_value = torch.where(collided[:, None], torch.tensor(absorbing), last)
-                buf_term_value[t] = term_value * ended[:, None]
+                end_value = torch.where(collided[:, None], torch.tensor(absorbing), last)
+                ro.end_value[t] = end_value * ended[:, None]
             obs = next_obs
-            steps += int(live.sum())
+            self.steps += int(live.sum())
             if cfg.randomised and res.done.all() and t + 1 < t_len:
-                t_len_r = t + 1  # the next batch may have another N: this rollout ends here
-                break
-        else:
-            t_len_r = t_len
-            if obs.shape[-2] == n_r:  # else every episode ended at the last step (unread)
-                now = env.state
-                assert now is not None
-                with torch.no_grad():
-                    buf_val[t_len] = critic(actor.normalise(obs), now.step / env.n_steps)
-        if t_len_r < t_len:  # every episode ended at the last step: no value after it is read
-            buf_obs, buf_cobs, buf_act, buf_logp, buf_rew, buf_live, buf_cont, buf_term_value = (
-                x[:t_len_r] for x in (buf_obs, buf_cobs, buf_act, buf_logp, buf_rew, buf_live,
-                                      buf_cont, buf_term_value))
-            buf_val = buf_val[: t_len_r + 1]
-            adv_len = t_len_r
-        else:
-            adv_len = t_len
-        # ---- returns: GAE over the rollout, ended episodes closed by their terminal value
-        adv = torch.zeros(adv_len, b, n_r)
-        last_gae = torch.zeros(b, n_r)
-        for t in reversed(range(adv_len)):
-            cont = buf_cont[t][:, None]
-            next_value = buf_val[t + 1] * cont + buf_term_value[t]
-            delta = buf_rew[t] + cfg.gamma * next_value - buf_val[t]
+                self.obs = obs  # the next batch may be another world: this rollout ends here
+                return ro.cut(t + 1)
+        self.obs = obs
+        if obs.shape[-2] == n_r:  # else every episode ended at the last step (unread)
+            now = self.world.env.state  # new episodes where all ended at the last step
+            assert now is not None
+            with torch.no_grad():
+                ro.value[t_len] = critic(actor.normalise(obs), now.step / env.n_steps)
+        return ro
+
+    # ---- returns: GAE over the rollout, ended episodes closed by their end value
+    def advantages(self, ro: Rollout) -> tuple[torch.Tensor, torch.Tensor]:
+        """GAE advantages and the critic's targets, ``(T, B, N)`` each."""
+        cfg = self.cfg
+        t_len = ro.reward.shape[0]
+        adv = torch.zeros_like(ro.reward)
+        last_gae = torch.zeros(ro.reward.shape[1:])
+        for t in reversed(range(t_len)):
+            cont = ro.cont[t][:, None]
+            next_value = ro.value[t + 1] * cont + ro.end_value[t]
+            delta = ro.reward[t] + cfg.gamma * next_value - ro.value[t]
             last_gae = delta + cfg.gamma * cfg.gae_lambda * cont * last_gae
             adv[t] = last_gae
-        ret = adv + buf_val[:adv_len]
-        # ---- PPO update on the live agent-steps (per agent: live episode-steps of N agents)
-        if cfg.per_agent:
-            keep = buf_live.bool().reshape(-1)
-            flat = [x.reshape(adv_len * b, *x.shape[2:])[keep]
-                    for x in (buf_obs, buf_cobs, buf_act, buf_logp, adv, ret)]
-            mb_rows = max(1, cfg.minibatch_rows // n)
-        else:
-            keep = buf_live.bool()[:, :, None].expand(adv_len, b, n_r).reshape(-1)
-            flat = [x.reshape(-1, *x.shape[3:])[keep]
-                    for x in (buf_obs, buf_cobs, buf_act, buf_logp, adv, ret)]
-            mb_rows = cfg.minibatch_rows
-        f_obs, f_cobs, f_act, f_logp, f_adv, f_ret = flat
-        rows = f_obs.shape[0]
-        frac = 1.0 - updates / n_updates
-        for g in opt.param_groups:
-            g["lr"] = cfg.lr * frac
+        return adv, adv + ro.value[:t_len]
+
+    # ---- loss and update: PPO's clipped objective on the live agent-steps
+    def rows(self, ro: Rollout, adv: torch.Tensor, ret: torch.Tensor
+             ) -> tuple[list[torch.Tensor], int]:
+        """The update's rows (observation, critic input, action, log-prob, advantage, return;
+        one per live automated agent-step) and the rows per minibatch."""
+        keep = ro.live.reshape(-1)
+        return ([x.reshape(-1, *x.shape[3:])[keep]
+                 for x in (ro.obs, ro.critic_obs, ro.action, ro.logp, adv, ret)],
+                self.cfg.minibatch_rows)
+
+    def loss(self, obs: torch.Tensor, critic_obs: torch.Tensor, action: torch.Tensor,
+             logp_old: torch.Tensor, adv: torch.Tensor, ret: torch.Tensor) -> torch.Tensor:
+        """PPO's clipped policy loss, the value loss and the entropy bonus of one minibatch
+        (only the value loss during the critic's warm-up)."""
+        cfg = self.cfg
+        # one row alone is its own mean: a zero advantage (its std would be NaN)
+        adv = (adv - adv.mean()) / ((adv.std() if adv.numel() > 1 else 0.0) + 1e-8)
+        out = self.actor.policy(obs)
+        logp, ent = self.actor.log_prob_entropy(out, action)
+        ratio = (logp - logp_old).exp()
+        pg = torch.max(-adv * ratio,
+                       -adv * ratio.clamp(1 - cfg.clip_coef, 1 + cfg.clip_coef)).mean()
+        v_loss = 0.5 * (self.critic.body(critic_obs)[..., 0] - ret).pow(2).mean()
+        loss = cfg.vf_coef * v_loss
+        if self.updates >= cfg.critic_warmup_updates:
+            loss = loss + pg - cfg.ent_coef * ent.mean()
+        return loss
+
+    def update(self, ro: Rollout) -> None:
+        """``epochs`` passes of minibatch Adam steps over the rollout, the learning rate
+        annealed linearly to 0 over the run."""
+        cfg = self.cfg
+        adv, ret = self.advantages(ro)
+        flat, mb_rows = self.rows(ro, adv, ret)
+        n_rows = flat[0].shape[0]
+        n_updates = max(1, math.ceil(self.total_steps / (cfg.n_envs * cfg.rollout_steps)))
+        for g in self.opt.param_groups:
+            g["lr"] = cfg.lr * (1.0 - self.updates / n_updates)
         for _ in range(cfg.epochs):
-            order = torch.randperm(rows, generator=gen)
-            for start in range(0, rows, mb_rows):
+            order = torch.randperm(n_rows, generator=self.gen)
+            for start in range(0, n_rows, mb_rows):
                 idx = order[start:start + mb_rows]
-                mb_adv = f_adv[idx]
-                mb_adv = (mb_adv - mb_adv.mean()) / (mb_adv.std() + 1e-8)
-                out = actor.policy(f_obs[idx])
-                logp, ent = actor.log_prob_entropy(out, f_act[idx])
-                ratio = (logp - f_logp[idx]).exp()
-                pg = torch.max(-mb_adv * ratio,
-                               -mb_adv * ratio.clamp(1 - cfg.clip_coef, 1 + cfg.clip_coef)).mean()
-                v_loss = 0.5 * (critic.body(f_cobs[idx])[..., 0] - f_ret[idx]).pow(2).mean()
-                loss = cfg.vf_coef * v_loss
-                if updates >= cfg.critic_warmup_updates:
-                    loss = loss + pg - cfg.ent_coef * ent.mean()
-                opt.zero_grad(set_to_none=True)
+                loss = self.loss(*(x[idx] for x in flat))
+                self.opt.zero_grad(set_to_none=True)
                 loss.backward()
                 # apart: the critic's gradient (returns of hundreds) must not shrink the actor's
-                nn.utils.clip_grad_norm_(actor.parameters(), cfg.max_grad_norm)
-                nn.utils.clip_grad_norm_(critic.parameters(), cfg.max_grad_norm)
-                if cfg.per_agent:
-                    _compress_critic_gradients(critic, qsgd, cfg, bits)
-                opt.step()
-                if cfg.per_agent:  # BDC: one synchronous round on the critics' weights
-                    n_weights = consensus_round(critic.parameters(),
-                                                functools.partial(bdc, eps=cfg.consensus_eps))
-                    bits["consensus"] += ternary_bits(n_weights)
-        updates += 1
-        check_finite_weights((actor, critic), f"{cfg.algo} on {sc.id}, seed {seed}",
-                             f"{updates} updates ({steps} environment steps)")
-    rate = steps / max(time.perf_counter() - t0, 1e-9)
-    if validate:
-        shipped = as_shipped(actor)
-        score = validation_score(shipped, sc, n, params, cfg)
-        curve.append({"steps": float(steps), **score})
-        if (score["collisions"], -score["reward"]) <= (best["collisions"], -best["reward"]):
-            best = {"steps": float(steps), **score}
-            best_state = shipped.state_dict()
-        actor.load_state_dict(best_state)
-    else:
-        actor = as_shipped(actor)
-    return PPOResult(actor, steps, curve, best, rate, cfg, bits if cfg.per_agent else {})
+                nn.utils.clip_grad_norm_(self.actor.parameters(), cfg.max_grad_norm)
+                nn.utils.clip_grad_norm_(self.critic.parameters(), cfg.max_grad_norm)
+                self.before_step()
+                self.opt.step()
+                self.after_step()
+        self.updates += 1
+        check_finite_weights((self.actor, self.critic),
+                             f"{cfg.algo} on {self.sc.id}, seed {self.seed}",
+                             f"{self.updates} updates ({self.steps} environment steps)")
 
+    def before_step(self) -> None:
+        """What a learner does to the gradients before each Adam step (``ippo-bdc``)."""
 
-def _compress_critic_gradients(critic: Critic, qsgd: ErrorFeedbackQSGD, cfg: PPOConfig,
-                               bits: dict[str, float]) -> None:
-    """``ippo-bdc``: every critic gradient replaced by its QSGD compression with error
-    feedback before the step (applied locally, as :func:`marl.bdc.compress_critic_gradients`;
-    its payload tallied per agent)."""
-    if cfg.qsgd_levels == 0:
-        return
-    grads = [p.grad for p in critic.parameters() if p.grad is not None]
-    for g, q in zip(grads, qsgd.compress(grads), strict=True):
-        g.copy_(q)
-        bits["qsgd_local"] += qsgd_bits(g[0].numel(), cfg.qsgd_levels, bucket=cfg.qsgd_bucket)
+    def after_step(self) -> None:
+        """What a learner does to the weights after each Adam step (``ippo-bdc``)."""
+
+    def bits_per_agent(self) -> dict[str, float]:
+        """What each agent sent in training, by kind (bits; none for a shared policy)."""
+        return {}
+
+    # ---- the run: validate, collect, update, until the budget is spent
+    def validate(self, evaluate: Evaluator, log: Callable[[str], None] | None) -> None:
+        """Score the weights as they would ship; keep them if they beat the kept snapshot
+        (fewer collisions, then a higher reward)."""
+        shipped = as_shipped(self.actor)
+        score = validation(evaluate, shipped)
+        self.curve.append({"steps": float(self.steps), **score})
+        if not self.best or ((score["collisions"], -score["reward"])
+                             <= (self.best["collisions"], -self.best["reward"])):
+            self.best, self.best_state = {"steps": float(self.steps), **score}, shipped.state_dict()
+        if log:
+            log(f"{self.cfg.algo} {self.sc.id} seed {self.seed}: {self.steps} steps, validation "
+                f"reward {score['reward']:.1f}, collisions {score['collisions']:.0f}")
+
+    def train(self, evaluate: Evaluator | None = None,
+              log: Callable[[str], None] | None = None) -> PPOResult:
+        """Train until ``total_steps``; returns the snapshot with the fewest validation
+        collisions, then the best validation reward (the last when ``evaluate`` is None)."""
+        self.curve, self.best = [], {}
+        self.best_state = as_shipped(self.actor).state_dict()
+        next_eval = 0
+        t0 = time.perf_counter()
+        while self.steps < self.total_steps:
+            if evaluate is not None and self.steps >= next_eval:
+                self.validate(evaluate, log)
+                next_eval += self.cfg.eval_every_steps
+            self.update(self.collect())
+        rate = self.steps / max(time.perf_counter() - t0, 1e-9)
+        if evaluate is None:
+            actor = as_shipped(self.actor)
+        else:
+            self.validate(evaluate, log)
+            actor = self.actor
+            actor.load_state_dict(self.best_state)
+        return PPOResult(actor, self.steps, self.curve, self.best, rate, self.cfg,
+                         self.bits_per_agent())
 
 
 def _absorbing(penalty: float, gamma: float, remaining: int) -> float:
@@ -349,3 +446,32 @@ def _absorbing(penalty: float, gamma: float, remaining: int) -> float:
     if remaining <= 0:
         return 0.0
     return penalty * remaining if gamma == 1 else penalty * (1 - gamma**remaining) / (1 - gamma)
+
+
+def train(
+    scenario: str | Scenario,
+    n_vehicles: int = 8,
+    seed: int = 0,
+    total_steps: int = 1_000_000,
+    config: PPOConfig = PPOConfig(),
+    params: PlatoonParams = PlatoonParams(),
+    log: Callable[[str], None] | None = None,
+    evaluate: Evaluator | None = None,
+) -> PPOResult:
+    """Train one policy of ``config.algo`` on ``scenario`` with N followers for ``total_steps``
+    environment steps (one step of one episode each).
+
+    Returns the snapshot with the fewest validation collisions, then the best validation reward
+    (actions sampled as trained, scored by ``evaluate``: the layer above gives
+    :func:`benchmark.policy_eval.validation_evaluator`), or the last one when ``evaluate`` is
+    None.
+    """
+    from marl.learners import LEARNERS, load
+
+    trainer_cls = load(f"{LEARNERS[config.algo].module}:TRAINER")
+    return trainer_cls(as_scenario(scenario), n_vehicles, seed, total_steps, config,
+                       params).train(evaluate, log)
+
+
+#: The trainer of ``ippo`` and ``mappo`` (the learner registry names this module).
+TRAINER = PPOTrainer

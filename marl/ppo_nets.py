@@ -1,9 +1,11 @@
 """The shared learners' config and networks (:mod:`marl.ppo`): :class:`PPOConfig` with the
 hyper-parameters, the actor every follower shares (or one per follower, ``ippo-bdc``) and the
-critic. Acting and validation read these without the trainer (:mod:`marl.ppo_eval`)."""
+critic, and the weight checks the trainers share. Acting reads these without the trainer
+(:mod:`marl.acting`)."""
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass
 
@@ -11,13 +13,13 @@ import torch
 from torch import nn
 
 from envs.accel_mode import check_action_mode
+from envs.channel import ChannelConfig
 from envs.params import OVM_ACTIONS, PlatoonParams
-from infra.errors import ConfigError
+from infra.errors import ConfigError, TrainingDivergedError
 from marl.learners import PPO_LEARNERS
 
 #: Model-based priors a residual policy can add to (``PPOConfig.prior``).
 PRIORS: tuple[str, ...] = ("", "cacc", "cacc-exact")
-#: Uniform stream of sampled evaluation actions (per episode, step and agent).
 
 # ---------------------------------------------------------------------------- config
 def check_learning_rate(lr: float) -> None:
@@ -93,6 +95,15 @@ class PPOConfig:
     consensus_eps, qsgd_levels, qsgd_bucket : float, int, int
         ``ippo-bdc``: the consensus step (BDC's default), QSGD's levels on the critic gradients
         (0: off) and entries per QSGD bucket.
+    scenarios : str
+        "": the training episodes run on the run's scenario. Otherwise a comma list of
+        scenario labels (``catchup-v1,ring-v1``): each batch draws one uniformly (a ring keeps
+        its own vehicle count); validation stays on the run's scenario.
+    cav_share_min, cav_share_max : float
+        1, 1: every follower automated. Otherwise each batch draws its share of automated
+        followers uniformly from this range and places them at random (a seeded ``placement``
+        drawn from the run's generator); the other seats are human drivers
+        (:mod:`envs.humans`), whose agent-steps the policy never learns from.
     """
 
     algo: str = "ippo"
@@ -126,6 +137,9 @@ class PPOConfig:
     consensus_eps: float = 0.001
     qsgd_levels: int = 1
     qsgd_bucket: int = 128
+    scenarios: str = ""
+    cav_share_min: float = 1.0
+    cav_share_max: float = 1.0
 
     def __post_init__(self) -> None:
         if self.algo not in PPO_LEARNERS:
@@ -163,8 +177,21 @@ class PPOConfig:
         if self.vehicles_min and self.vehicles_max and self.vehicles_min > self.vehicles_max:
             raise ConfigError("vehicles_min must not exceed vehicles_max")
         if self.randomised and self.per_agent:
-            raise ConfigError("ippo-bdc has a network per follower: it trains at one N and one "
-                              "V2V setting (vehicles_min, vehicles_max, comm_delay_max_s, packet_loss_max: 0)")
+            raise ConfigError("ippo-bdc has a network per follower: it trains at one N, one V2V "
+                              "setting and one road (vehicles_min, vehicles_max, "
+                              "comm_delay_max_s, packet_loss_max: 0; scenarios: ''; "
+                              "cav_share_min, cav_share_max: 1)")
+        if not (0 < self.cav_share_min <= self.cav_share_max <= 1):
+            raise ConfigError(f"cav_share_min and cav_share_max are shares of automated "
+                              f"followers: 0 < cav_share_min <= cav_share_max <= 1, got "
+                              f"{self.cav_share_min} and {self.cav_share_max}")
+        if self.scenarios:
+            from envs.scenarios import SEAT_OPTIONS, parse_scenarios
+
+            for sc in parse_scenarios(self.scenarios):  # refused here, before any training
+                if self.mixed_traffic and any(k in sc.label for k in SEAT_OPTIONS):
+                    raise ConfigError(f"scenarios: {sc.label} sets its automated seats, which "
+                                      "cav_share_min..cav_share_max draw; leave them out")
         if self.comm_delay_max_s:
             check_delay(self.comm_delay_max_s, "comm_delay_max_s")
             if self.comm_delay_max_s < self.comm_delay_s:
@@ -191,9 +218,24 @@ class PPOConfig:
 
     @property
     def randomised(self) -> bool:
-        """Whether batches of training episodes draw their N or V2V setting."""
+        """Whether batches of training episodes draw their N, V2V setting, scenario or
+        automated seats."""
         return bool(self.vehicles_min or self.vehicles_max or self.comm_delay_max_s
-                    or self.packet_loss_max)
+                    or self.packet_loss_max or self.scenarios or self.mixed_traffic)
+
+    @property
+    def mixed_traffic(self) -> bool:
+        """Whether batches draw a share of automated followers (the rest human-driven)."""
+        return self.cav_share_min < 1
+
+    @property
+    def validation_channel(self) -> ChannelConfig:
+        """V2V of validation (:func:`benchmark.policy_eval.validation_evaluator`): the training
+        episodes' ``comm_delay_s`` and ``packet_loss`` in the ``accel`` mode; ideal in
+        ``ovm-gain``, whose observation the training env forms without a channel."""
+        if self.action_mode != "accel":
+            return ChannelConfig()
+        return ChannelConfig(self.comm_delay_s, self.packet_loss)
 
     @property
     def per_agent(self) -> bool:
@@ -349,3 +391,25 @@ class Critic(nn.Module):
     def forward(self, obs: torch.Tensor, elapsed: float = 0.0) -> torch.Tensor:
         """``obs (..., N, D)`` -> values ``(..., N)``."""
         return self.body(self.inputs(obs, elapsed))[..., 0]
+
+
+# ---------------------------------------------------------------------------- weights
+def check_finite_weights(modules: tuple[torch.nn.Module, ...], run: str, after: str) -> None:
+    """Stop a training whose weights became NaN or infinite (a NaN policy scores no collision
+    and would be kept as the best snapshot): :class:`TrainingDivergedError`, nothing written."""
+    if not all(bool(torch.isfinite(p).all()) for m in modules for p in m.parameters()):
+        raise TrainingDivergedError(
+            f"{run}: the weights became non-finite after {after}; nothing was written; lower "
+            "the learning rate (--set lr=...) or check the other --set options")
+
+
+def as_shipped(actor: SharedActor) -> SharedActor:
+    """A copy of ``actor`` with its weights rounded through float16, as a checkpoint stores
+    them: validation judges, and selection keeps, exactly what ships."""
+    out = copy.deepcopy(actor)
+    with torch.no_grad():
+        for key, value in out.state_dict().items():
+            if key != "obs_count":
+                value.copy_(value.to(torch.float16).to(value.dtype))
+    out.eval()
+    return out

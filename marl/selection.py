@@ -5,17 +5,15 @@ Every ``eval_every_steps`` (and at the end) a run's acting network, rounded to t
 precision, is evaluated on the validation seeds in both modes by the benchmark's own closed loop
 (an :data:`Evaluator`); the snapshot kept is the evaluated one with the fewest collisions, then
 the best reward, in ``selection_mode`` (a tie goes to the later one). When the run finishes its
-learning curve, final weights and kept snapshot are written together (:func:`_finish`). The
-trainers underneath: :class:`marl.a2c.Trainer` (one run) and
-:class:`marl.population.PopulationTrainer` (K runs).
+learning curve, final weights and kept snapshot are written together
+(:func:`marl.checkpoint.write_run`). The trainers underneath: :class:`marl.a2c.Trainer` (one
+run) and :class:`marl.population.PopulationTrainer` (K runs).
 """
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 import math
-import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -25,11 +23,12 @@ from typing import Any
 import torch
 
 from envs.params import EVAL_MODES
-from envs.scenarios import make_scenario
+from envs.scenarios import Scenario, as_scenario
 from infra.errors import ConfigError, TrainingDivergedError
 from infra.naming import checkpoint_stem
 from marl import arithmetic
 from marl.a2c import Run, Trainer
+from marl.checkpoint import CURVE_EVAL_KEYS
 from marl.config import A2CConfig, Algorithm
 from marl.networks import AgentNet, execution_bits_per_agent_step, training_step_bits_per_agent
 from marl.population import PopulationTrainer
@@ -66,7 +65,7 @@ class TrainResult:
 def run_training(
     algo: Algorithm,
     config: A2CConfig,
-    scenario_id: str,
+    scenario: str | Scenario,
     n_vehicles: int = 8,
     total_steps: int = 600_000,
     seed: int = 0,
@@ -87,6 +86,8 @@ def run_training(
 
     Parameters
     ----------
+    scenario : Scenario or str
+        The scenario, built (or its id); the checkpoints are named by its id.
     schedule_steps : int, optional
         Run length the entropy schedule assumes (default ``total_steps``); the throughput
         measurement runs the first steps of a 6e5-step run with it.
@@ -103,14 +104,14 @@ def run_training(
     device : str or torch.device
         Where to train (:func:`training_device`); validation and checkpoints stay on the CPU.
     """
-    return run_population(algo, [config], scenario_id, n_vehicles, total_steps, [seed], out_dir,
+    return run_population(algo, [config], scenario, n_vehicles, total_steps, [seed], out_dir,
                           progress, [log], schedule_steps, evaluate, device)[0]
 
 
 def run_population(
     algo: Algorithm,
     configs: Sequence[A2CConfig],
-    scenario_id: str,
+    scenario: str | Scenario,
     n_vehicles: int = 8,
     total_steps: int = 600_000,
     seeds: Sequence[int] = (0,),
@@ -131,7 +132,7 @@ def run_population(
     ``logs[k]`` receives run k's lines; ``progress`` is called per run and batch. Wall time and
     throughput of each result are the population's (its steps over the population's time).
     """
-    scenario = make_scenario(scenario_id)  # fail early on an unknown id; built once, here
+    scenario = as_scenario(scenario)  # built by the caller (or here, from an id), once
     if out_dir is not None and evaluate is None:
         raise ConfigError(
             "run_training with an output folder needs a validation evaluator: pass "
@@ -140,9 +141,9 @@ def run_population(
     if len({int(s) for s in seeds}) != len(seeds):
         raise ConfigError(f"the runs of a population need distinct seeds, got {list(seeds)}")
     trainer: Trainer = (
-        Trainer(algo, configs[0], scenario_id, n_vehicles, seeds[0], device, scenario)
+        Trainer(algo, configs[0], scenario.id, n_vehicles, seeds[0], device, scenario)
         if len(seeds) == 1 else
-        PopulationTrainer(algo, list(configs), scenario_id, n_vehicles, list(seeds), device,
+        PopulationTrainer(algo, list(configs), scenario.id, n_vehicles, list(seeds), device,
                           scenario))
     runs = trainer.runs
     log_of = list(logs) if logs is not None else [None] * len(runs)
@@ -151,7 +152,7 @@ def run_population(
     curves: list[list[dict[str, float]]] = [[] for _ in runs]
     next_eval = [r.config.eval_every_steps if out_dir is not None else math.inf for r in runs]
     best = [(-math.inf, -math.inf) for _ in runs]
-    results = [TrainResult(algo.name, scenario_id, n_vehicles, r.seed, 0, 0, 0.0, 0.0, {},
+    results = [TrainResult(algo.name, scenario.id, n_vehicles, r.seed, 0, 0, 0.0, 0.0, {},
                            curves[r.index]) for r in runs]
     views: dict[int, AgentNet] = {}  # each run's acting network, reused at every validation
     t0 = time.perf_counter()
@@ -253,10 +254,6 @@ def acting_net(trainer: Trainer, run: Run, views: dict[int, AgentNet] | None = N
     return view
 
 
-#: Validation numbers recorded per mode in the curve (``eval_<key>_<mode>``).
-CURVE_EVAL_KEYS: tuple[str, ...] = ("reward", "collisions")
-
-
 def _finish(
     result: TrainResult,
     trainer: Trainer,
@@ -273,12 +270,10 @@ def _finish(
     files: the curve, the final weights (``net``: the run's acting network) and the kept
     snapshot with the run's totals.
 
-    Nothing is written before the run finishes, and the three files are written to temporary
-    files and renamed together (:class:`infra.atomic.StagedFiles`), so an interrupted or failed
-    run leaves the files of an earlier run byte for byte as they were.
+    Nothing is written before the run finishes, and the three files are written together
+    (:func:`marl.checkpoint.write_run`).
     """
-    from infra.atomic import StagedFiles
-    from marl.checkpoint import checkpoint_payload, write_payload
+    from marl.checkpoint import checkpoint_payload, write_run
 
     exec_bits = execution_bits_per_agent_step(net)
     result.steps, result.episodes = run.steps, run.episodes
@@ -340,34 +335,4 @@ def _finish(
     totals["total_steps"] = float(run.steps)
     kept = {**kept, "curve_summary": totals}
     result.final_checkpoint = out / f"{stem}.final.pt"
-    out.mkdir(parents=True, exist_ok=True)
-    with StagedFiles() as staged:
-        staged.write_with(result.curve_csv, lambda tmp: _write_curve_file(tmp, curve))
-        staged.write_with(result.final_checkpoint,
-                          lambda tmp: write_payload(tmp, final_data, atomic=False))
-        staged.write_with(result.checkpoint, lambda tmp: write_payload(tmp, kept, atomic=False))
-        staged.commit()
-
-
-def write_curve(path: Path, curve: list[dict[str, float]]) -> None:
-    """Learning curve CSV: episode, steps, train_reward (the learner's own, possibly shaped,
-    reward), and per evaluation mode the validation reward and collisions (empty where not
-    evaluated). Written atomically."""
-    from infra.atomic import write_with
-
-    write_with(path, lambda tmp: _write_curve_file(tmp, curve))
-
-
-def _write_curve_file(path: Path, curve: list[dict[str, float]]) -> None:
-    evals = [f"eval_{k}_{m}" for m in EVAL_MODES for k in CURVE_EVAL_KEYS]
-    with open(path, "w", newline="") as fh:
-        w = csv.writer(fh)
-        w.writerow(["episode", "steps", "train_reward", *evals])
-        for r in curve:
-            cells = ["" if math.isnan(r[k]) else f"{r[k]:.4f}" for k in evals]
-            w.writerow([int(r["episode"]), int(r["steps"]), f"{r['train_reward']:.4f}", *cells])
-
-
-def stderr_log(line: str) -> None:
-    """Default log sink."""
-    print(line, file=sys.stderr, flush=True)
+    write_run(out, stem, curve, {".final.pt": final_data, ".pt": kept})

@@ -146,7 +146,7 @@ def learned_rows(available: Any) -> list[Row]:
     per-agent policies trained at another N (:data:`OTHER_N_POLICIES`, one seed each, named in
     the label); ``available(controller, options, n_vehicles)`` says whether a checkpoint exists
     (rows lacking one are left out by the caller)."""
-    from controllers.shared_policy import IPPO_VARIANTS
+    from controllers.policy import IPPO_VARIANTS
     from marl.learners import PAPER_ALGORITHMS, PER_AGENT_SHARED, SHARED_LEARNERS
 
     rows: list[Row] = []

@@ -236,7 +236,7 @@ def test_a_zero_residual_on_the_exact_prior_is_the_cacc_controller(prior: str, e
 
     from benchmark.rollout import rollout
     from controllers.registry import make_controller
-    from marl.ppo_eval import agent_inputs, to_command
+    from marl.acting import agent_inputs, to_command
     from marl.ppo_nets import PPOConfig, SharedActor
 
     params = PlatoonParams()

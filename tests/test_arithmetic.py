@@ -89,7 +89,7 @@ def test_the_portable_environment_pins_avx2_kernels_where_the_processor_has_them
 def test_a_partly_portable_process_trains_natively_only(monkeypatch) -> None:
     """Part of the portable environment (a machine that sets ``OPENBLAS_CORETYPE`` for every
     process) is native arithmetic: a portable run is refused there, a native one is not."""
-    from commands.train import _train_job
+    from commands.train import job_key, train_job
 
     monkeypatch.setattr(arithmetic, "portable_env", lambda: {"MKL_CBWR": "COMPATIBLE",
                                                              "OPENBLAS_CORETYPE": "Haswell"})
@@ -100,7 +100,7 @@ def test_a_partly_portable_process_trains_natively_only(monkeypatch) -> None:
     job = {"algo": "ia2c", "scenario": "catchup-v1", "vehicles": 3, "steps": 300, "seed": 0,
            "out": "unused", "options": {}, "progress": False}
     with pytest.raises(ConfigError, match="a portable training run in a partly portable"):
-        _train_job({**job, "arithmetic": "portable"})
+        train_job(job_key({**job, "arithmetic": "portable"}))
 
 
 def test_modes_and_their_records() -> None:
@@ -117,18 +117,18 @@ def test_modes_and_their_records() -> None:
 def test_a_portable_run_is_refused_in_a_native_process(monkeypatch) -> None:
     """The libraries read their settings once, at start or first use: a process started without
     them cannot train portably, and one started with them cannot train natively."""
-    from commands.train import _train_job
+    from commands.train import job_key, train_job
 
     job = {"algo": "ia2c", "scenario": "catchup-v1", "vehicles": 3, "steps": 300, "seed": 0,
            "out": "unused", "options": {}, "progress": False, "arithmetic": "portable"}
     for key in arithmetic.portable_env():  # whatever the machine sets for every process
         monkeypatch.delenv(key, raising=False)
     with pytest.raises(ConfigError, match="portable training run in a native process"):
-        _train_job(job)
+        train_job(job_key(job))
     for key, value in arithmetic.portable_env().items():
         monkeypatch.setenv(key, value)
     with pytest.raises(ConfigError, match="native training run in a portable process"):
-        _train_job({**job, "arithmetic": "native"})
+        train_job(job_key({**job, "arithmetic": "native"}))
 
 
 def test_train_records_portable_arithmetic_and_resume_checks_it(tmp_path: Path, capsys) -> None:

@@ -12,6 +12,7 @@ from marl.learners import (
     PER_AGENT_SHARED,
     PPO_LEARNERS,
     SHARED_LEARNERS,
+    load,
 )
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -30,7 +31,7 @@ def test_the_derived_lists() -> None:
 def test_every_learner_is_a_controller_acting_with_its_checkpoints() -> None:
     for name, spec in LEARNERS.items():
         ctrl = CONTROLLERS[name]
-        assert ctrl.family == "marl" and ctrl.target == spec.acting
+        assert ctrl.family == "marl" and ctrl.target == "controllers.policy:PolicyController"
         assert ctrl.fixed == {"algo": name} and ctrl.description == spec.description
     assert [n for n, c in CONTROLLERS.items() if c.family == "marl"] == list(LEARNERS)
 
@@ -38,6 +39,21 @@ def test_every_learner_is_a_controller_acting_with_its_checkpoints() -> None:
 def test_every_learner_module_exists() -> None:
     for spec in LEARNERS.values():
         assert (ROOT / (spec.module.replace(".", "/") + ".py")).is_file(), spec.module
+
+
+def test_every_entry_names_its_config_trainer_and_acting_class() -> None:
+    from marl.acting import Acting
+    from marl.config import algorithm
+
+    for name, spec in LEARNERS.items():
+        assert issubclass(load(spec.acting), Acting)
+        if spec.family == "a2c":
+            assert load(spec.config) is algorithm(name).config_cls
+        elif spec.family == "ppo":
+            assert load(spec.config)(algo=name).algo == name
+            assert load(f"{spec.module}:TRAINER").__name__.endswith("Trainer")
+        else:
+            assert load(spec.config)().expert == "mpc"
 
 
 def test_no_second_list_of_learners_in_the_code() -> None:

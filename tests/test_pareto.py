@@ -100,7 +100,7 @@ def test_the_marl_family_shows_the_shared_learners_and_the_ippo_variants() -> No
     """Every shipped shared-policy learner is a point, and so is each shipped ``ippo`` variant
     (the time-aware residual among them), on both published scenarios."""
     from commands.pareto import settings_for
-    from controllers.shared_policy import IPPO_VARIANTS
+    from controllers.policy import IPPO_VARIANTS
     from marl.learners import SHARED_LEARNERS
 
     labels = [s["label"] for s in settings_for(["marl"], ["catchup-v1", "slowdown-v1"], 8)]

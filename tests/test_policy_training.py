@@ -15,7 +15,7 @@ from commands.policy_training import (
     shipped_checkpoint,
     source_file,
 )
-from commands.train import job_config
+from commands.train import job_key
 from infra.errors import ConfigError
 from marl.checkpoint import energy_model_id, save_checkpoint
 
@@ -29,7 +29,7 @@ def _zero_weights(config: dict) -> dict[str, torch.Tensor]:
 
 def _ship(folder: Path, job: dict, total_steps: int, energy_model: str | None = None,
           **config_changes: object) -> Path:
-    config = {**job_config(job), **config_changes}
+    config = {**job_key(job).stored_config(), **config_changes}
     path = folder / "bdc__catchup-v1__n8__s0.pt"
     save_checkpoint(path, algo="bdc", config=config, scenario="catchup-v1", n_vehicles=8, seed=0,
                     steps=total_steps // 2, energy_model=energy_model or energy_model_id(),
@@ -78,9 +78,9 @@ def test_a_run_trained_under_another_energy_model_is_not_done(tmp_path: Path, jo
     assert not is_done(job)
     source_file(job).unlink()
     final = Path(job["out"]) / "bdc__catchup-v1__n8__s0.final.pt"
-    save_checkpoint(final, algo="bdc", config=job_config(job), scenario="catchup-v1",
+    save_checkpoint(final, algo="bdc", config=job_key(job).stored_config(), scenario="catchup-v1",
                     n_vehicles=8, seed=0, steps=600_720, energy_model="0123456789ab",
-                    curve_summary={}, weights=_zero_weights(job_config(job)))
+                    curve_summary={}, weights=_zero_weights(job_key(job).stored_config()))
     with pytest.raises(ConfigError, match="another energy model"):
         is_done(job)
 

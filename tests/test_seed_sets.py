@@ -17,7 +17,6 @@ from envs.params import (
     SEED_SETS,
     TEST_SEEDS,
     VALIDATION_SEEDS,
-    PlatoonParams,
     check_decision_seeds,
 )
 from infra.errors import ConfigError
@@ -112,12 +111,14 @@ def test_the_guard_refuses_a_test_seed(seeds: object) -> None:
     assert "my.helper" in str(info.value) and "validation seeds" in str(info.value)
 
 
-def test_validation_evaluator_refuses_test_seeds() -> None:
+@pytest.mark.parametrize("algo", ["ia2c", "ippo"])
+def test_validation_evaluator_refuses_test_seeds(algo: str) -> None:
+    """Every learner's validation (the paper's and the shared ones: one evaluator)."""
     from benchmark.policy_eval import validation_evaluator
 
-    validation_evaluator("ia2c", "catchup-v1", 8)  # default: the validation seeds
+    validation_evaluator(algo, "catchup-v1", 8)  # default: the validation seeds
     with pytest.raises(ConfigError, match="validation_evaluator"):
-        validation_evaluator("ia2c", "catchup-v1", 8, [1, TEST_SEEDS[0]])
+        validation_evaluator(algo, "catchup-v1", 8, [1, TEST_SEEDS[0]])
 
 
 def test_duty_refuses_to_choose_k_on_test_seeds() -> None:
@@ -129,16 +130,6 @@ def test_duty_refuses_to_choose_k_on_test_seeds() -> None:
             helper("catchup-v1", 2, 2, closed_loop=rollout_batch, seeds=TEST_SEEDS[:2])
         with pytest.raises(ConfigError, match="test seeds"):  # before the closed loop is asked
             helper("catchup-v1", 2, 2, seeds=[TEST_SEEDS[5]])
-
-
-def test_ppo_validation_score_refuses_test_seeds() -> None:
-    from marl.ppo_eval import validation_score
-    from marl.ppo_nets import PPOConfig, SharedActor
-
-    fake: SharedActor = None  # type: ignore[assignment]  # refused before the actor is used
-    with pytest.raises(ConfigError, match="test seeds"):
-        validation_score(fake, "catchup-v1", 2, PlatoonParams(), PPOConfig(),
-                         seeds=(TEST_SEEDS[0],))
 
 
 # ---------------------------------------------------------------------------- run --seed-set

@@ -12,13 +12,30 @@ import pytest
 import torch
 from run_marks import FULL, representative
 
+from benchmark.policy_eval import validation_evaluator
+from controllers.policy import PolicyController
 from envs.params import PlatoonParams
 from infra.errors import ConfigError
+from marl.acting import load_actor, sample_with_uniforms
 from marl.ppo import train
-from marl.ppo_eval import as_shipped, load_actor, sample_with_uniforms, validation_score
-from marl.ppo_nets import Critic, PPOConfig, SharedActor
+from marl.ppo_nets import Critic, PPOConfig, SharedActor, as_shipped
 
 TINY = PPOConfig(n_envs=4, rollout_steps=16, epochs=2, minibatch_rows=64, eval_every_steps=10**6)
+
+
+def _train_and_save(scenario: str, n: int, steps: int, cfg: PPOConfig, out: Path) -> Path:
+    """A run of ``cfg`` validated as training validates (the benchmark's closed loop), its kept
+    snapshot written as a checkpoint."""
+    from marl.checkpoint import save_checkpoint
+
+    res = train(scenario, n, 0, steps, cfg, evaluate=validation_evaluator(
+        cfg.algo, scenario, n, channel=cfg.validation_channel))
+    return save_checkpoint(out / f"{cfg.algo}__{scenario}__n{n}__s0.pt", algo=cfg.algo,
+                           config=dataclasses.asdict(cfg), scenario=scenario, n_vehicles=n,
+                           seed=0, steps=res.steps, curve_summary={
+                               **{f"best_{k}": v for k, v in res.best.items()},
+                               **{f"{k}_bits_per_agent": v for k, v in res.bits_per_agent.items()}},
+                           weights=dict(res.actor.state_dict()))
 
 
 def _weights(actor: SharedActor) -> dict[str, torch.Tensor]:
@@ -50,9 +67,9 @@ def test_a_bad_config_is_refused(field: str, value: object, needle: str) -> None
 @pytest.mark.parametrize("mode", ["accel", "ovm-gain"])
 def test_a_seed_gives_the_same_weights_and_another_seed_others(algo: str, mode: str) -> None:
     cfg = dataclasses.replace(TINY, algo=algo, action_mode=mode)
-    a = train("catchup-v1", 3, 5, 128, cfg, validate=False)
-    b = train("catchup-v1", 3, 5, 128, cfg, validate=False)
-    c = train("catchup-v1", 3, 6, 128, cfg, validate=False)
+    a = train("catchup-v1", 3, 5, 128, cfg)
+    b = train("catchup-v1", 3, 5, 128, cfg)
+    c = train("catchup-v1", 3, 6, 128, cfg)
     wa, wb, wc = _weights(a.actor), _weights(b.actor), _weights(c.actor)
     assert all(torch.equal(wa[k], wb[k]) for k in wa)
     assert not all(torch.equal(wa[k], wc[k]) for k in wa)
@@ -61,7 +78,7 @@ def test_a_seed_gives_the_same_weights_and_another_seed_others(algo: str, mode: 
 
 def test_what_is_returned_is_what_ships() -> None:
     """The returned actor's weights are already float16 values (the checkpoint's)."""
-    res = train("catchup-v1", 3, 0, 64, TINY, validate=False)
+    res = train("catchup-v1", 3, 0, 64, TINY)
     for key, value in res.actor.state_dict().items():
         assert torch.equal(value, value.to(torch.float16).to(value.dtype)), key
     again = as_shipped(res.actor)
@@ -124,9 +141,8 @@ def test_a_time_aware_critic_reads_the_elapsed_fraction_and_the_actor_does_not(
 def test_a_time_aware_learner_is_deterministic_and_learns_another_policy() -> None:
     """Same seed, same weights; the time column changes the advantages and so the policy."""
     cfg = dataclasses.replace(TINY, prior="cacc-exact", critic_time=True)
-    one, two = (train("slowdown-v1", 3, 5, 256, cfg, validate=False).actor for _ in range(2))
-    other = train("slowdown-v1", 3, 5, 256, dataclasses.replace(cfg, critic_time=False),
-                  validate=False).actor
+    one, two = (train("slowdown-v1", 3, 5, 256, cfg).actor for _ in range(2))
+    other = train("slowdown-v1", 3, 5, 256, dataclasses.replace(cfg, critic_time=False)).actor
     assert all(torch.equal(a, b) for a, b in zip(_weights(one).values(), _weights(two).values()))
     assert any(not torch.equal(a, b)
                for a, b in zip(_weights(one).values(), _weights(other).values()))
@@ -134,32 +150,46 @@ def test_a_time_aware_learner_is_deterministic_and_learns_another_policy() -> No
 
 @pytest.fixture(scope="module")
 def tiny_checkpoint(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """An IPPO checkpoint trained briefly at N = 4 on catchup-v1, written as `train` writes it."""
-    from commands.train_shared import train_shared
-
+    """An IPPO checkpoint trained briefly at N = 4 on catchup-v1, validated as training does."""
     out = tmp_path_factory.mktemp("shared")
-    cfg = dataclasses.replace(TINY, eval_every_steps=256)
-    return train_shared("ippo", "catchup-v1", 4, 0, 512, out, cfg, log=lambda _: None)
+    return _train_and_save("catchup-v1", 4, 512, dataclasses.replace(TINY, eval_every_steps=256),
+                           out)
 
 
-def test_the_controller_in_the_harness_scores_what_validation_scored(tiny_checkpoint: Path) -> None:
-    """The benchmark's closed loop with the controller gives the learner's own validation
-    number to the last bit (same actor, observation, V2V timing and uniforms), both modes."""
+@pytest.mark.parametrize("mode", ["sampled", "greedy"])
+def test_the_controller_in_the_harness_scores_what_validation_scored(
+        tiny_checkpoint: Path, mode: str) -> None:
+    """The controller loaded from the file scores in the benchmark's closed loop what
+    validation scored of the in-memory actor (:func:`benchmark.policy_eval.validation_evaluator`:
+    the same loop), to the last bit: the kept snapshot's reward, both modes."""
     from benchmark.rollout import rollout_batch
-    from controllers.shared_policy import SharedPolicyController
     from envs.params import VALIDATION_SEEDS
     from envs.scenarios import make_scenario
     from marl.checkpoint import load_checkpoint
 
     data = load_checkpoint(tiny_checkpoint)
-    actor = load_actor(data)
-    cfg = PPOConfig(**data["config"])
-    ours = validation_score(actor, "catchup-v1", 4, PlatoonParams(), cfg)
-    assert data["curve_summary"]["best_reward"] == ours["reward"]
-    ctrl = SharedPolicyController("ippo", checkpoint=str(tiny_checkpoint))
+    ours = validation_evaluator("ippo", "catchup-v1", 4)(load_actor(data), mode)
+    if mode == "sampled":
+        assert data["curve_summary"]["best_reward"] == ours["reward"]
+    ctrl = PolicyController("ippo", checkpoint=str(tiny_checkpoint), mode=mode)
     trajs = rollout_batch(ctrl, make_scenario("catchup-v1"), 4, list(VALIDATION_SEEDS))
     assert np.mean([t.reward.mean() for t in trajs]) == ours["reward"]
     assert sum(t.collided for t in trajs) == ours["collisions"]
+
+
+def test_validation_carries_the_training_channel() -> None:
+    """An ``accel`` learner trained behind a delayed, lossy channel is validated behind it (its
+    observation carries V2V); an ``ovm-gain`` one, whose training observation does not, on the
+    ideal channel."""
+    from envs.channel import ChannelConfig
+
+    lossy = PPOConfig(comm_delay_s=0.2, packet_loss=0.3)
+    assert lossy.validation_channel == ChannelConfig(0.2, 0.3)
+    assert dataclasses.replace(lossy, action_mode="ovm-gain").validation_channel == ChannelConfig()
+    actor = SharedActor(lossy)
+    ideal, behind = (validation_evaluator("ippo", "catchup-v1", 3, (1, 2), channel=c)(
+        actor, "greedy") for c in (ChannelConfig(), lossy.validation_channel))
+    assert ideal["reward"] != behind["reward"]
 
 
 @pytest.mark.parametrize("n", [2, 4, 12])
@@ -177,14 +207,12 @@ def test_ippo_bdc_trains_a_network_per_agent_and_counts_its_consensus_messages(
     import math
 
     from benchmark.rollout import rollout_batch
-    from commands.train_shared import train_shared
-    from controllers.shared_policy import SharedPolicyController
     from envs.params import VALIDATION_SEEDS
     from envs.scenarios import make_scenario
     from marl.checkpoint import load_checkpoint
 
     cfg = dataclasses.replace(TINY, algo="ippo-bdc", eval_every_steps=10**6)
-    res = train("catchup-v1", 3, 0, 128, cfg, validate=False)
+    res = train("catchup-v1", 3, 0, 128, cfg)
     w = res.actor.body[0].weight  # type: ignore[union-attr]
     assert w.shape == (3, 12, 64) and not torch.equal(w[0], w[1])
     critic_weights = sum(p[0].numel() for p in Critic(cfg, 3).parameters())
@@ -192,11 +220,10 @@ def test_ippo_bdc_trains_a_network_per_agent_and_counts_its_consensus_messages(
     steps = 2 * cfg.epochs * math.ceil(64 / (cfg.minibatch_rows // 3))
     assert res.bits_per_agent["consensus"] == pytest.approx(steps * critic_weights * math.log2(3))
     assert res.bits_per_agent["qsgd_local"] > 0
-    path = train_shared("ippo-bdc", "catchup-v1", 3, 0, 256,
-                        tmp_path, dataclasses.replace(cfg, eval_every_steps=128),
-                        log=lambda _: None)
+    path = _train_and_save("catchup-v1", 3, 256, dataclasses.replace(cfg, eval_every_steps=128),
+                           tmp_path)
     data = load_checkpoint(path)
-    ctrl = SharedPolicyController("ippo-bdc", checkpoint=str(path))
+    ctrl = PolicyController("ippo-bdc", checkpoint=str(path))
     trajs = rollout_batch(ctrl, make_scenario("catchup-v1"), 3, list(VALIDATION_SEEDS))
     assert np.mean([t.reward.mean() for t in trajs]) == data["curve_summary"]["best_reward"]
     assert data["curve_summary"]["consensus_bits_per_agent"] > 0
@@ -205,9 +232,8 @@ def test_ippo_bdc_trains_a_network_per_agent_and_counts_its_consensus_messages(
 
 
 def test_the_shipped_ippo_bdc_scores_an_episode_alike_alone_or_in_a_batch() -> None:
-    """Per-agent actors (batched products) are padded to
-    :data:`controllers.shared_policy.PER_AGENT_MIN_LANES` rows: one episode alone gets the
-    numbers it gets among ten."""
+    """Per-agent actors (batched products) are padded to :data:`controllers.policy.MIN_LANES`
+    rows: one episode alone gets the numbers it gets among ten."""
     from benchmark.rollout import rollout_batch
     from controllers.registry import make_controller
     from envs.params import EVAL_SEEDS
@@ -238,8 +264,8 @@ def test_training_on_a_distribution_of_sizes_and_channels_is_deterministic() -> 
 
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(envs.platoon.PlatoonEnv, "__init__", spy)
-        a = train("mixed-v1", 3, 1, 7200, cfg, validate=False)
-    b = train("mixed-v1", 3, 1, 7200, cfg, validate=False)
+        a = train("mixed-v1", 3, 1, 7200, cfg)
+    b = train("mixed-v1", 3, 1, 7200, cfg)
     assert all(torch.equal(v, _weights(b.actor)[k]) for k, v in _weights(a.actor).items())
     sizes = {n for n, _, _ in seen[1:]}
     assert len(sizes) >= 3 and sizes <= set(range(2, 7))
@@ -257,8 +283,8 @@ def test_a_residual_needs_acceleration_actions() -> None:
 
 
 def test_a_residual_policy_with_a_zero_residual_drives_the_platoon_as_cacc() -> None:
-    """``prior=cacc`` with the last layer zeroed and a negligible std: validation (the learner's
-    own loop) scores what the registered ``cacc`` controller scores in the harness (on
+    """``prior=cacc`` with the last layer zeroed and a negligible std: validation scores what
+    the registered ``cacc`` controller scores in the harness (on
     scenarios whose relative speeds stay inside the observation's +-10 m/s clip; slowdown-v1's
     initial speeds leave it, and there the prior is not ``cacc``)."""
     from benchmark.rollout import rollout_batch
@@ -273,7 +299,7 @@ def test_a_residual_policy_with_a_zero_residual_drives_the_platoon_as_cacc() -> 
         actor.body[-1].bias.zero_()  # type: ignore[union-attr]
         actor.log_std.fill_(-60.0)
     for scenario in ("catchup-v1", "sine-v1"):
-        ours = validation_score(actor, scenario, 5, PlatoonParams(), cfg)
+        ours = validation_evaluator("ippo", scenario, 5)(actor, "sampled")
         trajs = rollout_batch(make_controller("cacc"), make_scenario(scenario), 5,
                               list(VALIDATION_SEEDS))
         ref = float(np.mean([t.reward.mean() for t in trajs]))
@@ -285,34 +311,35 @@ def test_a_residual_checkpoint_scores_in_the_harness_what_validation_scored(
     """The controller passes the observation and the run's targets to the prior, as training
     and validation do: the harness gives the validation number to the last bit."""
     from benchmark.rollout import rollout_batch
-    from commands.train_shared import train_shared
-    from controllers.shared_policy import SharedPolicyController
     from envs.params import VALIDATION_SEEDS
     from envs.scenarios import make_scenario
     from marl.checkpoint import load_checkpoint
 
     cfg = dataclasses.replace(TINY, prior="cacc", critic_warmup_updates=1, eval_every_steps=256)
-    path = train_shared("ippo", "slowdown-v1", 4, 0, 512, tmp_path, cfg, log=lambda _: None)
+    path = _train_and_save("slowdown-v1", 4, 512, cfg, tmp_path)
     data = load_checkpoint(path)
     assert data["config"]["prior"] == "cacc"
-    ctrl = SharedPolicyController("ippo", checkpoint=str(path))
+    ctrl = PolicyController("ippo", checkpoint=str(path))
     trajs = rollout_batch(ctrl, make_scenario("slowdown-v1"), 4, list(VALIDATION_SEEDS))
     assert np.mean([t.reward.mean() for t in trajs]) == data["curve_summary"]["best_reward"]
 
 
 def test_the_controller_refuses_a_missing_or_mismatched_checkpoint(
         tiny_checkpoint: Path, tmp_path: Path) -> None:
-    from controllers.shared_policy import SharedPolicyController
     from envs.scenarios import make_scenario
 
     with pytest.raises(ConfigError, match="no trained ippo policy for brake-v1 with N = 8"):
-        SharedPolicyController("ippo", checkpoint_dir=str(tmp_path)).preflight(
+        PolicyController("ippo", checkpoint_dir=str(tmp_path)).preflight(
             make_scenario("brake-v1"), 8)
     with pytest.raises(ConfigError, match="holds algorithm 'ippo', not 'mappo'"):
-        SharedPolicyController("mappo", checkpoint=str(tiny_checkpoint)).preflight(
+        PolicyController("mappo", checkpoint=str(tiny_checkpoint)).preflight(
             make_scenario("catchup-v1"), 8)
     with pytest.raises(ConfigError, match="vehicles must lie in 2..64"):
-        SharedPolicyController("ippo", vehicles=65)
+        PolicyController("ippo", vehicles=65)
+    with pytest.raises(ConfigError, match=r"ippo has no option\(s\) \['untrained'\]"):
+        PolicyController("ippo", untrained=True)  # the paper's learners' option
+    with pytest.raises(ConfigError, match=r"bdc has no option\(s\) \['vehicles'\]"):
+        PolicyController("bdc", vehicles=4)  # the shared learners' option
 
 
 def test_weights_that_do_not_fit_the_learner_are_refused(tiny_checkpoint: Path) -> None:
@@ -328,7 +355,7 @@ def test_weights_that_do_not_fit_the_learner_are_refused(tiny_checkpoint: Path) 
 def test_distill_with_a_seed_gives_the_same_weights() -> None:
     """Two distillations of one seed (behaviour cloning and a DAgger round) end with equal
     weights, and another seed with others."""
-    from commands.train_shared import model_expert
+    from commands.train import model_expert
     from marl.distill import DistillConfig, distill
 
     cfg = DistillConfig(expert="cacc", rounds=2, episodes_per_round=2, grad_steps=200)
@@ -348,11 +375,12 @@ def test_distill_copies_a_linear_law() -> None:
     episodes crashes in closed loop, and one DAgger round did not always repair it (on an Intel
     Xeon the two-round run kept 2 collisions of 32 and 2.1 m/s^2 RMS; with four rounds 0
     collisions and 0.05-0.13, by thread count)."""
-    from commands.train_shared import model_expert
+    from commands.train import model_expert
     from marl.distill import DistillConfig, distill
 
     cfg = DistillConfig(expert="cacc", rounds=4, episodes_per_round=4, grad_steps=1500)
-    res = distill("catchup-v1", model_expert("cacc"), 3, 0, cfg)
+    res = distill("catchup-v1", model_expert("cacc"), 3, 0, cfg,
+                  evaluate=validation_evaluator("distill", "catchup-v1", 3))
     assert res.best["collisions"] == 0
     from envs.platoon import PlatoonEnv
 
@@ -363,7 +391,7 @@ def test_distill_copies_a_linear_law() -> None:
     for _ in range(300):
         label = expert(env.state)
         with torch.no_grad():
-            from marl.ppo_eval import agent_inputs
+            from marl.acting import agent_inputs
 
             mine = res.actor.command(res.actor(torch.from_numpy(agent_inputs(obs, "accel"))))
         errors.append(mine.numpy() - label)
@@ -388,13 +416,12 @@ def pooled_shared(algo: str, scenario: str, n_vehicles: int = 8, **options: str
     """The shipped seeds 0-2 of ``algo`` through the harness's closed loop on the 50
     evaluation seeds: collisions, and the mean over all episodes of each one's mean reward."""
     from benchmark.rollout import rollout_batch
-    from controllers.shared_policy import SharedPolicyController
     from envs.params import EVAL_SEEDS
     from envs.scenarios import make_scenario
 
     rewards, collisions = [], 0
     for seed in (0, 1, 2):
-        ctrl = SharedPolicyController(algo, seed=seed, **options)  # type: ignore[arg-type]
+        ctrl = PolicyController(algo, seed=seed, **options)  # type: ignore[arg-type]
         for traj in rollout_batch(ctrl, make_scenario(scenario), n_vehicles, list(EVAL_SEEDS)):
             rewards.append(traj.reward.mean())
             collisions += traj.collided
@@ -676,8 +703,8 @@ def test_on_a_mixed_string_a_shared_policy_receives_nothing_from_a_human() -> No
 
     ctrl = make_controller("ippo")
     _drive(ctrl, "catchup-v1:humans=3", 30)
-    assert (ctrl._pred_held[:, 3] == 0).all()  # follower 4 is behind the human follower 3
-    assert (ctrl._pred_held[:, 4] != 0).any()  # follower 5 hears automated follower 4
+    assert (ctrl.policy.pred_held[:, 3] == 0).all()  # follower 4 is behind the human follower 3
+    assert (ctrl.policy.pred_held[:, 4] != 0).any()  # follower 5 hears automated follower 4
     sc = make_scenario("catchup-v1:humans=3")
     (traj,) = rollout_batch(make_controller("ippo"), sc, 8, [2000])
     assert traj.steps == sc.n_steps
@@ -692,8 +719,8 @@ def test_on_the_ring_a_shared_policy_hears_no_leader_and_follower_one_hears_foll
 
     ctrl = make_controller("ippo", scenario="catchup-v1")  # no policy trained on the ring
     ctx, u = _drive(ctrl, "ring-v1:cav_fraction=1.0,vehicles=8", 20)
-    assert (ctrl._leader_held == 0).all()
-    assert ctrl._pred_held[0, 0] == pytest.approx(float(np.clip(u[0, -1], -2.5, 2.5)))
+    assert (ctrl.policy.leader_held == 0).all()
+    assert ctrl.policy.pred_held[0, 0] == pytest.approx(float(np.clip(u[0, -1], -2.5, 2.5)))
     assert ctx.channels["accel-leader"].bits_sent == 0
     (traj,) = rollout_batch(make_controller("ippo", scenario="catchup-v1"),
                             make_scenario("ring-v1:length_m=100,vehicles=8"), 8, [2000])

@@ -106,21 +106,14 @@ def test_tuned_options(tmp_path: Path, capsys) -> None:
     with pytest.raises(ConfigError, match="missing"):
         tuned_options("ia2c", "catchup-v1", tmp_path / "none.json")
     # every shipped entry builds a valid config of its algorithm; BDC is tuned on both
-    from controllers.registry import build_config
-    from marl.config import algorithm
-
     shipped = json.loads(TUNED_CONFIGS.read_text())
     assert shipped["budget"] == {"trials": 8, "steps_per_trial": 200_000, "seed": 0, "vehicles": 8}
     assert {"bdc/catchup-v1", "bdc/slowdown-v1"} <= set(shipped["configs"])
-    from commands.train_shared import shared_config
-    from marl.learners import SHARED_LEARNERS
+    from commands.train import learner_config
 
     for key in shipped["configs"]:
         a, sc = key.split("/")
-        if a in SHARED_LEARNERS:
-            shared_config(a, [], tuned_options(a, sc))
-        else:
-            build_config(algorithm(a).config_cls, tuned_options(a, sc), key)
+        learner_config(a, tuned_options(a, sc), key)
 
 
 def test_tune_tiny_study_resumes(tmp_path: Path, capsys) -> None:
@@ -196,20 +189,55 @@ def test_a_population_of_seeds_equals_separate_processes(tmp_path: Path, capsys)
     assert main([*common, "--seeds", "0,1", "--population", "0", "--out", str(tmp_path)]) == 2
 
 
-def test_population_jobs_group_by_everything_but_the_seed() -> None:
-    from commands.train import population_jobs
+def test_populations_group_by_everything_but_the_seed() -> None:
+    """Keys that differ only in their seed train together (up to the size asked); a
+    shared-policy learner's runs each alone; a key pickles for the executors."""
+    import pickle
 
-    def job(algo: str, seed: int) -> dict:
-        return {"algo": algo, "scenario": "catchup-v1", "vehicles": 8, "steps": 100, "seed": seed,
-                "out": "x", "options": {}, "progress": False}
+    from commands.train import learner_config, populations
+    from envs.scenarios import make_scenario
+    from marl.training import TrainingKey
 
-    jobs = [job("ia2c", s) for s in range(5)] + [job("bdc", 0)]
-    serial = population_jobs(jobs, None, "serial", 2)
-    assert [(j["algo"], j["seeds"]) for j in serial] == [("ia2c", [0, 1, 2, 3, 4]), ("bdc", [0])]
-    split = population_jobs(jobs, None, "process", 2)
-    assert [(j["algo"], j["seeds"]) for j in split] == [
-        ("ia2c", [0, 1, 2]), ("ia2c", [3, 4]), ("bdc", [0])]
-    assert [j["seeds"] for j in population_jobs(jobs, 1, "serial", 2)] == [[s] for s in range(5)] + [[0]]
+    sc = make_scenario("catchup-v1")
+
+    def key(algo: str, seed: int) -> TrainingKey:
+        return TrainingKey(algo, sc, 8, (seed,), 100, learner_config(algo, {}), Path("x"))
+
+    keys = [key("ia2c", s) for s in range(5)] + [key("bdc", 0), key("ippo", 0), key("ippo", 1)]
+    serial = populations(keys, None, "serial", 2)
+    assert [(k.algo, k.seeds) for k in serial] == [
+        ("ia2c", (0, 1, 2, 3, 4)), ("bdc", (0,)), ("ippo", (0,)), ("ippo", (1,))]
+    split = populations(keys, None, "process", 2)
+    assert [(k.algo, k.seeds) for k in split][:3] == [
+        ("ia2c", (0, 1, 2)), ("ia2c", (3, 4)), ("bdc", (0,))]
+    ones = populations(keys, 1, "serial", 2)
+    assert [k.seeds for k in ones][:6] == [(0,), (1,), (2,), (3,), (4,), (0,)]
+    assert pickle.loads(pickle.dumps(serial[0])) == serial[0]
+
+
+def test_a_shared_learner_trains_through_the_executors_as_a_population_of_one(
+        tmp_path: Path, capsys) -> None:
+    """``ippo`` on the process executor gives the checkpoint and curve of the serial run; its
+    curve has every learner's columns (sampled validation only); --resume skips it."""
+    from marl.checkpoint import CURVE_COLUMNS
+
+    common = ["train", "--algo", "ippo", "--scenario", "catchup-v1", "--vehicles", "2",
+              "--steps", "64", "--set", "rollout_steps=8", "--episodes-parallel", "4",
+              "--set", "eval_every_steps=32"]
+    assert main([*common, "--out", str(tmp_path / "s")]) == 0
+    assert main([*common, "--executor", "process", "--workers", "1",
+                 "--out", str(tmp_path / "p")]) == 0
+    stem = "ippo__catchup-v1__n2__s0"
+    curve = pd.read_csv(tmp_path / "s" / f"{stem}.curve.csv")
+    assert tuple(curve.columns) == CURVE_COLUMNS and len(curve) == 3
+    assert curve["eval_reward_sampled"].notna().all() and curve["episode"].isna().all()
+    pd.testing.assert_frame_equal(curve, pd.read_csv(tmp_path / "p" / f"{stem}.curve.csv"))
+    a, b = (_tensors(torch.load(tmp_path / d / f"{stem}.pt", weights_only=True)) for d in "sp")
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    assert "done:" in (tmp_path / "s" / f"{stem}.log").read_text()
+    capsys.readouterr()
+    assert main([*common, "--out", str(tmp_path / "s"), "--resume"]) == 0
+    assert "1 of 1 runs already finished" in capsys.readouterr().err
 
 
 @FULL

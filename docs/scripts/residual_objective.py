@@ -21,7 +21,7 @@ from envs.channel import ChannelConfig
 from envs.params import VALIDATION_SEEDS, PlatoonParams
 from envs.platoon import PlatoonEnv
 from marl import ppo
-from marl.ppo_eval import agent_inputs, to_command
+from marl.acting import agent_inputs, to_command
 from marl.ppo_nets import PPOConfig, SharedActor
 
 SCENARIO = "slowdown-v1"

@@ -1,0 +1,138 @@
+"""A training job as a typed key (:class:`TrainingKey`), and the run of the shared-policy
+learners (:func:`run_shared`; the paper's learners run in :func:`marl.selection.run_population`).
+
+A key says everything a job trains from, built once at the command line: the learner, the
+scenario itself, N, the seeds (runs that differ only in their seed train as one population), the
+step budget, the config object, the arithmetic, the device and the folder. It pickles, so the
+executors (process, Ray) hand it to their workers as it is.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from envs.scenarios import Scenario
+from infra.naming import checkpoint_stem
+from marl.learners import LEARNERS, load
+
+if TYPE_CHECKING:
+    from marl.selection import TrainResult
+
+
+@dataclass(frozen=True)
+class TrainingKey:
+    """One training job: ``seeds`` runs of ``algo`` on ``scenario`` with N followers.
+
+    Attributes
+    ----------
+    algo : str
+        A learner of :data:`marl.learners.LEARNERS`.
+    scenario : Scenario
+        Built (:func:`envs.scenarios.make_scenario`); checkpoints are named by its id.
+    n_vehicles, steps : int
+        Followers N; environment steps of each run (a distillation's budget is its config's).
+    seeds : tuple of int
+        Training seeds, one run each (one: a population of one).
+    config : object
+        The learner's config (:func:`config_class`), built and checked once.
+    out : Path
+        Where the runs' files go (:func:`marl.checkpoint.write_run`).
+    arithmetic, device : str
+        :mod:`marl.arithmetic`'s mode; where the networks train
+        (:func:`marl.config.training_device`).
+    validation_episodes : int or None
+        The first that many validation seeds choose the kept snapshot (None: all).
+    progress : bool
+        Show progress on this terminal (not part of the job: runs differing in it group).
+    """
+
+    algo: str
+    scenario: Scenario
+    n_vehicles: int
+    seeds: tuple[int, ...]
+    steps: int
+    config: Any
+    out: Path
+    arithmetic: str = "native"
+    device: str = "cpu"
+    validation_episodes: int | None = None
+    progress: bool = field(default=False, compare=False)
+
+    @property
+    def family(self) -> str:
+        """The learner's family (:data:`marl.learners.LEARNER_FAMILIES`): its training loop."""
+        return LEARNERS[self.algo].family
+
+    def stem(self, seed: int) -> str:
+        """File stem of the run of ``seed`` (:func:`infra.naming.checkpoint_stem`)."""
+        return checkpoint_stem(self.algo, self.scenario.id, self.n_vehicles, seed)
+
+    def finished_file(self, seed: int) -> Path:
+        """The file whose presence marks the run of ``seed`` finished: the final weights
+        (``.final.pt``) where the learner keeps them, else the kept snapshot (``.pt``)."""
+        return self.out / f"{self.stem(seed)}{'.final.pt' if self.family == 'a2c' else '.pt'}"
+
+    def resolved_config(self) -> Any:
+        """The config the runs train with (the paper learners': resolved for the scenario)."""
+        return self.config.resolved(self.scenario) if self.family == "a2c" else self.config
+
+    def stored_config(self) -> dict[str, Any]:
+        """The config as the checkpoints record it (a distilled actor's with its action mode)."""
+        out = dataclasses.asdict(self.resolved_config())
+        if self.family != "a2c":
+            out.setdefault("action_mode", "accel")
+        return out
+
+
+def config_class(algo: str) -> type:
+    """The config class of a learner of :data:`marl.learners.LEARNERS` (its entry names it)."""
+    return load(LEARNERS[algo].config)  # type: ignore[no-any-return]
+
+
+def run_shared(key: TrainingKey, log: Callable[[str], None],
+               evaluate: Callable[[Any, str], dict[str, float]],
+               expert: Callable[[str], Any]) -> TrainResult:
+    """Train the one run of ``key`` of a shared-policy learner (:mod:`marl.ppo`, or
+    :mod:`marl.distill` imitating ``expert(config.expert)``), scored by ``evaluate`` (the
+    validation seeds, sampled actions), and write its kept snapshot (``.pt``) and curve
+    together (:func:`marl.checkpoint.write_run`)."""
+    from marl.checkpoint import checkpoint_payload, write_run
+    from marl.selection import TrainResult
+
+    (seed,) = key.seeds
+    t0 = time.perf_counter()
+    if key.family == "distill":
+        from marl.distill import distill
+
+        result = distill(key.scenario, expert(key.config.expert), key.n_vehicles, seed,
+                         key.config, log=log, evaluate=evaluate)
+    else:
+        from marl.ppo import train
+
+        result = train(key.scenario, key.n_vehicles, seed, key.steps, key.config, log=log,
+                       evaluate=evaluate)
+    wall = time.perf_counter() - t0
+    summary = {f"best_{k}": v for k, v in result.best.items()}
+    summary.update(budget_steps=float(key.steps), env_steps_per_s=result.env_steps_per_s,
+                   wall_s=wall)
+    summary.update({f"{k}_bits_per_agent": v for k, v in result.bits_per_agent.items()})
+    curve = [{"steps": r["steps"], "eval_reward_sampled": r["reward"],
+              "eval_collisions_sampled": r["collisions"]} for r in result.curve]
+    stem = key.stem(seed)
+    write_run(key.out, stem, curve, {".pt": checkpoint_payload(
+        algo=key.algo, config=key.stored_config(), scenario=key.scenario.id,
+        n_vehicles=key.n_vehicles, seed=seed, steps=result.steps, curve_summary=summary,
+        weights=dict(result.actor.state_dict()))})
+    best = result.best
+    log(f"done: {result.steps} steps in {wall:.1f} s ({result.env_steps_per_s:.0f} env steps/s "
+        f"while learning); kept the snapshot at {best['steps']:.0f} steps: validation reward "
+        f"{best['reward']:.2f}, collisions {best['collisions']:.0f}; checkpoint "
+        f"{key.out / f'{stem}.pt'}")
+    return TrainResult(key.algo, key.scenario.id, key.n_vehicles, seed, result.steps, 0, wall,
+                       result.env_steps_per_s, dict(result.bits_per_agent), curve,
+                       checkpoint=key.out / f"{stem}.pt", curve_csv=key.out / f"{stem}.curve.csv")

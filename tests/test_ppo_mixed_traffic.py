@@ -1,0 +1,94 @@
+"""The shared learner on mixed traffic (marl.ppo with ``scenarios`` and ``cav_share_min``):
+each batch draws its road and its automated seats from the run's generator; human seats'
+agent-steps enter neither the loss nor the statistics."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from infra.errors import CaccBenchError
+from marl.ppo import PPOTrainer, train
+from marl.ppo_nets import PPOConfig
+
+MIXED = PPOConfig(n_envs=4, rollout_steps=16, epochs=2, minibatch_rows=64,
+                  eval_every_steps=10**6, scenarios="catchup-v1,ring-v1", cav_share_min=0.05,
+                  vehicles_min=3, vehicles_max=6)
+
+
+@pytest.mark.parametrize(("fields", "needle"), [
+    ({"cav_share_min": 0.0}, "0 < cav_share_min <= cav_share_max <= 1"),
+    ({"cav_share_min": 0.6, "cav_share_max": 0.5}, "0 < cav_share_min <= cav_share_max"),
+    ({"cav_share_max": 1.5}, "cav_share_max <= 1"),
+    ({"scenarios": "catchup-v1,nowhere-v1"}, "nowhere-v1"),
+    ({"scenarios": "catchup-v1:cavs=2", "cav_share_min": 0.5}, "sets its automated seats"),
+    ({"algo": "ippo-bdc", "scenarios": "catchup-v1"}, "trains at one N"),
+    ({"algo": "ippo-bdc", "cav_share_min": 0.5}, "trains at one N"),
+])
+def test_a_bad_mixed_traffic_config_is_refused(fields: dict, needle: str) -> None:
+    with pytest.raises(CaccBenchError, match=needle):
+        PPOConfig(**fields)
+
+
+def test_batches_draw_roads_and_seats() -> None:
+    """Over a run the batches meet both roads (the ring at its own 22 vehicles, a string at
+    3 to 6 followers) and shares from one vehicle to all, from the run's generator."""
+    trainer = PPOTrainer(*_args(MIXED, 40_000))
+    seen = []
+    for _ in range(40):
+        w = trainer.draw_world()
+        sc = w.env.scenario
+        assert (w.n == 22) if sc.ring else (3 <= w.n <= 6)
+        seen.append((sc.ring, w.n, int(w.automated.sum())))
+    assert {ring for ring, _, _ in seen} == {False, True}
+    assert any(k == 1 for _, _, k in seen) and any(k == n for _, n, k in seen)
+    again = PPOTrainer(*_args(MIXED, 40_000))
+    assert [(w.env.scenario.ring, w.n, int(w.automated.sum()))
+            for w in (again.draw_world() for _ in range(40))] == seen
+
+
+def test_the_update_learns_only_from_live_automated_agent_steps() -> None:
+    cfg = dataclasses.replace(MIXED, scenarios="", vehicles_min=0, vehicles_max=0,
+                              cav_share_min=0.5, cav_share_max=0.5)
+    trainer = PPOTrainer(*_args(cfg, 10_000))
+    auto = trainer.world.automated.numpy()
+    assert 0 < auto.sum() < len(auto)
+    before = float(trainer.actor.obs_count)
+    ro = trainer.collect()
+    assert not ro.live[..., ~auto].any() and ro.live[..., auto].all()
+    # the observation statistics count the same agent-steps
+    assert float(trainer.actor.obs_count) - before == pytest.approx(float(ro.live.sum()), abs=0.5)
+    adv, ret = trainer.advantages(ro)
+    rows, _ = trainer.rows(ro, adv, ret)
+    assert rows[0].shape[0] == int(ro.live.sum())
+    trainer.update(ro)
+    assert np.isfinite(float(trainer.actor.obs_mean.sum()))
+
+
+def test_the_same_seed_gives_the_same_mixed_traffic_weights() -> None:
+    one, two = (train("catchup-v1", 4, 7, 2048, MIXED).actor for _ in range(2))
+    other = train("catchup-v1", 4, 8, 2048, MIXED).actor
+    same = [torch.equal(a, b) for a, b in zip(one.state_dict().values(),
+                                             two.state_dict().values(), strict=True)]
+    assert all(same)
+    assert not all(torch.equal(a, b) for a, b in zip(one.state_dict().values(),
+                                                     other.state_dict().values(), strict=True))
+
+
+def test_an_all_automated_share_range_draws_nothing_more() -> None:
+    """``cav_share_min = cav_share_max = 1`` is the homogeneous learner, bit for bit."""
+    plain = dataclasses.replace(MIXED, scenarios="", cav_share_min=1.0)
+    assert not plain.mixed_traffic
+    a = train("catchup-v1", 4, 3, 1024, plain).actor
+    b = train("catchup-v1", 4, 3, 1024, dataclasses.replace(plain, cav_share_max=1.0)).actor
+    assert all(torch.equal(x, y) for x, y in zip(a.state_dict().values(),
+                                                 b.state_dict().values(), strict=True))
+
+
+def _args(cfg: PPOConfig, steps: int) -> tuple:
+    from envs.scenarios import make_scenario
+
+    return make_scenario("catchup-v1"), 4, 0, steps, cfg
