@@ -1,13 +1,14 @@
-"""The learner: on-policy A2C of one run of N agents, in the order it runs.
+"""The one training loop of the paper's seven algorithms: on-policy A2C of K runs at once (a
+single run is a population of one), each exactly as it would train alone, in the order it runs.
 
 Read top to bottom, as a CleanRL file: **config** (:class:`marl.config.A2CConfig`), **networks**
-(:mod:`marl.networks`), **rollout** state (:class:`Run`, :class:`Segment`, :class:`Batch`),
-**returns**, **loss** (:func:`segment_loss`), then the :class:`Trainer`: its rollout loop
-(:meth:`Trainer.train`) and its **update** (recompute with gradient, loss, backward, per-agent
-clipping, the algorithm's hooks, RMSprop). Around it: :mod:`marl.population` (K runs at once,
-each exactly as alone), :mod:`marl.selection` (validation and checkpoint selection),
-:mod:`marl.acting` (acting from a checkpoint). Each algorithm file (``ia2c.py`` ... ``bdc.py``)
-fills an :class:`marl.config.Algorithm`.
+(:mod:`marl.networks`; K runs' stacked as one by :func:`stack_nets`), **rollout** state
+(:class:`Run`, :class:`Segment`, :class:`Batch`), **returns**, **loss** (:func:`segment_loss`),
+then the :class:`Trainer`: its rollout loop (:meth:`Trainer.train`) and its **update**
+(recompute with gradient, loss, backward, per-agent clipping, the algorithm's hooks, RMSprop).
+Around it: :mod:`marl.selection` (validation and checkpoint selection), :mod:`marl.acting`
+(acting from a checkpoint). Each algorithm file (``ia2c.py`` ... ``bdc.py``) fills an
+:class:`marl.config.Algorithm`.
 
 Published A2C (``docs/spec/marl.md``): n-step segments (60 steps; every episode length and
 published collision end is a multiple of 60), bootstrap from V of the next observation (0 if
@@ -16,6 +17,13 @@ grad-norm clip, RMSprop. The acting LSTM state advances once per observation: at
 boundary the next segment starts from the state the bootstrap used, acting again with the
 updated weights. B episodes run in one batched :class:`envs.platoon.PlatoonEnv`
 (``training=True, collision_mode="published"``); a step of B active episodes counts as B steps.
+
+K runs (``docs/populations.md``) are one network of ``K N`` agents (every layer is per agent,
+:mod:`marl.layers`): each step acts for all runs in one forward, each update is one backward of
+the runs whose segments ended, and what crosses agents (messages, the critics' neighbour
+actions, consensus, reward sharing) stays inside a run's platoon. Each run steps its own env,
+ends its own segments and batches, draws from its own generator in the order it would alone and
+keeps its own statistics and optimiser state (tested to the last bit against runs alone).
 """
 
 from __future__ import annotations
@@ -28,10 +36,11 @@ from typing import Any
 import numpy as np
 import torch
 
+from envs.dynamics import OBS_DIM
 from envs.params import RewardWeights
 from envs.platoon import PlatoonEnv, StepResult
 from envs.scenarios import Scenario, make_scenario
-from infra.errors import TrainingDivergedError
+from infra.errors import ConfigError, TrainingDivergedError
 from infra.limits import training_episode_seeds
 from marl.config import A2CConfig, Algorithm, training_device
 from marl.layers import per_agent_clip_, rmsprop_, sqrt
@@ -39,8 +48,27 @@ from marl.networks import AgentNet, State, exchange, neighbour_action_onehot
 
 # ---------------------------------------------------------------------------- config
 # :class:`marl.config.A2CConfig`: every hyper-parameter, the paper's values as defaults.
+
+#: Structural fields every run of a population shares (they shape the stacked tensors and the
+#: segment loop); the others may differ from run to run.
+POPULATION_SHARED_FIELDS: tuple[str, ...] = ("hidden", "n_step", "episodes_parallel")
+
+
 # ---------------------------------------------------------------------------- networks
 # :mod:`marl.networks`: N agents' actor-critics batched as one module.
+def stack_nets(algo: Algorithm, config: A2CConfig, nets: Sequence[AgentNet]) -> AgentNet:
+    """One network of ``K N`` agents holding the K runs' networks' weights (and buffers) in
+    order; its ``platoon_size`` is N (one run: its own network)."""
+    if len(nets) == 1:
+        return nets[0]
+    n = nets[0].n_agents
+    big = algo.build_net(config, n * len(nets), True, torch.Generator().manual_seed(0))
+    parts = [dict(net.named_parameters()) | dict(net.named_buffers()) for net in nets]
+    with torch.no_grad():
+        for name, t in list(big.named_parameters()) + list(big.named_buffers()):
+            t.copy_(torch.cat([part[name] for part in parts]))
+    big.platoon_size = n
+    return big
 
 
 # ---------------------------------------------------------------------------- rollout
@@ -49,9 +77,9 @@ class Run:
     """One training run: everything of its own.
 
     Its random stream, environment settings, optimiser rates, return statistics, step counts,
-    bit tallies and algorithm state (``hook_state``); in a population
-    (:mod:`marl.population`) the runs share only the stacked network tensors, each owning its
-    agent rows ``rows``, so each run trains exactly as it would alone.
+    bit tallies and algorithm state (``hook_state``); the runs of a :class:`Trainer` share only
+    the stacked network tensors, each owning its agent rows ``rows``, so each run trains exactly
+    as it would alone.
     """
 
     index: int
@@ -157,10 +185,10 @@ class Segment:
 
 @dataclass
 class Batch:
-    """A run's batch of B episodes in progress: the batched env they run in (rows ``rows``; a
-    population's runs whose batches start together share one), which still run, their training
-    reward and length so far, its open segment (started at step ``seg_start`` of a population's
-    loop) and whether it is over."""
+    """A run's batch of B episodes in progress: the batched env they run in (rows ``rows``; the
+    runs whose batches start together share one), which still run, their training reward and
+    length so far, its open segment (started at step ``seg_start`` of the loop) and whether it
+    is over."""
 
     env: PlatoonEnv
     rows: slice
@@ -172,6 +200,30 @@ class Batch:
     steps: int = 0
     t_episode: int = 0
     done: bool = False
+
+    def record(self, run: Run, res: StepResult) -> None:
+        """Record the batch's rows of its env's step ``res`` (rewards with the run's baseline
+        term, terminals, absorbing values) in the batch and its open segment."""
+        sg, act = self.seg, self.active
+        done, collided, reward = res.done[self.rows], res.collided[self.rows], res.reward[self.rows]
+        self.t_episode += 1
+        sg.masks.append(act.copy())
+        sg.terms.append(done & act)
+        if run.baseline_reward:
+            running = act & ~collided
+            sg.rews.append(reward + run.baseline_reward * running[:, None])
+        else:
+            sg.rews.append(reward)
+        crashed = done & collided & act
+        sg.absorbed.append(
+            run.absorbing_value(run.env.n_steps - self.t_episode) * crashed
+            if crashed.any() else np.zeros(len(act))
+        )
+        self.steps += int(act.sum())
+        self.ep_reward += np.where(act, sg.rews[-1].sum(1), 0.0)
+        self.ep_len += act
+        self.active = ~done
+        self.done = bool(done.all())
 
 
 # ---------------------------------------------------------------------------- returns and loss
@@ -306,7 +358,7 @@ def segment_loss(run: Run, seg: Segment, logits: torch.Tensor, values: torch.Ten
                  actions: torch.Tensor, rows: slice) -> torch.Tensor:
     """The run's A2C loss over its segment, from its agents' ``rows`` of the recompute: logits
     ``(A, T, B, 4)``, values and actions ``(A, T, B)``. (Slicing even all rows matters: its
-    backward hands the network a contiguous gradient, so one run rounds as in a population.)"""
+    backward hands the network a contiguous gradient, so a run rounds alike in every group.)"""
     cfg, device = run.config, logits.device
 
     def tensor(parts: list[np.ndarray], dtype: torch.dtype | None = torch.float32) -> torch.Tensor:
@@ -329,44 +381,58 @@ def segment_loss(run: Run, seg: Segment, logits: torch.Tensor, values: torch.Ten
 
 # ---------------------------------------------------------------------------- the trainer
 class Trainer:
-    """On-policy A2C of one run over a batched env: the rollout loop (:meth:`train`), then the
-    update of each segment (:meth:`_update`).
+    """On-policy A2C of K runs of one algorithm at once (K = 1: one run): the rollout loop
+    (:meth:`train`), then the update of each ended segment (:meth:`_update`).
 
     Parameters
     ----------
     algo : Algorithm
-    config : A2CConfig
+    config : A2CConfig or sequence of them
+        One config for every run, or one per run (equal in :data:`POPULATION_SHARED_FIELDS`).
     scenario_id : str
         The scenario's id (it names the checkpoints).
     n_vehicles : int
-    seed : int
-        The run's seed: its initial weights, its actions' uniforms and its episodes' seeds.
+    seed : int or sequence of int
+        The runs' seeds (one int: one run): each run's initial weights, its actions' uniforms
+        and its episodes' seeds.
     device : str or torch.device
         Where the network, its gradients and optimiser state live (:func:`training_device`);
-        the environments, the random stream and the checkpoints stay on the CPU, so the same
+        the environments, the random streams and the checkpoints stay on the CPU, so the same
         seed draws the same actions' uniforms on every device.
     scenario : Scenario, optional
         The scenario, when the caller built it already.
     """
 
-    def __init__(self, algo: Algorithm, config: A2CConfig, scenario_id: str, n_vehicles: int,
-                 seed: int, device: str | torch.device = "cpu",
-                 scenario: Scenario | None = None) -> None:
-        scenario = make_scenario(scenario_id) if scenario is None else scenario
-        self._start(algo, scenario_id, scenario, n_vehicles, [int(seed)],
-                    [config.resolved(scenario)], device)
-        self.run = self.runs[0]
-
-    def _start(self, algo: Algorithm, scenario_id: str, scenario: Scenario, n_vehicles: int,
-               seeds: Sequence[int], resolved: Sequence[A2CConfig],
-               device: str | torch.device) -> None:
-        """Build the runs (``resolved``: their configs, ``reward_alpha`` and the power
-        baseline filled in), their networks (joined by :meth:`_join`) and the optimiser."""
+    def __init__(
+        self,
+        algo: Algorithm,
+        config: A2CConfig | Sequence[A2CConfig],
+        scenario_id: str,
+        n_vehicles: int,
+        seed: int | Sequence[int],
+        device: str | torch.device = "cpu",
+        scenario: Scenario | None = None,
+    ) -> None:
+        seeds = [int(seed)] if isinstance(seed, int | np.integer) else [int(s) for s in seed]
+        configs = [config] * len(seeds) if isinstance(config, A2CConfig) else list(config)
+        if not seeds or len(configs) != len(seeds):
+            raise ConfigError(
+                f"a population needs one config per seed (got {len(configs)} configs for "
+                f"{len(seeds)} seeds)")
+        # built once (or by the caller), for the config and every env of every run
+        self.scenario = make_scenario(scenario_id) if scenario is None else scenario
+        resolved = [c.resolved(self.scenario) for c in configs]
+        for f in POPULATION_SHARED_FIELDS:
+            values = {getattr(c, f) for c in resolved}
+            if len(values) > 1:
+                raise ConfigError(
+                    f"the runs of one population must share {f} (got {sorted(values)}); "
+                    "train them in separate populations")
         torch.set_num_threads(1)
         self.device = training_device(device)
-        self.algo, self.scenario_id, self.scenario = algo, scenario_id, scenario
-        self.n_vehicles = n = n_vehicles
+        self.algo, self.scenario_id, self.n_vehicles = algo, scenario_id, n_vehicles
         self.shape = resolved[0]  # the structural fields (hidden, n_step, episodes_parallel)
+        n = n_vehicles
         self.runs: list[Run] = []
         nets = []
         for k, (s, cfg) in enumerate(zip(seeds, resolved, strict=True)):
@@ -377,7 +443,9 @@ class Trainer:
                                  -cfg.reward_w_power * cfg.power_baseline_kw))
             with torch.device("cpu"):  # the same initial weights on every device
                 nets.append(algo.build_net(cfg, n, True, generator))
-        self.net = self._join(nets).to(self.device)
+        with torch.device("cpu"):
+            net = stack_nets(algo, self.shape, nets)
+        self.net = net.to(self.device)
         #: (parameter, is_critic): actor parameters, then the critic's
         self.params = [(p, False) for p in self.net.actor_parameters()] + [
             (p, True) for p in self.net.critic_parameters()]
@@ -385,98 +453,190 @@ class Trainer:
         for run in self.runs:
             algo.setup(run)
 
-    def _join(self, nets: list[AgentNet]) -> AgentNet:
-        """The network trained: the run's own."""
-        return nets[0]
-
     # -- rollout
-    def train(self, on_batch: Callable[[Run, int, float], bool]) -> None:
-        """Train batch after batch of B episodes, an update every n steps, until ``on_batch(run,
-        steps, mean_training_reward)``, called after each batch (``run.steps`` counts it), says
-        stop. A run that diverges stops there (``run.failed`` says why)."""
-        run, b, n = self.run, self.shape.episodes_parallel, self.n_vehicles
-        net = self.net
+    def train(self, on_batch: Callable[[Run, int, float], bool],
+              runs: Sequence[Run] | None = None) -> None:
+        """Train ``runs`` (default all) batch after batch of B episodes, an update of a run every
+        n steps, until ``on_batch`` says stop for each.
+
+        The runs run free: every step acts for the whole stack at once, and each run steps its
+        own env, ends its own segments (an update of exactly its rows) and batches, and starts
+        its next batch at once. ``on_batch(run, steps, mean_training_reward)`` is called when a
+        run's batch ended (after ``run.steps`` counts it) and returns whether the run goes on.
+        A run that diverges stops there (``run.failed`` says why).
+        """
+        live = list(self.runs if runs is None else runs)
+        b = self.shape.episodes_parallel
+        # each run's latest observation (N, B, 15); an idle run's are acted on and ignored
+        obs = [torch.zeros(self.n_vehicles, b, OBS_DIM, device=self.device) for _ in self.runs]
+        batch = self._start_batches(live, obs, 0)
+        state = self.net.initial_state(b)
+        cur: dict[str, Any] | None = self._act(torch.cat(obs), state, live)
+        #: per step since ``base``: the state acted from and what the act gave
+        history: list[tuple[State, dict[str, Any]]] = []
+        base = tick = 0
         while True:
-            env = self._make_env(run.env.weights)
-            first = env.reset(run.training_seeds(b))
-            assert first is not None
-            obs = self._observation(first)
-            run.return_acc = torch.zeros(b, n, device=self.device)
-            bt = Batch(env, slice(0, b), np.ones(b, dtype=bool), np.zeros(b), np.zeros(b))
-            state = net.initial_state(b)
-            cur = self._act(obs, state)
-            history: list[tuple[State, dict[str, Any]]] = []  # the open segment's steps
-            while True:
-                history.append((state, cur))
-                res = env.step_actions(cur["actions"].cpu().T.numpy())
-                self._record(run, bt, res)
-                nxt: dict[str, Any] | None = None
-                if bt.done:  # every episode ended: the segment bootstraps from 0
-                    bt.seg.bootstrap = torch.zeros(b, n, device=self.device)
-                else:  # act on the next observation, with the weights before any update
-                    assert res.observation is not None
-                    obs = self._observation(res.observation)
-                    nxt = self._act(obs, cur["state"])
-                    if len(bt.seg.rews) < self.shape.n_step:
-                        state, cur = cur["state"], nxt
-                        continue
-                    if not net.separate_critic:  # (a separate critic's: in the update)
-                        with torch.no_grad():
-                            bt.seg.bootstrap = net.value(nxt["out"], neighbour_action_onehot(
-                                nxt["actions"], net.platoon_size)).T
-                # the segment ends: one update
-                critic_after = self._update(history[0][0], [h[1] for h in history], bt.seg, nxt)
-                # most episodes ended (published collision rule): truncate the rest (their last
-                # segment was bootstrapped) instead of stepping finished episodes
-                if (bt.done or run.failed is not None
-                        or bt.active.sum() < run.config.min_active_fraction * b):
-                    break
-                # the next segment starts from the same observation and state, acting again
-                # with the new weights (a separate critic's state is its recompute's end)
-                state = cur["state"] | critic_after
-                cur, history, bt.seg = self._act(obs, state), [], Segment()
-            if run.failed is not None:
+            assert cur is not None
+            history.append((state, cur))
+            state = cur["state"]
+            # 1. every live run steps its env: some segments (``ending``) and batches (``over``)
+            # end at this step (a finished batch's segment bootstraps from 0)
+            ending, over = self._step_envs(live, batch, cur["actions"], obs)
+            # 2. act on the next observations, with the weights before any update; a critic
+            # sharing the actor's trunk bootstraps a segment that ends mid-batch from it (a
+            # separate critic's bootstrap comes from its recompute, in the update)
+            going = [r for r in live if r.index not in over]
+            cur = self._act(torch.cat(obs), state, going) if going else None
+            boot = [r for r in ending if r.index not in over]
+            if boot and not self.net.separate_critic:
+                assert cur is not None
+                with torch.no_grad():
+                    values = self.net.value(cur["out"], neighbour_action_onehot(
+                        cur["actions"], self.net.platoon_size))
+                for r in boot:
+                    batch[r.index].seg.bootstrap = values[r.rows].T
+            # 3. one update per segment length of the runs whose segment ended (a segment of T
+            # steps is the last T of ``history``)
+            by_length: dict[int, list[Run]] = {}
+            for r in ending:
+                by_length.setdefault(len(batch[r.index].seg.rews), []).append(r)
+            critic_after: dict[int, State] = {}
+            for t_len, group in sorted(by_length.items()):
+                critic_after |= self._update(group, history[-t_len:],
+                                             [batch[r.index].seg for r in group], cur)
+            # 4. each of them opens its next segment from the same observation and state,
+            # acting again with its new weights (a separate critic's state: its recompute's
+            # end), unless its batch is over: every episode ended, the run diverged, or most
+            # episodes ended (published collision rule) and the rest, their last segment
+            # bootstrapped, are truncated instead of stepping finished episodes
+            reacting = []
+            for r in ending:
+                bt = batch[r.index]
+                if (r.failed is not None or r.index in over
+                        or bt.active.sum() < r.config.min_active_fraction * b):
+                    over.add(r.index)
+                else:
+                    bt.seg, bt.seg_start = Segment(), tick + 1
+                    reacting.append(r)
+            if reacting:
+                if critic_after:
+                    state = {k: v.clone() for k, v in state.items()}
+                    for r in reacting:
+                        for k, v in critic_after[r.index].items():
+                            state[k][r.rows] = v
+                assert cur is not None
+                cur = _merge_rows(cur, self._act(cur["obs"], state, reacting), reacting)
+            # 5. runs whose batch ended report it; those that go on start their next batch
+            restarting = []
+            for r in live:
+                if r.index not in over:
+                    continue
+                bt = batch.pop(r.index)
+                if r.failed is not None:
+                    continue
+                r.steps += bt.steps
+                r.episodes += b
+                if on_batch(r, bt.steps, float((bt.ep_reward / np.maximum(bt.ep_len, 1)).mean())):
+                    restarting.append(r)
+            live = [r for r in live if r.index not in over] + restarting
+            if not live:
                 return
-            run.steps += bt.steps
-            run.episodes += b
-            if not on_batch(run, bt.steps, float((bt.ep_reward / np.maximum(bt.ep_len, 1)).mean())):
-                return
+            if restarting:
+                state, cur = self._restart(restarting, batch, obs, state, cur, tick + 1)
+            tick += 1
+            oldest = min(batch[r.index].seg_start for r in live)
+            del history[: oldest - base]  # no open segment needs those steps
+            base = oldest
 
     @torch.no_grad()
-    def _act(self, obs: torch.Tensor, state: State) -> dict[str, Any]:
-        """No-grad acting step: observations ``(N, B, 15)``, messages received, logits, actions
-        sampled (Gumbel-max with the run's uniforms), next state."""
+    def _act(self, obs: torch.Tensor, state: State, sampling: Sequence[Run]) -> dict[str, Any]:
+        """No-grad acting step of the whole stack: observations ``(K N, B, 15)``, messages
+        received, logits, actions sampled (Gumbel-max with the runs' uniforms), next state. Only
+        the runs in ``sampling`` draw their actions (the others' rows are computed and
+        ignored)."""
         net = self.net
         front, rear = exchange(net, state)
         logits, out, new = net.act_step(obs, state, front, rear, critic=not net.separate_critic)
-        u = self.run.uniforms((self.n_vehicles,) + tuple(logits.shape[1:])).to(self.device)
-        actions = (logits - torch.log(-torch.log(u))).argmax(-1)
+        shape = (self.n_vehicles,) + tuple(logits.shape[1:])
+        drawing = {r.index for r in sampling}
+        u = torch.cat([r.uniforms(shape) if r.index in drawing
+                       else torch.full(shape, 0.5, device="cpu") for r in self.runs])
+        actions = (logits - torch.log(-torch.log(u.to(self.device)))).argmax(-1)
         return {"obs": obs, "front": front, "rear": rear, "out": out, "logits": logits,
                 "actions": actions, "state": new}
 
-    def _record(self, r: Run, bt: Batch, res: StepResult) -> Batch:
-        """Record the run's rows of its env's step ``res`` in its batch and open segment."""
-        sg, act, rows = bt.seg, bt.active, bt.rows
-        done, collided, reward = res.done[rows], res.collided[rows], res.reward[rows]
-        bt.t_episode += 1
-        sg.masks.append(act.copy())
-        sg.terms.append(done & act)
-        if r.baseline_reward:
-            running = act & ~collided
-            sg.rews.append(reward + r.baseline_reward * running[:, None])
-        else:
-            sg.rews.append(reward)
-        crashed = done & collided & act
-        sg.absorbed.append(
-            r.absorbing_value(r.env.n_steps - bt.t_episode) * crashed
-            if crashed.any() else np.zeros(len(act))
-        )
-        bt.steps += int(act.sum())
-        bt.ep_reward += np.where(act, sg.rews[-1].sum(1), 0.0)
-        bt.ep_len += act
-        bt.active = ~done
-        bt.done = bool(done.all())
-        return bt
+    def _step_envs(
+        self, live: list[Run], batch: dict[int, Batch], actions: torch.Tensor,
+        obs: list[torch.Tensor],
+    ) -> tuple[list[Run], set[int]]:
+        """Step every live run's env with its rows of ``actions`` and store its next
+        observation in ``obs``; returns the runs whose segment ends at this step and the indices
+        of those whose batch ends (a finished batch's segment bootstraps from 0)."""
+        ending: list[Run] = []
+        over: set[int] = set()
+        sharing: dict[int, list[Run]] = {}  # env -> its live runs
+        actions = actions.cpu()
+        for r in live:
+            sharing.setdefault(id(batch[r.index].env), []).append(r)
+        for group in sharing.values():
+            env = batch[group[0].index].env
+            # rows of runs that left this env (their batch ended) step on with action 0, ignored
+            acts = np.zeros((env.batch_size, self.n_vehicles), dtype=np.int64)
+            for r in group:
+                acts[batch[r.index].rows] = actions[r.rows].T.numpy()
+            res = env.step_actions(acts)
+            for r in group:
+                bt = batch[r.index]
+                bt.record(r, res)
+                if bt.done:
+                    over.add(r.index)
+                    bt.seg.bootstrap = torch.zeros(self.shape.episodes_parallel, self.n_vehicles,
+                                                   device=self.device)
+                    ending.append(r)
+                else:
+                    assert res.observation is not None
+                    obs[r.index] = self._observation(res.observation[bt.rows])
+                    if len(bt.seg.rews) == self.shape.n_step:
+                        ending.append(r)
+        return ending, over
+
+    def _start_batches(self, runs: list[Run], obs: list[torch.Tensor], tick: int
+                       ) -> dict[int, Batch]:
+        """Start the next batch of each run in ``runs`` at step ``tick``: the runs with the same
+        reward weights share one batched env of their K B episodes (each episode depends on its
+        own seed only, so a run's rows equal its env alone; one step of a shared env costs about
+        what one run's costs)."""
+        b, n = self.shape.episodes_parallel, self.n_vehicles
+        by_weights: dict[RewardWeights, list[Run]] = {}
+        for r in runs:
+            by_weights.setdefault(r.env.weights, []).append(r)
+        out = {}
+        for weights, group in by_weights.items():
+            env = self._make_env(weights)
+            obs_np = env.reset(np.concatenate([r.training_seeds(b) for r in group]))
+            assert obs_np is not None
+            for j, r in enumerate(group):
+                rows = slice(j * b, (j + 1) * b)
+                obs[r.index] = self._observation(obs_np[rows])
+                r.return_acc = torch.zeros(b, n, device=self.device)
+                out[r.index] = Batch(env, rows, np.ones(b, dtype=bool), np.zeros(b),
+                                     np.zeros(b), seg_start=tick)
+        return out
+
+    def _restart(
+        self, restarting: list[Run], batch: dict[int, Batch], obs: list[torch.Tensor],
+        state: State, cur: dict[str, Any] | None, tick: int,
+    ) -> tuple[State, dict[str, Any]]:
+        """Start the next batch of each run in ``restarting`` at step ``tick``: new episodes,
+        the initial recurrent state on its rows, and its first act."""
+        initial = self.net.initial_state(self.shape.episodes_parallel)
+        state = {k: v.clone() for k, v in state.items()}
+        batch |= self._start_batches(restarting, obs, tick)
+        for r in restarting:
+            for k, v in state.items():
+                v[r.rows] = initial[k][r.rows]
+        new = self._act(torch.cat(obs), state, restarting)
+        return state, new if cur is None else _merge_rows(cur, new, restarting)
 
     def _observation(self, obs_np: np.ndarray) -> torch.Tensor:
         """Env observations ``(B, N, 15)`` -> agent-major ``(N, B, 15)``."""
@@ -488,83 +648,123 @@ class Trainer:
                           collision_mode="published", weights=weights)
 
     # -- update
-    def _update(self, seg_state: State, record: list[dict[str, Any]], seg: Segment,
-                nxt: dict[str, Any] | None) -> State:
-        """One update on the segment that starts from ``seg_state`` (``record``: its acts).
-
-        With a separate critic, the bootstrap of a segment whose batch goes on is computed here
-        from the recompute's critic state and ``nxt`` (the act on the next observation), with
-        the weights before the update; returns that critic state after the segment."""
-        logits, values, actions, after = self._recompute(seg_state, record)
-        critic_after = self._critic_bootstrap(seg, after, nxt)
-        self._optimise(segment_loss(self.run, seg, logits, values, actions, self.run.rows),
-                       [self.run])
+    def _update(self, group: list[Run], record: list[tuple[State, dict[str, Any]]],
+                segs: list[Segment], nxt: dict[str, Any] | None) -> dict[int, State]:
+        """One update of the runs in ``group``, whose segments ``segs`` have the same length T
+        (``record``: the segment's steps, the state acted from and the act): one recompute with
+        gradient on their rows, each run's loss, one backward, clipping, the algorithm's hooks
+        and RMSprop. With a separate critic, the bootstrap of a segment whose batch goes on is
+        computed here from the recompute's critic state and ``nxt`` (the act on the next
+        observation), with the weights before the update; returns that critic state after the
+        segment per such run."""
+        logits, values, actions, rows, after = self._recompute(group, record)
+        critic_after = self._critic_bootstrap(group, segs, rows, after, nxt)
+        losses = [segment_loss(r, sg, logits, values, actions, rw)
+                  for r, sg, rw in zip(group, segs, rows, strict=True)]
+        # each run's gradient is its own loss's (the sum's derivative is 1 for each)
+        self._optimise(sum(losses[1:], losses[0]), group)
         return critic_after
 
-    def _recompute(self, seg_state: State, record: list[dict[str, Any]]
-                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, State]:
-        """Re-run the segment with gradient: logits ``(N, T, B, 4)``, values and actions
-        ``(N, T, B)`` and the recurrent state after the segment."""
-        obs, actions, msgs = self._segment_inputs(record)
-        logits, values, after = self.net(seg_state, obs, actions, msgs)
-        return logits, values, actions, after
+    def _recompute(self, group: list[Run], record: list[tuple[State, dict[str, Any]]]
+                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, list[slice], State]:
+        """Re-run the group's segment with gradient on the group's rows only: logits
+        ``(A, T, B, 4)``, values and actions ``(A, T, B)`` of its ``A`` agents, each run's rows
+        among them, and the recurrent state after the segment (those rows)."""
+        net, seg_state, acts = self.net, record[0][0], [h[1] for h in record]
+        obs = torch.stack([a["obs"] for a in acts], 1)
+        actions = torch.stack([a["actions"] for a in acts], 1)
+        msgs = None  # messages received, where gradients do not flow through them
+        if not net.differentiable_messages and acts[0]["front"] is not None:
+            msgs = (torch.stack([a["front"] for a in acts], 1),
+                    torch.stack([a["rear"] for a in acts], 1))
+        if len(group) == len(self.runs):
+            logits, values, after = net(seg_state, obs, actions, msgs)
+            return logits, values, actions, [r.rows for r in group], after
+        idx = torch.cat([torch.arange(r.rows.start, r.rows.stop, device=self.device)
+                         for r in group])
 
-    def _segment_inputs(self, record: list[dict[str, Any]]) -> tuple[Any, Any, Any]:
-        """The segment's observations, actions and (gradient-free) messages ``(A, T, ...)``."""
-        obs = torch.stack([r["obs"] for r in record], 1)
-        actions = torch.stack([r["actions"] for r in record], 1)
-        msgs = None
-        if not self.net.differentiable_messages and record[0]["front"] is not None:
-            msgs = (torch.stack([r["front"] for r in record], 1),
-                    torch.stack([r["rear"] for r in record], 1))
-        return obs, actions, msgs
+        def pick(t: torch.Tensor) -> torch.Tensor:
+            return t.index_select(0, idx)
+
+        if msgs is not None:
+            msgs = (pick(msgs[0]), pick(msgs[1]))
+        tensors = {name: pick(t) for name, t in [*net.named_parameters(), *net.named_buffers()]}
+        logits, values, after = torch.func.functional_call(net, tensors, (
+            {k: pick(v) for k, v in seg_state.items()}, pick(obs), pick(actions), msgs))
+        n = self.n_vehicles
+        rows = [slice(j * n, (j + 1) * n) for j in range(len(group))]
+        return logits, values, pick(actions), rows, after
 
     @torch.no_grad()
-    def _critic_bootstrap(self, seg: Segment, after: State, nxt: dict[str, Any] | None) -> State:
-        """For a separate critic and a batch that goes on: the segment's bootstrap (the critic
-        one step on from the segment's end, on the next observation) and its critic state at the
-        segment's end (empty otherwise)."""
+    def _critic_bootstrap(
+        self, group: list[Run], segs: list[Segment], rows: list[slice], after: State,
+        nxt: dict[str, Any] | None,
+    ) -> dict[int, State]:
+        """For a separate critic, each run of the group whose batch goes on: its segment's
+        bootstrap (the critic one step on from the segment's end, on the next observation, in
+        one critic step of the whole stack) and its critic state at the segment's end."""
         net = self.net
-        if not net.separate_critic or seg.bootstrap is not None:
+        if not net.separate_critic:
+            return {}
+        going = [(r, sg, rw) for r, sg, rw in zip(group, segs, rows, strict=True)
+                 if sg.bootstrap is None]
+        if not going:
             return {}
         assert nxt is not None
-        critic = {k: after[k].detach().clone() for k in ("ch", "cc")}
-        out, _ = net.critic_features(nxt["obs"], critic)
-        seg.bootstrap = net.value(out, neighbour_action_onehot(nxt["actions"], net.platoon_size)).T
-        return critic
+        b = self.shape.episodes_parallel
+        start = {k: torch.zeros(net.n_agents, b, net.hidden, device=self.device)
+                 for k in ("ch", "cc")}
+        for r, _, rw in going:
+            for k in start:
+                start[k][r.rows] = after[k][rw]
+        out, _ = net.critic_features(nxt["obs"], start)
+        values = net.value(out, neighbour_action_onehot(nxt["actions"], net.platoon_size))
+        for r, sg, _ in going:
+            sg.bootstrap = values[r.rows].T
+        return {r.index: {k: after[k][rw].detach().clone() for k in ("ch", "cc")}
+                for r, _, rw in going}
 
-    def _optimise(self, loss: torch.Tensor, runs: list[Run]) -> None:
-        """Backward of ``loss`` (the sum of ``runs``' losses: this trainer's one run, or a
-        population's group), per-agent clipping, the algorithm's hooks around RMSprop, and the
-        divergence check."""
-        for p, _ in self.params:
+    def _optimise(self, loss: torch.Tensor, group: list[Run]) -> None:
+        """Backward of ``loss`` (the sum of the group's losses), each agent's gradient clipped to
+        its run's global norm (the other rows have none), the algorithm's hooks around RMSprop,
+        and the divergence check."""
+        params = [p for p, _ in self.params]
+        for p in params:
             if p.grad is not None:
                 p.grad.zero_()
         loss.backward()
-        self._clip(runs)
-        for r in runs:
+        clips = {r.config.grad_clip for r in group}
+        per_agent_clip_(params, clips.pop() if len(clips) == 1 else torch.tensor(
+            [r.config.grad_clip for r in self.runs], device=self.device
+        ).repeat_interleave(self.n_vehicles))  # a config population: each run its own norm
+        for r in group:
             self.algo.before_step(r, self.net)
-        self._rmsprop_step(runs)
-        for r in runs:
+        self._rmsprop(group)
+        for r in group:
             self.algo.after_step(r, self.net)
             r.updates += 1
-        if not all(bool(torch.isfinite(p).all()) for p, _ in self.params):
-            for r in runs:
+        if not all(bool(torch.isfinite(p).all()) for p in params):
+            for r in group:
                 self._check_finite(r)
 
-    def _clip(self, runs: list[Run]) -> None:
-        """Clip each agent's gradient to the run's global norm (``grad_clip``)."""
-        per_agent_clip_([p for p, _ in self.params], self.run.config.grad_clip)
-
     @torch.no_grad()
-    def _rmsprop_step(self, runs: list[Run]) -> None:
-        """RMSprop (no momentum, not centred; the arithmetic of ``torch.optim.RMSprop``), the
-        actor's and the critic's rates."""
-        cfg = self.run.config
-        lrs = self.run.learning_rates()
+    def _rmsprop(self, group: list[Run]) -> None:
+        """RMSprop (no momentum, not centred; the arithmetic of ``torch.optim.RMSprop``) on the
+        group's rows, each run with its own actor and critic rates, smoothing and epsilon (one
+        step of the whole stack when every run updates with the same settings)."""
+        settings = {(r.learning_rates(), r.config.rmsprop_alpha, r.config.rmsprop_eps)
+                    for r in group}
+        whole = len(group) == len(self.runs) and len(settings) == 1
         for (p, is_critic), sq in zip(self.params, self._square_avg, strict=True):
             assert p.grad is not None
-            rmsprop_(p, p.grad, sq, lrs[is_critic], cfg.rmsprop_alpha, cfg.rmsprop_eps)
+            if whole:
+                (lrs, alpha, eps), = settings
+                rmsprop_(p, p.grad, sq, lrs[is_critic], alpha, eps)
+                continue
+            for r in group:
+                cfg = r.config
+                rmsprop_(p[r.rows], p.grad[r.rows], sq[r.rows], r.learning_rates()[is_critic],
+                         cfg.rmsprop_alpha, cfg.rmsprop_eps)
 
     def _check_finite(self, run: Run) -> None:
         """Stop a run whose weights became non-finite (a NaN policy would act as "action 0"
@@ -584,16 +784,40 @@ class Trainer:
                     p[run.rows] = 0.0
 
     # -- what the layers above read
-    def run_batch(self) -> list[tuple[int, float]]:
-        """Train one batch; returns ``[(environment steps, mean training reward)]`` (mean over
-        steps of the sum over agents). Raises :class:`TrainingDivergedError` if it diverged."""
-        out: list[tuple[int, float]] = []
+    def run_batch(self, runs: Sequence[Run] | None = None) -> list[tuple[int, float]]:
+        """Run one batch of B episodes of every run in ``runs`` (default all), with an update of
+        each run every n steps.
+
+        Returns per run the environment steps taken and the mean training reward (the
+        learner's own, shaped when the config says so; mean over steps of the sum over agents,
+        as the paper reports). Raises :class:`TrainingDivergedError` if a run diverged.
+        """
+        taking = list(self.runs if runs is None else runs)
+        out: dict[int, tuple[int, float]] = {}
 
         def once(run: Run, steps: int, reward: float) -> bool:
-            out.append((steps, reward))
+            out[run.index] = (steps, reward)
             return False
 
-        self.train(once)
-        if self.run.failed is not None:
-            raise TrainingDivergedError(self.run.failed)
+        self.train(once, taking)
+        failed = [r.failed for r in taking if r.failed is not None]
+        if failed:
+            raise TrainingDivergedError("; ".join(failed))
+        return [out[r.index] for r in taking]
+
+
+def _merge_rows(base: dict[str, Any], new: dict[str, Any], runs: Sequence[Run]) -> dict[str, Any]:
+    """``base`` (an act's output, nested dicts of ``(A, ...)`` tensors) with the rows of
+    ``runs`` taken from ``new``."""
+
+    def merge(x: Any, y: Any) -> Any:
+        if x is None:
+            return None
+        if isinstance(x, dict):
+            return {k: merge(x[k], y[k]) for k in x}
+        out = x.clone()
+        for r in runs:
+            out[r.rows] = y[r.rows]
         return out
+
+    return {k: merge(base[k], new[k]) for k in base}

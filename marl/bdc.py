@@ -1,6 +1,7 @@
 """BDC-MARL (the paper's method): binary differential consensus plus QSGD with error feedback.
 
-Each agent has a separate actor and critic (as WAC/DCEA). After every update:
+Each agent has a separate actor and critic (as WAC and DCEA, whose shared parts, the consensus
+family, open this file). After every update:
 
 1. **Consensus** on ternary-quantised critic LSTM weights with the front and rear neighbours,
    synchronous: ``w_i <- w_i + eps sum_j (q(w_j) - q(w_i))`` with ``q(w) = sign(w)`` in
@@ -29,20 +30,72 @@ Messages (each received by the front and rear neighbours; counted in bits per ag
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, ClassVar
+
+import torch
 
 from infra.errors import ConfigError
-from marl.config import Algorithm
-from marl.consensus import bdc
-from marl.consensus_family import ConsensusConfig, build_net, share_critics
-from marl.networks import AgentNet
+from marl.config import A2CConfig, Algorithm
+from marl.consensus import bdc, consensus_round
+from marl.networks import AgentNet, SeparateActorCriticNet
 from marl.quantize import ErrorFeedbackQSGD, qsgd_bits, ternary_bits
 
 if TYPE_CHECKING:
     from marl.config import RunState
 
 
+# ---------------------------------------------------------------------------- the consensus family
+# What WAC, DCEA and BDC share: their config, their network (a separate actor and critic per
+# agent) and the consensus round after every update, in which the agents' critic LSTM weights
+# (or whole critics) move towards their front and rear neighbours' by a rule of
+# :mod:`marl.consensus`, the bits sent tallied per agent. ``wac.py`` and ``dcea.py`` keep only
+# their rule and what a round costs.
+@dataclass(frozen=True)
+class ConsensusConfig(A2CConfig):
+    """Hyper-parameters of the consensus family (IA2C family reward scale, no reward sharing).
+
+    Attributes
+    ----------
+    share_whole_critic : bool
+        Share the whole critic instead of its LSTM only (published: LSTM).
+
+    A ``consensus_eps`` field of a subclass (DCEA, BDC: the step ``eps`` of the differential
+    update, paper 0.001) must lie in (0, 0.5] (larger steps are unstable).
+    """
+
+    reward_scale: float = 1.0 / 800.0
+    #: the published consensus configs share no reward (``coop_gamma = 0``) on every scenario
+    PUBLISHED_REWARD_ALPHA: ClassVar[dict[str, float]] = {"catchup": 0.0, "slowdown": 0.0}
+    DEFAULT_REWARD_ALPHA: ClassVar[float] = 0.0
+    share_whole_critic: bool = False
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        eps = getattr(self, "consensus_eps", None)
+        if eps is not None and not 0 < eps <= 0.5:
+            raise ConfigError(f"consensus_eps must lie in (0, 0.5], got {eps}")
+
+
+def build_net(config: ConsensusConfig, n_agents: int, with_critic: bool = True,
+              generator: torch.Generator | None = None) -> SeparateActorCriticNet:
+    """Separate actor and critic per agent."""
+    return SeparateActorCriticNet(n_agents, config.hidden, with_critic, generator)
+
+
+def share_critics(run: RunState, net: AgentNet, rule: Callable[[torch.Tensor], torch.Tensor],
+                  bits: Callable[[int], float]) -> None:
+    """One synchronous round of ``rule`` on the run's shared critic weights (its rows of
+    ``net``); ``bits(n)``, for ``n`` shared weights per agent, is added to the run's consensus
+    tally."""
+    cfg = run.config
+    assert isinstance(cfg, ConsensusConfig) and isinstance(net, SeparateActorCriticNet)
+    shared = [p[run.rows] for p in net.shared_critic_parameters(cfg.share_whole_critic)]
+    run.bits["consensus"] += bits(consensus_round(shared, rule))
+
+
+# ---------------------------------------------------------------------------- BDC
 @dataclass(frozen=True)
 class BDCConfig(ConsensusConfig):
     """BDC-MARL hyper-parameters: the consensus family's plus the communication scheme.

@@ -21,14 +21,14 @@ import torch
 
 from marl.config import Algorithm
 from marl.consensus import degree
+from marl.dial import MessageConfig, MessageNet
 from marl.layers import BatchedLinear
-from marl.message_family import MessageConfig, MessageNet
 
 
 @dataclass(frozen=True)
 class CommNetConfig(MessageConfig):
     """CommNet hyper-parameters: those of the learned-message family
-    (:class:`marl.message_family.MessageConfig`: reward scale 1/5000, global reward)."""
+    (:class:`marl.dial.MessageConfig`: reward scale 1/5000, global reward)."""
 
 
 class CommNetNet(MessageNet):

@@ -18,9 +18,9 @@ import functools
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
+from marl.bdc import ConsensusConfig, build_net, share_critics
 from marl.config import Algorithm
 from marl.consensus import dcea
-from marl.consensus_family import ConsensusConfig, build_net, share_critics
 from marl.networks import FLOAT_BITS, AgentNet
 
 if TYPE_CHECKING:

@@ -18,18 +18,44 @@ Messages (each received by the front and rear neighbours; counted in bits per ag
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 import torch
 
-from marl.config import Algorithm
+from marl.config import A2CConfig, Algorithm
 from marl.layers import BatchedLinear
-from marl.message_family import MessageConfig, MessageNet
+from marl.networks import SharedTrunkNet
 
 
+# ---------------------------------------------------------------------------- the message family
+# What DIAL and CommNet (``commnet.py``) share: their config and a network whose messages,
+# derived from the sender's previous LSTM hidden state, enter the receiver's LSTM input gates
+# (:meth:`marl.networks.SharedTrunkNet.message_gates`) and carry gradients within a segment.
+@dataclass(frozen=True)
+class MessageConfig(A2CConfig):
+    """Hyper-parameters of DIAL and CommNet: reward scale 1/5000; global reward (alpha = 1) on
+    catchup and slowdown, as their published configs."""
+
+    reward_scale: float = 1.0 / 5000.0
+    PUBLISHED_REWARD_ALPHA: ClassVar[dict[str, float]] = {"catchup": 1.0, "slowdown": 1.0}
+
+
+class MessageNet(SharedTrunkNet):
+    """The IA2C trunk with a ``hidden``-float message through which gradients flow; subclasses
+    add the sender's :meth:`message` and the receiver's :meth:`message_gates`."""
+
+    differentiable_messages = True
+
+    def __init__(self, n_agents: int, hidden: int = 64, with_critic: bool = True,
+                 generator: torch.Generator | None = None) -> None:
+        super().__init__(n_agents, hidden, with_critic, generator=generator)
+        self.msg_width = hidden
+
+
+# ---------------------------------------------------------------------------- DIAL
 @dataclass(frozen=True)
 class DIALConfig(MessageConfig):
-    """DIAL hyper-parameters: those of the learned-message family
-    (:class:`marl.message_family.MessageConfig`: reward scale 1/5000, global reward)."""
+    """DIAL hyper-parameters: those of the message family (:class:`MessageConfig`)."""
 
 
 class DIALNet(MessageNet):

@@ -15,6 +15,7 @@ from torch import nn
 from envs.accel_mode import check_action_mode
 from envs.channel import ChannelConfig
 from envs.params import OVM_ACTIONS, PlatoonParams
+from envs.scenarios import Scenario
 from infra.errors import ConfigError, TrainingDivergedError
 from marl.learners import PPO_LEARNERS
 
@@ -98,7 +99,7 @@ class PPOConfig:
     scenarios : str
         "": the training episodes run on the run's scenario. Otherwise a comma list of
         scenario labels (``catchup-v1,ring-v1``): each batch draws one uniformly (a ring keeps
-        its own vehicle count); validation stays on the run's scenario.
+        its own vehicle count); validation scores each (:meth:`validation_roads`).
     cav_share_min, cav_share_max : float
         1, 1: every follower automated. Otherwise each batch draws its share of automated
         followers uniformly from this range and places them at random (a seeded ``placement``
@@ -236,6 +237,24 @@ class PPOConfig:
         if self.action_mode != "accel":
             return ChannelConfig()
         return ChannelConfig(self.comm_delay_s, self.packet_loss)
+
+    def validation_roads(self, scenario: Scenario) -> list[Scenario]:
+        """The roads validation scores a policy on: the run's ``scenario``; with ``scenarios``
+        each of them instead, and on mixed traffic each with humans (a string with half its
+        followers automated, placed at random; a ring as it is, by default one automated
+        vehicle among humans)."""
+        if not self.scenarios:
+            roads = [scenario]
+        else:
+            from envs.scenarios import parse_scenarios
+
+            roads = parse_scenarios(self.scenarios)
+        if not self.mixed_traffic:
+            return roads
+        from envs.scenarios import make_scenario
+
+        return [sc if sc.ring else make_scenario(sc.label, cav_fraction=0.5, placement="random")
+                for sc in roads]
 
     @property
     def per_agent(self) -> bool:

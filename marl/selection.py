@@ -6,8 +6,8 @@ precision, is evaluated on the validation seeds in both modes by the benchmark's
 (an :data:`Evaluator`); the snapshot kept is the evaluated one with the fewest collisions, then
 the best reward, in ``selection_mode`` (a tie goes to the later one). When the run finishes its
 learning curve, final weights and kept snapshot are written together
-(:func:`marl.checkpoint.write_run`). The trainers underneath: :class:`marl.a2c.Trainer` (one
-run) and :class:`marl.population.PopulationTrainer` (K runs).
+(:func:`marl.checkpoint.write_run`). The trainer underneath: :class:`marl.a2c.Trainer` (K runs
+at once; one run is a population of one).
 """
 
 from __future__ import annotations
@@ -31,7 +31,6 @@ from marl.a2c import Run, Trainer
 from marl.checkpoint import CURVE_EVAL_KEYS
 from marl.config import A2CConfig, Algorithm
 from marl.networks import AgentNet, execution_bits_per_agent_step, training_step_bits_per_agent
-from marl.population import PopulationTrainer
 
 ProgressFn = Callable[[int, int, dict[str, float]], None]
 
@@ -122,8 +121,7 @@ def run_population(
     evaluate: Evaluator | None = None,
     device: str | torch.device = "cpu",
 ) -> list[TrainResult]:
-    """Train K runs of ``algo`` at once (a :class:`marl.population.PopulationTrainer`; one run:
-    a :class:`marl.a2c.Trainer`): run ``k`` with
+    """Train K runs of ``algo`` at once (one :class:`marl.a2c.Trainer`): run ``k`` with
     ``configs[k]`` and ``seeds[k]``, each evaluated, selected and saved exactly as
     :func:`run_training` alone.
 
@@ -140,11 +138,7 @@ def run_population(
         )
     if len({int(s) for s in seeds}) != len(seeds):
         raise ConfigError(f"the runs of a population need distinct seeds, got {list(seeds)}")
-    trainer: Trainer = (
-        Trainer(algo, configs[0], scenario.id, n_vehicles, seeds[0], device, scenario)
-        if len(seeds) == 1 else
-        PopulationTrainer(algo, list(configs), scenario.id, n_vehicles, list(seeds), device,
-                          scenario))
+    trainer = Trainer(algo, list(configs), scenario.id, n_vehicles, list(seeds), device, scenario)
     runs = trainer.runs
     log_of = list(logs) if logs is not None else [None] * len(runs)
     for r in runs:

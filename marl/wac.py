@@ -18,9 +18,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
+from marl.bdc import ConsensusConfig, build_net, share_critics
 from marl.config import Algorithm
 from marl.consensus import wac
-from marl.consensus_family import ConsensusConfig, build_net, share_critics
 from marl.networks import FLOAT_BITS, AgentNet
 
 if TYPE_CHECKING:
@@ -30,7 +30,7 @@ if TYPE_CHECKING:
 @dataclass(frozen=True)
 class WACConfig(ConsensusConfig):
     """WAC hyper-parameters: those of the consensus family
-    (:class:`marl.consensus_family.ConsensusConfig`), nothing else."""
+    (:class:`marl.bdc.ConsensusConfig`), nothing else."""
 
 
 def average_critics(run: RunState, net: AgentNet) -> None:

@@ -12,9 +12,9 @@ from run_marks import representative
 from commands.cli import main as cli
 from envs.dynamics import OBS_DIM
 from infra.errors import ConfigError
+from marl.a2c import Trainer
 from marl.config import algorithm, training_device
 from marl.learners import PAPER_ALGORITHMS
-from marl.population import PopulationTrainer
 from marl.selection import acting_net
 
 N, SCENARIO = 3, "catchup-v1"
@@ -26,9 +26,9 @@ def _tiny(name: str):
     return a, a.config_cls(episodes_parallel=4, n_step=7)
 
 
-def _trained(name: str, seeds: list[int], device: str = "cpu") -> PopulationTrainer:
+def _trained(name: str, seeds: list[int], device: str = "cpu") -> Trainer:
     a, cfg = _tiny(name)
-    tr = PopulationTrainer(a, cfg, SCENARIO, N, seeds, device=device)
+    tr = Trainer(a, cfg, SCENARIO, N, seeds, device=device)
     for r in tr.runs:
         r.total_steps = 5000
     tr.run_batch()
@@ -87,8 +87,8 @@ def test_a_gpu_population_starts_as_on_the_cpu_and_trains(name: str) -> None:
     not compared: the kernels round differently and one flipped sampled action changes the
     episode.)"""
     a, cfg = _tiny(name)
-    gpu = PopulationTrainer(a, cfg, SCENARIO, N, [0, 1], device="cuda")
-    cpu = PopulationTrainer(a, cfg, SCENARIO, N, [0, 1])
+    gpu = Trainer(a, cfg, SCENARIO, N, [0, 1], device="cuda")
+    cpu = Trainer(a, cfg, SCENARIO, N, [0, 1])
     assert all(p.device.type == "cuda" for p in gpu.net.parameters())
     for (key, p), q in zip(gpu.net.named_parameters(), cpu.net.parameters(), strict=True):
         assert torch.equal(p.cpu(), q), key

@@ -12,7 +12,6 @@ from infra.errors import ConfigError, TrainingDivergedError
 from marl.a2c import Trainer
 from marl.config import algorithm
 from marl.learners import PAPER_ALGORITHMS
-from marl.population import PopulationTrainer
 from marl.selection import run_population, run_training
 
 #: N = 3 on catchup-v1 with B = 2 and 7-step segments: the untrained policies collide, so runs
@@ -36,7 +35,7 @@ def _rows(tr: Trainer, k: int) -> dict[str, torch.Tensor]:
     return {n: p[tr.runs[k].rows] for n, p in tr.net.named_parameters()}
 
 
-def _assert_run_equals_solo(pop: PopulationTrainer, k: int, solo: Trainer) -> None:
+def _assert_run_equals_solo(pop: Trainer, k: int, solo: Trainer) -> None:
     mine, alone = _rows(pop, k), dict(solo.net.named_parameters())
     assert mine.keys() == alone.keys()
     for name, p in alone.items():
@@ -48,12 +47,12 @@ def _assert_run_equals_solo(pop: PopulationTrainer, k: int, solo: Trainer) -> No
 @pytest.mark.parametrize("name", representative(PAPER_ALGORITHMS, {"bdc"}))
 def test_each_run_of_a_population_trains_exactly_as_alone(name: str) -> None:
     """Weights (critics included), step counts, updates and bit tallies of every run equal a
-    separate run of the same seed by the single-run learner (:class:`marl.a2c.Trainer`, a
-    second implementation of the loop) to the last bit, for every algorithm: messages, the
-    critics' neighbour actions, consensus and QSGD stay inside a run."""
+    separate run of the same seed (a population of one) to the last bit, for every algorithm:
+    messages, the critics' neighbour actions, consensus and QSGD stay inside a run, and updates
+    of part of the stack round as those of the whole."""
     a, cfg = _tiny(name)
     seeds = [0, 1, 2]
-    pop = PopulationTrainer(a, cfg, SCENARIO, N, seeds)
+    pop = Trainer(a, cfg, SCENARIO, N, seeds)
     _train(pop, 1)
     for k, seed in enumerate(seeds):
         solo = Trainer(a, cfg, SCENARIO, N, seed)
@@ -66,7 +65,7 @@ def test_the_unaligned_case_is_exercised() -> None:
     that updates of part of the stack happen (otherwise it would only test whole-stack
     updates)."""
     a, cfg = _tiny("ia2c")
-    pop = PopulationTrainer(a, cfg, SCENARIO, N, [0, 1, 2])
+    pop = Trainer(a, cfg, SCENARIO, N, [0, 1, 2])
     _train(pop, 1)
     assert len({r.steps for r in pop.runs}) == 3
     assert any(r.steps % cfg.n_step for r in pop.runs)
@@ -83,7 +82,7 @@ def test_a_population_of_configs_trains_each_as_alone() -> None:
         dataclasses.replace(base, entropy_coef=0.2, reward_w_power=0.0, return_norm=True,
                             rmsprop_alpha=0.9, consensus_eps=0.01),
     ]
-    pop = PopulationTrainer(a, configs, SCENARIO, N, [4, 4 + 1, 4 + 2])
+    pop = Trainer(a, configs, SCENARIO, N, [4, 4 + 1, 4 + 2])
     _train(pop, 1)
     for k, cfg in enumerate(configs):
         solo = Trainer(a, cfg, SCENARIO, N, 4 + k)
@@ -94,9 +93,9 @@ def test_a_population_of_configs_trains_each_as_alone() -> None:
 def test_runs_of_a_population_must_share_the_structure() -> None:
     a, cfg = _tiny("ia2c")
     with pytest.raises(ConfigError, match="n_step"):
-        PopulationTrainer(a, [cfg, dataclasses.replace(cfg, n_step=8)], SCENARIO, N, [0, 1])
+        Trainer(a, [cfg, dataclasses.replace(cfg, n_step=8)], SCENARIO, N, [0, 1])
     with pytest.raises(ConfigError, match="one config per seed"):
-        PopulationTrainer(a, [cfg, cfg], SCENARIO, N, [0])
+        Trainer(a, [cfg, cfg], SCENARIO, N, [0])
     with pytest.raises(ConfigError, match="distinct seeds"):
         run_population(a, [cfg, cfg], SCENARIO, N, 100, [3, 3])
 

@@ -11,7 +11,6 @@ from run_marks import FULL
 from marl.a2c import Trainer
 from marl.config import algorithm
 from marl.learners import PAPER_ALGORITHMS
-from marl.population import PopulationTrainer
 from marl.quantize import qsgd_bits, ternary_bits
 from marl.selection import run_training
 
@@ -41,16 +40,16 @@ def test_recompute_equals_rollout(algo, monkeypatch) -> None:
     seen = []
     orig = tr._recompute
 
-    def spy(seg_state, record):
+    def spy(group, record):
         if len(seen) == 5:
             raise _Stop
-        logits, values, actions, after = orig(seg_state, record)
-        want = torch.stack([r["logits"] for r in record], 1)  # agent-major (N, T, B, 4)
-        seen.append(float((logits.detach() - want).abs().max()))
-        return logits, values, actions, after
+        out = orig(group, record)
+        want = torch.stack([act["logits"] for _, act in record], 1)  # agent-major (N, T, B, 4)
+        seen.append(float((out[0].detach() - want).abs().max()))
+        return out
 
     monkeypatch.setattr(tr, "_recompute", spy)
-    monkeypatch.setattr(tr, "_rmsprop_step", lambda group: None)  # weights fixed: exact
+    monkeypatch.setattr(tr, "_rmsprop", lambda group: None)  # weights fixed: exact
     if algo == "bdc":
         monkeypatch.setattr(tr.algo, "after_step", lambda run, net: None)
     with pytest.raises(_Stop):
@@ -62,10 +61,10 @@ def _run_updates(tr: Trainer, k: int, monkeypatch) -> None:
     """Run a batch but stop after ``k`` updates."""
     orig = tr._recompute
 
-    def limited(seg_state, record):
+    def limited(group, record):
         if tr.runs[0].updates == k:
             raise _Stop
-        return orig(seg_state, record)
+        return orig(group, record)
 
     monkeypatch.setattr(tr, "_recompute", limited)
     with pytest.raises(_Stop):
@@ -207,9 +206,9 @@ def test_absorbing_value_enters_only_collision_ends(monkeypatch) -> None:
     seen = []
     orig = tr._update
 
-    def spy(seg_state, record, seg, nxt):
-        seen.append((np.stack(seg.terms), np.stack(seg.absorbed)))
-        return orig(seg_state, record, seg, nxt)
+    def spy(group, record, segs, nxt):
+        seen.append((np.stack(segs[0].terms), np.stack(segs[0].absorbed)))
+        return orig(group, record, segs, nxt)
 
     monkeypatch.setattr(tr, "_update", spy)
     tr.run_batch()
@@ -448,7 +447,7 @@ def test_a_short_training_learns() -> None:
 
     a = algorithm("ia2c")
     seeds = [0, 1, 2]
-    trainer = PopulationTrainer(a, a.config_cls(), "catchup-v1", 8, seeds)
+    trainer = Trainer(a, a.config_cls(), "catchup-v1", 8, seeds)
     for run in trainer.runs:
         run.total_steps = 30_000
     episodes = list(range(1, 17))
