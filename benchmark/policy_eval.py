@@ -53,12 +53,15 @@ def evaluate_policy(
 
 
 def validation_evaluator(
-    algo: str, scenario: str | Scenario, n_vehicles: int,
+    algo: str, scenario: str | Scenario | Sequence[Scenario], n_vehicles: int,
     seeds: Sequence[int] = VALIDATION_SEEDS, channel: ChannelConfig = ChannelConfig(),
 ) -> Callable[[Any, str], dict[str, float]]:
     """The evaluator the trainers take (:func:`marl.selection.run_training`,
     :func:`marl.ppo.train`, :func:`marl.distill.distill`): ``(net, mode) -> summary``, V2V
     through ``channel`` (a shared learner's: :attr:`marl.ppo_nets.PPOConfig.validation_channel`).
+    Given several scenarios (a policy trained on several roads:
+    :meth:`marl.ppo_nets.PPOConfig.validation_roads`), the summary is over all of them: the
+    mean of their rewards, their collisions and episodes summed (a ring at its own N).
 
     Its scores choose the kept snapshot (and, through ``cacc-bench tune``, the tuned configs):
     a decision, so test seeds are refused (:func:`envs.params.check_decision_seeds`).
@@ -70,9 +73,18 @@ def validation_evaluator(
     """
     check_decision_seeds(seeds, "benchmark.policy_eval.validation_evaluator")
     seeds = tuple(int(s) for s in seeds)
-    sc = as_scenario(scenario)  # built once, for every snapshot it scores
+    roads = ([as_scenario(scenario)] if isinstance(scenario, str | Scenario)
+             else list(scenario))  # built once, for every snapshot it scores
+    sizes = [sc.default_vehicles if sc.ring else n_vehicles for sc in roads]
 
     def evaluate(net: Any, mode: str) -> dict[str, float]:
-        return evaluate_policy(algo, net, sc, n_vehicles, seeds, mode, channel)
+        scores = [evaluate_policy(algo, net, sc, n, seeds, mode, channel)
+                  for sc, n in zip(roads, sizes, strict=True)]
+        if len(scores) == 1:
+            return scores[0]
+        return {"reward": float(np.mean([s["reward"] for s in scores])),
+                "tracking_reward": float(np.mean([s["tracking_reward"] for s in scores])),
+                "collisions": float(sum(s["collisions"] for s in scores)),
+                "episodes": float(sum(s["episodes"] for s in scores))}
 
     return evaluate

@@ -143,7 +143,8 @@ def _evaluator(key: TrainingKey) -> Callable[[Any, str], dict[str, float]]:
     channel = ChannelConfig() if key.family == "a2c" else (  # a distilled actor: its own
         key.config.actor_config() if key.family == "distill" else key.config).validation_channel
     seeds = VALIDATION_SEEDS[: key.validation_episodes or len(VALIDATION_SEEDS)]
-    return validation_evaluator(key.algo, key.scenario, key.n_vehicles, seeds, channel)
+    roads = key.config.validation_roads(key.scenario) if key.family == "ppo" else key.scenario
+    return validation_evaluator(key.algo, roads, key.n_vehicles, seeds, channel)
 
 
 def train_job(key: TrainingKey) -> dict[str, Any]:
