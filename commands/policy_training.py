@@ -53,7 +53,8 @@ def source_file(job: dict[str, Any]) -> Path:
 def is_done(job: dict[str, Any]) -> bool:
     """Finished in the output folder (trained there, or a shipped copy with the same config)."""
     from commands.train import job_key
-    from marl.checkpoint import finished, same_energy_model
+    from marl.checkpoint import same_energy_model
+    from marl.training import finished
 
     key = job_key(job)
     src = source_file(job)

@@ -349,10 +349,9 @@ def main(argv: list[str]) -> int:
         check_seeds,
     )
     from marl.arithmetic import process_env
-    from marl.checkpoint import finished
     from marl.config import training_device, tuned_options
     from marl.learners import LEARNERS, PAPER_ALGORITHMS
-    from marl.training import TrainingKey
+    from marl.training import TrainingKey, finished
 
     args = _parser().parse_args(argv)
     check_ray_address(args.ray_address)  # an address that does not answer: refused before work

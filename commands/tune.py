@@ -247,8 +247,8 @@ def _shared_trial(job: dict, options: dict[str, Any], run_dir: Path) -> dict[str
     its kept snapshot's validation numbers under the paper learners' summary keys."""
     from commands.train import learner_config, train_job
     from envs.scenarios import as_scenario
-    from marl.checkpoint import finished, load_checkpoint
-    from marl.training import TrainingKey
+    from marl.checkpoint import load_checkpoint
+    from marl.training import TrainingKey, finished
 
     key = TrainingKey(job["algo"], as_scenario(job["scenario"]), job["vehicles"], (job["seed"],),
                       job["steps"], learner_config(job["algo"], {**job["fixed"], **options}),

@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from envs.scenarios import Scenario
+from infra.errors import ConfigError
 from infra.naming import checkpoint_stem
 from marl.learners import LEARNERS, load
 
@@ -87,6 +88,44 @@ class TrainingKey:
         if self.family != "a2c":
             out.setdefault("action_mode", "accel")
         return out
+
+
+def finished(key: TrainingKey) -> bool:
+    """Whether the run of ``key`` (one seed) finished in its folder with the same config,
+    budget, arithmetic and energy model; a damaged file, or a finished run of another setting,
+    is a ConfigError saying what to do (``--resume`` never trains over a finished run)."""
+    from marl.arithmetic import of_summary
+    from marl.checkpoint import energy_model_id, load_checkpoint, same_energy_model
+
+    (seed,) = key.seeds
+    path = key.finished_file(seed)
+    if not path.exists():
+        return False
+    try:  # verified: a damaged or truncated file is refused, naming what to do
+        data = load_checkpoint(path, algo=key.algo, n_vehicles=key.n_vehicles,
+                               scenario=key.scenario.id)
+    except ConfigError as exc:
+        raise ConfigError(f"{exc} (or remove {path} to train this run again)") from None
+    want, got, summary = key.stored_config(), data["config"], data["curve_summary"]
+    diff = sorted(k for k in {*want, *got} if got.get(k) != want.get(k))
+    budget = summary.get("budget_steps")  # the shared learners record it; the others stop past it
+    why = (f"config fields {', '.join(diff)} differ" if diff
+           else f"budget {budget:.0f} steps, not {key.steps}" if budget not in (None, key.steps)
+           else f"{data['steps']} steps, fewer than the {key.steps} asked"
+           if budget is None and data["steps"] < key.steps else "")
+    again = "use another --out, or remove it to train again"
+    if why:
+        raise ConfigError(f"{path} holds a finished run of another config or budget ({why}); "
+                          f"--resume never trains over it: {again}")
+    if of_summary(summary) != key.arithmetic:
+        raise ConfigError(f"{path} holds a run trained with {of_summary(summary)} arithmetic, "
+                          f"not {key.arithmetic} (--arithmetic); {again}")
+    if not same_energy_model(data):
+        raise ConfigError(
+            f"{path} holds a run trained with another energy model (fingerprint "
+            f"{data.get('energy_model')}, this cacc-bench's is {energy_model_id()}: its reward "
+            f"differs); {again}")
+    return True
 
 
 def config_class(algo: str) -> type:
