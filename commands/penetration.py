@@ -64,7 +64,7 @@ def main(argv: list[str]) -> int:
         raise ConfigError(f"--workers must be >= 1, got {args.workers}")
     check_range(args.placements, "--placements", 1, MAX_PLACEMENTS)
     seeds = seeds_from_set("test", args.episodes)
-    families = [name for name, opts in parse_controller_list(args.controllers)]
+    families = parse_controller_list(args.controllers)  # names with their options
     bases = []
     set_by_study = (*SEAT_OPTIONS, *PLACEMENT_OPTIONS)
     for given in scenarios_argument(args.scenarios):
@@ -77,7 +77,7 @@ def main(argv: list[str]) -> int:
     keys = set()
     for setting in settings:
         sc = [setting.build()]
-        specs: list[tuple[str, dict[str, str]]] = [(name, {}) for name in controllers_for(setting.share, families)]
+        specs = controllers_for(setting.share, families)
         n = sc[0].default_vehicles
         preflight(specs, sc, [n], [0.0])  # refused before any run, with exit status 2
         keys.update(build_sweep(specs, sc, [n], seeds, [0.0], [0.0]))

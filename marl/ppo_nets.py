@@ -240,21 +240,16 @@ class PPOConfig:
 
     def validation_roads(self, scenario: Scenario) -> list[Scenario]:
         """The roads validation scores a policy on: the run's ``scenario``; with ``scenarios``
-        each of them instead, and on mixed traffic each with humans (a string with half its
-        followers automated, placed at random; a ring as it is, by default one automated
+        each of them instead; on mixed traffic each with half its followers automated, placed
+        at random (placement seed 0), and a ring also as it is (by default one automated
         vehicle among humans)."""
-        if not self.scenarios:
-            roads = [scenario]
-        else:
-            from envs.scenarios import parse_scenarios
+        from envs.scenarios import make_scenario, parse_scenarios
 
-            roads = parse_scenarios(self.scenarios)
+        roads = parse_scenarios(self.scenarios) if self.scenarios else [scenario]
         if not self.mixed_traffic:
             return roads
-        from envs.scenarios import make_scenario
-
-        return [sc if sc.ring else make_scenario(sc.label, cav_fraction=0.5, placement="random")
-                for sc in roads]
+        return [road for sc in roads for road in ([sc] if sc.ring else []) + [
+            make_scenario(sc.label, cav_fraction=0.5, placement="random")]]
 
     @property
     def per_agent(self) -> bool:

@@ -106,10 +106,11 @@ def design(scenarios: Sequence[str] = SCENARIOS, placements: int = 3) -> list[Se
     return out
 
 
-def controllers_for(share: Share, families: Sequence[str] = DEFAULT_FAMILIES) -> list[str]:
-    """The controllers that run at ``share``: the human baseline at no automated vehicle, the
-    families elsewhere."""
-    return [BASELINE] if share.name == "0" else list(families)
+def controllers_for(share: Share, families: Sequence[tuple[str, dict[str, str]]]
+                    ) -> list[tuple[str, dict[str, str]]]:
+    """The controllers (names with their options) that run at ``share``: the human baseline at
+    no automated vehicle, the families elsewhere."""
+    return [(BASELINE, {})] if share.name == "0" else list(families)
 
 
 def cells(runs: Any, settings: Sequence[Setting]) -> Any:

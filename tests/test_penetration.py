@@ -10,7 +10,7 @@ import pytest
 from run_marks import FULL
 
 from commands.cli import main as cli
-from studies.penetration import BASELINE, DEFAULT_FAMILIES, SHARES, controllers_for, design
+from studies.penetration import BASELINE, SHARES, controllers_for, design
 
 ROOT = Path(__file__).resolve().parent.parent
 COMMITTED = ROOT / "docs" / "penetration"
@@ -28,8 +28,9 @@ def test_the_design_crosses_every_share_with_placements_for_the_mixed_ones() -> 
     half = {s.build().arrangement(8).automated for s in settings
             if s.scenario == "catchup-v1" and s.share.name == "0.5"}
     assert len(half) == 3
-    assert controllers_for(SHARES[0]) == [BASELINE]
-    assert controllers_for(SHARES[3]) == list(DEFAULT_FAMILIES)
+    families = [("acc", {}), ("ippo", {"variant": "mixed-traffic"})]
+    assert controllers_for(SHARES[0], families) == [(BASELINE, {})]
+    assert controllers_for(SHARES[3], families) == families
 
 
 def test_the_study_in_small(tmp_path: Path) -> None:

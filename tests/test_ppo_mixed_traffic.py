@@ -92,3 +92,36 @@ def _args(cfg: PPOConfig, steps: int) -> tuple:
     from envs.scenarios import make_scenario
 
     return make_scenario("catchup-v1"), 4, 0, steps, cfg
+
+
+def test_validation_scores_every_road_with_humans() -> None:
+    """On mixed traffic a string is validated at half its followers automated; a ring as it is
+    (one automated vehicle) and at half; without humans the roads as they are."""
+    from envs.scenarios import make_scenario
+
+    labels = [sc.label for sc in MIXED.validation_roads(make_scenario("slowdown-v1"))]
+    assert labels == ["catchup-v1[cav_fraction=0.5]", "ring-v1",
+                      "ring-v1[cav_fraction=0.5,placement=random]"]  # the ring's is front
+    plain = dataclasses.replace(MIXED, cav_share_min=1.0)
+    assert [sc.label for sc in plain.validation_roads(make_scenario("slowdown-v1"))] == [
+        "catchup-v1", "ring-v1"]
+    alone = dataclasses.replace(plain, scenarios="")
+    assert [sc.label for sc in alone.validation_roads(make_scenario("slowdown-v1"))] == [
+        "slowdown-v1"]
+
+
+def test_a_validation_over_roads_pools_them() -> None:
+    """The evaluator of several roads: mean reward, summed collisions and episodes; a ring at its
+    own vehicle count."""
+    from benchmark.policy_eval import evaluate_policy, validation_evaluator
+    from envs.scenarios import make_scenario
+    from marl.ppo_nets import SharedActor
+
+    torch.manual_seed(0)
+    actor = SharedActor(MIXED)
+    roads = [make_scenario("catchup-v1", cav_fraction=0.5), make_scenario("ring-v1")]
+    both = validation_evaluator("ippo", roads, 4, seeds=(1, 2))(actor, "sampled")
+    one = [evaluate_policy("ippo", actor, sc, n, (1, 2)) for sc, n in zip(roads, (4, 22))]
+    assert both["reward"] == pytest.approx((one[0]["reward"] + one[1]["reward"]) / 2)
+    assert both["collisions"] == one[0]["collisions"] + one[1]["collisions"]
+    assert both["episodes"] == 4
