@@ -25,9 +25,16 @@ from benchmark.statistics import bootstrap_ci
 if TYPE_CHECKING:
     from envs.scenarios import Scenario
 
+#: The learned family the study runs by default: ``ippo`` trained on mixed traffic (``mixed-v2``
+#: and ``ring-v1``, automated shares 0.05 to 1 at random placements; the shipped variant
+#: ``mixed-traffic``, docs/learned-control.md), its three training seeds one family
+#: (:func:`family`).
+LEARNED: tuple[str, ...] = tuple(f"ippo[scenario=mixed-v2,seed={k},variant=mixed-traffic]"
+                                 for k in range(3))
 #: The families the study runs by default (the automated seats' controller), in the report's
 #: order; a table holds the controllers the command was given.
-DEFAULT_FAMILIES: tuple[str, ...] = ("acc", "cacc", "mpc-qp", "mpc", "followerstopper", "pi-saturation")
+DEFAULT_FAMILIES: tuple[str, ...] = ("acc", "cacc", "mpc-qp", "mpc", "followerstopper",
+                                     "pi-saturation", *LEARNED)
 #: The human-driver model that drives every seat of the all-human baseline.
 BASELINE: str = "idm"
 #: The scenarios of the study (each at its own default N: 8 behind a leader, 4 on the OpenACC
@@ -113,9 +120,20 @@ def controllers_for(share: Share, families: Sequence[tuple[str, dict[str, str]]]
     return [(BASELINE, {})] if share.name == "0" else list(families)
 
 
+def family(label: str) -> str:
+    """A controller's family in the study: its label without a training ``seed`` (the runs of
+    a learned policy's training seeds pool into one family, as its placements and episodes)."""
+    from infra.naming import format_label, parse_label
+
+    name, options = parse_label(label)
+    options.pop("seed", None)
+    return format_label(name, options)
+
+
 def cells(runs: Any, settings: Sequence[Setting]) -> Any:
     """One row per (scenario, family, share): runs, colliding runs, and every metric of
-    :data:`METRICS` as mean and 95 % bootstrap interval over the episodes of all placements.
+    :data:`METRICS` as mean and 95 % bootstrap interval over the episodes of all placements
+    (and of all training seeds of a learned family, :func:`family`).
 
     Parameters
     ----------
@@ -131,6 +149,7 @@ def cells(runs: Any, settings: Sequence[Setting]) -> Any:
     ok = runs[runs["scenario"].isin(label_of)].copy()
     ok["base"] = [label_of[lb].scenario for lb in ok["scenario"]]
     ok["share"] = [label_of[lb].share.name for lb in ok["scenario"]]
+    ok["controller"] = [family(c) for c in ok["controller"]]
     for (base, controller, share), g in ok.groupby(["base", "controller", "share"], sort=False):
         row: dict[str, Any] = {"scenario": base, "controller": controller, "share": share,
                                "cav_share": float(g["cav_share"].mean()),
@@ -142,7 +161,7 @@ def cells(runs: Any, settings: Sequence[Setting]) -> Any:
             row[col], row[f"{col}_lo"], row[f"{col}_hi"] = mean, lo, hi
         rows.append(row)
     order = {s.name: i for i, s in enumerate(SHARES)}
-    fam = {f: i for i, f in enumerate((BASELINE, *DEFAULT_FAMILIES))}
+    fam = {family(f): i for i, f in enumerate((BASELINE, *DEFAULT_FAMILIES))}
     sc_order = {s: i for i, s in enumerate(dict.fromkeys(s.scenario for s in settings))}
     out = pd.DataFrame(rows)
     if out.empty:

@@ -166,3 +166,43 @@ def test_behind_a_leader_followerstopper_leaves_the_humans_the_smallest_spread()
                    & (t["collisions"] == 0) & (t["controller"] != BASELINE)]
             best.append(ok.loc[ok["speed_std_humans_mps"].idxmin(), "controller"])
     assert len(best) == 16 and best.count("followerstopper") >= 15, best
+
+
+LEARNED_FAMILY = "ippo[scenario=mixed-v2,variant=mixed-traffic]"
+
+
+def test_the_readme_quotes_the_learned_family() -> None:
+    """The README's reading of the mixed-traffic policy (three training seeds pooled): no
+    collision behind a leader, and on the ring its humans' speed spread at each share."""
+    from studies.penetration import LEARNED, family
+
+    assert {family(lb) for lb in LEARNED} == {LEARNED_FAMILY}
+    readme = (ROOT / "README.md").read_text()
+    t = pd.read_csv(COMMITTED / "cells.csv")
+    learned = t[t["controller"] == LEARNED_FAMILY]
+    leader = learned[learned["scenario"] != "ring-v1"]
+    assert len(leader) == 20 and (leader["collisions"] == 0).all()
+    base = _cell(t, "ring-v1", BASELINE, "0")["speed_std_humans_mps"]
+    one, quarter, half = (_cell(t, "ring-v1", LEARNED_FAMILY, s)["speed_std_humans_mps"]
+                          for s in ("one vehicle", "0.25", "0.5"))
+    cut = [round(100 * (1 - v / base)) for v in (one, quarter, half)]
+    assert (f"by {cut[0]} % only\n({base:.2f} to {one:.2f} m/s), at a quarter of the seats by "
+            f"{cut[1]} % ({quarter:.2f} m/s), at half by {cut[2]} % ({half:.3f} m/s)") in readme
+    three, every = (_cell(t, "ring-v1", LEARNED_FAMILY, s) for s in ("0.75", "1"))
+    assert (f"collides at three quarters ({three['collisions']} of {three['runs']} runs) and on "
+            f"the all-automated ring ({every['collisions']} of {every['runs']})") in readme
+
+
+def test_a_learned_cell_is_what_the_command_computes(tmp_path: Path) -> None:
+    """The learned family's cell on catchup-v1 at share 1 (its three seeds), recomputed."""
+    from studies.penetration import LEARNED
+
+    committed = pd.read_csv(COMMITTED / "cells.csv")
+    out = tmp_path / "pen"
+    assert cli(["penetration", "--scenarios", "catchup-v1", "--controllers", ",".join(LEARNED),
+                "--placements", "1", "--executor", "serial", "--out", str(out)]) == 0
+    fresh = pd.read_csv(out / "cells.csv")
+    a, b = (_cell(t, "catchup-v1", LEARNED_FAMILY, "1") for t in (committed, fresh))
+    for col in ("runs", "collisions", "speed_std_last_mps", "braking_events_per_veh_h",
+                "energy_kwh_per_100km"):
+        assert a[col] == pytest.approx(b[col], rel=1e-9, nan_ok=True), col

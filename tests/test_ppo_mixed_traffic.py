@@ -125,3 +125,34 @@ def test_a_validation_over_roads_pools_them() -> None:
     assert both["reward"] == pytest.approx((one[0]["reward"] + one[1]["reward"]) / 2)
     assert both["collisions"] == one[0]["collisions"] + one[1]["collisions"]
     assert both["episodes"] == 4
+
+
+SHIPPED = ("controllers", "checkpoints", "variants", "mixed-traffic")
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_shipped_mixed_traffic_policies_were_trained_on_the_distribution(seed: int) -> None:
+    """Three seeds of ``ippo`` on ``mixed-v2`` and the ring, shares 0.05 to 1 at random
+    placements, N 4 to 12 on the strings; each kept snapshot collision-free on its validation
+    roads."""
+    from pathlib import Path
+
+    from marl.checkpoint import load_checkpoint
+
+    root = Path(__file__).resolve().parent.parent
+    data = load_checkpoint(root.joinpath(*SHIPPED, f"ippo__mixed-v2__n8__s{seed}.pt"))
+    cfg = data["config"]
+    assert (cfg["scenarios"], cfg["cav_share_min"], cfg["cav_share_max"]) == (
+        "mixed-v2,ring-v1", 0.05, 1.0)
+    assert (cfg["vehicles_min"], cfg["vehicles_max"]) == (4, 12)
+    assert data["seed"] == seed and data["curve_summary"]["best_collisions"] == 0
+
+
+@pytest.mark.parametrize(("scenario", "n"), [("ring-v1", 22), ("catchup-v1:cav_fraction=0.25", 8),
+                                             ("openacc-s-v1:cavs=1", 4)])
+def test_the_shipped_mixed_traffic_policy_drives_any_arrangement(scenario: str, n: int) -> None:
+    from benchmark.check import check_controller
+    from envs.scenarios import make_scenario
+
+    check_controller("ippo", make_scenario(scenario), n, steps=30, variant="mixed-traffic",
+                     scenario="mixed-v2")
