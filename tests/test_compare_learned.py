@@ -146,7 +146,7 @@ def test_the_readme_answer_is_the_committed_report() -> None:
     import re
 
     readme = (DOCS.parents[1] / "README.md").read_text()
-    section = readme[readme.index("## Learned control"):readme.index("## Where the rest lives")]
+    section = readme[readme.index("## Learned control"):readme.index("## Off the training scenario")]
     report = (DOCS / "report.md").read_text()
     numbers = re.findall(r"(?<![\d.])-?\d+\.\d\d(?!\d)", section)
     assert len(numbers) >= 15
