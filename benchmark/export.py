@@ -231,23 +231,31 @@ def write_csvs(
 
 def check_csv_targets(folder: Path) -> tuple[Path, Path]:
     """The paths of runs.csv and leaderboard.csv in ``folder``, refused (ConfigError) where a
-    folder of that name stands: checked before a sweep runs, so no work is done that the CSVs
-    cannot then hold."""
+    folder of that name stands or runs.csv is damaged: checked before a sweep runs, so no work
+    is done that the CSVs cannot then hold."""
     runs_path = folder / "runs.csv"
     lb_path = folder / "leaderboard.csv"
     for path in (runs_path, lb_path):
         _check_file_target(path)
+    _csv_rows(runs_path)
     return runs_path, lb_path
 
 
 def _csv_rows(path: Path) -> int:
-    """Data rows of a CSV file (0 if there is none)."""
+    """Data rows of a runs.csv (0 if there is none); a damaged one is a ConfigError."""
     import csv
+
+    from infra.files import damaged
 
     if not path.exists():
         return 0
-    with path.open(newline="") as f:
-        return max(sum(1 for _ in csv.reader(f)) - 1, 0)
+    try:
+        with path.open(newline="", encoding="utf-8") as f:
+            return max(sum(1 for _ in csv.reader(f)) - 1, 0)
+    except (OSError, ValueError, csv.Error) as exc:
+        raise damaged(path, "the runs table", f"not CSV: {exc}",
+                      f"remove it (`cacc-bench leaderboard {path.parent}` rebuilds it from "
+                      "the store beside it) or restore it") from None
 
 
 def write_csv(df: Any, path: Path, float_format: str | None = None) -> None:

@@ -30,6 +30,11 @@ def writable_dir(path: str | Path, flag: str = "--out", create: bool = False) ->
         raise ConfigError(f"{flag} {out} exists and is not a folder; choose another {flag}")
     probe = out.absolute()
     while not probe.exists():
+        if probe.is_symlink():  # a link to nothing: mkdir would say "File exists"
+            given = next((p for p in (out, *out.parents) if p.absolute() == probe), probe)
+            raise ConfigError(f"{flag} {out}: {given} is a link to {os.readlink(probe)}, which "
+                              f"does not exist; make that folder, remove the link, or choose "
+                              f"another {flag}")
         probe = probe.parent
     if not probe.is_dir():
         given = next((p for p in (out, *out.parents) if p.absolute() == probe), probe)
@@ -41,7 +46,8 @@ def writable_dir(path: str | Path, flag: str = "--out", create: bool = False) ->
         if create:
             out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise ConfigError(f"{flag} {out}: cannot make this folder ({exc.strerror}); choose "
+        what = "write in" if probe == out.absolute() else "make"
+        raise ConfigError(f"{flag} {out}: cannot {what} this folder ({exc.strerror}); choose "
                           f"a writable place for {flag}") from None
     if out.exists() and not os.access(out, os.W_OK | os.X_OK):
         raise ConfigError(f"{flag} {out} is not writable; choose another {flag}")

@@ -2,17 +2,18 @@
 
 :class:`RunRecord` (pydantic, strict) says what every record of ``store.sqlite`` holds: the run's
 key, its provenance, its status and its metrics, with their types and ranges. Numbers are finite
-(the store writes a metric that is not a number as ``null``, never as ``NaN`` or ``Infinity``),
-flags are booleans (``"no"`` or ``0`` is not a collision flag), a status is ``ok`` or ``failed``,
-and a finished run (``ok``) carries the metrics the leaderboard ranks by. :func:`check_record`
-adds what ties a record to its row: the key of the record is the key of its row.
+and at most :data:`MAX_ABS_METRIC` in size (the store writes a metric that is not a number as
+``null``, never as ``NaN`` or ``Infinity``), flags are booleans (``"no"`` or ``0`` is not a
+collision flag), a status is ``ok`` or ``failed``, and a finished run (``ok``) carries the
+metrics the leaderboard ranks by. :func:`check_record` adds what ties a record to its row: the key
+of the record is the key of its row.
 """
 
 from __future__ import annotations
 
 import json
 import math
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
@@ -28,8 +29,12 @@ FINITE_WHEN_OK: tuple[str, ...] = (
 #: Fields an ``ok`` run must hold (not ``null``).
 REQUIRED_WHEN_OK: tuple[str, ...] = ("steps", "collision", "string_stable", "solver_failures")
 
-Metric = float | None
-NonNegative = float | None
+#: The largest magnitude a stored metric may have: any real run's is far below it, and a mean
+#: or an interval over millions of such values stays finite (1e308 would overflow to inf).
+MAX_ABS_METRIC = 1e12
+
+Metric = Annotated[float, Field(ge=-MAX_ABS_METRIC, le=MAX_ABS_METRIC)] | None
+NonNegative = Metric  # each such field adds ge=0
 
 
 class RunRecord(BaseModel):
@@ -63,7 +68,7 @@ class RunRecord(BaseModel):
     status: Literal["ok", "failed"]
     error: str
     traceback: str | None = None
-    wall_s: float | None = Field(default=None, ge=0.0)
+    wall_s: NonNegative = Field(default=None, ge=0.0)
     # the metrics (benchmark.metrics.run_metrics)
     steps: int | None = Field(default=None, ge=0)
     collision: bool | None = None

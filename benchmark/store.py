@@ -77,6 +77,27 @@ def _clean(value: Any) -> Any:
     return value
 
 
+#: SQLite's errors of the place a store lies in, not of the file: no room, no permission.
+_NO_ROOM = ("SQLITE_FULL", "SQLITE_IOERR_WRITE")
+_NO_ACCESS = ("SQLITE_READONLY", "SQLITE_CANTOPEN", "SQLITE_PERM", "SQLITE_AUTH", "SQLITE_IOERR")
+
+
+def _open_failure(path: Path, exc: Exception) -> Exception:
+    """What opening the store ``path`` failing with ``exc`` tells the user, in one line: a full
+    disk (``exc`` itself, which the command line reports as such), no access, or a damaged file
+    (only then: move it away)."""
+    name = getattr(exc, "sqlite_errorname", None) or ""
+    if name in _NO_ROOM:
+        return exc
+    if name.startswith(_NO_ACCESS):
+        return ConfigError(f"{path} cannot be opened or written ({exc}); make {path.parent} "
+                           "writable (and its disk reachable), or choose another --out")
+    reason = " ".join(str(exc).split())
+    return ConfigError(f"{path} is not a readable results store ({reason}); the CSV files beside "
+                       "it are left as they are: move the file away and rerun the sweep into "
+                       "this folder, or choose another --out")
+
+
 def _remedy(path: Path, run_id: str) -> str:
     """What to do about an invalid row: delete it and rerun it with ``--resume``."""
     quoted = run_id.replace("'", "''")
@@ -121,18 +142,16 @@ class ResultStore:
                     self.conn.close()
                     self.path.unlink(missing_ok=True)
                     raise
-            check = self.conn.execute("PRAGMA quick_check").fetchone()
-            if check is None or check[0] != "ok":
-                raise sqlite3.DatabaseError(f"integrity check: {check[0] if check else 'no answer'}")
+            check = [ln for (row,) in self.conn.execute("PRAGMA quick_check")
+                     for ln in str(row).splitlines() if not ln.startswith("***")]
+            if check != ["ok"]:
+                more = f"; {len(check) - 1} more problems" if len(check) > 1 else ""
+                raise sqlite3.DatabaseError(f"integrity check: {(check or ['no answer'])[0]}{more}")
             foreign = _not_a_store(self.conn)
             version = None if foreign else self.get_meta("schema_version")
         except (sqlite3.DatabaseError, ValueError) as exc:
             self._close_quietly()
-            raise ConfigError(
-                f"{self.path} is not a readable results store ({exc}); the CSV files beside it "
-                "are left as they are: move the file away and rerun the sweep into this folder, "
-                "or choose another --out"
-            ) from None
+            raise _open_failure(self.path, exc) from None
         if foreign is not None:
             self._close_quietly()
             raise ConfigError(
@@ -186,15 +205,31 @@ class ResultStore:
                               ("schema_version", json.dumps(SCHEMA_VERSION)))
 
     def _acquire(self) -> None:
-        """Take the folder's writer lock, or refuse naming the process that holds it."""
+        """Take the folder's writer lock, or refuse naming the process that holds it; a store
+        that is a link into another folder is refused (that folder's lock is not this one)."""
         from filelock import FileLock, Timeout
 
+        if self.path.is_symlink():
+            home = self.path.resolve().parent
+            raise ConfigError(f"{self.path} is a link into {home}, whose writers hold that "
+                              f"folder's lock, not this one's; write it there (--out {home}), or "
+                              "replace the link with a copy of the store")
         if (self.folder / LOCK_NAME).is_dir():
             raise ConfigError(f"{self.folder / LOCK_NAME} is a folder, so {self.folder} cannot be "
                               "locked; remove it or choose another --out")
         lock = FileLock(self.folder / LOCK_NAME, timeout=0)
         try:
             lock.acquire()
+            self._lock = lock
+            (self.folder / OWNER_NAME).write_text(json.dumps({
+                "pid": os.getpid(), "command": " ".join(["cacc-bench", *sys.argv[1:]]),
+                "started": time.strftime("%Y-%m-%d %H:%M:%S")}))
+        except PermissionError as exc:  # a read-only folder, or lock files of another user
+            if self._lock is not None:
+                self._lock.release()
+                self._lock = None
+            raise ConfigError(f"{self.folder} cannot be locked for writing ({exc.strerror}); "
+                              "make it writable, or copy it and work on the copy") from None
         except Timeout:
             owner = self.folder / OWNER_NAME
             try:
@@ -206,10 +241,6 @@ class ResultStore:
                 f"{self.folder} is being written by {who}; wait for it to finish, or choose "
                 "another --out"
             ) from None
-        self._lock = lock
-        (self.folder / OWNER_NAME).write_text(json.dumps({
-            "pid": os.getpid(), "command": " ".join(["cacc-bench", *sys.argv[1:]]),
-            "started": time.strftime("%Y-%m-%d %H:%M:%S")}))
 
     def _release(self) -> None:
         if self._lock is not None:

@@ -91,10 +91,15 @@ def scenarios_argument(text: str, option: str = "--scenarios") -> list[Scenario]
     """
     from envs.scenarios import parse_scenarios
     from infra.errors import ConfigError
+    from infra.naming import merge_repeats
 
     if not text.strip(" ,"):
         raise ConfigError(f"{option}: no scenario named")
-    return list({sc.label: sc for sc in parse_scenarios(text)}.values())
+    built = parse_scenarios(text)
+    scenarios, note = merge_repeats(built, [sc.label for sc in built], option)
+    if note:
+        print(note, file=sys.stderr)
+    return scenarios
 
 
 def fail(message: str) -> int:
@@ -119,7 +124,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     if argv is None:  # its own process: a start-up that cannot be unwound may end it at once
         set_exit_line(lambda signum: interrupted_line(signum, command))
     try:
-        return _main(argv)
+        try:
+            return _main(argv)
+        finally:  # a reader that went away shows here (argparse's --help too), not at exit
+            sys.stdout.flush()
+    except BrokenPipeError:  # stdout's reader went away (`cacc-bench --help | head -1`)
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # nothing left to flush
+        return 128 + int(signal.SIGPIPE)
     except KeyboardInterrupt as exc:
         return _interrupted(exc, command)
     finally:
@@ -161,10 +172,6 @@ def _main(argv: Sequence[str] | None) -> int:
     except CaccBenchError as exc:
         _stop_workers()
         return fail(str(exc))
-    except BrokenPipeError:  # stdout's reader went away (`cacc-bench list | head`): no traceback
-        _stop_workers()
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # nothing left to flush
-        return 128 + int(signal.SIGPIPE)
     except Exception as exc:
         reason = no_space(exc)
         if reason is None:
@@ -206,8 +213,8 @@ def no_space(exc: BaseException) -> str | None:
 
 
 #: Commands that complete an interrupted invocation with ``--resume``.
-RESUMABLE = ("run", "train", "reproduce", "pareto", "sensitivity", "compare-learned", "generalise",
-             "penetration")
+RESUMABLE = ("run", "train", "tune", "reproduce", "pareto", "sensitivity", "compare-learned",
+             "generalise", "penetration")
 
 
 def _interrupted(exc: KeyboardInterrupt, command: str = "") -> int:
@@ -225,10 +232,10 @@ def _interrupted(exc: KeyboardInterrupt, command: str = "") -> int:
 
 def interrupted_line(signum: int, command: str) -> str:
     """The one line an interrupted ``command`` prints (what was kept, how to go on)."""
-    advice = ("the run in flight was not stored, finished runs are (complete with --resume)"
+    advice = ("its study records the trial in flight as failed and keeps the finished ones "
+              "(complete with --resume)" if command == "tune" else
+              "the run in flight was not stored, finished runs are (complete with --resume)"
               if command in RESUMABLE else
-              "its study records the trial in flight as failed and keeps the finished ones "
-              "(rerun the same command to go on)" if command == "tune" else
               "nothing in flight was written, finished files were left as they were (rerun it)")
     return f"cacc-bench: interrupted ({signal.Signals(signum).name}); {advice}"
 

@@ -65,8 +65,6 @@ def controller_specs(scenarios: list[str], n_vehicles: int) -> list[tuple[str, d
 
 def main(argv: list[str]) -> int:
     """Entry point of ``cacc-bench compare-learned``."""
-    import pandas as pd
-
     from benchmark.export import write_csv
     from benchmark.folder_lock import folder_lock
     from benchmark.paths import writable_dir
@@ -74,6 +72,7 @@ def main(argv: list[str]) -> int:
     from commands.cli import scenarios_argument
     from commands.run import execute_sweep
     from envs.scenarios import check_vehicles
+    from infra.files import read_csv
     from studies.learned_report import (
         DEGRADED,
         IDEAL,
@@ -103,7 +102,7 @@ def main(argv: list[str]) -> int:
         rc = execute_sweep(keys, out / "runs", resume=args.resume, executor=args.executor,
                            workers=args.workers, ray_address=args.ray_address, quiet=True,
                            first_seed=seeds[0])
-        ep = episodes_frame(pd.read_csv(out / "runs" / "runs.csv"))
+        ep = episodes_frame(read_csv(out / "runs" / "runs.csv", "the runs table"))
         ep = ep[ep["n_vehicles"] == args.vehicles]
         comp = comparisons_frame(ep)
         write_csv(ep, out / "episodes.csv")

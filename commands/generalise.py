@@ -12,6 +12,7 @@ shipped checkpoints no row runs, with why (:data:`studies.generalisation.NOT_IN_
 from __future__ import annotations
 
 import argparse
+import sys
 
 from benchmark.executors import add_executor_options
 from commands.cli import plain, report_command
@@ -44,6 +45,17 @@ def _available(controller: str, options: dict[str, str], n_vehicles: int) -> boo
     folder = VARIANT_DIR / options["variant"] if "variant" in options else None
     return checkpoint_path(controller, options["scenario"], n_vehicles, int(options["seed"]),
                            folder).exists()
+
+
+def _once(text: str, option: str) -> list[str]:
+    """The names of a comma list, each once (a repeat is said on standard error)."""
+    from infra.naming import merge_repeats
+
+    names = [c.strip() for c in text.split(",") if c.strip()]
+    names, note = merge_repeats(names, names, option)
+    if note:
+        print(note, file=sys.stderr)
+    return names
 
 
 def main(argv: list[str]) -> int:
@@ -82,7 +94,7 @@ def main(argv: list[str]) -> int:
     rows = [*learned, *([] if args.no_safety_filter else [with_safety_filter(r) for r in learned]),
             *(Row(name, name, (), False) for name in MODEL_BASED)]
     if args.controllers is not None:
-        wanted = {c.strip() for c in args.controllers.split(",") if c.strip()}
+        wanted = set(_once(args.controllers, "--controllers"))
         unknown = wanted - {r.controller for r in rows}
         if unknown or not wanted:
             raise ConfigError(f"--controllers: no row of {', '.join(sorted(unknown)) or 'nothing'};"
@@ -90,7 +102,7 @@ def main(argv: list[str]) -> int:
         rows = [r for r in rows if r.controller in wanted]
     columns = list(COLUMNS)
     if args.columns is not None:
-        names = [c.strip() for c in args.columns.split(",") if c.strip()]
+        names = _once(args.columns, "--columns")
         known = {c.name: c for c in COLUMNS}
         bad = [c for c in names if c not in known]
         if bad or not names:

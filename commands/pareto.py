@@ -18,6 +18,7 @@ from benchmark.executors import add_executor_options
 from benchmark.export import write_csv
 from commands.cli import plain
 from infra.errors import ConfigError, UnknownNameError
+from infra.files import read_csv
 
 #: family -> (controller, knob, values). The defaults sit inside each sweep (mpc 0.25, w_accel
 #: 0.1, time gap 0.5 s, kp 0.2).
@@ -127,8 +128,6 @@ def settings_for(families: list[str], scenarios: list[str], n_vehicles: int
 
 def main(argv: list[str]) -> int:
     """Entry point of ``cacc-bench pareto``."""
-    import pandas as pd
-
     from analysis.pareto import ENERGY_METRICS, pareto_frame, plot_pareto
     from benchmark.suite import build_sweep, seeds_from_episodes
     from commands.cli import scenarios_argument
@@ -164,12 +163,16 @@ def main(argv: list[str]) -> int:
     from benchmark.folder_lock import folder_lock
 
     with folder_lock(out):  # one writer per folder, as `run`
-        print(f"pareto: {len(settings)} settings x {len(scenarios)} scenarios x {len(seeds)} "
-              f"episodes = {len(keys)} runs", file=sys.stderr)
+        controllers = len({s["label"] for s in settings})
+        shared = (f" ({len(settings)} sweep points: a default lies in two sweeps)"
+                  if len(settings) > controllers else "")
+        print(f"pareto: {controllers} controllers{shared} x {len(scenarios)} scenarios x "
+              f"{len(seeds)} episodes = {len(keys)} runs", file=sys.stderr)
         rc = execute_sweep(keys, out / "runs", resume=args.resume, executor=args.executor,
                            workers=args.workers, ray_address=args.ray_address, quiet=True,
                            first_seed=seeds[0])
-        runs = pd.read_csv(out / "runs" / "runs.csv")
+        runs = read_csv(out / "runs" / "runs.csv", "the runs table",
+                        columns=("status", "n_vehicles"))
         runs = runs[(runs["status"] == "ok") & (runs["n_vehicles"] == args.vehicles)]
         energy_col = ENERGY_METRICS[args.energy]
         unknown = int(runs[energy_col].isna().sum()) if energy_col in runs else len(runs)

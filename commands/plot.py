@@ -74,9 +74,7 @@ def plot_training_folder(folder: Path, out: Path) -> int:
     one figure per scenario and N, one line (mean over seeds, min-max band) per algorithm."""
     import re
 
-    import pandas as pd
-
-    from studies.reproduction import learning_curve_figure
+    from studies.reproduction import learning_curve_figure, read_curve
 
     pattern = re.compile(r"^(?P<algo>[^_]+(?:-[^_]+)*)__(?P<scenario>.+)__n(?P<n>\d+)__s(?P<seed>\d+)$")
     groups: dict[tuple[str, int], dict[tuple[str, str, int], object]] = {}
@@ -84,7 +82,7 @@ def plot_training_folder(folder: Path, out: Path) -> int:
         m = pattern.match(path.name[: -len(".curve.csv")])
         if m is None:
             continue
-        curve = pd.read_csv(path)
+        curve = read_curve(path)
         key = (m["algo"], m["scenario"], int(m["seed"]))
         groups.setdefault((m["scenario"], int(m["n"])), {})[key] = curve
     written = []

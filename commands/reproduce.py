@@ -35,6 +35,7 @@ from commands.train import (
 from envs.scenarios import Scenario
 from infra.atomic import write_text
 from infra.errors import ConfigError, UnknownNameError
+from infra.files import read_csv, read_json
 from studies.paper import (
     ABLATIONS,
     BASELINES,
@@ -52,6 +53,8 @@ from studies.paper import (
 )
 
 MANIFEST = "reproduce.json"
+#: What to do about a damaged manifest: finished training and runs are kept without it.
+RESTART = "remove it or restore it, and rerun with --resume (finished training and runs are kept)"
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -227,7 +230,8 @@ def main(argv: list[str]) -> int:
     settings = {"budget": budget.name, "algos": algos, "scenarios": scenarios,
                 "studies": sorted(studies), "arithmetic": args.arithmetic,
                 "retrain": args.retrain}
-    previous = json.loads(manifest_path.read_text()) if manifest_path.exists() else None
+    previous = (read_json(manifest_path, "the reproduction manifest", RESTART)
+                if manifest_path.exists() else None)
     if previous is not None:
         if not args.resume:
             raise ConfigError(f"{out} already holds a reproduction; add --resume to complete it, "
@@ -239,6 +243,7 @@ def main(argv: list[str]) -> int:
     elif _holds_files(out) and not args.resume:
         raise ConfigError(f"{out} is not empty; choose another --out (or --resume)")
     from benchmark.work_folder import command_text, working_in
+    from studies.reproduction_report import check_job_files, write_report
 
     out.mkdir(parents=True, exist_ok=True)
     # inside OUT, locked: every recorded path (checkpoint folders in run labels, the report)
@@ -246,20 +251,17 @@ def main(argv: list[str]) -> int:
     with working_in(out):
         here = Path(".")
         jobs = _train_plan(algos, scenarios, budget, here, studies)
+        check_job_files(jobs)  # a damaged file of a finished job: refused before any work
         manifest: dict[str, Any] = {"settings": settings,
                                     "command": command_text("cacc-bench reproduce", argv)}
         write_text(here / MANIFEST, json.dumps({**manifest, "status": "started"}, indent=1))
         train_stage(jobs, args, reuse_shipped=budget.name == "paper" and not args.retrain)
         names = eval_stage(jobs, built, budget, args, here)
-        train_wall = sum(float(json.loads(source_file(j).read_text()).get("wall_s") or 0.0)
-                         for j in jobs)
-        import pandas as pd
-
-        runs = pd.read_csv(here / "runs" / "runs.csv")
+        train_wall = sum(float(read_json(source_file(j), "the source record").get("wall_s")
+                               or 0.0) for j in jobs)
+        runs = read_csv(here / "runs" / "runs.csv", "the runs table", columns=("wall_s",))
         manifest.update({"wall_s": time.perf_counter() - t0, "train_wall_s": train_wall,
                          "eval_wall_s": float(runs["wall_s"].sum())})
-        from studies.reproduction_report import write_report
-
         report = out / write_report(jobs, names, built, budget, here, manifest)
         write_text(here / MANIFEST, json.dumps({**manifest, "status": "done"}, indent=1))
     print(f"wrote {report}")

@@ -116,7 +116,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _validate(args: argparse.Namespace
               ) -> tuple[list[tuple[str, dict[str, str]]], list[Scenario], list[int]]:
-    controllers = parse_controller_list(args.controllers)
+    from controllers.registry import controller_label
+    from infra.naming import merge_repeats
+
+    given = parse_controller_list(args.controllers)
+    controllers, note = merge_repeats(given, [controller_label(*c) for c in given], "--controllers")
+    if note:
+        print(note, file=sys.stderr)
     scenarios = scenarios_argument(args.scenarios)  # each built and checked once, here
     for n in args.vehicles or ():
         if not MIN_VEHICLES <= n <= MAX_VEHICLES:

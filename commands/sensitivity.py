@@ -27,6 +27,7 @@ from commands.train import add_arithmetic_argument, add_device_argument, check_a
 from envs.scenarios import Scenario
 from infra.atomic import write_text
 from infra.errors import ConfigError, UnknownNameError
+from infra.files import read_csv, read_json
 from infra.limits import step_count
 
 #: Multiples of the tuned consensus eps tried (two decades and more around it).
@@ -204,8 +205,6 @@ def _names(text: str, flag: str, valid: tuple[str, ...] | None = None) -> list[s
 
 def main(argv: list[str]) -> int:
     """Entry point of ``cacc-bench sensitivity``."""
-    import pandas as pd
-
     from benchmark.suite import seeds_from_episodes
     from commands.policy_training import train_stage
     from commands.run import execute_sweep
@@ -243,7 +242,8 @@ def main(argv: list[str]) -> int:
                     "arithmetic": args.arithmetic}
     manifest = out / MANIFEST
     if manifest.exists():
-        previous = json.loads(manifest.read_text())
+        previous = read_json(manifest, "the sensitivity manifest", "remove it or restore it, and "
+                             "rerun with --resume (finished training and runs are kept)")
         if not args.resume:
             raise ConfigError(f"{out} already holds a sensitivity study; add --resume to "
                               "complete it, or choose another --out")
@@ -253,6 +253,7 @@ def main(argv: list[str]) -> int:
     elif _holds_files(out) and not args.resume:
         raise ConfigError(f"{out} is not empty; choose another --out (or --resume)")
     from benchmark.work_folder import command_text, working_in
+    from studies.reproduction_report import check_job_files
 
     out.mkdir(parents=True, exist_ok=True)
     # inside OUT, locked: checkpoint folders in run labels are relative to it, so --out
@@ -261,6 +262,7 @@ def main(argv: list[str]) -> int:
         here = Path(".")
         jobs, settings = plan(scenarios, knobs, seeds, args.steps, args.validation_episodes,
                               here)
+        check_job_files(jobs)  # a damaged file of a finished job: refused before any work
         write_text(here / MANIFEST, json.dumps(settings_key, indent=1))
         print(f"sensitivity: {len(jobs)} training runs, {len(settings)} settings",
               file=sys.stderr)
@@ -274,7 +276,7 @@ def main(argv: list[str]) -> int:
         if rc != 0:
             raise ConfigError(f"some evaluation runs failed (see {out / 'runs' / 'runs.csv'}); "
                               "fix the cause and rerun with --resume")
-        runs = pd.read_csv(here / "runs" / "runs.csv")
+        runs = read_csv(here / "runs" / "runs.csv", "the runs table", columns=("status",))
         runs = runs[runs["status"] == "ok"]
         df = sensitivity_frame(runs, _summaries(settings))
         write_csv(df, here / "sensitivity.csv")

@@ -11,7 +11,9 @@ learner's run is a population of one. Shows progress on a terminal and stays qui
 
 A run's files are written when it finishes, each atomically and together
 (:mod:`infra.atomic`): an interrupted or failed run leaves the files of an earlier run byte for
-byte as they were. The command holds ``--out``'s folder lock (:mod:`benchmark.folder_lock`).
+byte as they were. A folder holding finished runs of the command is refused unless ``--resume``
+(skip them) or ``--overwrite`` (train them again) says what to do (:func:`check_finished`). The
+command holds ``--out``'s folder lock (:mod:`benchmark.folder_lock`).
 """
 
 from __future__ import annotations
@@ -30,9 +32,10 @@ from infra.limits import step_count
 if TYPE_CHECKING:
     from marl.training import TrainingKey
 
-#: Default output: the folder the ``marl`` controllers load from (``controllers/checkpoints``
-#: of the installed package), so ``cacc-bench run --controllers NAME`` uses what was trained.
-DEFAULT_OUT = str(Path(__file__).resolve().parent.parent / "controllers" / "checkpoints")
+#: Default output, beside ``run``'s ``results/run``; never the shipped ``controllers/checkpoints``
+#: (what ``cacc-bench run --controllers NAME`` evaluates): the command train prints at its end
+#: runs the policies from here (``NAME:checkpoint_dir=...``).
+DEFAULT_OUT = "results/checkpoints"
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -48,7 +51,9 @@ def _parser() -> argparse.ArgumentParser:
                         "list, or all (the paper's seven)")
     p.add_argument("--scenario", required=True,
                    help="scenario id, e.g. catchup-v1, or a comma list")
-    p.add_argument("--steps", type=step_count, default=600_000, help="environment steps (default 6e5)")
+    p.add_argument("--steps", type=step_count, default=600_000,
+                   help="environment steps (default 6e5; distill stops at its last round "
+                        "(--set rounds, episodes_per_round) or these, whichever comes first)")
     p.add_argument("--seed", type=int, default=0, help="training seed (default 0)")
     p.add_argument("--seeds", default=None,
                    help="comma list of training seeds, run through the harness executors "
@@ -62,8 +67,8 @@ def _parser() -> argparse.ArgumentParser:
     add_arithmetic_argument(p, "native")
     p.add_argument("--vehicles", type=int, default=8, help="followers N (default 8)")
     p.add_argument("--out", default=DEFAULT_OUT,
-                   help="output folder (default: the package's controllers/checkpoints, where "
-                        "the marl controllers load from)")
+                   help="output folder (default: %(default)s; train prints the `cacc-bench run` "
+                        "command that evaluates what it wrote)")
     p.add_argument(
         "--episodes-parallel", type=int, default=None,
         help="B episodes stepped together (a shared-policy learner's n_envs)"
@@ -72,6 +77,11 @@ def _parser() -> argparse.ArgumentParser:
         "--resume", action="store_true",
         help="skip runs that finished in --out (their .final.pt, a shared-policy learner's "
              ".pt, exists with the same config); an interrupted run starts again",
+    )
+    p.add_argument(
+        "--overwrite", action="store_true",
+        help="train again runs that finished in --out, replacing their files when each "
+             "finishes (without it or --resume, a folder holding them is refused)",
     )
     p.add_argument(
         "--tuned", action="store_true",
@@ -257,6 +267,45 @@ def check_population(population: int | None) -> None:
         raise ConfigError(f"--population must be >= 1, got {population}")
 
 
+def check_resume_overwrite(resume: bool, overwrite: bool) -> None:
+    """Refuse ``--resume`` with ``--overwrite`` (ConfigError), before anything is made."""
+    if resume and overwrite:
+        raise ConfigError("--resume and --overwrite exclude each other: --resume keeps finished "
+                          "work and completes the rest, --overwrite does it all again")
+
+
+def check_finished(out: str | Path, held: Sequence[str], noun: tuple[str, str], redo: str,
+                   resume: bool, overwrite: bool) -> None:
+    """The rule of ``train`` and ``tune``, as ``run``'s for stored runs: an ``--out`` that already
+    holds finished work of the command (``held``: its names; ``noun``: what one is, singular and
+    plural) is refused (ConfigError) unless ``--resume`` completes the command (finished work
+    kept, checked by the caller) or ``--overwrite`` redoes it (one line on stderr: ``redo``,
+    how its files are replaced); :func:`check_resume_overwrite` refused both before."""
+    if not held or resume:
+        return
+    more = f" and {len(held) - 1} more" if len(held) > 1 else ""
+    what = f"{len(held)} {noun[len(held) > 1]} of this command ({held[0]}{more})"
+    if not overwrite:
+        raise ConfigError(f"{out} already holds {what}; add --resume to complete that command "
+                          f"({noun[1]} are kept), --overwrite to do it all again ({redo}), or "
+                          "choose another --out")
+    print(f"--overwrite: {out} holds {what}; doing it all again: {redo}", file=sys.stderr)
+
+
+def run_command(keys: Sequence[TrainingKey], out: str) -> str:
+    """The ``cacc-bench run`` command that evaluates the policies of ``keys`` from ``out``
+    (their runs' scenarios and N: one training's)."""
+    import shlex
+
+    specs = [f"{k.algo}:checkpoint_dir={out}" + (f",seed={s}" if s else "")
+             + (f",vehicles={k.n_vehicles}" if k.family != "a2c" and k.n_vehicles != 8 else "")
+             for k in keys for s in k.seeds]
+    scenarios = dict.fromkeys(k.scenario.id for k in keys)
+    return shlex.join(["cacc-bench", "run", "--controllers", ",".join(dict.fromkeys(specs)),
+                       "--scenarios", ",".join(scenarios), "--vehicles",
+                       str(keys[0].n_vehicles)])
+
+
 def populations(keys: Sequence[TrainingKey], size: int | None, executor: str, workers: int
                 ) -> list[TrainingKey]:
     """Group runs that differ only in their seed into population keys (several ``seeds``).
@@ -371,6 +420,7 @@ def main(argv: list[str]) -> int:
     check_vehicles(args.vehicles)
     check_range(args.steps, "--steps", 1, MAX_TRAIN_STEPS)
     check_population(args.population)
+    check_resume_overwrite(args.resume, args.overwrite)
     training_device(args.device)  # ConfigError for an unknown device or a missing GPU
     check_arithmetic(args.arithmetic, args.device)
     if any(LEARNERS[a].family != "a2c" for a in algos):
@@ -408,7 +458,12 @@ def main(argv: list[str]) -> int:
                         Path(args.out), args.arithmetic, args.device,
                         progress=sys.stderr.isatty() and single)
             for seed in seeds for sc in built for a in algos]
+    asked = keys
     with folder_lock(args.out):  # one writer per folder, as `run`; refused naming the holder
+        check_finished(args.out, [k.stem(k.seeds[0]) for k in keys if k.held()],
+                       ("finished run", "finished runs"),
+                       "a run's files are replaced when it finishes",
+                       args.resume, args.overwrite)
         if args.resume:  # every finished run checked before any training
             done = [finished(k) for k in keys]
             for k in (k for k, d in zip(keys, done, strict=True) if d):
@@ -435,4 +490,5 @@ def main(argv: list[str]) -> int:
                 f"{f' ({exc.filename})' if exc.filename else ''}; runs that did not finish "
                 "left the files there as they were: fix that and rerun with --resume"
             ) from None
+    print(f"evaluate with: {run_command(asked, args.out)}")
     return 0

@@ -26,8 +26,11 @@ Trials 1..3 are random draws that every study shares (sampler seed ``seed + k``)
 proposes from the study's own results.
 
 Resumable: each study is an SQLite file under ``OUT/studies``; a rerun with the same options
-skips complete trials and redoes an interrupted one. Trial k of a study draws with sampler seed
-``seed + k``, so an interrupted and resumed study proposes what an uninterrupted one would.
+and ``--resume`` skips complete trials and redoes an interrupted one (without ``--resume`` or
+``--overwrite``, which tunes again from the first trial, an ``OUT`` holding its studies or
+results is refused: :func:`commands.train.check_finished`). Trial k of a study draws with
+sampler seed ``seed + k``, so an interrupted and resumed study proposes what an uninterrupted
+one would.
 Studies run in parallel on the harness executors (``--executor process --workers K``); trials
 within a study run in order. Writes ``OUT/trials.csv`` (every trial) and
 ``OUT/tuned_configs.json`` (the best config per algorithm and scenario, with its score, the
@@ -156,13 +159,52 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="fix a config field of ippo/mappo/ippo-bdc in every trial "
                         "(repeatable)")
+    p.add_argument("--resume", action="store_true",
+                   help="complete the studies in --out: keep their complete trials, redo an "
+                        "interrupted one, run the missing ones")
+    p.add_argument("--overwrite", action="store_true",
+                   help="tune again from the first trial: delete the studies in --out this "
+                        "command runs, and its trials.csv and tuned_configs.json")
     return p
+
+
+def _study_name(job: dict) -> str:
+    return f"{job['algo']}__{job['scenario']}__n{job['vehicles']}"
 
 
 def _study_job(job: dict) -> list[dict]:
     """Run a study's missing trials (top level, so process and Ray executors can run it)."""
     import optuna
     import torch
+
+    from commands.cli import no_space
+
+    torch.set_num_threads(1)
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    name, out = _study_name(job), Path(job["out"])
+    (out / "studies").mkdir(parents=True, exist_ok=True)
+    db = out / "studies" / f"{name}.sqlite3"
+    try:
+        return _run_study(job, name, out, f"sqlite:///{db}")
+    except Exception as exc:
+        # Optuna's error wraps SQLAlchemy's, which wraps sqlite3's (90 lines): its cause found
+        causes: list[BaseException] = []
+        cause: BaseException | None = exc
+        while cause is not None and len(causes) < 20:
+            causes.append(getattr(cause, "orig", None) or cause)
+            cause = cause.__cause__ or cause.__context__
+        full = next((c for c in causes if no_space(c) and not isinstance(c, OSError)), None)
+        if full is None:  # another error, or a file's (cli's line names it)
+            raise
+        raise ConfigError(
+            f"tuning into {out} stopped: its study file {db} could not be written ({full}: a "
+            "full disk or a file-size limit); complete trials were kept: free some space and "
+            "rerun with --resume") from None
+
+
+def _run_study(job: dict, name: str, out: Path, storage: str) -> list[dict]:
+    """The trials of :func:`_study_job`'s study, in ``storage``."""
+    import optuna
 
     from benchmark.policy_eval import validation_evaluator
     from controllers.registry import build_config
@@ -171,13 +213,7 @@ def _study_job(job: dict) -> list[dict]:
     from marl.config import algorithm
     from marl.selection import run_training
 
-    torch.set_num_threads(1)
-    optuna.logging.set_verbosity(optuna.logging.WARNING)
     algo_name, scenario, n = job["algo"], job["scenario"], job["vehicles"]
-    name = f"{algo_name}__{scenario}__n{n}"
-    out = Path(job["out"])
-    (out / "studies").mkdir(parents=True, exist_ok=True)
-    storage = f"sqlite:///{(out / 'studies' / name).with_suffix('.sqlite3')}"
     study = optuna.create_study(study_name=name, storage=storage, direction="maximize",
                                 load_if_exists=True)
     meta = {"steps": job["steps"], "seed": job["seed"], "vehicles": n}
@@ -186,7 +222,7 @@ def _study_job(job: dict) -> list[dict]:
     if study.user_attrs.get("budget", meta) != meta:
         raise ConfigError(
             f"study {name} in {out} was run with {study.user_attrs['budget']}, not {meta}; "
-            "use another --out or the same options"
+            "use the same options, --overwrite to tune it again, or another --out"
         )
     study.set_user_attr("budget", meta)
     for t in study.get_trials(deepcopy=False):
@@ -276,6 +312,9 @@ def main(argv: list[str]) -> int:
     from benchmark.executors import check_ray_address
 
     check_ray_address(args.ray_address)  # an address that does not answer: refused before work
+    from commands.train import check_finished, check_resume_overwrite
+
+    check_resume_overwrite(args.resume, args.overwrite)
     algos = [a.strip() for a in args.algos.split(",") if a.strip()]
     for a in algos:
         if a not in (*PAPER_ALGORITHMS, *SHARED_TUNED):
@@ -333,6 +372,19 @@ def main(argv: list[str]) -> int:
 
     # one writer per folder, as `run`: a second tune on --out is refused naming the first
     with folder_lock(out):
+        studies = [Path("studies") / f"{_study_name(job)}.sqlite3" for job in jobs]
+        held = [p for p in (*studies, Path("trials.csv"), Path("tuned_configs.json"))
+                if (out / p).exists()]
+        check_finished(out, [str(p) for p in held], ("tuning result", "tuning results"),
+                       "deleting them, then tuning from the first trial",
+                       args.resume, args.overwrite)
+        if args.overwrite:
+            import shutil
+
+            for p in held:
+                (out / p).unlink()
+            for job in jobs:
+                shutil.rmtree(out / "trials" / _study_name(job), ignore_errors=True)
         progress = Progress(len(jobs), "studies")
         rows: list[dict] = []
         for res in map_jobs(_study_job, jobs, args.executor, args.workers, args.ray_address):

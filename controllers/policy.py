@@ -120,9 +120,11 @@ class PolicyController(Controller):
         ``distill``, ``ippo-bdc``).
     scenario : str, optional
         Load the checkpoint trained on this scenario instead of the run's one.
-    checkpoint : str, optional
-        Explicit checkpoint file (overrides ``scenario``).
-    checkpoint_dir : str, optional
+    checkpoint : str or Path, optional
+        Explicit checkpoint file: the policy is what the file records (its scenario, N and
+        seed), so ``scenario``, ``seed``, ``checkpoint_dir`` and ``variant`` are not given with
+        it.
+    checkpoint_dir : str or Path, optional
         Folder to load ``<algo>__<scenario>__n<N>__s<seed>.pt`` from instead of the shipped
         checkpoints (a ``cacc-bench train --out`` or ``cacc-bench reproduce`` folder); unlike
         ``checkpoint``, the training seeds of one folder pool into one leaderboard row.
@@ -151,8 +153,8 @@ class PolicyController(Controller):
         self,
         algo: str,
         scenario: str | None = None,
-        checkpoint: str | None = None,
-        checkpoint_dir: str | None = None,
+        checkpoint: Path | str | None = None,
+        checkpoint_dir: Path | str | None = None,
         seed: int | str = 0,
         vehicles: int | str = 8,
         variant: str | None = None,
@@ -172,6 +174,18 @@ class PolicyController(Controller):
         if mode not in EVAL_MODES:
             raise ConfigError(f"{algo}: mode must be one of {', '.join(EVAL_MODES)}, got {mode!r}")
         seed = int(coerce_option(seed, int, "seed", algo))  # the one rule for option values
+        for key, path in (("checkpoint", checkpoint), ("checkpoint_dir", checkpoint_dir)):
+            if path is not None:
+                coerce_option(str(path), Path, key, algo)  # an empty one is refused
+        if checkpoint is not None:
+            naming = [k for k, v in (("scenario", scenario), ("seed", seed or None),
+                                     ("checkpoint_dir", checkpoint_dir), ("variant", variant))
+                      if v is not None]
+            if naming:
+                raise ConfigError(
+                    f"{algo}: checkpoint=FILE names one policy, the one the file records (its "
+                    f"scenario, N and seed); leave out {', '.join(naming)}, or drop checkpoint= "
+                    "to pick a file by scenario and seed")
         check_seeds([seed], f"{algo}: seed", MAX_TRAIN_SEED)  # what `train` can make
         self.vehicles = (int(coerce_option(vehicles, int, "vehicles", algo))
                          if "vehicles" in known else None)
@@ -260,7 +274,7 @@ class PolicyController(Controller):
             self.loaded, self._policy_sha256 = {"steps": 0, "scenario": source}, ""
             return PaperActing(self.algo, untrained_net(self.algo, n, self.seed))
         folder = VARIANT_DIR / self.variant if self.variant else self.checkpoint_dir
-        path = (Path(self.checkpoint) if self.checkpoint
+        path = (Path(self.checkpoint) if self.checkpoint is not None
                 else checkpoint_path(self.algo, source, n, self.seed, folder))
         if not path.exists() and self.variant:
             have = sorted(f.name for f in (VARIANT_DIR / self.variant).glob("*.pt"))
@@ -269,17 +283,24 @@ class PolicyController(Controller):
                 f"N = {n} ({path.name} missing); it holds: {', '.join(have) or 'nothing'}")
         if not path.exists():
             make_scenario(source)  # an unknown scenario id is named as such, not to be trained on
-            cmd = train_command(self.algo, source, n, self.seed, self.checkpoint_dir or "")
+            cmd = train_command(self.algo, source, n, self.seed, str(folder or CHECKPOINT_DIR))
             raise ConfigError(
                 f"no trained {self.algo} policy for {source} with N = {n}: {path} is missing; "
                 f"make it with `{cmd}` (or pick another checkpoint with {self.algo}:scenario=ID "
                 "or checkpoint=FILE)")
-        # a file of the paper's learners holds the run's N; a shared one named for N = vehicles
-        # holds that N (an explicit checkpoint=FILE: any N)
-        data = load_checkpoint(path, algo=self.algo, scenario=source,
-                               n_vehicles=None if self.checkpoint and self.vehicles else n)
+        data = load_checkpoint(path, **self._identity(source, n))
         self.loaded, self._policy_sha256 = data, policy_id(data)
         return acting(self.algo).load(self.algo, data)
+
+    def _identity(self, source: str, n: int) -> dict[str, Any]:
+        """What the checkpoint loaded for ``source`` and N = ``n`` must record
+        (:func:`marl.checkpoint.load_checkpoint` refuses another): a file found by its name holds
+        the algorithm, scenario, N and seed of that name, whatever was copied or renamed there;
+        an explicit ``checkpoint=FILE`` is the policy it records, of this algorithm (the paper's
+        learners: at the run's N; a shared one acts at any N)."""
+        if self.checkpoint is None:
+            return {"algo": self.algo, "scenario": source, "n_vehicles": n, "seed": self.seed}
+        return {"algo": self.algo, "n_vehicles": None if self.vehicles else n}
 
     def preflight(self, scenario: Any, n_vehicles: int, params: Any = None) -> None:
         """Load the policy for ``scenario`` and N now, so a missing or mismatched checkpoint

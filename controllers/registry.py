@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from infra.errors import CaccBenchError, ConfigError, UnknownNameError
-from infra.naming import coerce_option, format_label, parse_named_list
+from infra.naming import canonical_value, coerce_option, format_label, parse_named_list
 from marl.learners import LEARNERS
 
 
@@ -247,30 +247,47 @@ def controller_options(name: str) -> dict[str, Any]:
             and p.default is not p.empty}
 
 
-def _is_default(value: Any, default: Any, key: str, owner: str) -> bool:
-    if not isinstance(value, str):
-        return bool(value == default)
-    if default is None:
-        return value.strip().lower() in ("none", "")
-    if isinstance(default, bool | int | float):
+def option_types(name: str) -> dict[str, Any]:
+    """The type of each option of a registered controller, for :func:`infra.naming.coerce_option`:
+    its default's type, or for a default of None its annotation (the config dataclass's field,
+    the constructor's argument; ``safe:`` adds the filter's)."""
+    spec = resolve(name)
+    if name.startswith(SAFE_PREFIX):
+        from controllers.safety_filter import OPTION_PREFIX, SafetyFilterConfig
+
+        hints = {OPTION_PREFIX + k: v for k, v in typing.get_type_hints(SafetyFilterConfig).items()}
+        hints.update(option_types(spec.fixed["inner"]))
+    else:
+        factory = _factory(spec)
+        config_cls = getattr(factory, "config_cls", None)
         try:
-            return bool(coerce_option(value, type(default), key, owner) == default)
-        except ConfigError:
-            return False  # a bad value is the controller's to refuse, with its own message
-    return value == str(default)
+            hints = typing.get_type_hints(factory.__init__ if config_cls is None else config_cls)
+        except Exception:  # noqa: BLE001 - annotations that do not evaluate: the defaults' types
+            hints = {}
+    return {k: hints.get(k, str) if d is None else type(d)
+            for k, d in controller_options(name).items()}
 
 
 def canonical_options(name: str, options: dict[str, Any]) -> dict[str, Any]:
-    """``options`` without those given at their default value (unregistered names: as given)."""
+    """``options`` in their canonical spelling (:func:`infra.naming.canonical_value` of the
+    typed value: ``kp=2.0`` is ``kp=2``, a folder its resolved path), without those given at
+    their default value (``ovm:alpha=0.5`` is ``ovm``). Unregistered names, options the
+    controller does not take and values it will refuse (with its own message) stay as given."""
     if not options:
         return dict(options)
     try:
-        resolve(name)
+        defaults, types = controller_options(name), option_types(name)
     except CaccBenchError:
         return dict(options)
-    defaults = controller_options(name)
-    return {k: v for k, v in options.items()
-            if not (k in defaults and _is_default(v, defaults[k], k, name))}
+    out = {}
+    for key, value in options.items():
+        try:
+            typed = coerce_option(value, types[key], key, name) if key in types else value
+        except ConfigError:
+            typed = value
+        if key not in defaults or typed != defaults[key]:
+            out[key] = canonical_value(typed)
+    return out
 
 
 def resolve(name: str) -> ControllerSpec:

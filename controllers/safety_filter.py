@@ -71,9 +71,9 @@ every step (``tests/test_safety_filter.py`` checks it in closed loop, with and w
 
 Parameters (options, written with a ``safe_`` prefix: ``safe:cacc:safe_min_gap_m=3``)
 --------------------------------------------------------------------------------------
-``min_gap_m`` (2.0 m): ``d_min``, the gap kept after a worst-case stop; ``pred_brake_mps2``
-(None: ``-accel_min_mps2``): ``b_p``, the hardest braking assumed of a predecessor. Any other
-option is the wrapped controller's.
+``min_gap_m`` (2.0 m, at most 100): ``d_min``, the gap kept after a worst-case stop;
+``pred_brake_mps2`` (None: ``-accel_min_mps2``; at most 10 m/s^2): ``b_p``, the hardest braking
+assumed of a predecessor. Any other option is the wrapped controller's.
 
 What it does not do: it does not change what the wrapped controller sends over V2V (``cacc``
 still broadcasts its own, unfiltered command), and a leader that brakes harder than ``b_p``
@@ -98,6 +98,10 @@ from infra.errors import ConfigError
 OPTION_PREFIX = "safe_"
 #: Slack (m) allowed when the filter checks its own answer (rounding of the closed form).
 CHECK_TOL_M = 1e-9
+#: Largest ``min_gap_m`` (m): a spacing kept after a stop, far beyond any platoon's.
+MAX_MIN_GAP_M = 100.0
+#: Hardest ``pred_brake_mps2`` (m/s^2): about 1 g, more than tyres on a road can give.
+MAX_PRED_BRAKE_MPS2 = 10.0
 
 
 @dataclass(frozen=True)
@@ -118,13 +122,13 @@ class SafetyFilterConfig:
     pred_brake_mps2: float | None = None
 
     def __post_init__(self) -> None:
-        if not (math.isfinite(self.min_gap_m) and self.min_gap_m > 0):
-            raise ConfigError(f"safe_min_gap_m must be a positive number of metres, got "
-                              f"{self.min_gap_m!r}")
+        if not (math.isfinite(self.min_gap_m) and 0 < self.min_gap_m <= MAX_MIN_GAP_M):
+            raise ConfigError(f"safe_min_gap_m must be a positive number of metres, at most "
+                              f"{MAX_MIN_GAP_M:g}, got {self.min_gap_m!r}")
         b = self.pred_brake_mps2
-        if b is not None and not (math.isfinite(b) and b > 0):
+        if b is not None and not (math.isfinite(b) and 0 < b <= MAX_PRED_BRAKE_MPS2):
             raise ConfigError(f"safe_pred_brake_mps2 must be a positive deceleration in m/s^2, "
-                              f"got {b!r}")
+                              f"at most {MAX_PRED_BRAKE_MPS2:g} (about 1 g), got {b!r}")
 
     def check(self, params: PlatoonParams) -> None:
         """Refuse parameters that void the guarantee with the run's ``params``."""

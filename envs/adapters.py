@@ -7,6 +7,13 @@ and rear vehicle blocks, zero-padded), or ``accel`` (a Box acceleration command 
 the MPC's bounds, 12-number observations with what V2V delivers through the channel's delay and
 loss). The reward is the paper's. Training inside cacc-bench uses the batched arrays directly;
 these are for outside MARL libraries.
+
+They keep the command line's rules: the scenario and its options go through
+:func:`envs.scenarios.make_scenario`, a V2V delay must be a whole number of steps (as ``run
+--comm-delay``), a reset seed lies in 0..:data:`infra.limits.MAX_SEED` (as ``run --seeds``), and an
+action of the wrong shape, not finite, or a non-integer or out-of-range gain index is refused
+(:func:`envs.platoon.check_actions`); each with a ConfigError (a ValueError) saying what is
+expected.
 """
 
 from __future__ import annotations
@@ -20,24 +27,49 @@ from pettingzoo import ParallelEnv
 
 from envs.channel import ChannelConfig
 from envs.params import OVM_ACTIONS, PlatoonParams
-from envs.platoon import PlatoonEnv
+from envs.platoon import PlatoonEnv, check_actions
+from envs.scenarios import make_scenario
+from infra.errors import ConfigError
+from infra.limits import MAX_SEED, check_seeds, check_whole_steps
 
 #: Observation bound: no 60 s episode gets near it (a normalised gap of 1e4 is 200 km).
 OBS_BOUND = 1e4
-_SEED_LIMIT = 2**31 - 1
 
 
 def _draw_seed(rng: np.random.Generator) -> int:
-    return int(rng.integers(0, _SEED_LIMIT))
+    return int(rng.integers(0, MAX_SEED))
 
 
-def _make_env(scenario: str, n_vehicles: int, params: PlatoonParams, training: bool,
-              collision_mode: str, action_mode: str, comm_delay_s: float, packet_loss: float
-              ) -> PlatoonEnv:
+def _check_seed(seed: Any) -> int:
+    """``seed`` if it is an episode seed by the command line's rule (``run --seeds``)."""
+    if isinstance(seed, bool) or not isinstance(seed, int | np.integer):
+        raise ConfigError(f"seed must be a whole number in 0..{MAX_SEED}, got {seed!r}")
+    return check_seeds([int(seed)], "seed")[0]
+
+
+def _reset(env: PlatoonEnv, episode_seed: int, options: dict[str, Any] | None) -> np.ndarray:
+    """Observations ``(1, N, obs_dim)`` of a new episode (``options``: ``perturbation``)."""
+    if options is not None and not isinstance(options, dict):
+        raise ConfigError(f"options must be a dict (perturbation: U in [0, 1]), got {options!r}")
+    obs = env.reset([episode_seed], perturbation=(options or {}).get("perturbation"))
+    assert obs is not None
+    return obs
+
+
+def _make_env(scenario: str, n_vehicles: int | None, params: PlatoonParams, training: bool,
+              collision_mode: str, action_mode: str, comm_delay_s: float, packet_loss: float,
+              options: dict[str, Any]) -> PlatoonEnv:
+    sc = make_scenario(scenario, **options)  # one rule with every command's --scenarios
     channel = ChannelConfig(comm_delay_s, packet_loss, params.dt_s)
-    return PlatoonEnv(scenario, n_vehicles, params, training=training,
-                      collision_mode=collision_mode, observe=True, action_mode=action_mode,
-                      channel=channel)
+    check_whole_steps(channel.delay_s, "comm_delay_s", params.dt_s)  # as run --comm-delay
+    env = PlatoonEnv(sc, sc.default_vehicles if n_vehicles is None else n_vehicles, params,
+                     training=training, collision_mode=collision_mode, observe=True,
+                     action_mode=action_mode, channel=channel)
+    if env.action_mode != "accel" and (channel.delay_s or channel.packet_loss):
+        raise ConfigError("comm_delay_s and packet_loss act on the V2V messages of the accel "
+                          "mode; the ovm-gain observations are exact (published): give "
+                          "action_mode='accel' or leave them at 0")
+    return env
 
 
 def _accel_space(params: PlatoonParams, shape: tuple[int, ...]) -> spaces.Box:
@@ -53,8 +85,8 @@ class PlatoonParallelEnv(ParallelEnv):
     ----------
     scenario : str
         Scenario id (default ``catchup-v1``).
-    n_vehicles : int
-        Followers N.
+    n_vehicles : int or None
+        Followers N (None: the scenario's default, as its registered Gymnasium id).
     params : PlatoonParams
         Physics (``lag_s``).
     training : bool
@@ -65,14 +97,19 @@ class PlatoonParallelEnv(ParallelEnv):
         ``ovm-gain`` (default, published: ``Discrete(4)``) or ``accel`` (``Box(accel_min,
         accel_max, (1,))`` m/s^2).
     comm_delay_s, packet_loss : float
-        V2V delay and loss of the ``accel`` mode's messages.
+        V2V delay (whole steps of ``params.dt_s``) and loss of the ``accel`` mode's messages.
+    **scenario_options
+        Options of the scenario (``amplitude_mps=2`` of ``sine-v1``), checked as the command
+        line's ``--scenarios sine-v1:amplitude_mps=2``.
 
     Notes
     -----
-    ``reset(seed=s)`` uses ``s`` as the episode seed (published seeding of the perturbation);
-    without a seed, an episode seed is drawn from the adapter's own generator. ``options`` may
-    hold ``perturbation`` (explicit U in [0, 1]). The episode's time limit is a truncation, a
-    collision a termination.
+    ``reset(seed=s)`` uses ``s`` (0..:data:`infra.limits.MAX_SEED`) as the episode seed (published
+    seeding of the perturbation); without a seed, an episode seed is drawn from the adapter's own
+    generator. ``options`` may hold ``perturbation`` (explicit U in [0, 1]); other keys are
+    ignored. ``step`` takes one action for every agent, in its action space (a bare number
+    for the ``accel`` Box too). The episode's time limit is a truncation, a collision a
+    termination.
     """
 
     metadata = {"name": "cacc_platoon_v1", "render_modes": [], "is_parallelizable": True}
@@ -80,18 +117,19 @@ class PlatoonParallelEnv(ParallelEnv):
     def __init__(
         self,
         scenario: str = "catchup-v1",
-        n_vehicles: int = 8,
+        n_vehicles: int | None = 8,
         params: PlatoonParams = PlatoonParams(),
         training: bool = False,
         collision_mode: str = "terminate",
         action_mode: str = "ovm-gain",
         comm_delay_s: float = 0.0,
         packet_loss: float = 0.0,
+        **scenario_options: Any,
     ) -> None:
         self.env = _make_env(scenario, n_vehicles, params, training, collision_mode,
-                             action_mode, comm_delay_s, packet_loss)
+                             action_mode, comm_delay_s, packet_loss, scenario_options)
         self.action_mode = action_mode
-        self.possible_agents = [f"follower_{i}" for i in range(1, n_vehicles + 1)]
+        self.possible_agents = [f"follower_{i}" for i in range(1, self.env.n_vehicles + 1)]
         self.agents: list[str] = []
         self.render_mode = None
         self._obs_space = spaces.Box(-OBS_BOUND, OBS_BOUND, (self.env.obs_dim,), np.float32)
@@ -117,28 +155,39 @@ class PlatoonParallelEnv(ParallelEnv):
         self, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[dict[str, np.ndarray], dict[str, dict]]:
         if seed is not None:
-            self._rng = np.random.Generator(np.random.PCG64(seed))
-            self.episode_seed = int(seed)
+            self.episode_seed = _check_seed(seed)
+            self._rng = np.random.Generator(np.random.PCG64(self.episode_seed))
         else:
             self.episode_seed = _draw_seed(self._rng)
-        pert = (options or {}).get("perturbation")
-        obs = self.env.reset([self.episode_seed], perturbation=pert)
-        assert obs is not None
+        obs = _reset(self.env, self.episode_seed, options)
         self.agents = list(self.possible_agents)
         return self._obs_dict(obs), {a: {} for a in self.agents}
 
-    def step(self, actions: dict[str, int]) -> tuple[
+    def _actions(self, actions: dict[str, Any]) -> np.ndarray:
+        """The ``(1, N)`` actions of ``actions`` (one per agent, each in its action space)."""
+        given = actions if isinstance(actions, dict) else {}
+        missing = [ag for ag in self.agents if ag not in given]
+        unknown = [k for k in given if k not in self.agents]
+        if missing or unknown:
+            raise ConfigError(
+                f"actions must map each agent ({self.agents[0]} .. {self.agents[-1]}) to its "
+                f"action; " + (f"missing {missing[0]}" if missing else f"unknown {unknown[0]!r}"))
+        accel, vals = self.action_mode == "accel", []
+        for ag in self.possible_agents:
+            v = given[ag]
+            if accel and isinstance(v, int | float | np.number):  # a bare number for the Box
+                v = [v]
+            vals.append(check_actions(v, (1,) if accel else (), self.env.params, not accel,
+                                      f"the action of {ag}"))
+        return np.stack(vals).astype(np.float64 if accel else np.int64).reshape(1, -1)
+
+    def step(self, actions: dict[str, Any]) -> tuple[
         dict[str, np.ndarray], dict[str, float], dict[str, bool], dict[str, bool], dict[str, dict]
     ]:
         if not self.agents:
             raise RuntimeError("episode over: call reset()")
-        if self.action_mode == "accel":
-            u = np.array([[float(np.asarray(actions[ag]).reshape(-1)[0])
-                           for ag in self.possible_agents]])
-            res = self.env.step(u)
-        else:
-            a = np.array([[int(actions[ag]) for ag in self.possible_agents]])
-            res = self.env.step_actions(a)
+        a = self._actions(actions)
+        res = self.env.step(a) if self.action_mode == "accel" else self.env.step_actions(a)
         assert res.observation is not None
         collided = bool(res.collided[0])
         over = bool(res.done[0])
@@ -166,7 +215,8 @@ class PlatoonGymEnv(gymnasium.Env):
 
     Observation ``(N, 15)`` floats and action ``MultiDiscrete([4] * N)`` (``ovm-gain``), or
     ``(N, 12)`` floats and ``Box(accel_min, accel_max, (N,))`` m/s^2 (``accel``); reward = sum
-    over agents. Parameters as :class:`PlatoonParallelEnv`.
+    over agents. Parameters and rules as :class:`PlatoonParallelEnv`; ``step`` takes an action
+    of the action space's shape ``(N,)``.
     """
 
     metadata = {"render_modes": []}
@@ -174,38 +224,40 @@ class PlatoonGymEnv(gymnasium.Env):
     def __init__(
         self,
         scenario: str = "catchup-v1",
-        n_vehicles: int = 8,
+        n_vehicles: int | None = 8,
         params: PlatoonParams = PlatoonParams(),
         training: bool = False,
         collision_mode: str = "terminate",
         action_mode: str = "ovm-gain",
         comm_delay_s: float = 0.0,
         packet_loss: float = 0.0,
+        **scenario_options: Any,
     ) -> None:
         self.env = _make_env(scenario, n_vehicles, params, training, collision_mode,
-                             action_mode, comm_delay_s, packet_loss)
+                             action_mode, comm_delay_s, packet_loss, scenario_options)
         self.action_mode = action_mode
-        self.n_vehicles = n_vehicles
-        self.observation_space = spaces.Box(-OBS_BOUND, OBS_BOUND,
-                                            (n_vehicles, self.env.obs_dim), np.float32)
+        self.n_vehicles = n = self.env.n_vehicles
+        self.observation_space = spaces.Box(-OBS_BOUND, OBS_BOUND, (n, self.env.obs_dim),
+                                            np.float32)
         self.action_space: spaces.Space = (
-            _accel_space(params, (n_vehicles,)) if action_mode == "accel"
-            else spaces.MultiDiscrete([len(OVM_ACTIONS)] * n_vehicles))
+            _accel_space(params, (n,)) if action_mode == "accel"
+            else spaces.MultiDiscrete([len(OVM_ACTIONS)] * n))
 
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[np.ndarray, dict]:
+        seed = None if seed is None else _check_seed(seed)
         super().reset(seed=seed)
-        episode_seed = int(seed) if seed is not None else _draw_seed(self.np_random)
-        obs = self.env.reset([episode_seed], perturbation=(options or {}).get("perturbation"))
-        assert obs is not None
-        return obs[0].copy(), {"episode_seed": episode_seed}
+        episode_seed = seed if seed is not None else _draw_seed(self.np_random)
+        return _reset(self.env, episode_seed, options)[0].copy(), {"episode_seed": episode_seed}
 
-    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
-        if self.action_mode == "accel":
-            res = self.env.step(np.asarray(action, dtype=np.float64).reshape(1, -1))
+    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict]:
+        accel = self.action_mode == "accel"
+        a = check_actions(action, (self.n_vehicles,), self.env.params, not accel, "action")
+        if accel:
+            res = self.env.step(a.astype(np.float64).reshape(1, -1))
         else:
-            res = self.env.step_actions(np.asarray(action, dtype=np.int64).reshape(1, -1))
+            res = self.env.step_actions(a.astype(np.int64).reshape(1, -1))
         assert res.observation is not None
         collided = bool(res.collided[0])
         over = bool(res.done[0])
@@ -229,7 +281,9 @@ GYM_ACCEL_NAMESPACE = "cacc_bench_accel"
 def register_gymnasium() -> list[str]:
     """Register every scenario as ``cacc_bench/<scenario id>`` (the Gymnasium view,
     :class:`PlatoonGymEnv`, at the scenario's default N) and as ``cacc_bench_accel/<scenario
-    id>`` (the same in the ``accel`` action mode); idempotent.
+    id>`` (the same in the ``accel`` action mode); idempotent. ``gymnasium.make`` passes its
+    keyword arguments on: the adapter's parameters and the scenario's options
+    (``gymnasium.make("cacc_bench/sine-v1", amplitude_mps=2)``).
 
     Runs when this module is imported, so ``gymnasium.make("envs.adapters:cacc_bench/catchup-v1",
     n_vehicles=4)`` works in a fresh interpreter (Gymnasium imports the module before the id).
@@ -248,8 +302,7 @@ def register_gymnasium() -> list[str]:
             if env_id not in gymnasium.registry:
                 gymnasium.register(
                     env_id, entry_point="envs.adapters:PlatoonGymEnv",
-                    kwargs={"scenario": spec.id, "n_vehicles": spec.default_vehicles,
-                            "action_mode": mode},
+                    kwargs={"scenario": spec.id, "n_vehicles": None, "action_mode": mode},
                     disable_env_checker=False,
                 )
             ids.append(env_id)

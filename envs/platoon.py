@@ -28,11 +28,40 @@ from envs.dynamics import (
     vehicle_blocks,
 )
 from envs.humans import HumanDrivers
-from envs.params import PlatoonParams, RewardWeights
+from envs.params import OVM_ACTIONS, PlatoonParams, RewardWeights
 from envs.scenarios import Scenario, as_scenario, check_vehicles
 from infra.errors import ConfigError
 
 COLLISION_MODES = ("terminate", "published")
+
+
+def check_actions(actions: Any, shape: tuple[int, ...], params: PlatoonParams, discrete: bool,
+                  name: str = "actions") -> np.ndarray:
+    """``actions`` as an array if it has ``shape`` and holds OVM-gain indices (``discrete``: whole
+    numbers 0..3) or finite accelerations (m/s^2; the env clips them to the bounds), else a
+    ConfigError naming the shape and range expected: the one rule of :meth:`PlatoonEnv.step`,
+    :meth:`PlatoonEnv.step_actions` and the adapters (:mod:`envs.adapters`)."""
+    try:
+        a = np.asarray(actions)
+    except ValueError:  # ragged
+        a = np.asarray(actions, dtype=object)
+    k = len(OVM_ACTIONS)
+    numeric = a.shape == shape and a.dtype.kind in "iuf"
+    if numeric and not discrete and np.isfinite(a).all():
+        return a
+    if numeric and discrete and (a.size == 0 or (a.min() >= 0 and a.max() < k and (
+            a.dtype.kind != "f" or (a == np.floor(a)).all()))):
+        return a
+    if discrete:
+        rule = f"OVM-gain indices (whole numbers 0..{k - 1})"
+        bad = a[(a < 0) | (a >= k) | (a != np.floor(a))] if numeric else a
+    else:
+        lo, hi = params.accel_min_mps2, params.accel_max_mps2
+        rule = f"finite accelerations in m/s^2 (outside [{lo:g}, {hi:g}] clipped)"
+        bad = a[~np.isfinite(a)] if numeric else a
+    got = f"{bad.flat[0]}" if a.shape == shape and a.size else f"shape {a.shape}"
+    where = f"of shape {shape}" if shape else "(one number)"
+    raise ConfigError(f"{name} must be {rule} {where}, got {got}")
 
 
 @dataclass
@@ -244,9 +273,21 @@ class PlatoonEnv:
         seeds : int or sequence of int
             Episode seeds (published seeding of ``U``).
         perturbation : float or (B,) floats, optional
-            Explicit ``U`` overriding the seeded draw.
+            Explicit ``U`` in [0, 1] overriding the seeded draw.
+
+        Raises
+        ------
+        ConfigError
+            For a perturbation of another shape, or outside [0, 1].
         """
         seeds_arr = np.atleast_1d(np.asarray(seeds, dtype=np.int64))
+        try:
+            u_shape = None if perturbation is None else np.asarray(perturbation, np.float64).shape
+        except (TypeError, ValueError):
+            u_shape = (-1,)
+        if u_shape not in (None, (), seeds_arr.shape):
+            raise ConfigError(f"perturbation must be one number in [0, 1] or one per episode "
+                              f"(B = {len(seeds_arr)}), got {perturbation!r}")
         ep = self.scenario.episodes(seeds_arr, self.n_vehicles, perturbation)
         b, n = len(seeds_arr), self.n_vehicles
         self.seeds = seeds_arr
@@ -321,21 +362,35 @@ class PlatoonEnv:
         return agent_observations(self._blocks, out=self._obs)
 
     def step_actions(self, actions: np.ndarray) -> StepResult:
-        """Step with discrete MARL actions ``(B, N)`` (OVM gains, published mapping)."""
+        """Step with discrete MARL actions ``(B, N)`` (OVM gains, published mapping; whole numbers
+        0..3, else a ConfigError, :func:`check_actions`)."""
         s = self._require_state()
         if self.action_mode != "ovm-gain":
             raise ConfigError(
                 "step_actions takes OVM-gain indices; this env is in the accel mode: pass the "
                 "acceleration commands to step()")
-        u = action_to_command_mps2(actions, s.gap_m, s.speed_mps, s.pred_speed_mps, self.params)
-        return self.step(u)
+        actions = check_actions(actions, s.gap_m.shape, self.params, discrete=True)
+        u = action_to_command_mps2(actions.astype(np.int64, copy=False), s.gap_m, s.speed_mps,
+                                   s.pred_speed_mps, self.params)
+        return self._advance(s, u)
 
     def step(self, command_mps2: np.ndarray) -> StepResult:
-        """Apply acceleration commands ``(B, N)`` (clipped to the bounds) for one step.
+        """Apply acceleration commands ``(B, N)`` (finite, clipped to the bounds) for one step.
 
         In the ``accel`` mode the commands are also this step's V2V messages (sent before the
-        physics, observed from the next step on, as ``cacc`` does)."""
+        physics, observed from the next step on, as ``cacc`` does).
+
+        Raises
+        ------
+        ConfigError
+            For commands of another shape or not finite (:func:`check_actions`).
+        """
         s = self._require_state()
+        check_actions(command_mps2, s.gap_m.shape, self.params, discrete=False, name="commands")
+        return self._advance(s, command_mps2)
+
+    def _advance(self, s: PlatoonState, command_mps2: np.ndarray) -> StepResult:
+        """One step of checked commands ``(B, N)``."""
         if s.step >= self.n_steps:
             raise RuntimeError("episode over: call reset()")
         t = s.step

@@ -9,9 +9,13 @@ from __future__ import annotations
 
 import math
 import typing
-from typing import Any
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any, TypeVar
 
 from infra.errors import ConfigError
+
+T = TypeVar("T")
 
 
 def parse_named_list(text: str, kind: str, name_prefixes: tuple[str, ...] = ()
@@ -78,6 +82,40 @@ def format_label(name: str, options: dict[str, Any]) -> str:
     return name + "[" + ",".join(f"{k}={options[k]}" for k in sorted(options)) + "]"
 
 
+def canonical_value(value: Any) -> Any:
+    """The one spelling of a typed option value in a label, so one setting is one label:
+    ``true``/``false``; an integer in decimal; a float as the shortest decimal that reads back
+    as it, without a trailing ``.0`` (``2``, ``2.0``, ``2e0`` and ``+2`` are all ``2``; ``0.1``;
+    ``1e-05``); a path with its links resolved, relative to the working directory when inside
+    it (``checkpoints``), else absolute. Other values come back unchanged."""
+    if isinstance(value, bool):
+        return str(value).lower()
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, float):
+        text = repr(value + 0.0)  # -0.0 is 0
+        return text.removesuffix(".0")
+    if isinstance(value, Path):
+        resolved = value.expanduser().resolve()
+        here = Path.cwd().resolve()
+        return (resolved.relative_to(here) if resolved.is_relative_to(here)
+                else resolved).as_posix()
+    return value
+
+
+def merge_repeats(items: Sequence[T], labels: Sequence[str], option: str
+                  ) -> tuple[list[T], str]:
+    """``items`` once per canonical label, in order (the first of each kept), and the one line
+    a command prints on standard error when some were named more than once ('' if none): one
+    setting named twice (``cacc,cacc:kp=2.0,cacc:kp=2``) runs, and is reported, once."""
+    first: dict[str, T] = {}
+    for label, item in zip(labels, items, strict=True):
+        first.setdefault(label, item)
+    twice = [label for label in first if labels.count(label) > 1]
+    note = f"{option}: {', '.join(twice)} named more than once; each is used once" if twice else ""
+    return list(first.values()), note
+
+
 def parse_label(label: str, kind: str = "name") -> tuple[str, dict[str, str]]:
     """``"name[k=v,...]"`` or ``"name:k=v,..."`` or ``"name"`` -> ``(name, {k: v})``."""
     text = label.strip()
@@ -106,22 +144,27 @@ def checkpoint_stem(algo: str, scenario_id: str, n_vehicles: int, seed: int) -> 
 
 def coerce_option(value: Any, annotation: Any, key: str, owner: str) -> Any:
     """A command-line option value (a string) as the type ``annotation`` names (``bool``,
-    ``int``, ``float``, ``X | None``); other values and types pass unchanged. The one rule for
-    controller, scenario and learner options.
+    ``int``, ``float``, ``Path``, ``X | None``); other values and types pass unchanged. The one
+    rule for controller, scenario and learner options.
 
     Raises
     ------
     ConfigError
-        If the string is not of that type (floats must be finite).
+        If the string is not of that type (floats must be finite, a path not empty).
     """
     if not isinstance(value, str):
         return value
     origin = typing.get_origin(annotation)
     args = typing.get_args(annotation)
     if origin is not None and type(None) in args:
-        if value.lower() in ("none", ""):
-            return None
         annotation = next(a for a in args if a is not type(None))
+        if value.lower() == "none" or (value == "" and annotation is not Path):
+            return None
+    if annotation is Path:
+        if not value.strip():
+            raise ConfigError(f"option {key} of {owner} names no path; give one, or leave the "
+                              "option out")
+        return Path(value)
     try:
         if annotation in (bool, "bool"):
             if value.lower() in ("1", "true", "yes", "on"):

@@ -215,22 +215,26 @@ def load_checkpoint(
     algo: str | None = None,
     n_vehicles: int | None = None,
     scenario: str | None = None,
+    seed: int | None = None,
 ) -> dict[str, Any]:
-    """Read a checkpoint and verify it (weights come back as float32 tensors).
+    """Read a checkpoint and verify it (weights come back as float32 tensors); ``algo``,
+    ``n_vehicles``, ``scenario`` and ``seed``, where given, are what it is loaded as, and must
+    be what it records (a file copied or renamed keeps its own).
 
     Raises
     ------
     ConfigError
         Missing, unreadable, damaged or altered file (content hash, weight dtypes and shapes,
-        config field types), other format version, other algorithm or N, or NaN or infinite
-        weights; the one-line message names the file and what to do.
+        config field types), other format version, a recorded algorithm, N, scenario or seed
+        other than the one given, or NaN or infinite weights; the one-line message names the
+        file and what to do.
     """
     path = Path(path)
     named = re.fullmatch(r"(.+?)__(.+?)__n(\d+)__s(\d+)(?:\.final)?\.pt", path.name)
     want_algo = algo or (named.group(1) if named else "ALGO")
     want_scenario = scenario or (named.group(2) if named else "SCENARIO")
     want_n = n_vehicles or (int(named.group(3)) if named else 8)
-    want_seed = int(named.group(4)) if named else 0
+    want_seed = seed if seed is not None else int(named.group(4)) if named else 0
 
     def fix() -> str:
         cmd = train_command(want_algo, want_scenario, want_n, want_seed, str(path.parent))
@@ -280,15 +284,11 @@ def load_checkpoint(
         if not ok:
             raise damaged("its content hash does not match")
     _check_fields(data, damaged)
-    if algo is not None and data["algo"] != algo:
-        raise ConfigError(
-            f"checkpoint {path} holds algorithm {data['algo']!r}, not {algo!r}; {fix()}"
-        )
-    if n_vehicles is not None and data["n_vehicles"] != n_vehicles:
-        raise ConfigError(
-            f"checkpoint {path} was trained for N = {data['n_vehicles']} followers, not "
-            f"{n_vehicles}; {fix()}"
-        )
+    for field, want in (("algo", algo), ("n_vehicles", n_vehicles), ("scenario", scenario),
+                        ("seed", seed)):
+        if want is not None and data[field] != want:
+            raise ConfigError(f"checkpoint {path} {_RECORDS[field].format(data[field], want)} "
+                              f"(a copied or renamed file keeps what it records); {fix()}")
     _check_config_and_shapes(data, damaged)
     data["weights"] = {k: v.to(torch.float32) for k, v in data["weights"].items()}
     bad = [k for k, v in data["weights"].items() if not bool(torch.isfinite(v).all())]
@@ -300,6 +300,10 @@ def load_checkpoint(
     return data
 
 
+#: What a checkpoint records, beside what it was loaded as (:func:`load_checkpoint`).
+_RECORDS: dict[str, str] = {
+    "algo": "holds algorithm {!r}, not {!r}", "n_vehicles": "was trained for N = {} followers, not {}",
+    "scenario": "was trained on {}, not {}", "seed": "was trained with seed {}, not {}"}
 #: Fields every checkpoint holds, with their types.
 _FIELDS: dict[str, type] = {
     "algo": str, "config": dict, "scenario": str, "n_vehicles": int, "seed": int, "steps": int,

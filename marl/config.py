@@ -161,9 +161,19 @@ class A2CConfig:
                 raise ConfigError(f"{name} is a cost weight and must be <= 0, got {getattr(self, name)}")
         if self.power_baseline_kw is not None and not math.isfinite(self.power_baseline_kw):
             raise ConfigError(f"power_baseline_kw must be finite, got {self.power_baseline_kw}")
-        for name in ("actor_lr", "critic_lr", "reward_scale", "grad_clip", "lr_scale"):
-            if not getattr(self, name) > 0:
-                raise ConfigError(f"{name} must be > 0, got {getattr(self, name)}")
+        for name in ("actor_lr", "critic_lr", "reward_scale", "grad_clip", "lr_scale",
+                     "rmsprop_eps"):
+            if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0):
+                raise ConfigError(f"{name} must be a finite number > 0, got {getattr(self, name)}")
+        for name in ("actor_lr", "critic_lr"):  # RMSprop's float32 step: as a shared learner's
+            if not self.lr_scale * getattr(self, name) <= 1:
+                raise ConfigError(f"{name} x lr_scale is a learning rate and must be <= 1, got "
+                                  f"{getattr(self, name)} x {self.lr_scale}")
+        if not 0 <= self.rmsprop_alpha < 1:
+            raise ConfigError(f"rmsprop_alpha must lie in [0, 1), got {self.rmsprop_alpha}")
+        if not 0 <= self.min_active_fraction <= 1:
+            raise ConfigError(f"min_active_fraction must lie in [0, 1], got "
+                              f"{self.min_active_fraction}")
 
     #: Published reward sharing (``coop_gamma`` of the published configs) by scenario family
     #: (:func:`envs.scenarios.scenario_family`); other scenarios use :attr:`DEFAULT_REWARD_ALPHA`.

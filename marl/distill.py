@@ -109,12 +109,16 @@ def distill(
     params: PlatoonParams = PlatoonParams(),
     log: Callable[[str], None] | None = None,
     evaluate: Evaluator | None = None,
+    max_steps: int | None = None,
 ) -> PPOResult:
     """Distil the expert into the shared actor on ``scenario`` with N followers.
 
-    Returns the round whose actor has the fewest validation collisions, then the best validation
-    reward (actions sampled as trained, scored by ``evaluate``), as :class:`marl.ppo.PPOResult`
-    (``steps``: environment steps collected); the last round when ``evaluate`` is None.
+    Collects ``config.rounds`` rounds of ``episodes_per_round`` episodes, or stops collecting
+    once ``max_steps`` environment steps are collected (``--steps``; None: no cap): that round
+    is fitted on what it holds and is the last. Returns the round whose actor has the fewest
+    validation collisions, then the best validation reward (actions sampled as trained, scored
+    by ``evaluate``), as :class:`marl.ppo.PPOResult` (``steps``: environment steps collected);
+    the last round when ``evaluate`` is None.
     """
     cfg, sc = config, as_scenario(scenario)
     n = check_vehicles(n_vehicles)
@@ -130,6 +134,8 @@ def distill(
     best_state = as_shipped(actor).state_dict()
     steps, t0 = 0, time.perf_counter()
     for rnd in range(cfg.rounds):
+        if max_steps is not None and steps >= max_steps:
+            break
         env = PlatoonEnv(sc, n, params, action_mode="accel", channel=ChannelConfig())
         seeds = training_episode_seeds(seed, rnd * cfg.episodes_per_round,
                                        cfg.episodes_per_round)
@@ -152,7 +158,7 @@ def distill(
                 command[n_expert:] = mine[n_expert:]
             res = env.step(command)
             obs = res.observation
-            if res.done.all():
+            if res.done.all() or (max_steps is not None and steps >= max_steps):
                 break
         data_x, data_u = torch.cat(obs_rows), torch.cat(label_rows)
         if rnd == 0:

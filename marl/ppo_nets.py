@@ -162,9 +162,13 @@ class PPOConfig:
             if not 1 <= getattr(self, name) <= high:
                 raise ConfigError(f"{name} must lie in 1..{high:,}, got {getattr(self, name)}")
         check_learning_rate(self.lr)
+        big = float(torch.finfo(torch.float32).max)  # they bound float32 tensors
         for name in ("reward_clip", "obs_clip", "max_grad_norm"):
-            if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0):
-                raise ConfigError(f"{name} must be a finite number > 0, got {getattr(self, name)}")
+            if not 0 < getattr(self, name) <= big:
+                raise ConfigError(f"{name} must lie in (0, {big:.3g}] (a float32), got "
+                                  f"{getattr(self, name)}")
+        if not -20 <= self.init_log_std <= 2:  # exp() of it a float32 holds, and a usable std
+            raise ConfigError(f"init_log_std must lie in [-20, 2], got {self.init_log_std}")
         if self.prior not in PRIORS:
             raise ConfigError(f"prior must be one of {PRIORS} ('' for none), got {self.prior!r}")
         if self.prior and self.action_mode != "accel":

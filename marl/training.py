@@ -36,7 +36,8 @@ class TrainingKey:
     scenario : Scenario
         Built (:func:`envs.scenarios.make_scenario`); checkpoints are named by its id.
     n_vehicles, steps : int
-        Followers N; environment steps of each run (a distillation's budget is its config's).
+        Followers N; environment steps of each run (a distillation stops at its config's last
+        round or at these, whichever comes first).
     seeds : tuple of int
         Training seeds, one run each (one: a population of one).
     config : object
@@ -77,6 +78,12 @@ class TrainingKey:
         """The file whose presence marks the run of ``seed`` finished: the final weights
         (``.final.pt``) where the learner keeps them, else the kept snapshot (``.pt``)."""
         return self.out / f"{self.stem(seed)}{'.final.pt' if self.family == 'a2c' else '.pt'}"
+
+    def held(self) -> list[Path]:
+        """The files of the key's runs already in its folder: a run's files are written
+        together when it finishes, so each names finished work that training would replace."""
+        return [p for seed in self.seeds for suffix in (".pt", ".final.pt", ".curve.csv", ".log")
+                if (p := self.out / f"{self.stem(seed)}{suffix}").exists()]
 
     def resolved_config(self) -> Any:
         """The config the runs train with (the paper learners': resolved for the scenario)."""
@@ -149,7 +156,7 @@ def run_shared(key: TrainingKey, log: Callable[[str], None],
         from marl.distill import distill
 
         result = distill(key.scenario, expert(key.config.expert), key.n_vehicles, seed,
-                         key.config, log=log, evaluate=evaluate)
+                         key.config, log=log, evaluate=evaluate, max_steps=key.steps)
     else:
         from marl.ppo import train
 

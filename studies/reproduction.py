@@ -43,6 +43,22 @@ def final_train_reward(curve: Any, fraction: float = FINAL_FRACTION) -> float:
     return float(r[-k:].mean())
 
 
+def read_curve(path: Path) -> Any:
+    """The learning curve ``path`` (``<stem>.curve.csv``, :data:`marl.checkpoint.CURVE_COLUMNS`
+    or the older ``steps,validation_reward,validation_collisions``) as a DataFrame.
+
+    Raises
+    ------
+    ConfigError
+        The file is not a curve: unreadable, not CSV, no ``steps`` column, or a cell that is
+        not a number.
+    """
+    from infra.files import read_csv
+
+    return read_csv(path, "the learning curve", columns=("steps",), numeric=True,
+                    fix="restore it, or train that run again")
+
+
 def validation_points(curve: Any, mode: str = "sampled") -> tuple[np.ndarray, np.ndarray]:
     """Steps and validation reward (benchmark score on the validation seeds) of one curve."""
     col = f"eval_reward_{mode}"

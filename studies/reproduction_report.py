@@ -26,15 +26,47 @@ from studies.paper import (
 )
 
 
+def _file(job: dict[str, Any], suffix: str) -> Path:
+    """The file ``<stem><suffix>`` of a training job (``.pt``, ``.curve.csv``, ``.source.json``)."""
+    return Path(job["out"]) / (
+        checkpoint_stem(job["algo"], job["scenario"], job["vehicles"], job["seed"]) + suffix)
+
+
+def check_job_files(jobs: list[dict[str, Any]]) -> None:
+    """Read every file a training job of a study left in its folder, before any work: its
+    source record (:func:`infra.files.read_json`), its learning curve
+    (:func:`studies.reproduction.read_curve`) and its checkpoint, verified as evaluation loads
+    it (:func:`marl.checkpoint.load_checkpoint`: content hash, algorithm, N, scenario).
+
+    Raises
+    ------
+    ConfigError
+        The first damaged file, named, with what to do.
+    """
+    from infra.files import read_json
+    from marl.checkpoint import load_checkpoint
+    from studies.reproduction import read_curve
+
+    for job in jobs:
+        if _file(job, ".source.json").exists():
+            read_json(_file(job, ".source.json"), "the source record",
+                      "remove it (that run is then copied or trained again) or restore it, "
+                      "and rerun with --resume")
+        if _file(job, ".curve.csv").exists():
+            read_curve(_file(job, ".curve.csv"))
+        if _file(job, ".pt").exists():
+            load_checkpoint(_file(job, ".pt"), algo=job["algo"], n_vehicles=job["vehicles"],
+                            scenario=job["scenario"])
+
+
 def _curves(jobs: list[dict[str, Any]], study: str = "main",
             by_size: bool = False) -> dict[tuple[str, str, int], Any]:
     """Training curves of one study, keyed (name, scenario, seed); ``by_size`` names them
     ``<name> N=<n>``."""
-    import pandas as pd
+    from studies.reproduction import read_curve
 
     return {(f"{j['name']} N={j['vehicles']}" if by_size else j["name"], j["scenario"], j["seed"]):
-            pd.read_csv(Path(j["out"]) / f"{checkpoint_stem(j['algo'], j['scenario'], j['vehicles'], j['seed'])}.curve.csv")
-            for j in jobs if j["study"] == study}
+            read_curve(_file(j, ".curve.csv")) for j in jobs if j["study"] == study}
 
 
 def _machine() -> str:
@@ -369,12 +401,11 @@ def _provenance_sentence(jobs: list[dict[str, Any]]) -> str:
     each with the arithmetic it was trained in (its ``source.json``)."""
     from collections import Counter
 
-    from infra.naming import checkpoint_stem
+    from infra.files import read_json
 
     seen: Counter[tuple[str, str]] = Counter()
     for job in jobs:
-        stem = checkpoint_stem(job["algo"], job["scenario"], job["vehicles"], job["seed"])
-        info = json.loads((Path(job["out"]) / f"{stem}.source.json").read_text())
+        info = read_json(_file(job, ".source.json"), "the source record")
         seen[(info.get("source", "trained"), info.get("arithmetic", "native"))] += 1
     parts = [f"{n} {'copied from the shipped checkpoints' if src == 'shipped' else 'trained here'}"
              f" (trained with {mode} arithmetic)" for (src, mode), n in sorted(seen.items())]

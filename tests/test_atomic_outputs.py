@@ -197,6 +197,11 @@ def finished(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return out
 
 
+def _errors(err: str) -> str:
+    """Standard error without ``train --overwrite``'s line (:func:`commands.train.check_finished`)."""
+    return "\n".join(ln for ln in err.splitlines() if not ln.startswith("--overwrite: "))
+
+
 def _copy(src: Path, dst: Path) -> Path:
     dst.mkdir(parents=True)
     for p in src.glob(f"{STEM}*"):
@@ -223,7 +228,7 @@ def test_an_interrupted_train_leaves_the_finished_files_byte_identical(
             raise Interrupted(2)
 
     monkeypatch.setattr(train_cmd._Bar, "__call__", interrupt)
-    assert cli([*TRAIN, "--out", str(out)]) == 130
+    assert cli([*TRAIN, "--out", str(out), "--overwrite"]) == 130
     assert max(seen) > 1000
     assert "Traceback" not in capsys.readouterr().err
     assert _digests(out) == before
@@ -246,8 +251,8 @@ def test_a_full_disk_at_the_end_leaves_no_truncated_file(
         raise OSError(errno.ENOSPC, "No space left on device", str(f))
 
     monkeypatch.setattr(ckpt.torch, "save", full_disk)
-    assert cli([*TRAIN, "--out", str(out)]) == 2
-    err = capsys.readouterr().err
+    assert cli([*TRAIN, "--out", str(out), "--overwrite"]) == 2
+    err = _errors(capsys.readouterr().err)
     assert "No space left on device" in err and "Traceback" not in err
     assert len(err.strip().splitlines()) == 1
     assert calls
@@ -278,7 +283,7 @@ def test_a_real_refused_write_ends_with_one_line_and_keeps_finished_files(
     import sys
 
     if command == "train":
-        out, argv, limit = _copy(finished, tmp_path / "out"), TRAIN, 64_000
+        out, argv, limit = _copy(finished, tmp_path / "out"), [*TRAIN, "--overwrite"], 64_000
     else:
         out = tmp_path / "out"
         argv = ["run", "--controllers", "ovm,cacc", "--scenarios", "catchup-v1", "--vehicles",
@@ -289,7 +294,7 @@ def test_a_real_refused_write_ends_with_one_line_and_keeps_finished_files(
                           capture_output=True, text=True, timeout=300,
                           cwd=Path(__file__).resolve().parent.parent,
                           preexec_fn=_limited_to(limit))
-    err = proc.stderr
+    err = _errors(proc.stderr)
     assert proc.returncode == 2, err
     assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
     assert ("File too large" if command == "train" else "results store could not grow") in err
@@ -390,7 +395,7 @@ def test_sigint_after_an_evaluation_leaves_the_finished_files_byte_identical(
 
     out = _copy(finished, tmp_path / "out")
     before = _digests(out)
-    argv = [*TRAIN[:-4], "--steps", "60000", "--set", "eval_every_steps=720"]
+    argv = [*TRAIN[:-4], "--steps", "60000", "--set", "eval_every_steps=720", "--overwrite"]
     proc = subprocess.Popen([sys.executable, "-m", "commands", *argv, "--out", str(out)],
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
                             cwd=Path(__file__).resolve().parent.parent)

@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from commands.cli import main
-from marl.checkpoint import content_hash, load_checkpoint, policy_id
+from marl.checkpoint import content_hash, load_checkpoint, policy_id, write_payload
 
 STEM = "ia2c__catchup-v1__n3__s0"
 
@@ -88,7 +88,7 @@ def test_resume_refuses_the_runs_of_a_changed_policy(policies, tmp_path, capsys)
     out = tmp_path / "r"
     assert _sweep(folder, out) == 0
     files = {p.name: _digest(p) for p in out.iterdir() if p.suffix in (".sqlite", ".csv")}
-    shutil.copy(b, folder / a.name)  # retrained to other weights, copied over
+    _replace(b, folder / a.name)  # retrained to other weights, under the same seed
     capsys.readouterr()
     assert _sweep(folder, out, "--resume") == 2
     err = capsys.readouterr().err
@@ -118,5 +118,12 @@ def test_runs_stored_before_the_hash_cannot_be_checked(policies, tmp_path) -> No
             rec = json.loads(text)
             del rec["policy_sha256"]
             conn.execute("UPDATE runs SET record = ? WHERE id = ?", (json.dumps(rec), run_id))
-    shutil.copy(b, folder / a.name)
+    _replace(b, folder / a.name)
     assert _sweep(folder, out, "--resume") == 0
+
+
+def _replace(src: Path, dst: Path) -> None:
+    """``dst`` retrained to other weights: ``src``'s policy recorded under ``dst``'s seed (a
+    copied file keeps its own seed, which loading refuses)."""
+    seed = torch.load(dst, weights_only=True)["seed"]
+    write_payload(dst, {**torch.load(src, weights_only=True), "seed": seed})

@@ -72,6 +72,16 @@ def test_pareto_csv_is_identical_across_executors_and_reruns(tmp_path: Path) -> 
     pd.testing.assert_frame_equal(_pareto(tmp_path / "c", "serial"), serial)
 
 
+def test_pareto_counts_a_default_shared_by_two_sweeps_once(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Issue 53: "7 settings x 1 scenarios x 1 episodes = 6 runs" (cacc's default lies in the
+    time-gap and the gain sweep): the count says what runs."""
+    assert cli(["pareto", "--families", "cacc", "--episodes", "1", "--vehicles", "2",
+                "--out", str(tmp_path / "p"), "--executor", "serial"]) == 0
+    assert ("pareto: 6 controllers (7 sweep points: a default lies in two sweeps) x 1 scenarios "
+            "x 1 episodes = 6 runs") in capsys.readouterr().err
+
+
 def test_pareto_bad_family_exits_2(capsys: pytest.CaptureFixture[str]) -> None:
     assert cli(["pareto", "--families", "mpc,nope"]) == 2
     assert "nope" in capsys.readouterr().err

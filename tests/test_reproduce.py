@@ -249,7 +249,12 @@ def test_resume_refuses_to_report_a_replaced_policy_with_its_old_runs(
     out = tmp_path / "rep"
     shutil.copytree(tiny_reproduction, out)
     ckpt = out / "checkpoints"
-    shutil.copy(ckpt / "bdc__catchup-v1__n8__s1.pt", ckpt / "bdc__catchup-v1__n8__s0.pt")
+    import torch
+
+    from marl.checkpoint import write_payload
+
+    other = torch.load(ckpt / "bdc__catchup-v1__n8__s1.pt", weights_only=True)
+    write_payload(ckpt / "bdc__catchup-v1__n8__s0.pt", {**other, "seed": 0})  # retrained
     report = (out / "report.md").read_bytes()
     capsys.readouterr()
     assert cli(["reproduce", "--budget", "quick", "--algos", "bdc", "--scenarios", "catchup-v1",

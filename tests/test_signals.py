@@ -436,7 +436,7 @@ def test_an_interrupted_tune_records_its_trial_in_flight_as_failed(tmp_path: Pat
         return optuna.load_study(study_name=None, storage=f"sqlite:///{db}").get_trials()
 
     (done,) = trials()
-    proc = _start(*argv, "--trials", "3")
+    proc = _start(*argv, "--trials", "3", "--resume")
     # a trial's folder appears when it ends: the third trial is in flight then
     _wait_until(lambda: _appeared(tmp_path / "tu", "t001"), proc)
     sent = time.monotonic()
@@ -445,12 +445,12 @@ def test_an_interrupted_tune_records_its_trial_in_flight_as_failed(tmp_path: Pat
     assert rc == 130 and took < END_S and "Traceback" not in err, err
     assert err.strip().splitlines() == [
         "cacc-bench: interrupted (SIGINT); its study records the trial in flight as failed and "
-        "keeps the finished ones (rerun the same command to go on)"]
+        "keeps the finished ones (complete with --resume)"]
     states = [t.state.name for t in trials()]
     # the trial in flight failed (a signal between two trials leaves none in flight)
     assert set(states) <= {"COMPLETE", "FAIL"} and states.count("FAIL") <= 1, states
     assert trials()[0].value == done.value
-    again = subprocess.run([sys.executable, "-m", "commands.cli", *argv, "--trials", "3"],
+    again = subprocess.run([sys.executable, "-m", "commands.cli", *argv, "--trials", "3", "--resume"],
                            cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert again.returncode == 0, again.stderr
     assert [t.state.name for t in trials()].count("COMPLETE") == 3

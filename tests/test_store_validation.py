@@ -3,6 +3,7 @@ is refused with exit 2 naming the row, and nothing beside it is rewritten."""
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import re
@@ -53,6 +54,9 @@ CASES = [
     ("reward", "NaN", "reward: Input should be a finite number"),
     ("reward", '"abc"', "reward: Input should be a valid number"),
     ("reward", "1e999", "reward: Input should be a finite number"),
+    # a finite number no mean or interval survives (issue 53: an empty interval)
+    ("reward", "1e308", "reward: Input should be less than or equal to 1000000000000"),
+    ("gap_rmse_m", "1e13", "gap_rmse_m: Input should be less than or equal to 1000000000000"),
     ("energy_kwh", "Infinity", "energy_kwh: Input should be a finite number"),
     ("energy_kwh", "-Infinity", "energy_kwh: Input should be a finite number"),
     ("reward", "null", "needs reward"),
@@ -150,6 +154,34 @@ def test_a_damaged_trajectory_is_refused_by_plot(finished: Path, tmp_path: Path,
     assert cli(["plot", str(out), "--no-energy-map"]) == 2
     err = capsys.readouterr().err
     assert f"the stored trajectory of run {RUN_ID!r} is unreadable" in err
+
+
+def test_a_corrupt_store_is_refused_in_one_line(finished: Path, tmp_path: Path,
+                                               capsys: pytest.CaptureFixture[str]) -> None:
+    """Issue 53: SQLite's integrity check reports a damaged page in several lines (9 in the
+    probe); the refusal is one line naming the first problem."""
+    out = tmp_path / "corrupt"
+    shutil.copytree(finished, out)
+    store = out / "store.sqlite"
+    whole = store.read_bytes()
+
+    def lines_of_the_check(page: int) -> int:
+        """Zero one page's header; the lines SQLite's own check then prints (0: unreadable)."""
+        store.write_bytes(whole[:page * 4096] + bytes(12) + whole[page * 4096 + 12:])
+        try:
+            with contextlib.closing(sqlite3.connect(store)) as conn:
+                return len("\n".join(r[0] for r in conn.execute("PRAGMA quick_check"))
+                           .splitlines())
+        except sqlite3.DatabaseError:
+            return 0
+
+    assert any(lines_of_the_check(page) > 2 for page in range(2, len(whole) // 4096))
+    before = _files(out)
+    assert cli(["leaderboard", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "is not a readable results store (integrity check: " in err, err
+    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
+    assert _files(out) == before
 
 
 def test_every_column_of_runs_csv_is_declared() -> None:

@@ -117,8 +117,8 @@ def test_tuned_options(tmp_path: Path, capsys) -> None:
 
 
 def test_tune_tiny_study_resumes(tmp_path: Path, capsys) -> None:
-    """Two trials per study; the first is the default config; a rerun adds nothing; the best
-    configs file names every study; bad input exits 2."""
+    """Two trials per study; the first is the default config; a rerun is refused, with
+    --resume it adds nothing; the best configs file names every study; bad input exits 2."""
     import json
 
     args = ["tune", "--algos", "ia2c,dcea", "--scenarios", "catchup-v1", "--trials", "2",
@@ -132,10 +132,14 @@ def test_tune_tiny_study_resumes(tmp_path: Path, capsys) -> None:
     best = json.loads((tmp_path / "tuned_configs.json").read_text())
     assert set(best["configs"]) == {"ia2c/catchup-v1", "dcea/catchup-v1"}
     assert best["budget"] == {"trials": 2, "steps_per_trial": 600, "seed": 0, "vehicles": 3}
-    assert main(args) == 0
+    capsys.readouterr()
+    assert main(args) == 2
+    assert "add --resume to complete that command" in capsys.readouterr().err
+    assert main([*args, "--resume"]) == 0
     assert pd.read_csv(tmp_path / "trials.csv").equals(trials)
     capsys.readouterr()
-    assert main([*args[:-2], "--steps", "700", "--out", str(tmp_path)]) == 2
+    assert main([*args[:-2], "--steps", "700", "--out", str(tmp_path), "--resume"]) == 2
+    assert "--overwrite to tune it again" in capsys.readouterr().err
     assert main(["tune", "--algos", "nope"]) == 2
     assert "Traceback" not in capsys.readouterr().err
 
@@ -157,7 +161,7 @@ def test_tune_the_shared_learners_with_a_fixed_field(tmp_path: Path, capsys) -> 
     assert best["budget"]["fixed"] == {"prior": "cacc", "rollout_steps": "8"}
     assert best["configs"]["ippo/catchup-v1"]["config"]["prior"] == "cacc"
     capsys.readouterr()
-    assert main([*args[:-4], "--out", str(tmp_path)]) == 2  # the same study without the field
+    assert main([*args[:-4], "--out", str(tmp_path), "--resume"]) == 2  # without the field
     assert main(["tune", "--algos", "bdc", "--set", "prior=cacc", "--out", str(tmp_path / "b")]) == 2
     assert main(["tune", "--algos", "ippo", "--set", "nope=1", "--out", str(tmp_path / "c")]) == 2
     err = capsys.readouterr().err
