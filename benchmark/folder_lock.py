@@ -21,15 +21,32 @@ LOCK_NAME = "store.lock"
 OWNER_NAME = "store.owner"
 #: What a check for an empty folder leaves out.
 LOCK_FILES = frozenset({LOCK_NAME, OWNER_NAME})
+#: How long a writer refused by the lock waits for its holder to name itself (s): the holder
+#: writes its owner file just after it took the lock.
+OWNER_WAIT_S = 2.0
 
 
-def holder(folder: Path) -> str:
-    """Who holds ``folder``'s lock, from its owner file (``another process`` if unreadable)."""
-    try:
-        info = json.loads((folder / OWNER_NAME).read_text())
-        return f"pid {info['pid']} (`{info['command']}`, started {info['started']})"
-    except (OSError, ValueError, KeyError, TypeError):
-        return "another process"
+def holder(folder: Path, wait_s: float = OWNER_WAIT_S) -> str:
+    """Who holds ``folder``'s lock, from its owner file, waiting up to ``wait_s`` for a holder
+    that has not yet written it (``another process`` if it stays unreadable)."""
+    deadline = time.monotonic() + wait_s
+    while True:
+        try:
+            info = json.loads((folder / OWNER_NAME).read_text())
+            return f"pid {info['pid']} (`{info['command']}`, started {info['started']})"
+        except (OSError, ValueError, KeyError, TypeError):
+            if time.monotonic() >= deadline:
+                return "another process"
+            time.sleep(0.02)
+
+
+def write_owner(folder: Path) -> None:
+    """Name this process as the lock's holder (whole or absent for a reader racing it)."""
+    from infra.atomic import write_text
+
+    write_text(folder / OWNER_NAME, json.dumps({
+        "pid": os.getpid(), "command": " ".join(["cacc-bench", *sys.argv[1:]]),
+        "started": time.strftime("%Y-%m-%d %H:%M:%S")}))
 
 
 @contextlib.contextmanager
@@ -62,9 +79,7 @@ def folder_lock(folder: str | Path, flag: str = "--out") -> Iterator[Path]:
     owner = folder / OWNER_NAME
     try:
         try:
-            owner.write_text(json.dumps({
-                "pid": os.getpid(), "command": " ".join(["cacc-bench", *sys.argv[1:]]),
-                "started": time.strftime("%Y-%m-%d %H:%M:%S")}))
+            write_owner(folder)
         except OSError as exc:
             raise ConfigError(f"{flag} {folder}: cannot write {owner.name} ({exc.strerror}); "
                               f"choose a writable place for {flag}") from None

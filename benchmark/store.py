@@ -15,20 +15,17 @@ from __future__ import annotations
 import io
 import json
 import math
-import os
 import sqlite3
-import sys
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from benchmark.folder_lock import LOCK_NAME, OWNER_NAME, holder, write_owner
 from infra.errors import ConfigError
 
 STORE_NAME = "store.sqlite"
-LOCK_NAME = "store.lock"
-OWNER_NAME = "store.owner"
 #: 2: controller labels leave out options given at their default value (1 kept them); a
 #: version-1 store is relabelled when opened.
 SCHEMA_VERSION = 2
@@ -221,9 +218,7 @@ class ResultStore:
         try:
             lock.acquire()
             self._lock = lock
-            (self.folder / OWNER_NAME).write_text(json.dumps({
-                "pid": os.getpid(), "command": " ".join(["cacc-bench", *sys.argv[1:]]),
-                "started": time.strftime("%Y-%m-%d %H:%M:%S")}))
+            write_owner(self.folder)
         except PermissionError as exc:  # a read-only folder, or lock files of another user
             if self._lock is not None:
                 self._lock.release()
@@ -231,12 +226,7 @@ class ResultStore:
             raise ConfigError(f"{self.folder} cannot be locked for writing ({exc.strerror}); "
                               "make it writable, or copy it and work on the copy") from None
         except Timeout:
-            owner = self.folder / OWNER_NAME
-            try:
-                info = json.loads(owner.read_text())
-                who = f"pid {info['pid']} (`{info['command']}`, started {info['started']})"
-            except (OSError, ValueError, KeyError):
-                who = "another process"
+            who = holder(self.folder)
             raise ConfigError(
                 f"{self.folder} is being written by {who}; wait for it to finish, or choose "
                 "another --out"

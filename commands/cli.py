@@ -133,6 +133,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 128 + int(signal.SIGPIPE)
     except KeyboardInterrupt as exc:
         return _interrupted(exc, command)
+    except ImportError:  # a signal during a C extension's start-up (numpy's) ends that import
+        from infra.interrupt import Interrupted, received  # with an ImportError: the signal's
+
+        signum = received()
+        if signum is None:
+            raise
+        return _interrupted(Interrupted(signum), command)
     finally:
         set_exit_line(None)
         _end(previous, restore_handlers=argv is not None)

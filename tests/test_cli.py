@@ -60,3 +60,33 @@ def test_missing_policy_checkpoint_fails_before_any_run(tmp_path, capsys) -> Non
                  "--episodes", "1", "--out", str(out)]) == 2
     assert "cacc-bench train --algo bdc --scenario catchup-v1 --vehicles 3" in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_a_signal_that_breaks_an_import_ends_as_the_signal(monkeypatch, capsys) -> None:
+    """A SIGINT while a C extension starts (numpy's) surfaces as an ImportError from that import:
+    with a signal received, the command ends as interrupted (130, one line), not a traceback;
+    without one, the ImportError stays an error."""
+    import signal
+
+    import pytest
+
+    from commands import cli
+    from infra import interrupt
+
+    def broken(name: str) -> None:
+        interrupt._received = signal.SIGINT
+        raise ImportError("PyCapsule_Import could not import module \"datetime\"")
+
+    monkeypatch.setattr(interrupt, "_holding", interrupt._holding)  # restored after the test
+    monkeypatch.setattr(interrupt, "_received", None)
+    monkeypatch.setattr(cli.importlib, "import_module", broken)
+    assert cli.main(["leaderboard", "x"]) == 130
+    assert capsys.readouterr().err.strip() == cli.interrupted_line(signal.SIGINT, "leaderboard")
+
+    def missing(name: str) -> None:
+        raise ImportError("no module")
+
+    monkeypatch.setattr(interrupt, "_received", None)
+    monkeypatch.setattr(cli.importlib, "import_module", missing)
+    with pytest.raises(ImportError):
+        cli.main(["leaderboard", "x"])
