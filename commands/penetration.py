@@ -11,6 +11,7 @@ at no automated vehicle), through the results store (resumable, ``--resume``); w
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 from benchmark.executors import add_executor_options
 from commands.cli import plain, report_command
@@ -41,6 +42,26 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
+def _check_outputs(out: Path, resume: bool, scenarios: list[str]) -> None:
+    """Refuse, before any run, a folder holding a study unless ``resume`` (a finished file
+    changes only when asked), and output paths that cannot be written (a folder where a file
+    goes, a file where a folder goes)."""
+    held = [name for name in ("report.md", "cells.csv", "runs/store.sqlite")
+            if (out / name).exists()]
+    if held and not resume:
+        raise ConfigError(f"--out {out} already holds a penetration study ({held[0]}); add "
+                          "--resume to complete it (stored runs are kept; the table, figures "
+                          "and report are made again), or choose another --out")
+    files = [out / "report.md", out / "cells.csv",
+             *(out / "figures" / f"penetration-{sc}.png" for sc in scenarios)]
+    wrong = ([p for p in files if p.is_dir()]
+             + [p for p in (out / "runs", out / "figures") if p.exists() and not p.is_dir()])
+    if wrong:
+        kind = "a folder" if wrong[0].is_dir() else "a file"
+        raise ConfigError(f"--out {out}: {wrong[0].relative_to(out)} is {kind}, where the study "
+                          "writes the other; move it away, or choose another --out")
+
+
 def main(argv: list[str]) -> int:
     """Entry point of ``cacc-bench penetration``."""
     import pandas as pd
@@ -54,7 +75,14 @@ def main(argv: list[str]) -> int:
     from controllers.registry import parse_controller_list
     from envs.scenarios import PLACEMENT_OPTIONS, SEAT_OPTIONS, make_scenario
     from infra.limits import check_range
-    from studies.penetration import cells, controllers_for, design, plot_shares, write_report
+    from studies.penetration import (
+        BASELINE,
+        cells,
+        controllers_for,
+        design,
+        plot_shares,
+        write_report,
+    )
 
     args = _parser().parse_args(argv)
     from benchmark.executors import check_ray_address
@@ -65,6 +93,10 @@ def main(argv: list[str]) -> int:
     check_range(args.placements, "--placements", 1, MAX_PLACEMENTS)
     seeds = seeds_from_set("test", args.episodes)
     families = parse_controller_list(args.controllers)  # names with their options
+    if (BASELINE, {}) in families:
+        raise ConfigError(f"--controllers {BASELINE}: {BASELINE} is the study's all-human "
+                          "baseline (share 0 of every scenario), not a family to compare with "
+                          "it; name the automated families (or an idm with options of its own)")
     bases = []
     set_by_study = (*SEAT_OPTIONS, *PLACEMENT_OPTIONS)
     for given in scenarios_argument(args.scenarios):
@@ -82,6 +114,7 @@ def main(argv: list[str]) -> int:
         preflight(specs, sc, [n], [0.0])  # refused before any run, with exit status 2
         keys.update(build_sweep(specs, sc, [n], seeds, [0.0], [0.0]))
     out = writable_dir(args.out)
+    _check_outputs(out, args.resume, bases)
     command = report_command("penetration", argv)
     with folder_lock(out):
         rc = execute_study_sweep(keys, out, args, f"penetration: {len(settings)} scenario "

@@ -33,6 +33,13 @@ from envs.platoon import PlatoonState
 from infra.errors import ConfigError
 
 _DEFAULT = IDMParams()
+#: Ranges of the IDM parameters: wide around any human driver, narrow enough that the law's
+#: powers and quotients stay finite at every speed and gap of an episode.
+IDM_RANGES: dict[str, tuple[float, float]] = {
+    "accel_max_mps2": (0.01, 10.0), "decel_comfort_mps2": (0.01, 10.0),
+    "desired_speed_mps": (0.1, 100.0), "delta": (0.1, 10.0),
+    "time_gap_s": (0.0, 10.0), "standstill_m": (0.0, 100.0),
+}
 
 
 @dataclass(frozen=True)
@@ -42,12 +49,12 @@ class IDMConfig:
     Attributes
     ----------
     accel_max_mps2, decel_comfort_mps2, desired_speed_mps, time_gap_s, standstill_m, delta
-        The IDM parameters a, b, v0, T, s0 and delta.
+        The IDM parameters a, b, v0, T, s0 and delta (ranges: :data:`IDM_RANGES`).
     noise_mps2 : float or None
         Standard deviation of the Gaussian acceleration noise (m/s^2) every step; None: the
         scenario's ``human_noise_mps2`` (what its human seats get).
     reaction_delay_s : float or None
-        Reaction delay (s, rounded to whole steps); None: the scenario's ``reaction_delay_s``.
+        Reaction delay (s, whole steps of 0.1 s); None: the scenario's ``reaction_delay_s``.
     """
 
     accel_max_mps2: float = _DEFAULT.accel_max_mps2
@@ -60,12 +67,10 @@ class IDMConfig:
     reaction_delay_s: float | None = None
 
     def __post_init__(self) -> None:
-        for key in ("accel_max_mps2", "decel_comfort_mps2", "desired_speed_mps", "delta"):
-            if not getattr(self, key) > 0:
-                raise ConfigError(f"idm option {key} must be > 0, got {getattr(self, key)}")
-        for key in ("time_gap_s", "standstill_m"):
-            if not getattr(self, key) >= 0:
-                raise ConfigError(f"idm option {key} must be >= 0, got {getattr(self, key)}")
+        for key, (low, high) in IDM_RANGES.items():
+            if not low <= getattr(self, key) <= high:
+                raise ConfigError(f"idm option {key} must lie in [{low:g}, {high:g}], got "
+                                  f"{getattr(self, key)}")
         if self.noise_mps2 is not None:
             check_human_noise(self.noise_mps2, "idm", "noise_mps2")
         if self.reaction_delay_s is not None:

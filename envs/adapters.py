@@ -13,7 +13,9 @@ They keep the command line's rules: the scenario and its options go through
 --comm-delay``), a reset seed lies in 0..:data:`infra.limits.MAX_SEED` (as ``run --seeds``), and an
 action of the wrong shape, not finite, or a non-integer or out-of-range gain index is refused
 (:func:`envs.platoon.check_actions`); each with a ConfigError (a ValueError) saying what is
-expected.
+expected. On a mixed string (the scenario options ``humans``, ``cav_fraction``, ``cavs``) every
+follower stays an agent, and a human seat's action is ignored (its model drives it); a string
+with no automated follower is refused.
 """
 
 from __future__ import annotations
@@ -65,6 +67,10 @@ def _make_env(scenario: str, n_vehicles: int | None, params: PlatoonParams, trai
     env = PlatoonEnv(sc, sc.default_vehicles if n_vehicles is None else n_vehicles, params,
                      training=training, collision_mode=collision_mode, observe=True,
                      action_mode=action_mode, channel=channel)
+    if sc.arrangement(env.n_vehicles).n_automated == 0:  # as run refuses a controller there
+        raise ConfigError(f"{sc.label} with N = {env.n_vehicles} has no automated follower, so "
+                          "no action would act; give the scenario automated followers "
+                          "(cav_fraction > 0, cavs >= 1)")
     if env.action_mode != "accel" and (channel.delay_s or channel.packet_loss):
         raise ConfigError("comm_delay_s and packet_loss act on the V2V messages of the accel "
                           "mode; the ovm-gain observations are exact (published): give "

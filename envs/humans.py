@@ -45,11 +45,16 @@ PLACEMENT_STREAM = "placement"
 
 
 def check_reaction_delay(value: float, who: str) -> float:
-    """``value`` if it is a reaction delay in [0, :data:`MAX_REACTION_DELAY_S`] s, else a
-    ConfigError naming ``who`` (a scenario's option, the ``idm`` controller's)."""
+    """``value`` if it is a reaction delay in [0, :data:`MAX_REACTION_DELAY_S`] s and a whole
+    number of steps (0.05 s would act as 0.1 s and be labelled 0.05), else a ConfigError naming
+    ``who`` (a scenario's option, the ``idm`` controller's)."""
+    dt_s = PlatoonParams().dt_s
     if not 0.0 <= value <= MAX_REACTION_DELAY_S:
         raise ConfigError(f"{who}: reaction_delay_s must lie in [0, {MAX_REACTION_DELAY_S:g}] s, "
                           f"got {value}")
+    if abs(value / dt_s - round(value / dt_s)) > 1e-6:
+        raise ConfigError(f"{who}: reaction_delay_s={value:g}: a human reacts after whole "
+                          f"simulation steps of {dt_s:g} s; give a multiple of {dt_s:g} s")
     return float(value)
 
 

@@ -183,21 +183,32 @@ SEAT_OPTIONS: tuple[str, ...] = ("humans", "cav_fraction", "cavs")
 PLACEMENT_OPTIONS: tuple[str, ...] = ("placement", "placement_seed")
 
 
-def _check_arrangement(scenario_id: str, opts: dict[str, Any]) -> None:
-    """The arrangement options' rules (one place): ranges, names, at most one way to say which
-    seats are automated."""
+def _check_arrangement(scenario_id: str, opts: dict[str, Any], given: dict[str, Any]) -> None:
+    """The arrangement options' rules (one place): ranges, names, no option given (``given``)
+    that does not act; writes the human positions in one spelling (``5+02`` is ``2+5``)."""
     share = opts["cav_fraction"]
     if not (math.isfinite(share) and 0.0 <= share <= 1.0):
         raise ConfigError(f"{scenario_id}: cav_fraction is the share of automated followers and "
                           f"must lie in [0, 1], got {share}")
-    if opts["cavs"] < -1:
+    if "cavs" in given and opts["cavs"] < 0:
         raise ConfigError(f"{scenario_id}: cavs is a number of automated followers (>= 0), "
                           f"got {opts['cavs']}")
-    if opts["humans"]:
-        parse_positions(opts["humans"])
+    if "humans" in given:
+        if not opts["humans"].strip():
+            raise ConfigError(f"{scenario_id}: humans= names no position; give the human "
+                              "followers' numbers (humans=2+5), or leave the option out")
+        opts["humans"] = "+".join(map(str, parse_positions(opts["humans"])))
+        if any(k in given for k in PLACEMENT_OPTIONS):
+            raise ConfigError(f"{scenario_id}: humans places the human followers itself; "
+                              "placement and placement_seed place a share or a count "
+                              "(cav_fraction, cavs): leave them out")
     if opts["placement"] not in PLACEMENTS:
         raise ConfigError(f"{scenario_id}: placement must be one of {', '.join(PLACEMENTS)}, "
                           f"got {opts['placement']!r}")
+    if "placement_seed" in given and opts["placement"] != "random":
+        raise ConfigError(f"{scenario_id}: placement_seed draws a random placement, but the "
+                          f"placement is {opts['placement']}; add placement=random, or leave "
+                          "placement_seed out")
     if opts["human_model"] not in HUMAN_MODELS:
         raise ConfigError(f"{scenario_id}: human_model must be one of {', '.join(HUMAN_MODELS)}, "
                           f"got {opts['human_model']!r}")
@@ -724,7 +735,7 @@ def make_scenario(scenario_id: str, /, **options: Any) -> Scenario:
                                   scenario_id)
     if spec.check is not None:
         spec.check(opts)
-    _check_arrangement(scenario_id, opts)
+    _check_arrangement(scenario_id, opts, options)
     # which seats are automated: one of three ways; the one given replaces the default's
     seat_given = [k for k in SEAT_OPTIONS if k in options]
     if len(seat_given) > 1:

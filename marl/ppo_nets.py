@@ -191,12 +191,19 @@ class PPOConfig:
                               f"followers: 0 < cav_share_min <= cav_share_max <= 1, got "
                               f"{self.cav_share_min} and {self.cav_share_max}")
         if self.scenarios:
-            from envs.scenarios import SEAT_OPTIONS, parse_scenarios
+            from envs.scenarios import PLACEMENT_OPTIONS, SEAT_OPTIONS, parse_scenarios
 
-            for sc in parse_scenarios(self.scenarios):  # refused here, before any training
-                if self.mixed_traffic and any(k in sc.label for k in SEAT_OPTIONS):
-                    raise ConfigError(f"scenarios: {sc.label} sets its automated seats, which "
-                                      "cav_share_min..cav_share_max draw; leave them out")
+            labels = [sc.label for sc in parse_scenarios(self.scenarios)]  # refused here
+            twice = sorted({lb for lb in labels if labels.count(lb) > 1})
+            if twice:
+                raise ConfigError(f"scenarios names {', '.join(twice)} more than once (each "
+                                  "batch draws one of the list uniformly); name each once")
+            drawn = (*SEAT_OPTIONS, *PLACEMENT_OPTIONS)
+            for label in labels:
+                if self.mixed_traffic and any(f"{k}=" in label for k in drawn):
+                    raise ConfigError(f"scenarios: {label} sets its automated seats or their "
+                                      "placement, which cav_share_min..cav_share_max draw at "
+                                      "random; leave them out")
         if self.comm_delay_max_s:
             check_delay(self.comm_delay_max_s, "comm_delay_max_s")
             if self.comm_delay_max_s < self.comm_delay_s:

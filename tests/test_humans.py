@@ -123,6 +123,11 @@ def test_labels_carry_the_arrangement_and_defaults_add_nothing() -> None:
     {"placement": "middle"}, {"human_model": "krauss"}, {"reaction_delay_s": "5"},
     {"human_noise_mps2": "-1"}, {"placement_seed": "-1"},
     {"placement_seed": "99999999999999999999"},
+    # issue 53: given options that would silently mean something else, or nothing
+    {"humans": ""}, {"cavs": "-1"}, {"humans": "2", "placement": "front"},
+    {"humans": "2", "placement_seed": "1"},
+    {"cav_fraction": "0.5", "placement": "front", "placement_seed": "3"},
+    {"reaction_delay_s": "0.05"},
 ])
 def test_arrangements_that_make_no_sense_are_refused(options: dict[str, str]) -> None:
     with pytest.raises(ConfigError):
@@ -199,3 +204,22 @@ def test_homogeneous_scenarios_have_no_humans() -> None:
     env = PlatoonEnv("catchup-v1", 8, observe=False)
     env.reset([0])
     assert env._humans is None and env.state is not None and env.state.automated is None
+
+
+def test_one_arrangement_of_human_positions_is_one_label() -> None:
+    """Issue 53: ``humans=5+2``, ``02+5`` and ``2 + 5`` were three labels (three leaderboard
+    rows) of the arrangement ``humans=2+5``."""
+    labels = {make_scenario(f"catchup-v1:humans={text}").label
+              for text in ("2+5", "5+2", "02+5", "2 + 5")}
+    assert labels == {"catchup-v1[humans=2+5]"}
+
+
+@pytest.mark.parametrize("options", [{"cav_fraction": 0.0}, {"humans": "1+2"}])
+def test_the_adapters_refuse_a_string_with_no_automated_follower(options: dict) -> None:
+    """Issue 53: the Gymnasium and PettingZoo views ran an all-human string, ignoring every
+    action, where ``run`` refuses an automated controller."""
+    from envs.adapters import PlatoonGymEnv, PlatoonParallelEnv
+
+    for cls in (PlatoonGymEnv, PlatoonParallelEnv):
+        with pytest.raises(ConfigError, match="no automated follower"):
+            cls("catchup-v1", n_vehicles=2, **options)

@@ -206,3 +206,42 @@ def test_a_learned_cell_is_what_the_command_computes(tmp_path: Path) -> None:
     for col in ("runs", "collisions", "speed_std_last_mps", "braking_events_per_veh_h",
                 "energy_kwh_per_100km"):
         assert a[col] == pytest.approx(b[col], rel=1e-9, nan_ok=True), col
+
+
+SMALL = ["penetration", "--scenarios", "catchup-v1", "--controllers", "acc", "--episodes", "1",
+         "--placements", "1", "--executor", "serial"]
+
+
+@pytest.mark.parametrize(("made", "resume", "needle"), [
+    ("report.md", False, "already holds a penetration study (report.md); add --resume"),
+    ("runs/store.sqlite", False, "already holds a penetration study (runs/store.sqlite)"),
+    ("figures", True, "figures is a file, where the study writes the other"),
+    ("report.md/", True, "report.md is a folder"),
+    ("figures/penetration-catchup-v1.png/", True, "penetration-catchup-v1.png is a folder"),
+])
+def test_a_folder_holding_a_study_or_blocking_its_files_is_refused_before_any_run(
+        made: str, resume: bool, needle: str, tmp_path: Path,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """Issue 53: without --resume a study's finished report, table and figures were made again
+    (once its runs were gone), and a file where the figures folder goes (or a folder where the
+    report goes) gave a traceback after every run."""
+    out = tmp_path / "pen"
+    path = out / made
+    path.parent.mkdir(parents=True)
+    path.mkdir() if made.endswith("/") else path.write_text("finished")
+    before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    capsys.readouterr()
+    assert cli([*SMALL, "--out", str(out), *(["--resume"] if resume else [])]) == 2
+    err = capsys.readouterr().err
+    assert needle in err and len(err.strip().splitlines()) == 1, err
+    assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
+    assert not (out / "runs" / "runs.csv").exists()
+
+
+
+def test_the_baseline_is_not_a_family(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Issue 53: ``--controllers idm`` ran the baseline as a family the report then left out,
+    reading "none without a collision" at every share."""
+    out = tmp_path / "pen"
+    assert cli([*SMALL, "--controllers", "acc,idm", "--out", str(out)]) == 2
+    assert "all-human baseline" in capsys.readouterr().err and not out.exists()

@@ -25,6 +25,8 @@ MIXED = PPOConfig(n_envs=4, rollout_steps=16, epochs=2, minibatch_rows=64,
     ({"cav_share_max": 1.5}, "cav_share_max <= 1"),
     ({"scenarios": "catchup-v1,nowhere-v1"}, "nowhere-v1"),
     ({"scenarios": "catchup-v1:cavs=2", "cav_share_min": 0.5}, "sets its automated seats"),
+    ({"scenarios": "ring-v1:placement=spread", "cav_share_min": 0.5}, "or their placement"),
+    ({"scenarios": "ring-v1,catchup-v1,ring-v1:vehicles=22"}, "names ring-v1 more than once"),
     ({"algo": "ippo-bdc", "scenarios": "catchup-v1"}, "trains at one N"),
     ({"algo": "ippo-bdc", "cav_share_min": 0.5}, "trains at one N"),
 ])

@@ -69,3 +69,13 @@ def test_a_ring_longer_than_the_limit_is_refused() -> None:
 
     with pytest.raises(ConfigError, match="at most"):
         make_scenario(f"ring-v1:length_m={2 * MAX_RING_LENGTH_M}")
+
+
+def test_a_placement_seed_where_the_placement_is_not_random_is_refused() -> None:
+    """Issue 53: ``ring-v1:placement_seed=3`` (the ring's one automated vehicle sits in front)
+    was a second label of ``ring-v1``, with the same numbers."""
+    with pytest.raises(ConfigError, match="add placement=random"):
+        make_scenario("ring-v1:placement_seed=3")
+    assert make_scenario("ring-v1:placement=random,placement_seed=3").label == \
+        "ring-v1[placement=random,placement_seed=3]"
+

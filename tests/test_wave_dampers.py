@@ -215,6 +215,19 @@ def test_idm_options_are_checked() -> None:
         make_controller("idm", time_gap_s="-1")
 
 
+@pytest.mark.parametrize("option", ["accel_max_mps2=1e308", "accel_max_mps2=1e-300",
+                                    "decel_comfort_mps2=1e308", "desired_speed_mps=1e-300",
+                                    "desired_speed_mps=1e308", "delta=1e308", "time_gap_s=1e308",
+                                    "standstill_m=1e308", "reaction_delay_s=0.05"])
+def test_idm_options_a_run_cannot_survive_are_refused(option: str) -> None:
+    """Issue 53: ``idm:desired_speed_mps=1e-300`` (and a huge ``time_gap_s`` or
+    ``standstill_m``) stored failed runs with a non-finite command; a huge ``accel_max_mps2``
+    ran as ok; a reaction delay off the 0.1 s grid ran as the next whole step."""
+    key, value = option.split("=")
+    with pytest.raises(ConfigError, match=key):
+        make_controller("idm", **{key: value})
+
+
 # ---------------------------------------------------------------- batch invariance, scenarios
 @pytest.mark.parametrize("name", ("idm", *DAMPERS))
 @pytest.mark.parametrize("scenario", ["ring-v1", "brake-v1:cav_fraction=0.5"])
