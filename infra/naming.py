@@ -158,8 +158,11 @@ def coerce_option(value: Any, annotation: Any, key: str, owner: str) -> Any:
     args = typing.get_args(annotation)
     if origin is not None and type(None) in args:
         annotation = next(a for a in args if a is not type(None))
-        if value.lower() == "none" or (value == "" and annotation is not Path):
+        if value.lower() == "none" or (value == "" and annotation is str):
             return None
+    if not value.strip() and annotation in (bool, int, float, "bool", "int", "float"):
+        raise ConfigError(f"option {key} of {owner} has no value; give one, or leave the "
+                          "option out for its default")
     if annotation is Path:
         if not value.strip():
             raise ConfigError(f"option {key} of {owner} names no path; give one, or leave the "
