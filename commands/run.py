@@ -232,13 +232,12 @@ def _refuse_changed_policies(keys: list[RunKey], stored: list[dict], out: Path) 
 
 def execute_study_sweep(keys: set[RunKey], out: Path, args: argparse.Namespace, banner: str,
                         first_seed: int) -> int:
-    """A study command's sweep (``generalise``, ``penetration``): ``banner`` on standard error,
-    then :func:`execute_sweep` of ``keys`` into ``out/runs`` with the command's ``--resume`` and
-    executor options, quietly."""
-    print(banner, file=sys.stderr)
+    """A study command's sweep (``generalise``, ``penetration``): :func:`execute_sweep` of
+    ``keys`` into ``out/runs`` with the command's ``--resume`` and executor options, quietly,
+    ``banner`` on standard error once the store is checked."""
     return execute_sweep(sorted(keys), out / "runs", resume=args.resume, executor=args.executor,
                          workers=args.workers, ray_address=args.ray_address, quiet=True,
-                         first_seed=first_seed)
+                         first_seed=first_seed, banner=banner)
 
 
 def execute_sweep(
@@ -254,10 +253,12 @@ def execute_sweep(
     first_seed: int | None = None,
     pool_seeds: bool = False,
     env: dict[str, str] | None = None,
+    banner: str = "",
 ) -> int:
     """Run the keys not yet stored in ``out``, store each as it finishes, write the CSVs;
     ``env``: what the processes that run them hold from their start (the training arithmetic,
-    :func:`marl.arithmetic.process_env`)."""
+    :func:`marl.arithmetic.process_env`); ``banner``: a line for standard error once the store
+    and its records are checked (a refusal stays one line)."""
     from benchmark.export import (
         check_csv_targets,
         trajectory_arrays,
@@ -281,6 +282,8 @@ def execute_sweep(
                 "sweep (stored runs are kept), or choose another --out"
             )
         _refuse_changed_policies(keys, before, out)
+        if banner:
+            print(banner, file=sys.stderr)
         pending = [k for k in keys if k.id not in done_ok]
         if first_seed is None:
             first_seed = min(k.seed for k in keys) if keys else 0

@@ -245,3 +245,17 @@ def test_the_baseline_is_not_a_family(tmp_path: Path, capsys: pytest.CaptureFixt
     out = tmp_path / "pen"
     assert cli([*SMALL, "--controllers", "acc,idm", "--out", str(out)]) == 2
     assert "all-human baseline" in capsys.readouterr().err and not out.exists()
+
+
+def test_a_damaged_store_under_resume_is_one_line(tmp_path: Path, capsys) -> None:
+    """The study's banner comes after the store and its CSV are checked: a damaged runs.csv is
+    refused in one line."""
+    out = tmp_path / "pen"
+    small = ["penetration", "--episodes", "1", "--placements", "1", "--scenarios", "ring-v1",
+             "--controllers", "followerstopper", "--executor", "serial", "--out", str(out)]
+    assert cli(small) == 0
+    (out / "runs" / "runs.csv").write_bytes(b"\xff\xfe garbage\x00")
+    capsys.readouterr()
+    assert cli([*small, "--resume"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "runs.csv" in err[0], err
