@@ -252,13 +252,12 @@ def option_types(name: str) -> dict[str, Any]:
     its default's type, or for a default of None its annotation (the config dataclass's field,
     the constructor's argument; ``safe:`` adds the filter's)."""
     spec = resolve(name)
-    if name.startswith(SAFE_PREFIX):
-        from controllers.safety_filter import OPTION_PREFIX, SafetyFilterConfig
-
-        hints = {OPTION_PREFIX + k: v for k, v in typing.get_type_hints(SafetyFilterConfig).items()}
+    factory: Any = _factory(spec)
+    if name.startswith(SAFE_PREFIX):  # the filter's own options (prefixed), then the inner's
+        hints = {factory.option_prefix + k: v
+                 for k, v in typing.get_type_hints(factory.filter_config_cls).items()}
         hints.update(option_types(spec.fixed["inner"]))
     else:
-        factory = _factory(spec)
         config_cls = getattr(factory, "config_cls", None)
         try:
             hints = typing.get_type_hints(factory.__init__ if config_cls is None else config_cls)

@@ -329,6 +329,11 @@ class SafetyFilter(Controller):
         option goes to the wrapped controller.
     """
 
+    #: The filter's own options: :class:`SafetyFilterConfig`'s fields with this prefix (the
+    #: registry reads both from the class, without importing this module by name).
+    filter_config_cls = SafetyFilterConfig
+    option_prefix = OPTION_PREFIX
+
     def __init__(self, inner: str, **options: Any) -> None:
         super().__init__()
         from controllers.registry import build_config, make_controller, resolve
