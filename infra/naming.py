@@ -51,10 +51,19 @@ def parse_named_list(text: str, kind: str, name_prefixes: tuple[str, ...] = ()
         if not out:
             raise ConfigError(f"option {item!r} comes before any {kind} name")
         key, value = item.split("=", 1)
-        out[-1][1][key.strip()] = value.strip()
+        _set_once(out[-1][1], key.strip(), value.strip(), f"{kind} {out[-1][0]}")
     if not out:
         raise ConfigError(f"no {kind} named")
     return out
+
+
+def _set_once(options: dict[str, str], key: str, value: str, owner: str) -> None:
+    """``options[key] = value``, refusing a key given twice (ConfigError): the last would win
+    without a word."""
+    if key in options:
+        raise ConfigError(f"{owner}: option {key} given twice ({options[key]!r} and {value!r}); "
+                          "give it once")
+    options[key] = value
 
 
 def _split_outside_brackets(text: str) -> list[str]:
@@ -132,7 +141,7 @@ def parse_label(label: str, kind: str = "name") -> tuple[str, dict[str, str]]:
         if "=" not in item:
             raise ConfigError(f"{kind} option {item.strip()!r} in {label!r} must be key=value")
         key, value = item.split("=", 1)
-        options[key.strip()] = value.strip()
+        _set_once(options, key.strip(), value.strip(), f"{kind} {name.strip()}")
     return name.strip(), options
 
 

@@ -39,6 +39,9 @@ CASES: dict[str, list[list[str]]] = {
         ["--controllers", "ippo:checkpoint_dir="],
         ["--controllers", "safe:bdc:checkpoint= "],
         ["--controllers", "followerstopper:set_speed_mps="],  # not its default, silently
+        ["--controllers", "cacc:kp=2,kp=3"],  # the last would win without a word
+        ["--scenarios", "catchup-v1:cavs=2,cavs=3"],
+        ["--scenarios", "sine-v1[amplitude_mps=2,amplitude_mps=3]"],
         ["--controllers", "idm:noise_mps2="],
         ["--controllers", "bdc:variant=zzz"],
         ["--controllers", "bdc:untrained=maybe"],
