@@ -51,7 +51,7 @@ from torch import nn
 from envs.channel import ChannelConfig
 from envs.params import PlatoonParams
 from envs.platoon import PlatoonEnv
-from envs.scenarios import Scenario, as_scenario, check_vehicles, make_scenario, parse_scenarios
+from envs.scenarios import Scenario, as_scenario, check_vehicles, make_scenario
 from infra.errors import ConfigError
 from infra.limits import MAX_ROLLOUT_AGENT_STEPS, MAX_SEED, training_episode_seeds
 from marl.acting import agent_inputs, to_command
@@ -170,7 +170,7 @@ class PPOTrainer:
         cfg = self.cfg = config
         self.sc, self.params = scenario, params
         self.n, self.seed, self.total_steps = check_vehicles(n_vehicles), int(seed), total_steps
-        roads = self.roads = parse_scenarios(cfg.scenarios) if cfg.scenarios else [scenario]
+        roads = self.roads = cfg.roads or [scenario]
         rollout = cfg.n_envs * cfg.rollout_steps  # environment steps per update
         widest = max([self.n, cfg.vehicles_max] + [s.default_vehicles for s in roads if s.ring])
         if rollout * widest > MAX_ROLLOUT_AGENT_STEPS:

@@ -6,6 +6,7 @@ critic, and the weight checks the trainers share. Acting reads these without the
 from __future__ import annotations
 
 import copy
+import functools
 import math
 from dataclasses import dataclass
 
@@ -191,9 +192,9 @@ class PPOConfig:
                               f"followers: 0 < cav_share_min <= cav_share_max <= 1, got "
                               f"{self.cav_share_min} and {self.cav_share_max}")
         if self.scenarios:
-            from envs.scenarios import PLACEMENT_OPTIONS, SEAT_OPTIONS, parse_scenarios
+            from envs.scenarios import PLACEMENT_OPTIONS, SEAT_OPTIONS
 
-            labels = [sc.label for sc in parse_scenarios(self.scenarios)]  # refused here
+            labels = [sc.label for sc in self.roads]  # built (and refused) here, once
             twice = sorted({lb for lb in labels if labels.count(lb) > 1})
             if twice:
                 raise ConfigError(f"scenarios names {', '.join(twice)} more than once (each "
@@ -249,14 +250,21 @@ class PPOConfig:
             return ChannelConfig()
         return ChannelConfig(self.comm_delay_s, self.packet_loss)
 
+    @functools.cached_property
+    def roads(self) -> list[Scenario]:
+        """The scenarios ``scenarios`` names, built once (none when it is empty)."""
+        from envs.scenarios import parse_scenarios
+
+        return parse_scenarios(self.scenarios) if self.scenarios else []
+
     def validation_roads(self, scenario: Scenario) -> list[Scenario]:
         """The roads validation scores a policy on: the run's ``scenario``; with ``scenarios``
         each of them instead; on mixed traffic each with half its followers automated, placed
         at random (placement seed 0), and a ring also as it is (by default one automated
         vehicle among humans)."""
-        from envs.scenarios import make_scenario, parse_scenarios
+        from envs.scenarios import make_scenario
 
-        roads = parse_scenarios(self.scenarios) if self.scenarios else [scenario]
+        roads = self.roads or [scenario]
         if not self.mixed_traffic:
             return roads
         return [road for sc in roads for road in ([sc] if sc.ring else []) + [
