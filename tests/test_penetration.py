@@ -182,6 +182,10 @@ def test_the_readme_quotes_the_learned_family() -> None:
     learned = t[t["controller"] == LEARNED_FAMILY]
     leader = learned[learned["scenario"] != "ring-v1"]
     assert len(leader) == 20 and (leader["collisions"] == 0).all()
+    assert "leaves the humans there a larger speed spread than `followerstopper`" in readme
+    for _, c in leader[leader["share"].astype(str) != "1"].iterrows():
+        fs = _cell(t, c["scenario"], "followerstopper", str(c["share"]))
+        assert c["speed_std_humans_mps"] > fs["speed_std_humans_mps"], (c["scenario"], c["share"])
     base = _cell(t, "ring-v1", BASELINE, "0")["speed_std_humans_mps"]
     one, quarter, half = (_cell(t, "ring-v1", LEARNED_FAMILY, s)["speed_std_humans_mps"]
                           for s in ("one vehicle", "0.25", "0.5"))

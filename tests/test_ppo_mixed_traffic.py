@@ -148,6 +148,8 @@ def test_the_shipped_mixed_traffic_policies_were_trained_on_the_distribution(see
         "mixed-v2,ring-v1", 0.05, 1.0)
     assert (cfg["vehicles_min"], cfg["vehicles_max"]) == (4, 12)
     assert data["seed"] == seed and data["curve_summary"]["best_collisions"] == 0
+    text = " ".join((root / "docs" / "learned-control.md").read_text().split())
+    assert f"({data['curve_summary']['best_reward']:.2f})" in text  # the page quotes the file
 
 
 @pytest.mark.parametrize(("scenario", "n"), [("ring-v1", 22), ("catchup-v1:cav_fraction=0.25", 8),
