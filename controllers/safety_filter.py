@@ -67,7 +67,7 @@ piece is ``m = floor((-g + sqrt(g^2 + 4 (2 R / dt - c) / beta)) / 2)`` (from
 takes the largest ``a_1`` with ``D(V_1; beta) <= R``. The answer is checked by evaluating
 ``h`` at it; where the check fails (rounding, the ``v_max`` clip) the filter brakes fully,
 ``u_min``, which the invariance makes safe. So, with ``h >= 0`` at the start, ``h >= 0`` at
-every step (``tests/test_safety_filter.py`` checks it in closed loop, with and without lag).
+every step (``tests/controllers/test_safety_filter.py`` checks it in closed loop, with and without lag).
 
 Parameters (options, written with a ``safe_`` prefix: ``safe:cacc:safe_min_gap_m=3``)
 --------------------------------------------------------------------------------------

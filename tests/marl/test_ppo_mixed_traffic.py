@@ -141,7 +141,7 @@ def test_the_shipped_mixed_traffic_policies_were_trained_on_the_distribution(see
 
     from marl.checkpoint import load_checkpoint
 
-    root = Path(__file__).resolve().parent.parent
+    root = Path(__file__).resolve().parents[2]
     data = load_checkpoint(root.joinpath(*SHIPPED, f"ippo__mixed-v2__n8__s{seed}.pt"))
     cfg = data["config"]
     assert (cfg["scenarios"], cfg["cav_share_min"], cfg["cav_share_max"]) == (

@@ -315,7 +315,7 @@ def test_bad_input_on_a_finished_folder_loses_nothing(args: list[str], tmp_path:
 
 
 # ------------------------------------------------------------------ damaged input files
-SHIPPED = Path(__file__).resolve().parent.parent / "controllers" / "checkpoints"
+SHIPPED = Path(__file__).resolve().parents[2] / "controllers" / "checkpoints"
 STEM = "bdc__catchup-v1__n8__s0"
 #: ``reproduce --resume`` of one policy, no extra study: refused (or not) before any work.
 REPRODUCE = ["reproduce", "--budget", "quick", "--algos", "bdc", "--scenarios", "catchup-v1",
@@ -424,7 +424,7 @@ def test_a_reader_that_goes_away_ends_the_command_quietly() -> None:
         os.close(read)
         proc = subprocess.run([sys.executable, "-m", "commands", *argv], stdout=write,
                               stderr=subprocess.PIPE, text=True, timeout=60,
-                              cwd=Path(__file__).resolve().parent.parent)
+                              cwd=Path(__file__).resolve().parents[2])
         os.close(write)
         assert proc.returncode == 141 and proc.stderr == "", (argv, proc.stderr)
 
@@ -470,7 +470,7 @@ def test_a_new_store_on_a_full_disk_is_called_full_not_unreadable(tmp_path: Path
     proc = subprocess.run([sys.executable, "-m", "commands", "run", "--controllers", "ovm",
                            "--scenarios", "catchup-v1", "--vehicles", "2", "--episodes", "1",
                            "--quiet", "--out", str(out)], capture_output=True, text=True,
-                          timeout=120, cwd=Path(__file__).resolve().parent.parent,
+                          timeout=120, cwd=Path(__file__).resolve().parents[2],
                           preexec_fn=limited)
     assert proc.returncode == 2, proc.stderr
     assert "results store could not grow" in proc.stderr, proc.stderr

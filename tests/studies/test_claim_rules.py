@@ -16,7 +16,7 @@ from benchmark.statistics import paired_ci
 from studies import claims as cl
 from studies import reproduction as rp
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 
 # ---------------------------------------------------------------------------- hand-made data

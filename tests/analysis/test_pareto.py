@@ -122,7 +122,7 @@ def test_the_marl_family_shows_the_shared_learners_and_the_ippo_variants() -> No
 def test_the_committed_reading_of_the_shared_learners_is_its_csv() -> None:
     """The reading in ``docs/pareto/README.md`` quotes the committed ``pareto.csv``: the front's
     size, and each shared learner's energy and spacing, the residuals on the front."""
-    docs = Path(__file__).resolve().parent.parent / "docs" / "pareto"
+    docs = Path(__file__).resolve().parents[2] / "docs" / "pareto"
     text = " ".join((docs / "README.md").read_text().split())
     front = pd.read_csv(docs / "pareto.csv")
     assert f"({int(front['non_dominated'].sum())} points, none collided)" in text

@@ -24,7 +24,7 @@ from marl.checkpoint import (
     write_payload,
 )
 
-SHIPPED = Path(__file__).resolve().parent.parent / "controllers" / "checkpoints"
+SHIPPED = Path(__file__).resolve().parents[2] / "controllers" / "checkpoints"
 STEM = "bdc__catchup-v1__n2__s0"
 TRAIN = ["train", "--algo", "bdc", "--scenario", "catchup-v1", "--vehicles", "2",
          "--steps", "1500", "--set", "eval_every_steps=720"]
@@ -292,7 +292,7 @@ def test_a_real_refused_write_ends_with_one_line_and_keeps_finished_files(
     before = _digests(out) if out.exists() else {}
     proc = subprocess.run([sys.executable, "-m", "commands", *argv, "--out", str(out)],
                           capture_output=True, text=True, timeout=300,
-                          cwd=Path(__file__).resolve().parent.parent,
+                          cwd=Path(__file__).resolve().parents[2],
                           preexec_fn=_limited_to(limit))
     err = _errors(proc.stderr)
     assert proc.returncode == 2, err
@@ -398,7 +398,7 @@ def test_sigint_after_an_evaluation_leaves_the_finished_files_byte_identical(
     argv = [*TRAIN[:-4], "--steps", "60000", "--set", "eval_every_steps=720", "--overwrite"]
     proc = subprocess.Popen([sys.executable, "-m", "commands", *argv, "--out", str(out)],
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-                            cwd=Path(__file__).resolve().parent.parent)
+                            cwd=Path(__file__).resolve().parents[2])
     try:
         deadline = time.monotonic() + 120
         while time.monotonic() < deadline and proc.poll() is None:
@@ -431,7 +431,7 @@ def test_a_trusted_format_1_file_can_be_given_its_hash(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match=r"python -m marl\.checkpoint"):
         load_checkpoint(old)
     proc = subprocess.run([sys.executable, "-m", "marl.checkpoint", str(old)], text=True,
-                          capture_output=True, cwd=Path(__file__).resolve().parent.parent)
+                          capture_output=True, cwd=Path(__file__).resolve().parents[2])
     assert proc.returncode == 0 and "upgraded to format 2" in proc.stdout, proc.stderr
     new = torch.load(old, weights_only=True)
     assert new["format_version"] == 2 and new["steps"] == shipped["steps"] + 1

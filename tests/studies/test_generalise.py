@@ -29,7 +29,7 @@ from studies.generalisation import (
     write_report,
 )
 
-DOCS = Path(__file__).resolve().parents[1] / "docs" / "generalise"
+DOCS = Path(__file__).resolve().parents[2] / "docs" / "generalise"
 
 
 def test_a_cell_pools_the_training_seeds_and_marks_what_cannot_run() -> None:

@@ -104,7 +104,7 @@ def test_bad_input_exits_2(argv: list[str], message: str, tmp_path: Path,
 def test_the_readme_quotes_the_committed_study() -> None:
     """The README's and the report's reading of the committed study (docs/sensitivity) use the
     numbers its sensitivity.csv holds."""
-    root = Path(__file__).resolve().parent.parent
+    root = Path(__file__).resolve().parents[2]
     table = pd.read_csv(root / "docs" / "sensitivity" / "sensitivity.csv")
     readme = " ".join((root / "docs" / "results.md").read_text().split())  # was the README's
     report = " ".join((root / "docs" / "sensitivity" / "report.md").read_text().split())

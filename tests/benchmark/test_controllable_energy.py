@@ -169,7 +169,7 @@ def test_leaderboard_has_the_mean_and_interval_only_when_every_episode_has_a_val
 
 
 def test_golden_runs_carry_the_columns() -> None:
-    golden = Path(__file__).resolve().parent / "golden"
+    golden = Path(__file__).resolve().parents[1] / "golden"
     runs = pd.read_csv(golden / "smoke_runs.csv")
     assert runs["controllable_energy_kwh"].notna().all()
     lb = pd.read_csv(golden / "smoke_leaderboard.csv")

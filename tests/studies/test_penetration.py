@@ -12,7 +12,7 @@ from run_marks import FULL
 from commands.cli import main as cli
 from studies.penetration import BASELINE, SHARES, controllers_for, design
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 COMMITTED = ROOT / "docs" / "penetration"
 
 

@@ -9,7 +9,7 @@ import pytest
 
 from studies import compare_reproductions as mod
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 COMMITTED = ROOT / "docs" / "paper-reproduction"
 
 

@@ -15,7 +15,7 @@ import torch
 
 from commands.cli import main as cli
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 #: A tiny shared-policy training (seconds).
 IPPO = ["train", "--algo", "ippo", "--scenario", "catchup-v1", "--vehicles", "2", "--steps", "64",
         "--set", "rollout_steps=8", "--episodes-parallel", "4", "--set", "eval_every_steps=32"]

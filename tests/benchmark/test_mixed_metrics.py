@@ -25,7 +25,7 @@ from benchmark.rollout import Trajectory, rollout_batch
 from envs.energy import battery_power_kw
 
 DT_S = 0.1
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _traj(speed_mps: np.ndarray, leader_speed_mps: np.ndarray, **kwargs: object) -> Trajectory:

@@ -89,7 +89,7 @@ def test_list_shows_every_controller_option_with_its_default(
 def test_the_energy_modules_are_split_by_purpose_and_small() -> None:
     """Runtime power, the physical models, the vehicle data and the offline fit are separate
     modules, each under 400 lines; the runtime module does not import the fit."""
-    folder = Path(__file__).resolve().parent.parent / "envs" / "energy"
+    folder = Path(__file__).resolve().parents[2] / "envs" / "energy"
     sizes = {p.name: len(p.read_text().splitlines()) for p in folder.glob("*.py")}
     assert set(sizes) == {"__init__.py", "vehicle.py", "map_model.py", "horner.py", "power.py",
                           "fit.py"}
@@ -124,7 +124,7 @@ def test_every_document_the_code_cites_is_in_the_repository() -> None:
     import re
     from pathlib import Path
 
-    root = Path(__file__).resolve().parent.parent
+    root = Path(__file__).resolve().parents[2]
     cited = set()
     for pkg in ("infra", "envs", "controllers", "marl", "benchmark", "analysis", "studies",
                 "commands"):

@@ -30,7 +30,7 @@ def _curve(steps: list[float], values: list[float], train: list[float] | None = 
 
 
 def test_convergence_step_is_first_step_within_the_band_of_the_plateau_for_good() -> None:
-    """The rule of docs/claim-rules.md (its own tests: tests/test_claim_rules.py). Formerly a
+    """The rule of docs/claim-rules.md (its own tests: tests/studies/test_claim_rules.py). Formerly a
     curve that did not rise "converged at its first point"; now it has not converged (NaN)."""
     steps = np.array([1.0, 2, 3, 4, 5, 6, 7])
     # rises from -100 to a plateau of 0 (last three); band 10 % of the rise: |value| <= 10
@@ -149,7 +149,7 @@ def test_policy_checkpoint_dir_names_the_train_command(tmp_path: Path) -> None:
 
 
 def _readme_reproduce_command() -> list[str]:
-    text = (Path(__file__).resolve().parent.parent / "docs" / "reproduction.md").read_text()
+    text = (Path(__file__).resolve().parents[2] / "docs" / "reproduction.md").read_text()
     section = re.search(r"^## The command\n(.*?)(?=^## )", text, re.S | re.M)
     assert section, "docs/reproduction.md has no section 'The command'"
     block = re.search(r"```bash\n(.*?)```", section.group(1), re.S)
@@ -282,7 +282,7 @@ def test_the_readme_quotes_the_committed_paper_report() -> None:
     """The README's paper-budget verdicts are the committed report's (docs/paper-reproduction,
     copied from the run that made it): rewards, collisions, power and verdicts as the CSVs hold
     them, formatted from the CSVs and looked up in the README."""
-    docs = Path(__file__).resolve().parent.parent / "docs" / "paper-reproduction"
+    docs = Path(__file__).resolve().parents[2] / "docs" / "paper-reproduction"
     readme = (docs.parent / "reproduction.md").read_text()  # moved there from the README
     readme = " ".join(readme.split())  # line breaks aside
     t2 = pd.read_csv(docs / "table2.csv").set_index(["name", "scenario"])
@@ -363,7 +363,7 @@ def test_the_default_command_copies_what_the_committed_report_ran() -> None:
     names a shipped file, so a clean clone runs the same weights."""
     from commands.reproduce import _parser
 
-    root = Path(__file__).resolve().parent.parent
+    root = Path(__file__).resolve().parents[2]
     docs = root / "docs" / "paper-reproduction"
     default = _parser().parse_args([]).arithmetic
     manifest = json.loads((docs / "reproduce.json").read_text())

@@ -10,7 +10,7 @@ import pytest
 
 from benchmark.export import LEADERBOARD_METRICS, leaderboard_frame
 
-GOLDEN = Path(__file__).resolve().parent / "golden"
+GOLDEN = Path(__file__).resolve().parents[1] / "golden"
 
 
 def _run(controller: str, reward: float, *, collision: bool = False, status: str = "ok",

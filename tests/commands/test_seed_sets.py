@@ -21,7 +21,7 @@ from envs.params import (
 )
 from infra.errors import ConfigError
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 #: training episode seeds are ``TRAIN_STRIDE (seed + 1) + k`` (marl.a2c, marl.ppo, marl.distill)
 TRAIN_STRIDE = 10_000_000
 

@@ -472,7 +472,7 @@ def test_the_paper_report_judged_the_shipped_catchup_policies() -> None:
     :data:`MEASURED` (the README says so of the report)."""
     import pandas as pd
 
-    docs = Path(__file__).resolve().parent.parent / "docs" / "paper-reproduction"
+    docs = Path(__file__).resolve().parents[2] / "docs" / "paper-reproduction"
     t2 = pd.read_csv(docs / "table2.csv").set_index(["name", "scenario"])
     for (name, scenario), (collisions, reward) in MEASURED.items():
         if scenario == "catchup-v1":

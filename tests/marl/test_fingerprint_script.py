@@ -7,7 +7,7 @@ from pathlib import Path
 
 from marl import arithmetic_fingerprint as mod
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 COMMITTED = ROOT / "docs" / "notes" / "arithmetic-fingerprint-amd-epyc.json"
 
 

@@ -195,7 +195,7 @@ def test_a_closed_pipe_ends_list_quietly() -> None:
     try:
         proc = subprocess.run([sys.executable, "-m", "commands", "list"], stdout=write,
                               stderr=subprocess.PIPE, text=True, timeout=120,
-                              cwd=Path(__file__).resolve().parent.parent)
+                              cwd=Path(__file__).resolve().parents[2])
     finally:
         os.close(write)
     assert "Traceback" not in proc.stderr and "BrokenPipe" not in proc.stderr, proc.stderr

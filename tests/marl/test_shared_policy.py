@@ -530,7 +530,7 @@ def test_the_time_aware_residual_meets_the_bar(scenario: str) -> None:
         make_controller("cacc"), make_scenario(scenario), 8, list(EVAL_SEEDS))])
     assert float(cacc) == pytest.approx(cacc_doc, abs=0.005)
     assert ours >= cacc_doc
-    text = (Path(__file__).resolve().parent.parent / "docs" / "learned-control.md").read_text()
+    text = (Path(__file__).resolve().parents[2] / "docs" / "learned-control.md").read_text()
     assert f"| 8 | {scenario} | 1 | `ippo[seeds=0+1+2,variant=residual-timed]` | 0/150 | {ours:.2f} " in text
 
 
@@ -540,7 +540,7 @@ def test_the_validation_table_of_the_docs_is_the_checkpoints() -> None:
     from controllers.policy import checkpoint_path
     from marl.checkpoint import load_checkpoint
 
-    text = (Path(__file__).resolve().parent.parent / "docs" / "learned-control.md").read_text()
+    text = (Path(__file__).resolve().parents[2] / "docs" / "learned-control.md").read_text()
     for algo in ("ippo", "mappo", "distill"):
         row = next(line for line in text.splitlines() if line.startswith(f"| `{algo}` |"))
         for sc in ("catchup-v1", "slowdown-v1"):
@@ -555,7 +555,7 @@ def test_the_residual_and_ippo_bdc_readings_of_the_docs_are_the_checkpoints() ->
     from controllers.policy import VARIANT_DIR, checkpoint_path
     from marl.checkpoint import load_checkpoint
 
-    text = " ".join((Path(__file__).resolve().parent.parent / "docs" / "learned-control.md")
+    text = " ".join((Path(__file__).resolve().parents[2] / "docs" / "learned-control.md")
                     .read_text().split())
     for algo, folder, section in (("ippo", VARIANT_DIR / "residual-cacc", "## A learned residual"),
                                   ("ippo", VARIANT_DIR / "residual-timed", "## The residual with"),
@@ -585,7 +585,7 @@ def test_the_string_stability_reading_of_the_docs(tmp_path: Path) -> None:
     peaks = dict(zip(summary["controller"], summary["peak_gain"]))
     assert round(peaks["ippo[scenario=slowdown-v1]"], 3) == 1.356
     assert round(peaks["distill[scenario=slowdown-v1]"], 3) == 1.539
-    text = " ".join((Path(__file__).resolve().parent.parent / "docs" / "learned-control.md")
+    text = " ".join((Path(__file__).resolve().parents[2] / "docs" / "learned-control.md")
                     .read_text().split())
     for sc in ("slowdown-v1", "catchup-v1"):
         assert f"{peaks[f'ippo[scenario={sc},variant=residual-timed]']:.3f}" in text, sc
@@ -597,7 +597,7 @@ def test_the_ippo_bdc_tuning_reading_is_the_shipped_tuned_configs() -> None:
     and were searched over BDC's consensus step too."""
     import json
 
-    root = Path(__file__).resolve().parent.parent
+    root = Path(__file__).resolve().parents[2]
     text = " ".join((root / "docs" / "learned-control.md").read_text().split())
     configs = json.loads((root / "marl" / "tuned_configs.json").read_text())["configs"]
     best = [configs[f"ippo-bdc/{sc}"] for sc in ("catchup-v1", "slowdown-v1")]
@@ -617,7 +617,7 @@ def _retrained(prefix: str, scenarios: tuple[str, ...] = ("catchup-v1", "slowdow
     ``slowdown-v1`` (``residual-timed-h``) and ``ippo-bdc`` at 1e6 steps (``ippo-bdc-1e6``)."""
     import re
 
-    folder = Path(__file__).resolve().parent.parent / "docs" / "tuning" / "retrained"
+    folder = Path(__file__).resolve().parents[2] / "docs" / "tuning" / "retrained"
     out: dict[str, list[tuple[float, int]]] = {}
     for path in sorted(folder.glob(f"{prefix}--*.log")):
         last = path.read_text().strip().splitlines()[-1]
@@ -638,7 +638,7 @@ def test_the_tuning_readings_are_the_committed_trials_and_logs() -> None:
     from controllers.policy import VARIANT_DIR, checkpoint_path
     from marl.checkpoint import load_checkpoint
 
-    root = Path(__file__).resolve().parent.parent
+    root = Path(__file__).resolve().parents[2]
     text = " ".join((root / "docs" / "learned-control.md").read_text().split())
     timed = _retrained("residual-timed-tuned")
     trials = pd.read_csv(root / "docs" / "tuning" / "trials-residual-timed.csv")

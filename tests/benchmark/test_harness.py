@@ -30,8 +30,8 @@ from controllers.registry import (
 from envs.scenarios import make_scenario
 from infra.errors import ConfigError
 
-ROOT = Path(__file__).resolve().parent.parent
-GOLDEN = Path(__file__).resolve().parent / "golden" / "smoke_runs.csv"
+ROOT = Path(__file__).resolve().parents[2]
+GOLDEN = Path(__file__).resolve().parents[1] / "golden" / "smoke_runs.csv"
 REQUIRED_RUN_COLUMNS = (
     "controller, family, scenario, n_vehicles, seed, status, error, steps, collision, min_gap_m, "
     "gap_mean_m, gap_std_m, gap_rmse_m, speed_mean_mps, speed_std_mps, speed_rmse_mps, "

@@ -15,7 +15,7 @@ from marl.learners import (
     load,
 )
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 PACKAGES = ("infra", "envs", "marl", "controllers", "benchmark", "analysis", "studies",
             "commands")
 

@@ -22,7 +22,7 @@ from studies.learned_report import (
     write_report,
 )
 
-DOCS = Path(__file__).resolve().parents[1] / "docs" / "compare-learned"
+DOCS = Path(__file__).resolve().parents[2] / "docs" / "compare-learned"
 
 
 def _episodes(policy: str, rewards: np.ndarray, setting: tuple[float, float] = IDEAL,

@@ -17,7 +17,7 @@ from benchmark.store import ResultStore
 from commands.cli import main as cli
 from infra.errors import ConfigError
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 SMALL = ["--controllers", "ovm", "--scenarios", "catchup-v1", "--vehicles", "2", "--episodes",
          "2", "--quiet"]
 

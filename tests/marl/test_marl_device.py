@@ -119,7 +119,7 @@ def test_the_populations_note_quotes_the_committed_gpu_check() -> None:
     import re
     from pathlib import Path
 
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     note = (root / "docs" / "populations.md").read_text()
     section = note[note.index("## On a GPU"):note.index("## The measurements in brief")]
     rows = json.loads((root / "docs" / "gpu-check" / "throughput.json").read_text())

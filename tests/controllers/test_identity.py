@@ -20,7 +20,7 @@ from controllers.registry import CONTROLLERS, controller_label
 from infra.errors import ConfigError
 from infra.naming import canonical_value, merge_repeats, parse_label
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SHIPPED = sorted(CHECKPOINT_DIR.rglob("*.pt"))
 NAME = re.compile(r"(.+?)__(.+?)__n(\d+)__s(\d+)\.pt")
 

@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 from run_marks import FULL
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 MPC_SWEEP = ["run", "--controllers", "mpc,mpc-qp,cacc", "--scenarios", "catchup-v1",
              "--vehicles", "4", "--episodes", "5", "--quiet"]
 #: Seconds a signalled command may take to end (it takes well under one on an idle machine).
