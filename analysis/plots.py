@@ -1,7 +1,8 @@
 """Figures of a results folder (headless; functions return paths, never call ``show()``).
 
-- per-vehicle time series of gap, speed, acceleration and power for one run per controller
-  (paper Figs. 3 and 5);
+- per-vehicle time series of gap, speed, acceleration and power of a run (paper Figs. 3 and 5),
+  with the published and the controller's own gap target, the start-up transient and a
+  collision marked;
 - leaderboard comparison: bars with 95 % bootstrap intervals;
 - radar chart of inter-vehicle spacing, speed, acceleration and power (paper Fig. 6).
 """
@@ -9,9 +10,12 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from controllers.base import SpacingPolicy
 
 
 def _plt() -> Any:
@@ -42,11 +46,53 @@ def _save(fig: Any, out_dir: Path, stem: str) -> list[Path]:
     return paths
 
 
+#: Label of the scenario's constant target gap (the published reward's ``d*``) in figures.
+PUBLISHED_TARGET_LABEL = "published reward target"
+
+
+def spacing_label(spacing: SpacingPolicy | None, controller: str = "") -> str:
+    """How a figure names a controller's own spacing policy (``r + h v``, with its numbers)."""
+    if spacing is None:
+        return ""
+    who = f" ({controller})" if controller else ""
+    return f"own policy{who}: {spacing.describe()}"
+
+
+def transient_rows(arrays: dict[str, np.ndarray]) -> int:
+    """Rows ``0 .. k`` of a trajectory that hold the start-up transient
+    (:data:`benchmark.metrics.START_TRANSIENT_STEPS` steps after row 0), capped at its length."""
+    from benchmark.metrics import START_TRANSIENT_STEPS
+
+    return min(START_TRANSIENT_STEPS, int(np.shape(arrays["gap_m"])[0]) - 1)
+
+
+def _limits_after(values: np.ndarray, first_row: int) -> tuple[float, float] | None:
+    """Axis limits that show rows ``first_row..`` with a margin, or None when those rows already
+    hold the whole range (the transient sets no axis)."""
+    rest = values[first_row:]
+    if not rest.size or not np.isfinite(rest).any():
+        return None
+    lo, hi = float(np.nanmin(rest)), float(np.nanmax(rest))
+    if np.nanmin(values) >= lo and np.nanmax(values) <= hi:
+        return None
+    pad = max(0.1 * (hi - lo), 0.05)
+    return lo - pad, hi + pad
+
+
 def plot_time_series(
     arrays: dict[str, np.ndarray], title: str, out_dir: Path, stem: str,
     target_gap_m: float | None = None, target_speed_mps: float | None = None,
+    spacing: SpacingPolicy | None = None, controller: str = "", collided: bool = False,
 ) -> list[Path]:
     """Gap, speed, acceleration and power of every vehicle of one run, against time.
+
+    The gap panel draws the scenario's constant target (the published reward's, named so) and,
+    for a controller with a spacing policy of its own (``spacing``, e.g. ``cacc``'s ``r + h
+    v``), each follower's own target from its speed, dotted in its colour. The start-up
+    transient (:func:`transient_rows`) is shaded; where its accelerations or powers lie outside
+    the rest of the run (``slowdown-v1``'s speed clip) they are left off the axis and their
+    extreme is written on the panel. A collision (``collided``: the run ended at its last row)
+    is marked by a red line and a label in every panel, and a cross on the gap that closed.
 
     Parameters
     ----------
@@ -58,6 +104,7 @@ def plot_time_series(
     dt = float(arrays["dt_s"])
     t1, n = arrays["gap_m"].shape
     t = np.arange(t1) * dt
+    k = transient_rows(arrays)
     fig, axes = plt.subplots(4, 1, figsize=(8, 9), sharex=True)
     cmap = plt.get_cmap("viridis")
     colors = [cmap(i / max(n - 1, 1)) for i in range(n)]
@@ -68,21 +115,58 @@ def plot_time_series(
         ("power_kw", "battery power (kW)", None),
     ]
     for ax, (key, label, target) in zip(axes, panels, strict=True):
+        values = arrays[key][:t1]
         if key == "speed_mps":
             ax.plot(t, arrays["leader_speed_mps"][:t1], color="black", lw=1.2, label="leader")
         if key == "accel_mps2":
-            ax.plot(t, arrays["leader_accel_mps2"][:t1], color="black", lw=1.2, label="leader")
+            lead = arrays["leader_accel_mps2"][:t1]
+            ax.plot(t, lead, color="black", lw=1.2, label="leader")
+            values = np.concatenate([values, lead[:, None]], axis=1)
         for i in range(n):
             ax.plot(t, arrays[key][:, i], color=colors[i], lw=0.9, label=f"follower {i + 1}")
+        if key == "gap_m" and spacing is not None:
+            own = spacing.target_gap_m(arrays["speed_mps"][:t1])
+            for i in range(n):
+                ax.plot(t, own[:, i], color=colors[i], lw=0.8, ls=":",
+                        label=spacing_label(spacing, controller) if i == 0 else "_own")
         if target is not None:
-            ax.axhline(target, color="red", ls="--", lw=0.8, label="target")
+            name = (f"{PUBLISHED_TARGET_LABEL} {target:g} m" if key == "gap_m"
+                    else f"target speed {target:g} m/s")
+            ax.axhline(target, color="red", ls="--", lw=0.8, label=name)
+        if k > 0:
+            ax.axvspan(0.0, k * dt, color="0.85", zorder=0,
+                       label="start-up transient (out of jerk_rms_after_start)")
+        if key in ("accel_mps2", "power_kw"):
+            limits = _limits_after(values, k + 1)
+            if limits is not None:
+                ax.set_ylim(*limits)
+                extreme = values[: k + 1].flat[np.nanargmax(np.abs(values[: k + 1]))]
+                unit = "m/s$^2$" if key == "accel_mps2" else "kW"
+                ax.text(0.01, 0.04, f"start-up transient off axis: {extreme:.3g} {unit}",
+                        transform=ax.transAxes, fontsize=7, color="0.3")
+        if collided:
+            ax.axvline(t[-1], color="red", lw=1.0, label="collision")
+            ax.text(t[-1], 0.5, f" collision at {t[-1]:.1f} s", transform=ax.get_xaxis_transform(),
+                    color="red", fontsize=7, ha="right", rotation=90, va="center")
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
+    if collided:
+        hit = int(np.argmin(arrays["gap_m"][-1]))
+        axes[0].plot([t[-1]], [arrays["gap_m"][-1, hit]], marker="X", color="red", ms=9, ls="none",
+                     label=f"collision: follower {hit + 1}")
     axes[-1].set_xlabel("time (s)")
-    handles, labels = axes[1].get_legend_handles_labels()
-    fig.legend(handles, labels, loc="upper center", ncol=min(6, len(labels)), fontsize=8,
-               bbox_to_anchor=(0.5, 1.0))
-    fig.suptitle(title, y=1.03, fontsize=11)
+    handles: list[Any] = []
+    labels: list[str] = []
+    for ax in axes:
+        for h, lab in zip(*ax.get_legend_handles_labels(), strict=True):
+            if lab not in labels and not lab.startswith("_"):
+                handles.append(h)
+                labels.append(lab)
+    fig.suptitle(title, fontsize=11)
+    fig.tight_layout()
+    # below the figure: never over a panel or the title, whatever the number of entries
+    fig.legend(handles, labels, loc="upper center", ncol=min(4, len(labels)), fontsize=8,
+               bbox_to_anchor=(0.5, 0.0))
     return _save(fig, out_dir, stem)
 
 
@@ -152,12 +236,18 @@ def plot_leaderboard(lb: Any, out_dir: Path, stem: str = "leaderboard") -> list[
     from matplotlib.patches import Patch
 
     handles = [Patch(color=FAMILY_COLOURS.get(f, "tab:brown"), label=f) for f in sorted(families)]
-    fig.legend(handles=handles, loc="upper center", ncol=len(handles), fontsize=8,
+    fig.tight_layout()
+    # above the figure (anchored at its top edge from outside, the saved figure grows to hold
+    # it): it never covers a panel's title, with one setting as with many
+    fig.legend(handles=handles, loc="lower center", ncol=len(handles), fontsize=8,
                bbox_to_anchor=(0.5, 1.0), title="family (bars: means, 95 % bootstrap intervals)",
                title_fontsize=8)
-    fig.tight_layout(rect=(0, 0, 1, 0.97))
     return _save(fig, out_dir, stem)
 
+
+#: Fewest controllers a radar is drawn for: each axis is scaled by the largest value among the
+#: controllers, so one controller alone is always a full diamond.
+RADAR_MIN_CONTROLLERS = 2
 
 RADAR_AXES = (
     ("gap_std_m", "IVS std (m)"),
@@ -171,10 +261,14 @@ def plot_radar(lb: Any, scenario: str, n_vehicles: int, out_dir: Path, stem: str
     """Radar chart of IVS, speed, acceleration (standard deviations) and mean power (Fig. 6).
 
     Each axis is scaled by the largest value among the controllers (smaller is better: a
-    controller close to the centre is smooth and frugal).
+    controller close to the centre is smooth and frugal). With fewer than
+    :data:`RADAR_MIN_CONTROLLERS` controllers nothing is drawn (an empty list is returned):
+    scaled by its own values, one controller is always the full diamond and says nothing.
     """
     plt = _plt()
     sub = lb[(lb["scenario"] == scenario) & (lb["n_vehicles"] == n_vehicles)]
+    if sub["controller"].nunique() < RADAR_MIN_CONTROLLERS:
+        return []
     labels = [lab for _, lab in RADAR_AXES]
     vals = np.array([[float(r[f"{m}_mean"]) for m, _ in RADAR_AXES] for _, r in sub.iterrows()])
     scale = np.nanmax(np.abs(vals), axis=0)

@@ -22,7 +22,9 @@ Measured, for any registered controller:
 - :func:`empirical_gain` drives the ``sine-v1`` leader profile at each frequency (all frequencies
   in one env batch), drops the transient and fits a sinusoid at the driving frequency by least
   squares to every vehicle's acceleration: the amplitude ratio of consecutive vehicles is the
-  empirical ``|Gamma(j w)|``.
+  empirical ``|Gamma(j w)|``. The measurement is :func:`benchmark.sweep.measure_gains` (the
+  harness's standard sweep, which every leaderboard row carries, is the same measurement on a
+  fixed grid: :func:`benchmark.sweep.sweep_peak`); :func:`fit_sinusoid` is re-exported here.
 - :func:`time_domain_string_gain` (accelerations) and :func:`spacing_string_gain` (spacing errors)
   work on any run; they live in :mod:`benchmark.string_gain` (the harness's metrics use them)
   and are re-exported here.
@@ -43,6 +45,7 @@ import numpy as np
 from benchmark.string_gain import STRING_GAIN_TOL as STRING_GAIN_TOL
 from benchmark.string_gain import spacing_string_gain as spacing_string_gain
 from benchmark.string_gain import time_domain_string_gain as time_domain_string_gain
+from benchmark.sweep import fit_sinusoid as fit_sinusoid
 from infra.errors import ConfigError
 from infra.interrupt import raise_if_interrupted
 
@@ -363,25 +366,6 @@ def discrete_internally_stable(loop: PloegLoop, dt_s: float = 0.1) -> bool:
 # ------------------------------------------------------------------------------- empirical
 
 
-def fit_sinusoid(x: np.ndarray, omega_rad_s: float, t_s: np.ndarray) -> np.ndarray:
-    """Complex amplitude ``c + j s`` of ``x(t) ~ c cos(w t) + s sin(w t) + offset`` (least squares).
-
-    Parameters
-    ----------
-    x : (T, ...)
-        Samples; every trailing column is fitted separately.
-    t_s : (T,)
-        Sample times.
-    """
-    basis = np.stack(
-        [np.cos(omega_rad_s * t_s), np.sin(omega_rad_s * t_s), np.ones_like(t_s)], axis=1
-    )
-    flat = np.asarray(x, dtype=np.float64).reshape(len(t_s), -1)
-    coef, *_ = np.linalg.lstsq(basis, flat, rcond=None)
-    out = coef[0] + 1j * coef[1]
-    return out.reshape(np.shape(x)[1:])
-
-
 @dataclass
 class EmpiricalGain:
     """A measured frequency sweep of one controller.
@@ -432,6 +416,7 @@ def empirical_gain(
     periods: float = 2.0,
     min_window_s: float = 30.0,
     seed: int = 2000,
+    scenario_options: Mapping[str, Any] | None = None,
 ) -> EmpiricalGain:
     """Measure ``|Gamma(jw)|`` of any registered controller with the ``sine-v1`` leader.
 
@@ -459,73 +444,33 @@ def empirical_gain(
         Fit window length: at least this many periods and this many seconds.
     seed : int
         Seed of the first episode (episode k gets ``seed + 10 k``; only the channel uses it).
+    scenario_options : mapping, optional
+        Arrangement options of the ``sine-v1`` episodes (``classes``, ``humans``, ...; the
+        head-to-tail analysis of :mod:`analysis.head_to_tail`).
     """
-    from benchmark.rollout import rollout
+    from benchmark.sweep import measure_gains
     from controllers.registry import make_controller
     from envs.channel import ChannelConfig
     from envs.params import PlatoonParams
-    from envs.scenarios import check_vehicles, make_scenario
 
-    n = check_vehicles(n_vehicles)
-    omegas = np.atleast_1d(np.asarray(omegas_rad_s, dtype=np.float64))
     params = PlatoonParams(lag_s=_check_value(lag_s, "lag_s"))
-    dt = params.dt_s
-    if omegas.size == 0 or np.any(~np.isfinite(omegas)) or np.any(omegas <= 0):
-        raise ConfigError("frequencies must be finite and > 0 rad/s")
-    if np.any(omegas >= math.pi / dt):
-        raise ConfigError(
-            f"frequencies must lie below the Nyquist frequency {math.pi / dt:.3g} rad/s"
-        )
+    channel = ChannelConfig(_check_value(delay_s, "delay_s"), packet_loss, params.dt_s)
     _check_value(amplitude_mps, "amplitude_mps", positive=True)
-    _check_value(transient_s, "transient_s")
-    _check_value(periods, "periods", positive=True)
-    _check_value(min_window_s, "min_window_s", positive=True)
-    channel = ChannelConfig(_check_value(delay_s, "delay_s"), packet_loss, dt)
-
-    window_s = np.maximum(periods * 2 * np.pi / omegas, min_window_s)
-    duration_s = transient_s + float(window_s.max())
-    base = make_scenario("sine-v1", amplitude_mps=amplitude_mps)
-    n_steps = max(base.n_steps, int(math.ceil(duration_s / dt)))
     ctrl = make_controller(controller_name, **dict(options or {}))
-    b = len(omegas)
-    accel = np.zeros((n_steps, b, n + 1))
-    saturated = np.zeros(b, dtype=bool)
-    collided = np.zeros(b, dtype=bool)
-    a_bound = min(-params.accel_min_mps2, params.accel_max_mps2) - 1e-9
-    for k, w in enumerate(omegas):  # one sine-v1 episode per frequency, through the harness's loop
-        raise_if_interrupted()  # (the loop checks after every act too)
-        sc = make_scenario("sine-v1", amplitude_mps=amplitude_mps, frequency_hz=w / (2 * np.pi))
-        sc = dataclasses.replace(sc, n_steps=n_steps)
-        traj = rollout(ctrl, sc, n, seed + 10 * k, params, channel)
-        leader = sc.episodes([seed], n).leader_speed_mps[0]
-        accel[:, k, 0] = np.diff(leader) / dt
-        accel[: traj.steps, k, 1:] = traj.accel_mps2[1:]
-        saturated[k] = bool(
-            np.any(np.abs(traj.command_mps2) >= a_bound)
-            or np.any((traj.speed_mps[1:] <= 0.0) | (traj.speed_mps[1:] >= params.speed_max_mps))
-        )
-        collided[k] = traj.collided
-
-    k0 = int(math.ceil(transient_s / dt))
-    t_s = np.arange(n_steps) * dt
-    pair_gain = np.empty((b, n))
-    for k, w in enumerate(omegas):
-        raise_if_interrupted()
-        amp = np.abs(fit_sinusoid(accel[k0:, k, :], float(w), t_s[k0:]))
-        with np.errstate(divide="ignore", invalid="ignore"):
-            pair_gain[k] = amp[1:] / amp[:-1]
-    pair_gain[collided] = np.nan
+    m = measure_gains(ctrl, omegas_rad_s, amplitude_mps, n_vehicles=n_vehicles, params=params,
+                      channel=channel, transient_s=transient_s, periods=periods,
+                      min_window_s=min_window_s, seed=seed, scenario_options=scenario_options)
     return EmpiricalGain(
         controller=controller_name,
-        omegas_rad_s=omegas,
-        pair_gain=pair_gain,
-        gain=np.max(pair_gain[:, 1:], axis=1),
-        collided=collided,
-        saturated=saturated,
-        n_vehicles=n,
+        omegas_rad_s=m.omegas_rad_s,
+        pair_gain=m.pair_gain,
+        gain=m.gain,
+        collided=m.collided,
+        saturated=m.saturated,
+        n_vehicles=int(n_vehicles),
         amplitude_mps=float(amplitude_mps),
         delay_s=float(delay_s),
         lag_s=float(lag_s),
-        duration_s=n_steps * dt,
+        duration_s=m.duration_s,
         transient_s=float(transient_s),
     )

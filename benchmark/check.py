@@ -25,7 +25,9 @@ def _episode(ctrl: Controller, scenario: Scenario, n: int, seed: int, steps: int
     harness's own loop (which refuses commands of the wrong shape or not finite)."""
     sc = dataclasses.replace(scenario, n_steps=min(steps, scenario.n_steps))
     try:
-        traj = rollout(ctrl, sc, n, seed, PlatoonParams(), channel)
+        # a model that drives inside a simulator (plexe:ploeg) is checked in it
+        traj = rollout(ctrl, sc, n, seed, PlatoonParams(), channel,
+                       getattr(ctrl, "runs_in", None) or "builtin")
     except ControllerContractError as exc:
         raise AssertionError(str(exc)) from None
     return traj.command_mps2, traj.bits_sent

@@ -13,6 +13,7 @@ import numpy as np
 
 from benchmark.rollout import Trajectory
 from benchmark.string_gain import STRING_GAIN_TOL, spacing_string_gain, time_domain_string_gain
+from controllers.base import SpacingPolicy
 
 #: Columns of runs.csv that hold measured times (they differ between identical reruns).
 TIMING_COLUMNS: tuple[str, ...] = (
@@ -23,10 +24,15 @@ TIMING_COLUMNS: tuple[str, ...] = (
     "wall_s",
 )
 
-#: The first step is left out of the string gains: it carries the initial-condition transient
-#: (slowdown-v1's published speed clip "decelerates" every follower at tens of m/s^2 at step 1),
-#: which says nothing about how the controller propagates disturbances.
-STRING_GAIN_SKIP_STEPS = 1
+#: Steps of the start-up transient: the first step carries the initial-condition transient
+#: (slowdown-v1's published speed clip "decelerates" every follower at about -10.6 m/s^2 at
+#: step 1: its initial speeds above ``speed_max`` are clipped), which says nothing about how the
+#: controller propagates disturbances or how smoothly it drives. It is left out of the string
+#: gains and of ``jerk_rms_after_start_mps3`` (``jerk_rms_mps3`` keeps it, as published), and
+#: ``plot`` shades it (``docs/concepts/metrics.md``).
+START_TRANSIENT_STEPS = 1
+#: The first step is left out of the string gains (:data:`START_TRANSIENT_STEPS`).
+STRING_GAIN_SKIP_STEPS = START_TRANSIENT_STEPS
 
 #: A braking event begins where a vehicle's applied acceleration falls below minus this
 #: (m/s^2). Ours (Stern et al. 2018 count braking events on their ring but the threshold they
@@ -217,11 +223,66 @@ def mixed_traffic_metrics(traj: Trajectory) -> dict[str, float | int]:
     }
 
 
+def class_energy_columns() -> tuple[str, ...]:
+    """The per-class energy columns of ``runs.csv``: ``energy_kwh_per_100km_<class>`` for every
+    registered class (:data:`envs.vehicle_classes.VEHICLE_CLASSES`), then
+    ``energy_drag_saving``, the drag-saving model the power used."""
+    from envs.vehicle_classes import VEHICLE_CLASSES
+
+    return (*(f"energy_kwh_per_100km_{c}" for c in VEHICLE_CLASSES), "energy_drag_saving")
+
+
+def class_energy_metrics(traj: Trajectory) -> dict[str, float | str]:
+    """Energy per vehicle class (:func:`class_energy_columns`): each class's battery energy over
+    its vehicles' distance, kWh/100 km, over rows 1..T as ``energy_kwh_per_100km`` (the
+    string's: every follower's energy over every follower's distance, per vehicle). NaN for a
+    class not in the string, and for every class in the homogeneous platoon (no classes)."""
+    out: dict[str, float | str] = {c: math.nan for c in class_energy_columns()}
+    out["energy_drag_saving"] = traj.drag_saving
+    if traj.vehicle_classes is None or traj.steps == 0:
+        return out
+    names = np.array(traj.vehicle_classes)
+    energy_kwh = traj.power_kw[1:].sum(axis=0) * traj.dt_s / 3600.0  # (N,)
+    distance_km = traj.speed_mps[1:].sum(axis=0) * traj.dt_s / 1000.0
+    for name in dict.fromkeys(traj.vehicle_classes):
+        seats = names == name
+        km = float(distance_km[seats].sum())
+        out[f"energy_kwh_per_100km_{name}"] = (float(energy_kwh[seats].sum()) / km * 100.0
+                                               if km > 0 else math.nan)
+    return out
+
+
+def jerk_rms_after_start_mps3(traj: Trajectory) -> float:
+    """RMS jerk (m/s^3) of the accelerations after the start-up transient: the jerks between
+    rows ``1 + START_TRANSIENT_STEPS .. T`` (``jerk_rms_mps3`` starts one row earlier, at row 1,
+    whose acceleration is the transient's). 0 when fewer than two such rows exist."""
+    first = 1 + START_TRANSIENT_STEPS
+    a = traj.accel_mps2[first : traj.steps + 1]
+    if a.shape[0] < 2:
+        return 0.0
+    jerk = np.diff(a, axis=0) / traj.dt_s
+    return float(np.sqrt(np.mean(np.square(jerk))))
+
+
+def gap_rmse_own_policy_m(traj: Trajectory, target_gap_m: float,
+                          spacing: SpacingPolicy | None) -> float:
+    """Gap RMSE (m) against the gap the controller aims at: its own constant time-gap policy
+    ``r + h v`` (each follower's own speed, row by row) where it has one, else the scenario's
+    constant ``target_gap_m`` (then it equals ``gap_rmse_m``). Rows 1..T as ``gap_rmse_m``."""
+    rows = slice(1, None) if traj.steps else slice(None)
+    gap = traj.gap_m[rows]
+    target = target_gap_m if spacing is None else spacing.target_gap_m(traj.speed_mps[rows])
+    return float(np.sqrt(np.mean(np.square(gap - target))))
+
+
 def run_metrics(
-    traj: Trajectory, target_gap_m: float, target_speed_mps: float
-) -> dict[str, float | int | bool]:
+    traj: Trajectory, target_gap_m: float, target_speed_mps: float,
+    spacing: SpacingPolicy | None = None,
+) -> dict[str, float | int | bool | str]:
     """All per-run metrics of ``runs.csv`` that come from the trajectory (the mixed-traffic ones
-    from :func:`mixed_traffic_metrics`, after the trajectory's ``settle_steps``)."""
+    from :func:`mixed_traffic_metrics`, after the trajectory's ``settle_steps``); ``spacing``:
+    the controller's own spacing policy (:meth:`controllers.base.Controller.spacing_policy`),
+    for ``gap_rmse_own_policy_m``."""
     n = traj.gap_m.shape[1]
     dt = traj.dt_s
     steps = traj.steps
@@ -276,6 +337,12 @@ def run_metrics(
         "controllable_energy_kwh": controllable_kwh,
         "controllable_energy_kwh_per_100km": ((controllable_kwh / n) / distance_km * 100.0
                                               if distance_km > 0 else math.nan),
+        # the gap against the controller's own spacing policy (gap_rmse_m: the reward's target)
+        "gap_rmse_own_policy_m": gap_rmse_own_policy_m(traj, target_gap_m, spacing),
+        # jerk without the start-up transient (jerk_rms_mps3 keeps it, as published)
+        "jerk_rms_after_start_mps3": jerk_rms_after_start_mps3(traj),
         # mixed traffic: the whole string, humans included, after the settle time
         **mixed_traffic_metrics(traj),
+        # energy per vehicle class, and the drag-saving model used (docs/vehicle-classes.md)
+        **class_energy_metrics(traj),
     }

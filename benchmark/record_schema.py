@@ -118,6 +118,22 @@ class RunRecord(BaseModel):
     energy_cavs_kwh: Metric = None
     controllable_energy_humans_kwh: Metric = None
     controllable_energy_cavs_kwh: Metric = None
+    # the gap against the controller's own spacing policy, the jerk without the start-up
+    # transient (absent from stores written before them: runs.csv leaves them empty)
+    gap_rmse_own_policy_m: NonNegative = Field(default=None, ge=0.0)
+    jerk_rms_after_start_mps3: NonNegative = Field(default=None, ge=0.0)
+    # the controller's own constant time-gap policy r + h v (absent: it has none, or the run
+    # was stored before it was recorded; controllers.base.SpacingPolicy)
+    spacing_standstill_m: Metric = None
+    spacing_time_gap_s: NonNegative = Field(default=None, ge=0.0)
+    # energy per vehicle class (null: the class is not in the string, or no classes) and the
+    # drag-saving model (benchmark.metrics.class_energy_metrics; absent from older stores)
+    energy_kwh_per_100km_car: Metric = None
+    energy_kwh_per_100km_i3: Metric = None
+    energy_kwh_per_100km_van: Metric = None
+    energy_kwh_per_100km_bus: Metric = None
+    energy_kwh_per_100km_truck: Metric = None
+    energy_drag_saving: str | None = None
 
     @field_validator("options")
     @classmethod

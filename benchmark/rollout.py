@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -56,6 +57,11 @@ class Trajectory:
     ring : bool
         A ring road: there is no leader and ``leader_speed_mps`` records follower N's speed
         (follower 1's predecessor).
+    vehicle_classes : tuple of str or None
+        The followers' vehicle classes (:mod:`envs.vehicle_classes`), follower 1 first; None:
+        the homogeneous platoon.
+    drag_saving : str
+        The platoon drag-saving model the power used (scenario option ``drag_saving``).
     """
 
     gap_m: np.ndarray
@@ -78,6 +84,8 @@ class Trajectory:
     automated: np.ndarray | None = None
     settle_steps: int = 0
     ring: bool = False
+    vehicle_classes: tuple[str, ...] | None = None
+    drag_saving: str = "none"
 
 
 def rollout(
@@ -87,13 +95,16 @@ def rollout(
     seed: int,
     params: PlatoonParams = PlatoonParams(),
     channel: ChannelConfig = ChannelConfig(),
+    simulator: str = "builtin",
 ) -> Trajectory:
     """Run one episode of ``scenario`` with ``controller`` until its end or a collision.
 
     The reward of each step is the environment's own (evaluation form: no safety term; the
     tracking reward is the same without the power term), so metrics never recompute it.
+    ``simulator`` is ``builtin`` or ``sumo`` (:mod:`envs.simulators`).
     """
-    return rollout_batch(controller, scenario, n_vehicles, [seed], params, channel)[0]
+    return rollout_batch(controller, scenario, n_vehicles, [seed], params, channel,
+                         simulator)[0]
 
 
 def rollout_batch(
@@ -103,6 +114,7 @@ def rollout_batch(
     seeds: Sequence[int],
     params: PlatoonParams = PlatoonParams(),
     channel: ChannelConfig = ChannelConfig(),
+    simulator: str = "builtin",
 ) -> list[Trajectory]:
     """Run the episodes of ``seeds`` together (one batched env, one controller reset).
 
@@ -118,13 +130,26 @@ def rollout_batch(
     b = len(seeds_arr)
     if b == 0:
         return []
-    env = PlatoonEnv(scenario, n_vehicles, params, observe=controller.needs_observation)
+    from envs.simulators import check_runs_in
+
+    check_runs_in(controller, simulator)  # a model that runs inside one simulator only
+    if simulator == "builtin":
+        env = PlatoonEnv(scenario, n_vehicles, params, observe=controller.needs_observation)
+    else:
+        from envs.simulators import make_env
+
+        env = make_env(simulator, scenario, n_vehicles, params,
+                       observe=controller.needs_observation)
     recorded = getattr(controller, "recorded", None)
     if recorded is not None:  # a recorded platoon (real data), scored by the same rules
         return [_score_recorded(env, recorded(scenario, n_vehicles), params) for _ in seeds_arr]
     ctx = EpisodeContext(scenario, n_vehicles, seeds_arr, params, channel,
                          closed_loop=rollout_batch)
-    reset_controller(controller, ctx)
+    with _controller_code(controller, "reset"):
+        reset_controller(controller, ctx)
+    bind = getattr(env, "bind_controller", None)  # another simulator's env
+    if bind is not None:
+        bind(controller)
     obs = env.reset(seeds_arr)
     s = env.state
     assert s is not None
@@ -145,7 +170,8 @@ def rollout_batch(
     while t < t_max:
         bits_before = ctx.bits_sent
         t0 = clock()
-        command = controller.act(s, obs)
+        with _controller_code(controller, "act"):
+            command = controller.act(s, obs)
         compute[t] = (clock() - t0) / b
         # a signal whose exception a library swallowed inside act (measured: about 1 in 8
         # SIGINTs during CasADi MPC sweeps) still ends the run here, unstored
@@ -171,6 +197,8 @@ def rollout_batch(
     totals = totals_of() if totals_of is not None else None
     automated = s.automated_mask.copy()
     settle = settle_steps(scenario, params)
+    vehicles = getattr(env, "vehicles", None)
+    classes = vehicles.names if vehicles is not None else None
     out = []
     for k in range(b):
         n_k = int(steps[k])
@@ -200,9 +228,67 @@ def rollout_batch(
                 automated=automated.copy(),
                 settle_steps=settle,
                 ring=bool(scenario.ring),
+                vehicle_classes=classes,
+                drag_saving=str(scenario.options.get("drag_saving", "none")),
             )
         )
     return out
+
+
+#: Steps of the episode :func:`check_contract` runs before a command's work (1 s at 0.1 s).
+CONTRACT_CHECK_STEPS = 10
+
+
+def check_contract(controller: Controller, scenario: Scenario, n_vehicles: int,
+                   params: PlatoonParams = PlatoonParams(),
+                   channel: ChannelConfig = ChannelConfig(),
+                   steps: int = CONTRACT_CHECK_STEPS) -> None:
+    """Refuse, before a command's work, a controller that breaks the loop's contract at once:
+    run the first ``steps`` steps of one episode (seed 0) of ``scenario`` through
+    :func:`rollout`; a command of the wrong shape, type or not finite, or an error its own code
+    raises, is a :class:`ConfigError` naming the controller and what it broke.
+
+    For the commands whose work is one measurement of a controller rather than stored runs
+    (``stability --empirical``, ``perf``): ``run`` stores such a failure as the run's.
+
+    Parameters
+    ----------
+    controller : Controller
+        A fresh controller (the check resets it).
+    scenario : Scenario
+        The scenario the work runs on; its first ``steps`` steps are run.
+    n_vehicles : int
+        Followers N.
+    params, channel
+        The physical parameters and the V2V channel of the work.
+    steps : int
+        Steps to run (:data:`CONTRACT_CHECK_STEPS`).
+
+    Raises
+    ------
+    ConfigError
+        ``<name>: act returned a non-finite command; ...`` and the like, or ``controller
+        <name> failed in its first steps on <scenario> (RuntimeError: ...)``.
+    """
+    import dataclasses
+
+    from infra.errors import CaccBenchError, ConfigError
+    from infra.plugins import first_line
+
+    short = dataclasses.replace(scenario, n_steps=min(steps, scenario.n_steps))
+    try:
+        rollout(controller, short, n_vehicles, 0, params, channel)
+    except CaccBenchError:
+        raise
+    except ControllerContractError as exc:
+        raise ConfigError(f"{exc}; fix the controller (its contract: "
+                          "controllers.base.Controller)") from None
+    except Exception as exc:  # noqa: BLE001 - the controller's own code: one line, not its trace
+        raise_if_interrupted()
+        raise ConfigError(f"controller {controller.name} failed in its first {steps} steps on "
+                          f"{scenario.label or scenario.id} ({first_line(exc)}); fix the "
+                          "controller (`cacc-bench run` with it stores each failure's traceback "
+                          "in its runs)") from None
 
 
 def settle_steps(scenario: Scenario, params: PlatoonParams) -> int:
@@ -210,12 +296,32 @@ def settle_steps(scenario: Scenario, params: PlatoonParams) -> int:
     return int(round(scenario.settle_s / params.dt_s))
 
 
+@contextmanager
+def _controller_code(controller: Controller, method: str) -> Iterator[None]:
+    """Around a call of the controller's own code (``reset``, ``act``): ``sys.exit()`` there
+    (a user's controller, :mod:`infra.plugins`) is the run's failure, a
+    :class:`ControllerContractError`, not the end of the command that runs it; a signal
+    received meanwhile still ends the command (:func:`raise_if_interrupted`)."""
+    try:
+        yield
+    except SystemExit as exc:
+        raise_if_interrupted()
+        raise ControllerContractError(
+            f"{controller.name}: {method} called sys.exit({exc.code!r}); a controller reports "
+            "a failure by raising an exception, never by ending the process") from None
+
+
 def _check_command(controller: Controller, command: np.ndarray, b: int, n: int) -> None:
-    """The loop's contract: ``act`` returns ``(B, N)`` finite accelerations."""
+    """The loop's contract: ``act`` returns ``(B, N)`` finite accelerations (real numbers)."""
     shape = np.shape(command)
     if shape != (b, n):
         raise ControllerContractError(
             f"{controller.name}: act returned shape {shape}, expected (B, N) = ({b}, {n})")
+    kind = np.asarray(command).dtype
+    if kind.kind not in "fiu":  # strings, objects, booleans, complex numbers
+        raise ControllerContractError(
+            f"{controller.name}: act returned values of dtype {kind}, expected (B, N) = "
+            f"({b}, {n}) accelerations as real numbers (float)")
     if not np.all(np.isfinite(command)):
         raise ControllerContractError(f"{controller.name}: act returned a non-finite command")
 

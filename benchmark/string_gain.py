@@ -3,6 +3,9 @@
 - :func:`time_domain_string_gain`: ``max_i ||a_i||_2 / ||a_{i-1}||_2`` on accelerations.
 - :func:`spacing_string_gain`: the same ratio on the followers' spacing errors.
 
+The controller's own string stability, the same frequency sweep for every controller that each
+leaderboard row carries, is :mod:`benchmark.sweep`.
+
 :mod:`analysis.stability` re-exports both with the analytic and empirical gains.
 """
 
@@ -10,7 +13,8 @@ from __future__ import annotations
 
 import numpy as np
 
-#: Tolerance of the time-domain and empirical string gains: string stable if gain <= 1 + tol.
+#: Tolerance of the time-domain and empirical string gains: string stable if gain <= 1 + tol
+#: (also the leaderboard's mark on the standard frequency sweep, ``benchmark.sweep.SWEEP_TOL``).
 STRING_GAIN_TOL = 1e-2
 
 

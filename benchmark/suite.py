@@ -23,6 +23,7 @@ from controllers.registry import canonical_options, controller_label, resolve
 from envs.channel import ChannelConfig
 from envs.params import PlatoonParams
 from envs.scenarios import Scenario, as_scenario
+from envs.simulators import simulator_label
 from infra.errors import ConfigError
 from infra.interrupt import raise_if_interrupted
 
@@ -51,6 +52,10 @@ class RunKey:
     name: str = ""
     options: str = "{}"
     built: Scenario | None = field(default=None, compare=False, repr=False)
+    #: ``builtin`` or ``sumo`` (:mod:`envs.simulators`); a SUMO run's controller label carries
+    #: it (``cacc@sumo``), so its id, row and file stem are its own, and a built-in run's key
+    #: is what it always was
+    simulator: str = "builtin"
 
     @property
     def id(self) -> str:
@@ -77,8 +82,10 @@ def build_sweep(
     comm_delays_s: Sequence[float] = (0.0,),
     packet_losses: Sequence[float] = (0.0,),
     lags_s: Sequence[float] = (0.0,),
+    simulator: str = "builtin",
 ) -> list[RunKey]:
     """All run keys of the product, sorted; validates controller names (unknown ones raise).
+    ``simulator`` is the simulator of every run (:mod:`envs.simulators`).
 
     ``scenarios`` are built ones (:func:`envs.scenarios.parse_scenarios`); a label is built by
     :func:`envs.scenarios.as_scenario`. Each key names its scenario by the canonical label.
@@ -88,7 +95,7 @@ def build_sweep(
     for name, given in controllers:
         resolve(name)
         opts = canonical_options(name, given)
-        label = controller_label(name, opts)
+        label = simulator_label(controller_label(name, opts), simulator)
         opt_json = json.dumps(opts, sort_keys=True)
         for sc in built:
             for n in vehicles:
@@ -98,7 +105,8 @@ def build_sweep(
                             for seed in seeds:
                                 keys.append(
                                     RunKey(label, sc.label, int(n), float(d), float(loss),
-                                           float(lag), int(seed), name, opt_json, sc)
+                                           float(lag), int(seed), name, opt_json, sc,
+                                           simulator)
                                 )
     return sorted(set(keys))
 
@@ -109,7 +117,9 @@ def _record(key: RunKey) -> dict:
 
     return {
         "id": key.id,
-        **{f.name: getattr(key, f.name) for f in dataclasses.fields(key) if f.compare},
+        **{f.name: getattr(key, f.name) for f in dataclasses.fields(key)
+           if f.compare and f.name != "simulator"},
+        **({"simulator": key.simulator} if key.simulator != "builtin" else {}),
         "family": resolve(key.name).family,
         "status": "ok",
         "error": "",
@@ -129,10 +139,15 @@ def _setting(key: RunKey) -> tuple[PlatoonParams, ChannelConfig]:
 
 
 def _finish(record: dict, traj: Any, target_gap_m: float, target_speed_mps: float,
-            keep_trajectory: bool) -> dict:
+            keep_trajectory: bool, controller: Any = None) -> dict:
     from benchmark.metrics import run_metrics
 
-    record.update(run_metrics(traj, target_gap_m, target_speed_mps))
+    spacing = (controller.spacing_policy(target_gap_m, target_speed_mps)
+               if controller is not None else None)
+    record.update(run_metrics(traj, target_gap_m, target_speed_mps, spacing))
+    if spacing is not None:  # the controller's own gap target, for the figures
+        record["spacing_standstill_m"] = float(spacing.standstill_m)
+        record["spacing_time_gap_s"] = float(spacing.time_gap_s)
     if keep_trajectory:
         record["_trajectory"] = traj
     return record
@@ -153,9 +168,11 @@ def execute_run(key: RunKey, keep_trajectory: bool = False) -> dict:
         controller = make_controller(key.name, **json.loads(key.options))
         record["deterministic"] = bool(getattr(controller, "deterministic", True))
         params, channel = _setting(key)
-        traj = rollout(controller, scenario, key.n_vehicles, key.seed, params, channel)
+        traj = rollout(controller, scenario, key.n_vehicles, key.seed, params, channel,
+                       key.simulator)
         record["policy_sha256"] = str(getattr(controller, "policy_sha256", ""))
-        _finish(record, traj, scenario.target_gap_m, scenario.target_speed_mps, keep_trajectory)
+        _finish(record, traj, scenario.target_gap_m, scenario.target_speed_mps, keep_trajectory,
+                controller)
     except Exception as exc:  # a failing controller must not end the sweep
         raise_if_interrupted()  # an interrupted run is not a failed run: it is not stored
         record["status"] = "failed"
@@ -190,7 +207,7 @@ def execute_batch(keys: Sequence[RunKey], keep_trajectory: bool = False) -> list
             return [execute_run(k, keep_trajectory) for k in keys]
         params, channel = _setting(head)
         trajs = rollout_batch(controller, scenario, head.n_vehicles, [k.seed for k in keys],
-                              params, channel)
+                              params, channel, head.simulator)
     except Exception:  # run one by one: the failure belongs to a run, not to the batch
         raise_if_interrupted()
         return [execute_run(k, keep_trajectory) for k in keys]
@@ -201,7 +218,8 @@ def execute_batch(keys: Sequence[RunKey], keep_trajectory: bool = False) -> list
         record = _record(key)
         record["deterministic"] = bool(getattr(controller, "deterministic", True))
         record["policy_sha256"] = policy
-        _finish(record, traj, scenario.target_gap_m, scenario.target_speed_mps, keep_trajectory)
+        _finish(record, traj, scenario.target_gap_m, scenario.target_speed_mps, keep_trajectory,
+                controller)
         record["wall_s"] = wall_s
         records.append(record)
     return records

@@ -17,6 +17,17 @@ from pathlib import Path
 
 from benchmark.folder_lock import folder_lock
 
+_STARTED_IN: list[str] = []  # the working directories the open working_in blocks left
+
+
+def shown_path(path: str | Path) -> str:
+    """``path`` as the user who typed the command can open it: relative to the directory they
+    ran it from (not to an output folder a command works inside, :func:`working_in`) when it
+    lies inside it, else absolute."""
+    user_dir = Path(_STARTED_IN[0] if _STARTED_IN else os.getcwd())
+    full = Path(os.path.abspath(path))
+    return str(full.relative_to(user_dir)) if full.is_relative_to(user_dir) else str(full)
+
 
 @contextlib.contextmanager
 def working_in(folder: str | Path) -> Iterator[Path]:
@@ -26,9 +37,11 @@ def working_in(folder: str | Path) -> Iterator[Path]:
         here = Path(folder).resolve()
         previous = os.getcwd()
         os.chdir(here)
+        _STARTED_IN.append(previous)
         try:
             yield here
         finally:
+            _STARTED_IN.pop()
             os.chdir(previous)
 
 

@@ -40,8 +40,13 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
                    "learned controllers off their training scenario: a matrix on the test seeds"),
     "penetration": ("commands.penetration",
                     "mixed traffic: which family damps waves at what share of automated vehicles"),
+    "heterogeneous": ("commands.heterogeneous",
+                      "a bus, a van and cars in three orders under every family, one report"),
+    "string-stability": ("commands.string_stability",
+                         "string stability against reward for every controller, one report"),
     "fit-power": ("commands.fit_power", "re-fit the energy polynomial and print its quality"),
     "perf": ("commands.perf", "environment, controller and training throughput"),
+    "sumo-compare": ("commands.sumo_compare", "the built-in simulator and SUMO side by side"),
 }
 
 USAGE = """usage: cacc-bench <command> [options]
@@ -221,7 +226,7 @@ def no_space(exc: BaseException) -> str | None:
 
 #: Commands that complete an interrupted invocation with ``--resume``.
 RESUMABLE = ("run", "train", "tune", "reproduce", "pareto", "sensitivity", "compare-learned",
-             "generalise", "penetration")
+             "generalise", "penetration", "string-stability", "heterogeneous")
 
 
 def _interrupted(exc: KeyboardInterrupt, command: str = "") -> int:
@@ -241,6 +246,8 @@ def interrupted_line(signum: int, command: str) -> str:
     """The one line an interrupted ``command`` prints (what was kept, how to go on)."""
     advice = ("its study records the trial in flight as failed and keeps the finished ones "
               "(complete with --resume)" if command == "tune" else
+              "finished runs are stored, the runs in flight keep their last snapshot "
+              "(continue with --resume)" if command == "train" else
               "the run in flight was not stored, finished runs are (complete with --resume)"
               if command in RESUMABLE else
               "nothing in flight was written, finished files were left as they were (rerun it)")

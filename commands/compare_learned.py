@@ -78,6 +78,7 @@ def main(argv: list[str]) -> int:
         IDEAL,
         comparisons_frame,
         episodes_frame,
+        policy_sweeps,
         policy_table,
         write_report,
     )
@@ -101,13 +102,19 @@ def main(argv: list[str]) -> int:
               f"settings x {len(seeds)} episodes = {len(keys)} runs", file=sys.stderr)
         rc = execute_sweep(keys, out / "runs", resume=args.resume, executor=args.executor,
                            workers=args.workers, ray_address=args.ray_address, quiet=True,
-                           first_seed=seeds[0])
+                           first_seed=seeds[0], sweeps=True)
         ep = episodes_frame(read_csv(out / "runs" / "runs.csv", "the runs table"))
         ep = ep[ep["n_vehicles"] == args.vehicles]
         comp = comparisons_frame(ep)
+        from benchmark.sweep import SweepCache
+
+        cache = SweepCache(out / "runs")  # the runs' leaderboard measured them: read back
+        sweeps = policy_sweeps(ep, cache)
+        cache.save()
         write_csv(ep, out / "episodes.csv")
         write_csv(policy_table(ep), out / "policies.csv")
         write_csv(comp, out / "comparisons.csv")
-        report = write_report(ep, comp, out, command)
+        write_csv(sweeps, out / "sweeps.csv")
+        report = write_report(ep, comp, out, command, sweeps)
     print(f"wrote {report} and the tables beside it")
     return rc

@@ -28,7 +28,8 @@ def _parser() -> argparse.ArgumentParser:
                    help="leave out the learned rows behind the safety filter")
     p.add_argument("--controllers", default=None,
                    help="only the rows of these controllers (comma list, e.g. cacc,ippo,safe:ippo;"
-                        " default: every row)")
+                        " default: every row); a controller with no row of its own (idm, "
+                        "my_module:MyController, mpc:horizon=30) is one more row")
     p.add_argument("--columns", default=None,
                    help="only these columns (comma list of their names; default: all)")
     p.add_argument("--out", default="results/generalise",
@@ -45,6 +46,31 @@ def _available(controller: str, options: dict[str, str], n_vehicles: int) -> boo
     folder = VARIANT_DIR / options["variant"] if "variant" in options else None
     return checkpoint_path(controller, options["scenario"], n_vehicles, int(options["seed"]),
                            folder).exists()
+
+
+def _select_rows(rows: list, text: str) -> list:
+    """The rows of ``--controllers``: a name with rows (``cacc``, ``ippo``, ``safe:ippo``) keeps
+    them; any other controller that is not a learned policy (a registered one with no row, one
+    with options, a ``package.module:Class`` of the user's) is one more row, labelled as in the
+    leaderboard. Repeats are said on standard error."""
+    from controllers.registry import controller_label, parse_controller_list, resolve
+    from infra.naming import merge_repeats
+    from studies.generalisation import Row
+
+    given = parse_controller_list(text)
+    given, note = merge_repeats(given, [controller_label(*g) for g in given], "--controllers")
+    if note:
+        print(note, file=sys.stderr)
+    out = []
+    for name, options in given:
+        mine = [r for r in rows if r.controller == name] if not options else []
+        if not mine and resolve(name).family == "marl":
+            raise ConfigError(f"--controllers: no row of {name}"
+                              f"{'' if not options else ' with options'}; rows are of "
+                              f"{', '.join(sorted({r.controller for r in rows}))}")
+        label = controller_label(name, options)
+        out += mine or [Row(label, name, tuple(sorted(options.items())), False)]
+    return out
 
 
 def _once(text: str, option: str) -> list[str]:
@@ -94,12 +120,7 @@ def main(argv: list[str]) -> int:
     rows = [*learned, *([] if args.no_safety_filter else [with_safety_filter(r) for r in learned]),
             *(Row(name, name, (), False) for name in MODEL_BASED)]
     if args.controllers is not None:
-        wanted = set(_once(args.controllers, "--controllers"))
-        unknown = wanted - {r.controller for r in rows}
-        if unknown or not wanted:
-            raise ConfigError(f"--controllers: no row of {', '.join(sorted(unknown)) or 'nothing'};"
-                              f" rows are of {', '.join(sorted({r.controller for r in rows}))}")
-        rows = [r for r in rows if r.controller in wanted]
+        rows = _select_rows(rows, args.controllers)
     columns = list(COLUMNS)
     if args.columns is not None:
         names = _once(args.columns, "--columns")

@@ -1,13 +1,24 @@
-"""``cacc-bench list``: scenarios and controllers (with family and V2V needs)."""
+"""``cacc-bench list``: scenarios and controllers (with family and V2V needs), the built-in ones
+and those of installed packages (entry points ``cacc_bench.controllers``, ``cacc_bench.scenarios``)."""
 
 from __future__ import annotations
 
 import argparse
 
 from commands.cli import plain
-from controllers.registry import CONTROLLERS, controller_options
+from controllers.registry import (
+    CONTROLLERS,
+    ENTRY_POINT_GROUP,
+    controller_options,
+    plugin_conflicts,
+    plugin_targets,
+    resolve,
+)
 from envs.params import PlatoonParams
-from envs.scenarios import ARRANGEMENT_DEFAULTS, list_scenarios
+from envs.scenarios import ARRANGEMENT_DEFAULTS, list_scenarios, scenario_spec
+from envs.scenarios import ENTRY_POINT_GROUP as SCENARIO_GROUP
+from envs.scenarios import plugin_targets as scenario_targets
+from infra.errors import CaccBenchError
 
 
 def main(argv: list[str]) -> int:
@@ -21,6 +32,15 @@ def main(argv: list[str]) -> int:
         pub = " (published)" if s.published else ""
         print(f"  {s.id:<14} d*={s.target_gap_m:g} m, v*={s.target_speed_mps:g} m/s, "
               f"{s.n_steps} steps, N={s.default_vehicles} by default{pub}: {s.description}{extra}")
+    listed = {s.id for s in list_scenarios()}
+    for name, target in scenario_targets().items():
+        if name not in listed:  # an installed package's scenario that does not load: why
+            try:
+                scenario_spec(name)
+            except CaccBenchError as exc:
+                print(f"  {name:<14} ({SCENARIO_GROUP} entry point {target}) cannot be used: {exc}")
+    print("  package.module:NAME  a ScenarioSpec of your own (docs/contributing.md, Add a "
+          "scenario), e.g. --scenarios my_scenarios:HILL")
     opts = ", ".join(f"{k}={v!s}" if v != "" else f"{k}=" for k, v in ARRANGEMENT_DEFAULTS.items())
     print(f"  every scenario also takes the arrangement of human drivers (mixed traffic; "
           f"docs/concepts/mixed-traffic.md): {opts}")
@@ -35,12 +55,28 @@ def main(argv: list[str]) -> int:
     print("\ncontrollers (name [family]: description; V2V; options with their defaults, set as "
           "name:key=value):")
     for c in CONTROLLERS.values():
-        if not c.available:
-            print(f"  {c.name:<8} [{c.family}] {c.description}  (not available in this version)")
+        if not c.available:  # an extra not installed says how to install it
+            why = (f"needs {', '.join(c.requires)}; install it with: {c.install}" if c.install
+                   else "not available in this version")
+            print(f"  {c.name:<8} [{c.family}] {c.description}  ({why})")
             continue
         print(f"  {c.name:<8} [{c.family}] {c.description}; V2V: {c.v2v}")
         opts = ", ".join(f"{k}={v}" for k, v in controller_options(c.name).items())
         print(f"           options: {opts or 'none'}")
+    for name, target in plugin_targets().items():  # installed packages' controllers
+        try:
+            c = resolve(name)
+            opts = ", ".join(f"{k}={v}" for k, v in controller_options(name).items())
+        except CaccBenchError as exc:
+            print(f"  {name:<8} ({ENTRY_POINT_GROUP} entry point {target}) cannot be used: {exc}")
+            continue
+        print(f"  {c.name:<8} [{c.family}] {c.description} (installed: {target}); V2V: {c.v2v}")
+        print(f"           options: {opts or 'none'}")
+    for name, why in plugin_conflicts().items():
+        print(f"  {name:<8} ({ENTRY_POINT_GROUP} entry point) {why}")
+    print("  package.module:Class  a controller class of your own, a subclass of "
+          "controllers.base.Controller (docs/contributing.md, Add a controller), e.g. "
+          "--controllers my_laws:MyLaw:gain=2 (options after a further colon)")
     print("  safe:<name> [its family] the controller <name> (any above but openacc-real) behind "
           "the worst-case-braking safety filter (docs/safety-filter.md), e.g. safe:cacc, "
           "safe:bdc:scenario=catchup-v1")

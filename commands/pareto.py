@@ -3,7 +3,9 @@
 Each family is swept along its own energy/tracking knob (``mpc``: the energy weight;
 ``mpc-qp`` and ``cmpc``: the input weight against tracking; ``cacc``: time gap and gain);
 BDC and IA2C along the power weight w5 of their training reward (shipped variants); ``ovm``,
-``duty`` and the other MARL policies are single points. Runs go through the results
+``duty`` and the other MARL policies are single points, as is every controller ``--controllers``
+adds (a registered one with its options, or ``package.module:Class`` of the user's). Runs go
+through the results
 store and the harness executors (resumable, identical on every executor); ``OUT/pareto.csv``
 and one figure per scenario come out.
 """
@@ -69,6 +71,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--vehicles", type=int, default=8, help="followers N (default: 8)")
     p.add_argument("--families", default=",".join(FAMILY_GROUPS),
                    help="comma list among " + ", ".join(FAMILY_GROUPS) + " (default: all)")
+    p.add_argument("--controllers", default=None,
+                   help="more controllers, each a single point beside the families (comma list "
+                        "with options as name:key=value, or my_module:MyController; default: "
+                        "none)")
     p.add_argument("--energy", choices=("total", "controllable"), default="total",
                    help="energy objective: the total energy per vehicle, or only its part above "
                         "steady cruise at the leader's mean speed (docs/controllable-energy.md); "
@@ -152,6 +158,16 @@ def main(argv: list[str]) -> int:
     if args.workers < 1:
         raise ConfigError(f"--workers must be >= 1, got {args.workers}")
     settings = settings_for(families, labels, args.vehicles)
+    if args.controllers is not None:
+        from controllers.registry import controller_label, parse_controller_list
+
+        held = {s["label"] for s in settings}
+        for name, opts in parse_controller_list(args.controllers):
+            label = controller_label(name, opts)
+            if label not in held:
+                held.add(label)
+                settings.append({"label": label, "family": label, "controller": name,
+                                 "knob": "", "knob_value": "", "options": opts})
     if not settings:
         raise ConfigError("nothing to run: no shipped MARL policy for these scenarios and N")
     seeds = seeds_from_episodes(args.episodes)

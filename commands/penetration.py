@@ -100,7 +100,8 @@ def main(argv: list[str]) -> int:
     bases = []
     set_by_study = (*SEAT_OPTIONS, *PLACEMENT_OPTIONS)
     for given in scenarios_argument(args.scenarios):
-        if any(given.options[k] != make_scenario(given.id).options[k] for k in set_by_study):
+        plain = make_scenario(given.base_name)  # the id, or a scenario of one's own's reference
+        if any(given.options[k] != plain.options[k] for k in set_by_study):
             raise ConfigError(f"--scenarios {given.label}: the study sets which followers are "
                               f"automated itself ({', '.join(set_by_study)}); name the scenario "
                               "without them")

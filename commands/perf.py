@@ -138,8 +138,13 @@ def shared_train_throughput(algo: str, steps: int = 131_072, n_vehicles: int = 8
         torch.set_num_threads(threads)
 
 
-def controller_timing(name: str, n_steps: int = 150, n_vehicles: int = 8,
-                      scenario_id: str = "catchup-v1",
+#: The scenario and the number of followers a controller is timed on.
+TIMING_SCENARIO = "catchup-v1"
+TIMING_VEHICLES = 8
+
+
+def controller_timing(name: str, n_steps: int = 150, n_vehicles: int = TIMING_VEHICLES,
+                      scenario_id: str = TIMING_SCENARIO,
                       options: dict[str, str] | None = None) -> dict[str, float]:
     """Wall time per vehicle per step of one controller, built with ``options`` (first call,
     the build, apart)."""
@@ -162,10 +167,40 @@ def controller_timing(name: str, n_steps: int = 150, n_vehicles: int = 8,
     }
 
 
+def sumo_throughput(quick: bool = False) -> dict[str, Any]:
+    """The SUMO backend (``--only sumo``, the sumo extra): vehicle-steps per second of SUMO and
+    of the built-in simulator on the same runs (:func:`studies.sumo_compare.speed_comparison`),
+    and a small SUMO sweep through the process pool (two workers, each with its own libsumo),
+    whose records must equal the serial ones."""
+    from benchmark.executors import run_keys
+    from benchmark.metrics import TIMING_COLUMNS
+    from benchmark.suite import build_sweep
+    from envs.simulators import check_simulator
+    from studies.sumo_compare import speed_comparison
+
+    check_simulator("sumo")
+    table = speed_comparison(batch_sizes=(1, 4) if quick else (1, 10),
+                             repeats=1 if quick else 2)
+    out: dict[str, Any] = {"sumo_speed": table.to_dict(orient="records")}
+    keys = build_sweep([("cacc", {}), ("plexe:ploeg", {})], ["catchup-v1"], [8],
+                       [2000, 2010], simulator="sumo")
+    serial = {r["id"]: r for r in run_keys(keys)}
+    t0 = time.perf_counter()
+    pooled = {r["id"]: r for r in run_keys(keys, "process", 2)}
+    out["sumo_process_pool_s"] = time.perf_counter() - t0
+    skip = {*TIMING_COLUMNS, "wall_s"}
+    out["sumo_process_pool_equal"] = all(
+        pooled[k][c] == v or (v != v and pooled[k][c] != pooled[k][c])  # NaN equals NaN
+        for k, rec in serial.items() for c, v in rec.items() if c not in skip)
+    if not out["sumo_process_pool_equal"]:
+        raise RuntimeError("SUMO runs in the process pool differ from the serial ones")
+    return out
+
+
 def main(argv: list[str]) -> int:
     """Measure and print a table (``--json`` for a JSON object)."""
     from controllers.registry import available_controllers
-    from infra.errors import ConfigError
+    from infra.errors import ConfigError, ControllerContractError
     from marl.learners import PAPER_ALGORITHMS
 
     p = argparse.ArgumentParser(prog="cacc-bench perf", description=plain(__doc__),
@@ -173,7 +208,9 @@ def main(argv: list[str]) -> int:
     p.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
     p.add_argument("--quick", action="store_true", help="shorter measurements (for tests)")
     p.add_argument("--only", default="env,harness,controllers,train",
-                   help="comma list of parts: env, harness, controllers, train (default: all)")
+                   help="comma list of parts: env, harness, controllers, train (default: all), "
+                        "and sumo (the SUMO backend against the built-in simulator; the sumo "
+                        "extra)")
     p.add_argument("--controllers", default=None,
                    help="comma list of controllers to time, with options as in run "
                         "(mpc:horizon=30,cacc); default: every available non-MARL controller "
@@ -186,7 +223,7 @@ def main(argv: list[str]) -> int:
                    help="where the training part trains: cpu (default) or cuda[:K]")
     args = p.parse_args(argv)
     parts = {x.strip() for x in args.only.split(",") if x.strip()}
-    unknown = parts - {"env", "harness", "controllers", "train"}
+    unknown = parts - {"env", "harness", "controllers", "train", "sumo"}
     if not parts:
         raise ConfigError("--only: no part named; valid: env, harness, controllers, train")
     if unknown:
@@ -201,8 +238,14 @@ def main(argv: list[str]) -> int:
         if not specs:
             raise ConfigError("--controllers: no controller named")
         if given:
+            from benchmark.rollout import check_contract
+            from envs.scenarios import make_scenario
+
             for name, opts in specs:
-                make_controller(name, **opts)  # checks the name and every option
+                ctrl = make_controller(name, **opts)  # checks the name and every option
+                # a controller that breaks the loop's contract (a NaN command, an error in
+                # act) is refused in one line before anything is measured
+                check_contract(ctrl, make_scenario(TIMING_SCENARIO), TIMING_VEHICLES)
     from marl.learners import PPO_LEARNERS
 
     algos = ([a.strip() for a in args.algos.split(",") if a.strip()] if args.algos is not None
@@ -237,6 +280,9 @@ def main(argv: list[str]) -> int:
                 timing[label] = controller_timing(name, n_steps=40 if args.quick else 150,
                                                   options=opts)
             except Exception as exc:  # a missing checkpoint, say: report it, keep measuring
+                if args.controllers and isinstance(exc, ControllerContractError):
+                    raise ConfigError(f"{exc} while timed; fix the controller (its contract: "
+                                      "controllers.base.Controller)") from None
                 if args.controllers:
                     raise
                 timing[label] = f"not measured: {exc}"
@@ -286,6 +332,8 @@ def main(argv: list[str]) -> int:
                 algo: float(train_throughput(algo, steps=4_000 if args.quick else 20_000,
                                              population=args.population, device=args.device))
                 for algo in algos}
+    if "sumo" in parts:
+        out.update(sumo_throughput(quick=args.quick))
     if args.json:
         print(json.dumps(out, indent=2, sort_keys=True))
     else:
@@ -294,6 +342,13 @@ def main(argv: list[str]) -> int:
 
 
 def _print_table(out: dict[str, Any]) -> None:
+    for row in out.get("sumo_speed", []):
+        print(f"SUMO backend, {row['controller']} on {row['scenario']} (B = {row['batch']}): "
+              f"{row['vehicle_steps_per_s_sumo']:,.0f} vehicle-steps/s in SUMO, "
+              f"{row['vehicle_steps_per_s_builtin']:,.0f} built-in ({row['ratio']:.1f}x)")
+    if "sumo_process_pool_s" in out:
+        print(f"SUMO sweep in the process pool (2 workers): {out['sumo_process_pool_s']:.2f} s, "
+              f"records equal to the serial ones: {out['sumo_process_pool_equal']}")
     if "env_vehicle_steps_per_s" in out:
         print("environment (B = 1024, N = 8, observations + reward with power polynomial):")
         print(f"  {out['env_vehicle_steps_per_s'] / 1e6:10.2f} M vehicle-steps/s  "

@@ -2,7 +2,9 @@
 
 A job is a dict (algorithm, scenario, N, seed, folder, config options, budget); a job is done
 when its folder holds its checkpoint with the same config and budget, trained there or copied
-from the shipped checkpoints (with a ``.source.json`` saying which).
+from the shipped checkpoints (with a ``.source.json`` saying which). A job interrupted while it
+trained continues from its snapshot (:meth:`marl.training.TrainingKey.snapshots`) when the
+stage runs again.
 """
 
 from __future__ import annotations

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import shlex
 import sys
 from pathlib import Path
 from typing import Any
@@ -34,6 +35,7 @@ from envs.scenarios import (
     MIN_VEHICLES,
     Scenario,
 )
+from envs.simulators import SIMULATORS, check_simulator
 from infra.errors import ConfigError
 from infra.interrupt import raise_if_interrupted
 
@@ -107,11 +109,28 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--ray-address", default=None,
                    help="attach to this Ray cluster (default: RAY_ADDRESS, else a local instance)")
     p.add_argument("--quiet", action="store_true", help="do not print the leaderboard")
+    p.add_argument("--simulator", choices=SIMULATORS, default=SIMULATORS[0],
+                   help="builtin (default), sumo (the same controllers, scenarios and metrics "
+                        "in SUMO through libsumo, its dynamics matched to the built-in ones) or "
+                        "sumo-euler (SUMO's default Euler position update); the sumo extra: "
+                        "pip install -e '.[sumo]' (docs/sumo/index.md)")
     p.add_argument("--pool-seeds", action="store_true",
                    help="one leaderboard row per MARL policy over its training seeds "
                         "(--controllers bdc:seed=0,bdc:seed=1,bdc:seed=2): a two-stage bootstrap "
                         "over training seeds, then episodes")
+    add_rank_by_option(p)
     return p
+
+
+def add_rank_by_option(p: argparse.ArgumentParser) -> None:
+    """``--rank-by`` (``run`` and ``leaderboard``): how ``rank`` orders a setting's rows."""
+    from benchmark.export import RANK_BY
+
+    p.add_argument("--rank-by", choices=RANK_BY, default=RANK_BY[0],
+                   help="how rank orders the rows of a setting, after putting those without a "
+                        "collision or failed run first: reward (default: by mean reward) or "
+                        "string-stability (the rows whose frequency sweep peaks at most 1 + "
+                        "tolerance first, then by reward)")
 
 
 def _validate(args: argparse.Namespace
@@ -141,6 +160,10 @@ def _validate(args: argparse.Namespace
             raise ConfigError(f"--lag must be >= 0 s, got {lag}")
     if args.workers < 1:
         raise ConfigError(f"--workers must be >= 1, got {args.workers}")
+    check_simulator(args.simulator)  # sumo without the extra: the install command
+    if args.pool_seeds and args.simulator != SIMULATORS[0]:
+        raise ConfigError("--pool-seeds pools the built-in simulator's policies; leave it out "
+                          f"with --simulator {args.simulator}")
     if args.seeds is not None and args.seed_set is not None:
         raise ConfigError("--seed-set and --seeds exclude each other: --seeds names the seeds "
                           "itself, --seed-set picks a named set (with --episodes K, its first K)")
@@ -160,19 +183,28 @@ def _validate(args: argparse.Namespace
 
 
 def preflight(controllers: list[tuple[str, dict[str, str]]], scenarios: list[Scenario],
-               vehicles: list[int], lags_s: list[float]) -> None:
+               vehicles: list[int], lags_s: list[float], simulator: str = "builtin") -> None:
     """Build each controller once and check it against every setting, so bad options, missing
-    checkpoints or a loop unstable with the lag fail before any run."""
+    checkpoints, a loop unstable with the lag, a setting ``simulator`` does not run or a
+    scenario of one's own whose builder fails (:func:`envs.scenarios.check_episode`) fail
+    before any run."""
     from controllers.base import check_fits
     from controllers.registry import make_controller
     from envs.params import PlatoonParams
+    from envs.scenarios import check_episode
+    from envs.simulators import check_runs_in, check_setting
 
+    for sc in scenarios:  # a scenario of one's own whose builder fails: refused here
+        for n in vehicles:
+            check_episode(sc, n)
     for name, opts in controllers:
         ctrl = make_controller(name, **opts)
+        check_runs_in(ctrl, simulator)
         for sc in scenarios:
             for n in vehicles:
                 for lag in lags_s:
                     check_fits(ctrl, sc, n, PlatoonParams(lag_s=lag))
+                    check_setting(simulator, sc, n, PlatoonParams(lag_s=lag))
 
 
 def main(argv: list[str]) -> int:
@@ -195,13 +227,14 @@ def main(argv: list[str]) -> int:
     for sc in scenarios:
         vehicles = args.vehicles or [sc.default_vehicles]
         keys += build_sweep(controllers, [sc], vehicles, seeds, args.comm_delay,
-                            args.packet_loss, args.lag)
-        preflight(controllers, [sc], vehicles, args.lag)
+                            args.packet_loss, args.lag, args.simulator)
+        preflight(controllers, [sc], vehicles, args.lag, args.simulator)
     keys = sorted(set(keys))
     return execute_sweep(keys, Path(args.out), resume=args.resume, trajectories=args.trajectories,
                          executor=args.executor, workers=args.workers,
                          ray_address=args.ray_address, quiet=args.quiet, first_seed=seeds[0],
-                         pool_seeds=args.pool_seeds)
+                         pool_seeds=args.pool_seeds, suggest=True,
+                         rank_by=args.rank_by, sweeps=True)
 
 
 def _refuse_changed_policies(keys: list[RunKey], stored: list[dict], out: Path) -> None:
@@ -254,11 +287,20 @@ def execute_sweep(
     pool_seeds: bool = False,
     env: dict[str, str] | None = None,
     banner: str = "",
+    suggest: bool = False,
+    rank_by: str = "reward",
+    sweeps: bool = False,
 ) -> int:
     """Run the keys not yet stored in ``out``, store each as it finishes, write the CSVs;
     ``env``: what the processes that run them hold from their start (the training arithmetic,
     :func:`marl.arithmetic.process_env`); ``banner``: a line for standard error once the store
-    and its records are checked (a refusal stays one line)."""
+    and its records are checked (a refusal stays one line); ``suggest``: end with the commands
+    that read the folder next (``cacc-bench run``); ``rank_by``: the leaderboard's order
+    (:data:`benchmark.export.RANK_BY`); ``sweeps``: the leaderboard carries each row's frequency
+    sweep (:mod:`benchmark.sweep`, measured on the same executor and cached in ``out``; ``run``
+    and ``compare-learned`` ask for it, the other studies' sweeps leave it out and
+    ``cacc-bench leaderboard`` on their folders adds it). Paths are printed as the user can open
+    them (:func:`benchmark.work_folder.shown_path`)."""
     from benchmark.export import (
         check_csv_targets,
         trajectory_arrays,
@@ -294,7 +336,10 @@ def execute_sweep(
                   file=sys.stderr)
         executor = resolve_executor(todo, executor, workers)
         store.set_meta("last_sweep", {"n_runs": len(keys), "executor": executor})
-        progress = Progress(len(todo))
+        work = {k.id: k.n_vehicles * (k.built.n_steps if k.built is not None else 1)
+                for k in todo}  # vehicle-steps: what a run's time scales with
+        progress = Progress(len(todo), parallel=1 if executor == "serial" else workers,
+                            groups=[k.controller for k in todo], weights=list(work.values()))
         for batch in run_batches(todo, executor, workers, ray_address, keep_trajectory=True,
                                  env=env):
             finished = []
@@ -309,17 +354,29 @@ def execute_sweep(
             store.add_batch(finished)  # one transaction per finished batch
             raise_if_interrupted()  # a signal a library swallowed: stop after what is stored
             for rec, _ in finished:
-                progress.advance(note=f"{rec['controller']} {rec['scenario']} s{rec['seed']}")
+                progress.advance(note=f"{rec['controller']} {rec['scenario']} s{rec['seed']}",
+                                 group=rec["controller"], seconds=rec.get("wall_s"),
+                                 weight=work.get(rec["id"], 1))
         progress.close()
         records = store.records()
-        runs_path, lb_path, lb = write_csvs(out, records, pool_seeds)
+        runs_path, lb_path, lb = write_csvs(out, records, pool_seeds, rank_by=rank_by,
+                                            sweeps=sweeps, executor=executor, workers=workers,
+                                            ray_address=ray_address)
     finally:
         store.close()
     if not quiet:
         from analysis.tables import format_leaderboard
 
         print(format_leaderboard(lb))
-    print(f"wrote {runs_path} ({len(records)} runs) and {lb_path}")
+    from benchmark.store import STORE_NAME
+    from benchmark.work_folder import shown_path
+
+    print(f"wrote {shown_path(runs_path)} ({len(records)} runs), {shown_path(lb_path)} and the "
+          f"store {shown_path(out / STORE_NAME)}")
+    if suggest:
+        folder = shlex.quote(shown_path(out))
+        print(f"next: `cacc-bench plot {folder}` for its figures, `cacc-bench leaderboard "
+              f"{folder}` for this table again")
     failed = [r for r in records if r["status"] != "ok"]
     if failed:
         print(f"{len(failed)} run(s) failed:", file=sys.stderr)

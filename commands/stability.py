@@ -23,7 +23,25 @@ import numpy as np
 from analysis.stability_report import SUMMARY_COLUMNS, Entry, StabilityTables
 from benchmark.export import write_csv
 from envs.params import PlatoonParams
-from infra.errors import ConfigError
+from infra.errors import CaccBenchError, ConfigError, ControllerContractError
+from infra.interrupt import raise_if_interrupted
+from infra.naming import is_reference
+from infra.plugins import first_line
+
+#: The V2V delay and actuator lag the analysis assumes unless told (s): string stability is
+#: decided by them, and the ideal loop of ``run``'s defaults (no delay, no lag) hides what a
+#: real one shows; the command says on standard output which it uses.
+DEFAULT_DELAY_S = 0.2
+DEFAULT_LAG_S = 0.1
+
+
+def setting_line(args: argparse.Namespace, given: set[str]) -> str:
+    """The line saying which delay and lag the analysis uses, and which are this command's
+    defaults (``given``: the flags the user set)."""
+    unset = [f for f in ("--delay", "--lag") if f not in given]
+    why = (f" ({' and '.join(unset)} at this command's default{'s' * (len(unset) > 1)}; "
+           "`cacc-bench run` defaults to no delay and no lag)") if unset else ""
+    return f"V2V delay {args.delay:g} s, actuator lag {args.lag:g} s{why}"
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -41,8 +59,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--time-gap", type=float, default=0.5, help="time gap h of the linear laws, s (default 0.5)"
     )
-    p.add_argument("--delay", type=float, default=0.2, help="V2V delay theta, s (default 0.2)")
-    p.add_argument("--lag", type=float, default=0.1, help="actuator lag tau, s (default 0.1)")
+    p.add_argument("--delay", type=float, default=None,
+                   help=f"V2V delay theta, s (default {DEFAULT_DELAY_S:g}; `run`'s default is 0)")
+    p.add_argument("--lag", type=float, default=None,
+                   help=f"actuator lag tau, s (default {DEFAULT_LAG_S:g}; `run`'s default is 0)")
     p.add_argument(
         "--empirical",
         action="store_true",
@@ -70,7 +90,7 @@ MAX_SWEEP_BYTES = 2**30
 
 
 def _check_args(args: argparse.Namespace) -> None:
-    from infra.limits import check_delay, check_range, check_whole_steps
+    from infra.limits import MAX_TIME_GAP_S, check_delay, check_range, check_whole_steps
 
     check_delay(args.delay, "--delay")
     if args.empirical:  # the analytic loop takes any delay; the simulated sweeps whole steps
@@ -81,6 +101,8 @@ def _check_args(args: argparse.Namespace) -> None:
     ):
         if not math.isfinite(value) or value < 0:
             raise ConfigError(f"{flag} must be a finite number >= 0, got {value}")
+    if args.time_gap > MAX_TIME_GAP_S:  # the linear laws' own bound (controllers.linear)
+        raise ConfigError(f"--time-gap must be at most {MAX_TIME_GAP_S:g} s, got {args.time_gap:g}")
     for flag, value in (
         ("--amplitude", args.amplitude),
         ("--omega-min", args.omega_min),
@@ -159,6 +181,13 @@ def _entries(args: argparse.Namespace) -> list[Entry]:
     for name, options in requested:
         opts: dict[str, Any] = dict(options)
         ctrl = make_controller(name, **opts)
+        runs_in = getattr(ctrl, "runs_in", None)  # a SUMO or Plexe model (envs.simulators)
+        if runs_in is not None:
+            raise ConfigError(
+                f"{name} is a model of {runs_in} and runs in {runs_in} only, and this command "
+                "analyses and sweeps controllers in the built-in simulator; measure its string "
+                f"gain in {runs_in}: `cacc-bench run --simulator {runs_in} --controllers {name}` "
+                "(the leaderboard's string_gain)")
         linear = resolve(name).family == "linear" and hasattr(
             getattr(ctrl, "config", None), "time_gap_s"
         )
@@ -184,12 +213,15 @@ def _preflight_empirical(name: str, opts: dict[str, Any], ctrl: Any,
     """Load what ``ctrl`` needs for the ``sine-v1`` sweeps with N = ``--n-vehicles``; a policy
     without a sine-v1 checkpoint is refused naming the option that works (a policy trained on
     another scenario, ``NAME:scenario=ID``)."""
+    from benchmark.rollout import check_contract
+    from controllers.registry import make_controller
+    from envs.channel import ChannelConfig
     from envs.params import PlatoonParams as Params
     from envs.scenarios import make_scenario
 
+    sine = make_scenario("sine-v1", amplitude_mps=args.amplitude)
     try:
-        ctrl.preflight(make_scenario("sine-v1", amplitude_mps=args.amplitude),
-                       args.n_vehicles, Params(lag_s=args.lag))
+        ctrl.preflight(sine, args.n_vehicles, Params(lag_s=args.lag))
     except ConfigError as exc:
         if resolve_family(name) != "marl" or "scenario" in opts:
             raise
@@ -204,6 +236,10 @@ def _preflight_empirical(name: str, opts: dict[str, Any], ctrl: Any,
             f"one trained on {have[0]}: --controllers {name}:scenario={have[0]} (or train one: "
             f"`cacc-bench train --algo {name} --scenario sine-v1 --vehicles {args.n_vehicles}`)"
         ) from exc
+    # a controller that breaks the loop's contract (a NaN command, an error in act) is refused
+    # now, in one line, not as a traceback in the middle of the sweeps
+    check_contract(make_controller(name, **opts), sine, args.n_vehicles, Params(lag_s=args.lag),
+                   ChannelConfig(args.delay, 0.0))
 
 
 def resolve_family(name: str) -> str:
@@ -220,12 +256,16 @@ def main(argv: list[str]) -> int:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # --help (0) or an argparse error (2)
         return int(exc.code or 0)
+    given = {f for f, v in (("--delay", args.delay), ("--lag", args.lag)) if v is not None}
+    args.delay = DEFAULT_DELAY_S if args.delay is None else args.delay
+    args.lag = DEFAULT_LAG_S if args.lag is None else args.lag
     _check_args(args)
     entries = _entries(args)
     from benchmark.paths import writable_dir
 
     out = writable_dir(args.out, create=True)
     omegas_plot = np.geomspace(0.01, 10.0, 300)
+    print(setting_line(args, given))
 
     from analysis import stability_report as report
     from benchmark.folder_lock import folder_lock
@@ -237,10 +277,26 @@ def main(argv: list[str]) -> int:
                                     out))
         if args.empirical:
             omegas = np.geomspace(args.omega_min, args.omega_max, args.n_omega)
-            tables.extend(report.empirical(
-                entries, omegas, omegas_plot, n_vehicles=args.n_vehicles,
-                amplitude_mps=args.amplitude, delay_s=args.delay, lag_s=args.lag,
-                figures_dir=out))
+            try:
+                tables.extend(report.empirical(
+                    entries, omegas, omegas_plot, n_vehicles=args.n_vehicles,
+                    amplitude_mps=args.amplitude, delay_s=args.delay, lag_s=args.lag,
+                    figures_dir=out))
+            except ControllerContractError as exc:  # past the first steps _entries checked
+                raise ConfigError(f"{exc} in its frequency sweep; fix the controller (its "
+                                  "contract: controllers.base.Controller); no table was "
+                                  "written") from None
+            except CaccBenchError:
+                raise
+            except Exception as exc:  # noqa: BLE001 - a user's law failing past its first steps
+                raise_if_interrupted()
+                own = [e.name for e in entries if is_reference(e.name.removeprefix("safe:"))]
+                if not own:
+                    raise  # the package's own controllers: a bug to report, with its trace
+                raise ConfigError(f"a controller of your own ({', '.join(own)}) failed in its "
+                                  f"frequency sweep ({first_line(exc)}); fix it (`cacc-bench "
+                                  "run` with it stores each failure's traceback); no table "
+                                  "was written") from None
         for name, frame in (("stability_grid.csv", tables.grid),
                             ("stability_h_min.csv", tables.h_min),
                             ("stability_summary.csv", tables.summary_frame()),

@@ -65,6 +65,9 @@ def _entries(text: str | None, scenarios: list[str]) -> list:
     if text is not None:
         names = {c.strip() for c in text.split(",") if c.strip()}
         known = {e.controller for e in entries}
+        if not names:
+            raise ConfigError(f"--controllers names no controller; give some of "
+                              f"{', '.join(sorted(known))}, or leave the option out for all")
         unknown = sorted(names - known)
         if unknown:
             raise ConfigError(f"--controllers: {', '.join(unknown)} is no entry of the report; "

@@ -11,9 +11,14 @@ learner's run is a population of one. Shows progress on a terminal and stays qui
 
 A run's files are written when it finishes, each atomically and together
 (:mod:`infra.atomic`): an interrupted or failed run leaves the files of an earlier run byte for
-byte as they were. A folder holding finished runs of the command is refused unless ``--resume``
-(skip them) or ``--overwrite`` (train them again) says what to do (:func:`check_finished`). The
-command holds ``--out``'s folder lock (:mod:`benchmark.folder_lock`).
+byte as they were. Meanwhile every run keeps a resumable snapshot beside them
+(``<stem>.snapshot.pt``, :class:`marl.checkpoint.Snapshots`, every
+:data:`marl.checkpoint.SNAPSHOT_EVERY_S` seconds), removed when it finishes: ``--resume``
+continues an interrupted run from it, to the weights an uninterrupted run gives. A folder
+holding finished runs of the command, or snapshots, is refused unless ``--resume`` (skip the
+finished, continue the interrupted) or ``--overwrite`` (train them again) says what to do
+(:func:`check_finished`, :func:`check_snapshots`). The command prints where it writes when it
+starts, and holds ``--out``'s folder lock (:mod:`benchmark.folder_lock`).
 """
 
 from __future__ import annotations
@@ -76,12 +81,14 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--resume", action="store_true",
         help="skip runs that finished in --out (their .final.pt, a shared-policy learner's "
-             ".pt, exists with the same config); an interrupted run starts again",
+             ".pt, exists with the same config); an interrupted run continues from its "
+             "snapshot (.snapshot.pt), to the weights an uninterrupted run gives",
     )
     p.add_argument(
         "--overwrite", action="store_true",
         help="train again runs that finished in --out, replacing their files when each "
-             "finishes (without it or --resume, a folder holding them is refused)",
+             "finishes, and interrupted ones from the start (without it or --resume, a folder "
+             "holding them is refused)",
     )
     p.add_argument(
         "--tuned", action="store_true",
@@ -206,7 +213,8 @@ def train_job(key: TrainingKey) -> dict[str, Any]:
                     algorithm(key.algo), [key.config] * len(seeds), key.scenario,
                     key.n_vehicles, key.steps, seeds, key.out,
                     progress=_Bar(key.progress and len(seeds) == 1), logs=logs,
-                    evaluate=_evaluator(key), device=key.device)
+                    evaluate=_evaluator(key), device=key.device,
+                    snapshots=[key.snapshots(s) for s in seeds])
             else:
                 from marl.training import run_shared
 
@@ -290,6 +298,32 @@ def check_finished(out: str | Path, held: Sequence[str], noun: tuple[str, str], 
                           f"({noun[1]} are kept), --overwrite to do it all again ({redo}), or "
                           "choose another --out")
     print(f"--overwrite: {out} holds {what}; doing it all again: {redo}", file=sys.stderr)
+
+
+def check_snapshots(keys: Sequence[TrainingKey], out: str | Path, resume: bool,
+                    overwrite: bool) -> None:
+    """The runs of ``keys`` whose snapshot lies in the folder (an interrupted training): with
+    ``--resume`` each is read and verified now, before any training (a damaged one, or one of
+    another config or budget, is a ConfigError), and continued; with ``--overwrite`` the
+    snapshots are removed and the runs train from the start; otherwise refused (ConfigError)."""
+    found = [(k, s) for k in keys for s in k.seeds if k.snapshots(s).path.exists()]
+    if not found:
+        return
+    if resume:
+        for k, s in found:
+            print(f"{k.stem(s)}: continues from its snapshot at {k.snapshots(s).steps()} steps "
+                  "(--resume)", file=sys.stderr)
+    elif overwrite:
+        for k, s in found:
+            k.snapshots(s).remove()
+        print(f"--overwrite: removed the snapshots of {len(found)} interrupted run(s) in {out}; "
+              "they train from the start", file=sys.stderr)
+    else:
+        first = found[0][0].snapshots(found[0][1]).path.name
+        more = f" and {len(found) - 1} more" if len(found) > 1 else ""
+        raise ConfigError(
+            f"{out} holds the snapshot of an interrupted run ({first}{more}); add --resume to "
+            "continue it, --overwrite to train it from the start, or choose another --out")
 
 
 def run_command(keys: Sequence[TrainingKey], out: str) -> str:
@@ -389,7 +423,7 @@ def main(argv: list[str]) -> int:
     from benchmark.folder_lock import folder_lock
     from benchmark.paths import writable_dir
     from commands.cli import scenarios_argument
-    from envs.scenarios import check_vehicles
+    from envs.scenarios import ENTRY_POINT_GROUP, check_vehicles
     from infra.limits import (
         MAX_EPISODES_PARALLEL,
         MAX_TRAIN_SEED,
@@ -412,6 +446,13 @@ def main(argv: list[str]) -> int:
             raise UnknownNameError("algorithm", a, tuple(LEARNERS))
     built = scenarios_argument(args.scenario, "--scenario")  # each built and checked once
     for one in built:
+        if one.base_name != one.id:  # a ScenarioSpec of one's own, named by its reference
+            raise ConfigError(
+                f"--scenario {one.label}: training takes scenario ids (checkpoints are named and "
+                f"loaded by id), and {one.base_name} is a scenario of your own whose id "
+                f"{one.id} names nothing by itself; add it through the entry-point group "
+                f"{ENTRY_POINT_GROUP} of an installed package (docs/contributing.md, Add a "
+                f"scenario), then train on {one.id}")
         if one.label != one.id:
             raise ConfigError(
                 f"--scenario {one.label}: training takes plain scenario ids (checkpoints are "
@@ -473,6 +514,13 @@ def main(argv: list[str]) -> int:
                 print(f"resuming: {sum(done)} of {len(keys)} runs already finished in "
                       f"{args.out}", file=sys.stderr)
             keys = [k for k, d in zip(keys, done, strict=True) if not d]
+        check_snapshots(keys, args.out, args.resume, args.overwrite)
+        if keys:
+            from marl.checkpoint import SNAPSHOT_EVERY_S
+
+            print(f"training {len(keys)} run{'s' * (len(keys) > 1)} into {args.out} (each "
+                  f"keeps a snapshot there every {SNAPSHOT_EVERY_S:.0f} s: after an "
+                  "interruption, the same command with --resume continues it)", file=sys.stderr)
         try:
             for res in map_jobs(train_job,
                                 populations(keys, args.population, args.executor, args.workers),

@@ -45,10 +45,12 @@ import json
 import math
 import shlex
 import sys
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from benchmark.export import write_csv
+from envs.scenarios import Scenario
 from infra.errors import ConfigError, UnknownNameError
 from infra.limits import step_count
 from marl.learners import PPO_LEARNERS
@@ -168,11 +170,43 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
-def _study_name(job: dict) -> str:
-    return f"{job['algo']}__{job['scenario']}__n{job['vehicles']}"
+@dataclass(frozen=True)
+class StudyJob:
+    """One Optuna study: ``trials`` trainings of ``algo`` on ``scenario`` with N followers,
+    built and checked once at the command line (it pickles: the executors hand it to their
+    workers as it is).
+
+    Attributes
+    ----------
+    algo : str
+        A learner of :data:`marl.learners.PAPER_ALGORITHMS` or :data:`SHARED_TUNED`.
+    scenario : Scenario
+        Built (:func:`commands.cli.scenarios_argument`); the study is named by its label.
+    vehicles, trials, steps, seed : int
+        Followers N, trials, environment steps per trial, sampler and training seed.
+    out : Path
+        The tuning folder (the study file under ``studies/``, the trials under ``trials/``).
+    fixed : dict
+        ``--set`` fields of a shared learner fixed in every trial (untyped strings, typed by
+        :func:`commands.train.learner_config`).
+    """
+
+    algo: str
+    scenario: Scenario
+    vehicles: int
+    trials: int
+    steps: int
+    seed: int
+    out: Path
+    fixed: dict[str, str] = field(default_factory=dict, hash=False)
+
+    @property
+    def name(self) -> str:
+        """The study's name (its file's stem)."""
+        return f"{self.algo}__{self.scenario.label}__n{self.vehicles}"
 
 
-def _study_job(job: dict) -> list[dict]:
+def _study_job(job: StudyJob) -> list[dict]:
     """Run a study's missing trials (top level, so process and Ray executors can run it)."""
     import optuna
     import torch
@@ -181,7 +215,7 @@ def _study_job(job: dict) -> list[dict]:
 
     torch.set_num_threads(1)
     optuna.logging.set_verbosity(optuna.logging.WARNING)
-    name, out = _study_name(job), Path(job["out"])
+    name, out = job.name, job.out
     (out / "studies").mkdir(parents=True, exist_ok=True)
     db = out / "studies" / f"{name}.sqlite3"
     try:
@@ -202,7 +236,7 @@ def _study_job(job: dict) -> list[dict]:
             "rerun with --resume") from None
 
 
-def _run_study(job: dict, name: str, out: Path, storage: str) -> list[dict]:
+def _run_study(job: StudyJob, name: str, out: Path, storage: str) -> list[dict]:
     """The trials of :func:`_study_job`'s study, in ``storage``."""
     import optuna
 
@@ -213,12 +247,12 @@ def _run_study(job: dict, name: str, out: Path, storage: str) -> list[dict]:
     from marl.config import algorithm
     from marl.selection import run_training
 
-    algo_name, scenario, n = job["algo"], job["scenario"], job["vehicles"]
+    algo_name, scenario, n = job.algo, job.scenario, job.vehicles
     study = optuna.create_study(study_name=name, storage=storage, direction="maximize",
                                 load_if_exists=True)
-    meta = {"steps": job["steps"], "seed": job["seed"], "vehicles": n}
-    if job["fixed"]:
-        meta["fixed"] = job["fixed"]
+    meta: dict[str, Any] = {"steps": job.steps, "seed": job.seed, "vehicles": n}
+    if job.fixed:
+        meta["fixed"] = job.fixed
     if study.user_attrs.get("budget", meta) != meta:
         raise ConfigError(
             f"study {name} in {out} was run with {study.user_attrs['budget']}, not {meta}; "
@@ -234,9 +268,10 @@ def _run_study(job: dict, name: str, out: Path, storage: str) -> list[dict]:
     def complete() -> list[Any]:
         return study.get_trials(states=(optuna.trial.TrialState.COMPLETE,))
 
-    while len(complete()) < job["trials"]:
+    while len(complete()) < job.trials:
         k = len(complete())
-        study.sampler = optuna.samplers.TPESampler(seed=job["seed"] + k, n_startup_trials=STARTUP_TRIALS)
+        study.sampler = optuna.samplers.TPESampler(seed=job.seed + k,
+                                                   n_startup_trials=STARTUP_TRIALS)
         if k == 0 and not study.get_trials(states=(optuna.trial.TrialState.WAITING,)):
             study.enqueue_trial(default_params(algo_name))
         with held():  # a trial is in the study only with a try that ends it
@@ -247,12 +282,12 @@ def _run_study(job: dict, name: str, out: Path, storage: str) -> list[dict]:
             run_dir = out / "trials" / name / f"t{k:03d}"
             if shared:
                 summary = _shared_trial(job, options, run_dir)
-                options = {**job["fixed"], **options}
+                options = {**job.fixed, **options}
             else:
                 assert algo is not None
                 config = build_config(algo.config_cls, options, f"{algo_name} (tune)")
-                result = run_training(algo, config, scenario, n, job["steps"], job["seed"],
-                                      run_dir, evaluate=validation_evaluator(algo_name, scenario, n))
+                result = run_training(algo, config, scenario, n, job.steps, job.seed, run_dir,
+                                      evaluate=validation_evaluator(algo_name, scenario, n))
                 assert result.checkpoint is not None
                 summary = load_checkpoint(result.checkpoint)["curve_summary"]
             with held():  # its attributes and score recorded together, or not at all
@@ -270,28 +305,26 @@ def _run_study(job: dict, name: str, out: Path, storage: str) -> list[dict]:
     # "trial" counts complete trials (an interrupted, redone trial keeps its place);
     # "optuna_trial" is Optuna's number in the study file
     return [
-        {"algo": algo_name, "scenario": scenario, "vehicles": n, "trial": k,
+        {"algo": algo_name, "scenario": scenario.label, "vehicles": n, "trial": k,
          "optuna_trial": t.number, "score": t.value, **t.params,
          **{f"config.{key}": v for key, v in t.user_attrs["options"].items()},
          **{key: v for key, v in t.user_attrs.items() if key != "options"}}
-        for k, t in enumerate(complete()[: job["trials"]])
+        for k, t in enumerate(complete()[: job.trials])
     ]
 
 
-def _shared_trial(job: dict, options: dict[str, Any], run_dir: Path) -> dict[str, float]:
+def _shared_trial(job: StudyJob, options: dict[str, Any], run_dir: Path) -> dict[str, float]:
     """Train one ``ippo``/``mappo`` trial (fixed ``--set`` fields, then the trial's) and return
     its kept snapshot's validation numbers under the paper learners' summary keys."""
     from commands.train import learner_config, train_job
-    from envs.scenarios import as_scenario
     from marl.checkpoint import load_checkpoint
     from marl.training import TrainingKey, finished
 
-    key = TrainingKey(job["algo"], as_scenario(job["scenario"]), job["vehicles"], (job["seed"],),
-                      job["steps"], learner_config(job["algo"], {**job["fixed"], **options}),
-                      run_dir)
+    key = TrainingKey(job.algo, job.scenario, job.vehicles, (job.seed,), job.steps,
+                      learner_config(job.algo, {**job.fixed, **options}), run_dir)
     if not finished(key):  # a trial interrupted after its files were written is not redone
         train_job(key)
-    best = load_checkpoint(key.finished_file(job["seed"]))["curve_summary"]
+    best = load_checkpoint(key.finished_file(job.seed))["curve_summary"]
     return {"selected_eval_reward_sampled": best["best_reward"],
             "selected_eval_collisions_sampled": best["best_collisions"],
             "selected_eval_reward_greedy": math.nan, "selected_eval_collisions_greedy": math.nan,
@@ -335,8 +368,7 @@ def main(argv: list[str]) -> int:
         for a in algos:  # typed and checked now, before any trial
             learner_config(a, fixed)
     args.fixed = fixed
-    # each built and checked once, here; the studies train by label (their files' names)
-    scenarios = [sc.label for sc in scenarios_argument(args.scenarios)]
+    scenarios = scenarios_argument(args.scenarios)  # each built and checked once, here
     if not algos:
         raise ConfigError("--algos and --scenarios must name at least one each")
     check_vehicles(args.vehicles)
@@ -358,21 +390,19 @@ def main(argv: list[str]) -> int:
     try:
         import optuna  # noqa: F401
     except ImportError:
-        raise ConfigError("cacc-bench tune needs Optuna (a dependency): reinstall with `pip install -e .`") from None
+        raise ConfigError("cacc-bench tune needs Optuna, in the marl extra: install it with "
+                          "`pip install -e '.[marl]'`") from None
     from benchmark.paths import writable_dir
 
     out = writable_dir(args.out)
-    jobs = [
-        {"algo": a, "scenario": s, "vehicles": args.vehicles, "trials": args.trials,
-         "steps": args.steps, "seed": args.seed, "out": str(out), "fixed": fixed}
-        for a in algos for s in scenarios
-    ]
+    jobs = [StudyJob(a, sc, args.vehicles, args.trials, args.steps, args.seed, Path(out), fixed)
+            for a in algos for sc in scenarios]
     from benchmark.folder_lock import folder_lock
     from infra.atomic import write_text
 
     # one writer per folder, as `run`: a second tune on --out is refused naming the first
     with folder_lock(out):
-        studies = [Path("studies") / f"{_study_name(job)}.sqlite3" for job in jobs]
+        studies = [Path("studies") / f"{job.name}.sqlite3" for job in jobs]
         held = [p for p in (*studies, Path("trials.csv"), Path("tuned_configs.json"))
                 if (out / p).exists()]
         check_finished(out, [str(p) for p in held], ("tuning result", "tuning results"),
@@ -384,7 +414,7 @@ def main(argv: list[str]) -> int:
             for p in held:
                 (out / p).unlink()
             for job in jobs:
-                shutil.rmtree(out / "trials" / _study_name(job), ignore_errors=True)
+                shutil.rmtree(out / "trials" / job.name, ignore_errors=True)
         progress = Progress(len(jobs), "studies")
         rows: list[dict] = []
         for res in map_jobs(_study_job, jobs, args.executor, args.workers, args.ray_address):

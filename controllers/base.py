@@ -28,6 +28,31 @@ from infra.errors import ConfigError, ControllerContractError
 
 FAMILIES = ("human", "linear", "mpc", "marl", "data")
 
+
+@dataclass(frozen=True)
+class SpacingPolicy:
+    """A constant time-gap spacing policy: the gap a controller aims at,
+    ``standstill_m + time_gap_s * v`` (m) for a follower at speed ``v`` (m/s).
+
+    Attributes
+    ----------
+    standstill_m : float
+        Standstill distance ``r`` (m).
+    time_gap_s : float
+        Time gap ``h`` (s), >= 0 (0: a constant spacing ``r``).
+    """
+
+    standstill_m: float
+    time_gap_s: float
+
+    def target_gap_m(self, speed_mps: np.ndarray) -> np.ndarray:
+        """The policy's gap (m) for followers at ``speed_mps`` (any shape)."""
+        return self.standstill_m + self.time_gap_s * np.asarray(speed_mps, dtype=np.float64)
+
+    def describe(self) -> str:
+        """``"r + h v"`` with the numbers, e.g. ``"12.5 m + 0.5 s x v"``."""
+        return f"{self.standstill_m:.3g} m + {self.time_gap_s:.3g} s x v"
+
 #: ``(controller, scenario, n_vehicles, seeds, params) -> trajectories`` (one per seed, each with
 #: ``reward (T,)``, ``collided`` and ``steps``): the signature of the benchmark's closed loop.
 ClosedLoop = Callable[["Controller", Scenario, int, Sequence[int], PlatoonParams], list[Any]]
@@ -258,6 +283,15 @@ class Controller(ABC):
             Agent observations, when ``needs_observation`` is set.
         """
 
+    def spacing_policy(self, target_gap_m: float, target_speed_mps: float
+                       ) -> SpacingPolicy | None:
+        """The constant time-gap policy this controller aims at on a scenario whose reward
+        targets are ``target_gap_m`` and ``target_speed_mps``, or None (the default): it has
+        no spacing policy of its own and aims at the scenario's constant target gap (the
+        published reward's). The harness measures ``gap_rmse_own_policy_m`` against it and
+        ``plot`` draws it."""
+        return None
+
     def intervention_totals(self) -> tuple[np.ndarray, np.ndarray] | None:
         """For a safety filter (:mod:`controllers.safety_filter`): per episode of the batch since
         the reset, ``(B,)`` each, the follower-steps whose command it lowered and the sum of how
@@ -274,11 +308,14 @@ def check_fits(controller: Controller, scenario: Scenario, n_vehicles: int,
     """Refuse, before any work, a setting ``controller`` cannot run (:class:`ConfigError` naming
     what works): a string with human drivers for a controller that cannot drive one, a ring for
     one that needs a leader, a string with no automated vehicle for anything but a human-driver
-    model; then the controller's own :meth:`Controller.preflight`. Every sweep calls this for
+    model, vehicle classes for a recorded platoon (``openacc-real``: they would relabel the
+    recording); then the controller's own :meth:`Controller.preflight`. Every sweep calls this for
     each setting before its first run."""
     from controllers.registry import mixed_traffic_controllers
 
     check_size_fits(scenario, n_vehicles)
+    if params is not None:  # vehicle classes and a run-wide lag at once are refused
+        scenario.vehicle_arrays(n_vehicles, params)
     arrangement = scenario.arrangement(n_vehicles)
     where = f"{scenario.label or scenario.id} with N = {n_vehicles}"
     if arrangement.n_automated == 0 and controller.family != "human":
@@ -293,6 +330,12 @@ def check_fits(controller: Controller, scenario: Scenario, n_vehicles: int,
             f"{len(arrangement.automated)}) and {controller.name} was made for a string of "
             "automated vehicles only; the controllers that run on mixed strings: "
             f"{', '.join(mixed_traffic_controllers())}")
+    classes = scenario.options.get("classes") or scenario.options.get("class_mix")
+    if classes and getattr(controller, "recorded", None) is not None:
+        raise ConfigError(
+            f"{controller.name} is a recorded platoon, the vehicles as they drove; vehicle "
+            f"classes ({classes}) would label the recording as vehicles it is not: name "
+            f"{scenario.id} without classes or class_mix")
     if scenario.ring and controller.needs_leader:
         raise ConfigError(
             f"{controller.name} needs a scripted leader and {where} is a ring road without one; "

@@ -98,6 +98,15 @@ class CentralisedMPCController(MPCController):
         super().__init__(**options)
         self._problems: dict[tuple[Any, ...], CentralisedProblem] = {}
 
+    def preflight(self, scenario: Any, n_vehicles: int, params: Any = None) -> None:
+        """Refuse a string of vehicle classes: the centralised problem has one vehicle model for
+        every follower."""
+        if scenario.vehicle_classes(n_vehicles) is not None:
+            raise ConfigError(
+                f"cmpc cannot run on {scenario.label or scenario.id}: its centralised problem "
+                "models every follower as one vehicle; on a string of vehicle classes run the "
+                "distributed MPC (mpc, mpc-qp), whose followers each use their class's model")
+
     def messages(self, ctx: EpisodeContext) -> tuple[Message, ...]:
         """Every automated follower's gap, speed and acceleration to the leader, where the plan is
         made (human seats send nothing); on a mixed string also, from each automated follower

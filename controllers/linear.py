@@ -39,19 +39,24 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from controllers.base import Controller, EpisodeContext, Message
+from controllers.base import Controller, EpisodeContext, Message, SpacingPolicy
 from controllers.registry import build_config
 from envs.channel import V2VChannel
 from envs.params import PlatoonParams
 from envs.platoon import PlatoonState
 from envs.scenarios import Scenario
 from infra.errors import ConfigError
+from infra.limits import MAX_SPACING_M, MAX_TIME_GAP_S
 
 
 def _finite(value: float, name: str) -> float:
     if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
         raise ConfigError(f"{name} must be a finite number, got {value!r}")
     return float(value)
+
+
+#: How ``acc``/``cacc`` choose each vehicle's time gap on a string of vehicle classes.
+TIME_GAP_RULES: tuple[str, ...] = ("fixed", "xiao")
 
 
 @dataclass(frozen=True)
@@ -61,17 +66,26 @@ class PloegConfig:
     Attributes
     ----------
     time_gap_s : float
-        Time gap h of the spacing policy ``r + h v`` (s), >= 0.
+        Time gap h of the spacing policy ``r + h v`` (s), in [0, ``MAX_TIME_GAP_S``]
+        (:data:`infra.limits.MAX_TIME_GAP_S`).
     kp : float
         Gain on the spacing error (1/s^2), > 0.
     kd : float
         Gain on the spacing-error rate (1/s), > 0; internal stability needs ``kd > lag_s kp``
         (checked at reset, when the run's actuator lag is known).
     standstill_m : float or None
-        Standstill distance r (m), >= 0; None chooses ``r = d* - h v*`` so that the scenario's
-        target gap holds at its target speed (r may then be negative for a large h).
+        Standstill distance r (m), in [0, ``MAX_SPACING_M``] (:data:`infra.limits.MAX_SPACING_M`);
+        None chooses ``r = d* - h v*`` so that the scenario's target gap holds at its target
+        speed (r may then be negative for a large h).
     feedforward : bool
         Use the predecessor's commanded acceleration received over V2V (CACC).
+    time_gap_rule : {"fixed", "xiao"}
+        On a string of vehicle classes (:mod:`envs.vehicle_classes`): ``fixed`` gives every
+        vehicle ``time_gap_s``; ``xiao`` gives vehicle ``i`` the time gap
+        ``h_i = max(time_gap_s, 2 (theta + tau_i))`` of Xiao, Darbha and Gao's condition
+        (ITSC 2008) for its own lag ``tau_i`` and the run's V2V delay ``theta``, with its
+        standstill distance ``d* - h_i v*`` (the scenario's target gap held at its target speed
+        by every vehicle). The homogeneous platoon ignores the rule.
     """
 
     time_gap_s: float = 0.5
@@ -79,6 +93,7 @@ class PloegConfig:
     kd: float = 0.7
     standstill_m: float | None = None
     feedforward: bool = True
+    time_gap_rule: str = "fixed"
 
     def __post_init__(self) -> None:
         h = _finite(self.time_gap_s, "time_gap_s")
@@ -86,16 +101,36 @@ class PloegConfig:
         kd = _finite(self.kd, "kd")
         if h < 0:
             raise ConfigError(f"time_gap_s must be >= 0 s, got {h}")
+        if h > MAX_TIME_GAP_S:
+            raise ConfigError(f"time_gap_s must be at most {MAX_TIME_GAP_S:g} s, got {h:g}")
         if kp <= 0:
             raise ConfigError(f"kp must be > 0 (spacing feedback), got {kp}")
         if kd <= 0:
             raise ConfigError(
                 f"kd must be > 0: tau s^3 + s^2 + kd s + kp is not Hurwitz otherwise, got {kd}"
             )
-        if self.standstill_m is not None and _finite(self.standstill_m, "standstill_m") < 0:
-            raise ConfigError(f"standstill_m must be >= 0 m, got {self.standstill_m}")
+        if self.standstill_m is not None:
+            r = _finite(self.standstill_m, "standstill_m")
+            if r < 0:
+                raise ConfigError(f"standstill_m must be >= 0 m, got {r}")
+            if r > MAX_SPACING_M:
+                raise ConfigError(f"standstill_m must be at most {MAX_SPACING_M:g} m, got {r:g}")
         if not isinstance(self.feedforward, bool):
             raise ConfigError(f"feedforward must be true or false, got {self.feedforward!r}")
+        if self.time_gap_rule not in TIME_GAP_RULES:
+            raise ConfigError(f"time_gap_rule must be one of {', '.join(TIME_GAP_RULES)}, got "
+                              f"{self.time_gap_rule!r}")
+        if self.time_gap_rule != "fixed" and self.standstill_m is not None:
+            raise ConfigError("time_gap_rule=xiao sets each vehicle's standstill distance "
+                              "d* - h_i v*; leave standstill_m out")
+
+    def time_gaps_s(self, lag_s: np.ndarray, delay_s: float) -> np.ndarray:
+        """Each vehicle's time gap ``(N,)`` by :attr:`time_gap_rule` for lags ``lag_s (N,)``
+        and the V2V delay ``delay_s``."""
+        h = np.full(np.shape(lag_s), float(self.time_gap_s))
+        if self.time_gap_rule == "xiao":
+            h = np.maximum(h, 2.0 * (delay_s + np.asarray(lag_s, dtype=np.float64)))
+        return h
 
     def check_lag(self, lag_s: float) -> None:
         """Raise :class:`ConfigError` if the loop is not internally stable with this lag.
@@ -150,21 +185,32 @@ class PloegController(Controller):
         self.config: PloegConfig = build_config(self.config_cls, options, self.name)
         self.options = dict(options)
         self._channel: V2VChannel | None = None
-        self._alpha = 0.0
-        self._standstill_m = 0.0
+        self._alpha: float | np.ndarray = 0.0
+        self._standstill_m: float | np.ndarray = 0.0
         self._command: np.ndarray = np.zeros((0, 0))
         self._received: np.ndarray = np.zeros((0, 0))
 
     @property
-    def standstill_m(self) -> float:
-        """Standstill distance r used in the current batch (m), known after :meth:`reset`."""
+    def standstill_m(self) -> float | np.ndarray:
+        """Standstill distance r used in the current batch (m), known after :meth:`reset`
+        (``(N,)`` per vehicle with ``time_gap_rule=xiao`` on a string of vehicle classes)."""
         return self._standstill_m
+
+    def spacing_policy(self, target_gap_m: float, target_speed_mps: float) -> SpacingPolicy:
+        """Ploeg's constant time-gap policy ``r + h v`` (``r`` from :meth:`PloegConfig.standstill_for`)."""
+        cfg = self.config
+        return SpacingPolicy(cfg.standstill_for(target_gap_m, target_speed_mps), cfg.time_gap_s)
 
     def preflight(self, scenario: Scenario, n_vehicles: int, params: PlatoonParams | None = None
                   ) -> None:
-        """The loop must be stable with the run's actuator lag."""
+        """The loop must be stable with the run's actuator lag (each vehicle's own on a string of
+        vehicle classes)."""
         if params is not None:
             self.config.check_lag(params.lag_s)
+            vehicles = scenario.vehicle_arrays(n_vehicles, params)
+            if vehicles is not None:
+                for lag in sorted(set(vehicles.lag_s.tolist())):
+                    self.config.check_lag(lag)
 
     def messages(self, ctx: EpisodeContext) -> tuple[Message, ...]:
         """The command applied over the step (1 float to the follower behind), with feedforward."""
@@ -181,10 +227,26 @@ class PloegController(Controller):
         self._command = np.zeros((b, n))
         self._received = np.zeros((b, n))
         self._channel = ctx.channel("cacc_u") if cfg.feedforward else None
+        #: per-vehicle time gaps, standstill distances and bounds of a string of vehicle classes
+        #: (None: the homogeneous platoon, whose scalars above are used)
+        self._vehicles = ctx.scenario.vehicle_arrays(n, ctx.params)
+        self._h: float | np.ndarray = h
+        self._bounds: tuple[float | np.ndarray, float | np.ndarray] = (
+            ctx.params.accel_min_mps2, ctx.params.accel_max_mps2)
+        if self._vehicles is not None:
+            for lag in sorted(set(self._vehicles.lag_s.tolist())):
+                cfg.check_lag(lag)
+            hv = cfg.time_gaps_s(self._vehicles.lag_s, ctx.channel_config.delay_s)
+            self._h = hv
+            self._alpha = np.where(hv > 0, np.exp(-ctx.params.dt_s / np.where(hv > 0, hv, 1.0)),
+                                   0.0)
+            if cfg.time_gap_rule == "xiao":
+                self._standstill_m = ctx.target_gap_m - hv * ctx.target_speed_mps
+            self._bounds = (self._vehicles.accel_min_mps2, self._vehicles.accel_max_mps2)
 
     def act(self, state: PlatoonState, observation: np.ndarray | None) -> np.ndarray:
-        cfg, p = self.config, self.params
-        h = cfg.time_gap_s
+        cfg = self.config
+        h = self._h
         v = state.speed_mps
         # w = kp e + kd de/dt (+ received feedforward)
         w = state.gap_m - self._standstill_m - h * v
@@ -197,7 +259,7 @@ class PloegController(Controller):
         c = self._command
         c *= self._alpha
         c += (1.0 - self._alpha) * w
-        np.clip(c, p.accel_min_mps2, p.accel_max_mps2, out=c)
+        np.clip(c, *self._bounds, out=c)
         if self._channel is not None:
             payload = np.empty((c.shape[0], c.shape[1] + 1))
             payload[:, 0] = state.leader_accel_now_mps2

@@ -19,10 +19,18 @@ A solver failure (status not successful, non-finite solution, exception) never e
 follower applies ``min(shifted previous plan, ACC law)`` (the ACC law alone when no previous plan
 is left), clipped to the bounds, keeps the shifted plan as its plan, and the failure is counted
 in ``solver_failures``.
+
+Vehicle classes
+---------------
+On a string of vehicle classes (``classes=bus+van+car*6``, :mod:`envs.vehicle_classes`) each
+follower predicts itself with its own model: the run's physics with its class's actuator lag and
+acceleration bounds. One problem is built per distinct class (kept across resets) and every
+follower solves the one of its class; the homogeneous platoon builds the one problem as before.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from abc import abstractmethod
 from typing import Any
@@ -96,6 +104,10 @@ class DistributedMPCBase(MPCController):
         super().__init__(**options)
         self._built_for: tuple[Any, ...] | None = None
         self.solve_count = 0
+        #: built problems by physics: (model, layout, solver) (vehicle classes: one per class)
+        self._problems: dict[PlatoonParams, tuple[VehicleModel, ParamLayout, Any]] = {}
+        #: per class group: its physics and its seats (None: the homogeneous platoon)
+        self._groups: list[tuple[PlatoonParams, np.ndarray]] | None = None
 
     @abstractmethod
     def _build(self) -> None:
@@ -127,8 +139,31 @@ class DistributedMPCBase(MPCController):
         before the first one: NaN)."""
         return (Message("mpc_plan", self.config.horizon + 2, "predecessor", initial=math.nan),)
 
+    def _use(self, params: PlatoonParams) -> None:
+        """Make the problem of ``params`` the current one (built once, then kept)."""
+        if params not in self._problems:
+            self.prepare(params)
+            self._problems[params] = (self.model, self.layout, self.solver)
+        self.params = params
+        self.model, self.layout, self.solver = self._problems[params]
+        self._built_for = (self.model, params)
+
     def reset(self, ctx: EpisodeContext) -> None:
         self.prepare(ctx.params)
+        self._groups = None
+        self._run_params = ctx.params
+        vehicles = ctx.scenario.vehicle_arrays(ctx.n_vehicles, ctx.params)
+        if vehicles is not None:  # one problem per class: its lag and bounds
+            seats: dict[PlatoonParams, list[int]] = {}
+            for i in range(ctx.n_vehicles):
+                p_i = dataclasses.replace(ctx.params, lag_s=float(vehicles.lag_s[i]),
+                                          accel_min_mps2=float(vehicles.accel_min_mps2[i]),
+                                          accel_max_mps2=float(vehicles.accel_max_mps2[i]))
+                seats.setdefault(p_i, []).append(i)
+            self._groups = [(p_i, np.array(s, dtype=np.int64)) for p_i, s in seats.items()]
+            for p_i, _ in self._groups:
+                self._use(p_i)
+            self._use(self._groups[0][0])
         h = self.config.horizon
         self.target_gap_m = ctx.target_gap_m
         self.target_speed_mps = ctx.target_speed_mps
@@ -147,7 +182,7 @@ class DistributedMPCBase(MPCController):
         t = state.step
         h = self.config.horizon
         b, n = state.gap_m.shape
-        params = self.params
+        params = self.params if self._groups is None else self._run_params
         vp_meas = state.pred_speed_mps
         vp = assumed_predecessor_speeds(self._received, t, vp_meas)
         automated = state.automated_mask
@@ -170,16 +205,40 @@ class DistributedMPCBase(MPCController):
             )[..., :h]
             if age >= h:
                 u_shift = None
-        p_all = make_parameters(self.layout, self.model, params, state.gap_m, state.speed_mps,
-                                state.realised_accel_mps2, self._last_u, vp, vhat,
-                                self.target_gap_m, self.target_speed_mps)
         u = np.zeros((b, n))
         plan_v = vhat.copy()
         plan_u = np.zeros((b, n, h)) if u_shift is None else u_shift.copy()
+        if self._groups is None:
+            self._solve_seats(state, np.arange(n), vp, vhat, vp_meas, u_shift, u, plan_v, plan_u)
+            u = np.clip(u, params.accel_min_mps2, params.accel_max_mps2)
+        else:  # each class's seats with its own problem and bounds
+            for p_i, seats in self._groups:
+                self._use(p_i)
+                self._solve_seats(state, seats, vp, vhat, vp_meas, u_shift, u, plan_v, plan_u)
+                u[:, seats] = np.clip(u[:, seats], p_i.accel_min_mps2, p_i.accel_max_mps2)
+        self._last_u = u.copy()
+        self._plan_v = plan_v
+        self._plan_u = plan_u
+        self._plan_step = t
+        self._received = self.channel.transmit(encode_plans(t, state.leader_speed_now_mps,
+                                                            plan_v)).copy()
+        return u
+
+    def _solve_seats(self, state: PlatoonState, seats: np.ndarray, vp: np.ndarray,
+                     vhat: np.ndarray, vp_meas: np.ndarray, u_shift: np.ndarray | None,
+                     u: np.ndarray, plan_v: np.ndarray, plan_u: np.ndarray) -> None:
+        """Solve the problems of the automated ``seats`` with the current problem
+        (:meth:`_use`), writing their commands and plans into ``u``, ``plan_v``, ``plan_u``."""
+        params = self.params
+        automated = state.automated_mask
+        b = state.gap_m.shape[0]
+        p_all = make_parameters(self.layout, self.model, params, state.gap_m, state.speed_mps,
+                                state.realised_accel_mps2, self._last_u, vp, vhat,
+                                self.target_gap_m, self.target_speed_mps)
         for bi in range(b):
             if state.done[bi]:
                 continue
-            for i in range(n):
+            for i in seats.tolist():
                 if not automated[i]:
                     continue  # a human seat: the env drives it, its command (0) is ignored
                 try:
@@ -207,11 +266,3 @@ class DistributedMPCBase(MPCController):
                         u[bi, i] = u_acc
                         plan_u[bi, i] = u_acc
                     # the plan it keeps (and sends): the shifted one (or its speed held)
-        u = np.clip(u, params.accel_min_mps2, params.accel_max_mps2)
-        self._last_u = u.copy()
-        self._plan_v = plan_v
-        self._plan_u = plan_u
-        self._plan_step = t
-        self._received = self.channel.transmit(encode_plans(t, state.leader_speed_now_mps,
-                                                            plan_v)).copy()
-        return u

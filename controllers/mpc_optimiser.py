@@ -56,6 +56,7 @@ rolling, auxiliaries), which is what the controller can actually save.
 from __future__ import annotations
 
 import math
+import signal
 from collections.abc import Callable
 from dataclasses import dataclass, fields
 from functools import cached_property
@@ -66,6 +67,7 @@ import numpy as np
 from controllers.mpc_model import HUMAN_PREDICTIONS, ParamLayout, VehicleModel
 from envs.params import PlatoonParams
 from infra.errors import ConfigError
+from infra.interrupt import caught_by_library
 
 if TYPE_CHECKING:
     from envs.energy import PowerPolynomial
@@ -614,6 +616,8 @@ class OSQPSolver:
         self.osqp.setup(self.qp.H, q, self.qp.A, lo, up, verbose=False, warm_starting=True,
                         **settings)
         self._solved = int(osqp.SolverStatus.OSQP_SOLVED)
+        #: OSQP catches SIGINT during a solve and returns this status instead
+        self._sigint = int(osqp.SolverStatus.OSQP_SIGINT)
         self._ext = getattr(self.osqp, "_solver", None)
         self._rho0 = self._rho_now = float(self.osqp.settings.rho)
         # infinite bounds must be exactly OSQP's infinity (1e30) or beyond, else its duality
@@ -653,6 +657,8 @@ class OSQPSolver:
             z = np.array(r.x, dtype=np.float64)
             y = np.array(r.y, dtype=np.float64)
         self.last_info = info
+        if int(info.status_val) == self._sigint:  # the command's Ctrl-C, not a failed solve
+            caught_by_library(signal.SIGINT)
         ok = int(info.status_val) == self._solved and bool(np.all(np.isfinite(z)))
         self._last_ok = ok
         if z.size:

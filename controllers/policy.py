@@ -304,7 +304,17 @@ class PolicyController(Controller):
 
     def preflight(self, scenario: Any, n_vehicles: int, params: Any = None) -> None:
         """Load the policy for ``scenario`` and N now, so a missing or mismatched checkpoint
-        fails before a sweep starts (a clear error, nothing stored)."""
+        fails before a sweep starts (a clear error, nothing stored). The paper's per-agent
+        policies (trained on the homogeneous string of i3-class cars) are refused on a string
+        of vehicle classes (the scenario option ``classes`` or ``class_mix``)."""
+        if not self.drives_mixed and scenario.vehicle_classes(n_vehicles) is not None:
+            shared = ", ".join(n for n in LEARNERS if declared(n).drives_mixed)
+            raise ConfigError(
+                f"{self.algo} cannot run on {scenario.label or scenario.id}: its policies were "
+                "trained on the homogeneous string of one car and know nothing of other "
+                "vehicles' lags and bounds; on a string of vehicle classes run the linear laws "
+                f"(acc, cacc), the distributed MPC (mpc, mpc-qp), the human models, or the "
+                f"shared policies ({shared})")
         key = self._source(scenario.id, n_vehicles)
         if self.policy is None or self._key != key:
             self.policy, self._key = self._load(*key), key

@@ -4,20 +4,36 @@ A controller is named on the command line as ``name`` or ``name:key=value,key=va
 its config dataclass); in a comma list, a ``key=value`` item belongs to the controller before it:
 ``--controllers mpc:solver=ipopt,horizon=30,cacc``. The options become part of the controller's
 label (``mpc[horizon=30,solver=ipopt]``), so two settings never share a leaderboard row.
+
+Controllers from the user's own code need no edit here: ``--controllers my_laws:MyLaw`` names a
+:class:`controllers.base.Controller` subclass by ``package.module:Class`` (options after a
+further colon, ``my_laws:MyLaw:gain=2``; its label is ``my_laws:MyLaw[gain=2]``), and an installed
+package adds names through the entry-point group :data:`ENTRY_POINT_GROUP`. Both resolve here,
+in every process that runs them (:func:`resolve`), so every command and executor takes them.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import importlib
 import importlib.util
+import inspect
+import re
 import typing
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 from infra.errors import CaccBenchError, ConfigError, UnknownNameError
-from infra.naming import canonical_value, coerce_option, format_label, parse_named_list
+from infra.naming import (
+    canonical_value,
+    coerce_option,
+    format_label,
+    is_reference,
+    parse_named_list,
+)
+from infra.plugins import canonical_reference, entry_points, first_line, import_reference
 from marl.learners import LEARNERS
 
 
@@ -39,6 +55,10 @@ class ControllerSpec:
         ``module:callable`` building the controller from keyword options.
     fixed : dict
         Keyword arguments always passed to the target (e.g. the MARL algorithm).
+    requires : tuple of str
+        Further modules it needs (``libsumo`` for the models that run inside SUMO), and
+    install : str
+        the command that installs them (said when one is missing).
     """
 
     name: str
@@ -47,13 +67,17 @@ class ControllerSpec:
     description: str
     target: str
     fixed: dict[str, Any] = field(default_factory=dict)
+    requires: tuple[str, ...] = ()
+    install: str = ""
 
     @property
     def available(self) -> bool:
-        """Whether the implementing module is present (checked without importing it)."""
+        """Whether the implementing module and the modules it requires are present (checked
+        without importing them)."""
         module = self.target.split(":", 1)[0]
         try:
-            return importlib.util.find_spec(module) is not None
+            return all(importlib.util.find_spec(m) is not None
+                       for m in (module, *self.requires))
         except ModuleNotFoundError:
             return False
 
@@ -65,6 +89,111 @@ CONTROLLERS: dict[str, ControllerSpec] = {}
 def register_controller(spec: ControllerSpec) -> None:
     """Add a controller preset (registering one adds it to the parametrised tests)."""
     CONTROLLERS[spec.name] = spec
+
+
+#: The entry-point group through which an installed package adds controllers, in its
+#: ``pyproject.toml``: ``[project.entry-points."cacc_bench.controllers"]`` then
+#: ``heard-speed = "my_laws:HeardSpeed"`` (docs/contributing.md, "Add a controller").
+ENTRY_POINT_GROUP = "cacc_bench.controllers"
+
+#: What an entry point's name may be: a plain name, as the presets' (no ``:``, ``,``, ``[``).
+PLAIN_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.+-]*")
+
+#: How to name a controller of one's own, for messages.
+OWN_CONTROLLER_HINT = ("or a controller class of your own as package.module:Class "
+                       "(docs/contributing.md, Add a controller)")
+
+_PLUGINS: dict[str, ControllerSpec] = {}  # the specs of references and entry points, once built
+
+
+def plugin_targets() -> dict[str, str]:
+    """``name -> "package.module:Class"`` of the installed packages' controllers
+    (:data:`ENTRY_POINT_GROUP`), read without importing them; a name a preset holds, or one
+    that is not a plain name, is left out (:func:`plugin_conflicts` says which)."""
+    return {name: target for name, target in entry_points(ENTRY_POINT_GROUP).items()
+            if name not in CONTROLLERS and PLAIN_NAME.fullmatch(name)}
+
+
+def plugin_conflicts() -> dict[str, str]:
+    """Entry points of :data:`ENTRY_POINT_GROUP` that are not used, with why (for ``list``)."""
+    out = {}
+    for name, target in entry_points(ENTRY_POINT_GROUP).items():
+        if name in CONTROLLERS:
+            out[name] = f"{target} is not used: {name} is a built-in controller"
+        elif not PLAIN_NAME.fullmatch(name):
+            out[name] = f"{target} is not used: its name is not a plain name (letters, digits, -_.+)"
+    return out
+
+
+def _plugin_spec(name: str, target: str) -> ControllerSpec:
+    """The spec of a controller class in the user's code (``name`` is the reference itself or
+    an entry point's name): the class must subclass :class:`controllers.base.Controller`,
+    implement its abstract methods and declare a known family; its description is its
+    docstring's first line, its V2V its ``v2v`` attribute if it has one.
+
+    Raises
+    ------
+    ConfigError
+        One line for each way it fails (:func:`infra.plugins.import_reference`, and the above).
+    """
+    spec = _PLUGINS.get(name)
+    if spec is not None:
+        return spec
+    from controllers.base import FAMILIES, Controller
+
+    who = f"controller {name}" + (f" ({target})" if target != name else "")
+    module = target.split(":", 1)[0]
+    if target == name and module in CONTROLLERS:
+        raise ConfigError(f"controller {name}: an option is written key=value ({module}:key=value); "
+                          f"{module} is a built-in controller, not a module")
+    cls = import_reference(target, who)
+    if not (isinstance(cls, type) and issubclass(cls, Controller)):
+        raise ConfigError(f"{who}: {target.split(':', 1)[1]} is not a controller class: a "
+                          "controller subclasses controllers.base.Controller (docs/contributing.md, "
+                          "Add a controller)")
+    if inspect.isabstract(cls):
+        missing = ", ".join(sorted(getattr(cls, "__abstractmethods__", ())))
+        raise ConfigError(f"{who}: {cls.__name__} does not implement {missing} of "
+                          "controllers.base.Controller")
+    if cls.family not in FAMILIES:
+        raise ConfigError(f"{who}: family {cls.family!r} is not one of {', '.join(FAMILIES)}; "
+                          "set the class attribute family to one of them")
+    required = _required_arguments(cls)
+    if required:  # its options are keyword arguments with defaults: no default, no option
+        raise ConfigError(f"{who}: {cls.__name__}() needs {', '.join(required)}; give every "
+                          "argument of its constructor a default (its options are keyword "
+                          "arguments with defaults, set as name:key=value)")
+    doc = (cls.__doc__ or "").strip().splitlines()
+    spec = ControllerSpec(name, cls.family, str(getattr(cls, "v2v", "what its messages() declare")),
+                          doc[0] if doc else f"{cls.__name__} from {module}", target)
+    _PLUGINS[name] = spec
+    return spec
+
+
+def _required_arguments(cls: type) -> list[str]:
+    """The arguments ``cls()`` cannot be called without (none if its signature is unknown)."""
+    try:
+        params = inspect.signature(cls).parameters.values()
+    except (TypeError, ValueError):
+        return []
+    return [p.name for p in params if p.default is p.empty
+            and p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)]
+
+
+def canonical_name(name: str) -> str:
+    """The one spelling of a controller's name: a reference names its class where it is
+    defined (:func:`infra.plugins.canonical_reference`; ``safe:`` kept before it), so one class
+    is one leaderboard row; any other name as given. Imports a referenced module (its failures
+    are :class:`ConfigError` lines)."""
+    inner = name.removeprefix(SAFE_PREFIX)
+    if (not is_reference(inner) or inner in CONTROLLERS  # a preset named module:attr (sumo:acc)
+            or inner.startswith(SAFE_PREFIX)):  # safe:safe:x, refused by the filter's own rule
+        return name
+    spec = _plugin_spec(inner, inner)
+    canonical = canonical_reference(_factory(spec), inner)
+    if canonical != inner:
+        _PLUGINS.setdefault(canonical, dataclasses.replace(spec, name=canonical, target=canonical))
+    return name[:len(name) - len(inner)] + canonical
 
 
 for _spec in (
@@ -135,6 +264,32 @@ for _learner in LEARNERS.values():  # every learner's policy, from the one learn
                                        "controllers.policy:PolicyController",
                                        fixed={"algo": _learner.name}))
 
+#: The module of the models that drive inside SUMO (``--simulator sumo`` only).
+SIMULATOR_MODELS_MODULE = "controllers.sumo_models"
+for _name, _v2v, _description in (  # controllers others wrote, run inside SUMO as references
+    ("sumo:acc", "none",
+     "SUMO's ACC car-following model (Milanes and Shladover 2014), inside SUMO"),
+    ("sumo:cacc", "none through the harness (SUMO's model reads its leader inside SUMO)",
+     "SUMO's CACC car-following model (Milanes and Shladover 2014, Xiao et al. 2017), inside "
+     "SUMO"),
+    ("plexe:ploeg", "predecessor's speed and commanded acceleration (2 floats)",
+     "Plexe's Ploeg CACC (SUMO's CC model, Ploeg's gains, 2 m standstill), inside SUMO"),
+    ("plexe:path", "predecessor's and leader's speed and commanded acceleration (2 + 2 floats)",
+     "Plexe's PATH CACC (SUMO's CC model, Rajamani's constant spacing), inside SUMO"),
+):
+    register_controller(ControllerSpec(_name, "linear", _v2v, _description,
+                                       f"{SIMULATOR_MODELS_MODULE}:SumoModelController",
+                                       fixed={"model": _name}, requires=("libsumo", "sumo"),
+                                       install="pip install -e '.[sumo]'"))
+
+
+def runs_inside_simulator(spec: ControllerSpec) -> bool:
+    """Whether the controller is a model that drives inside SUMO (``sumo:acc``,
+    ``plexe:ploeg``, ...): it runs with ``--simulator sumo`` only and has no commands of its own
+    for the harness."""
+    return spec.target.startswith(SIMULATOR_MODELS_MODULE + ":")
+
+
 #: Controllers of ``cacc-bench run`` when none are named (those available in this install):
 #: the human baseline and its duty schedule, the linear laws, the quadratic MPC and the paper's
 #: method, all quick.
@@ -165,8 +320,16 @@ def mixed_traffic_controllers(ring: bool = False) -> list[str]:
 
 
 def available_controllers() -> list[ControllerSpec]:
-    """Registered controllers whose implementation is present, in registration order."""
-    return [s for s in CONTROLLERS.values() if s.available]
+    """Registered controllers whose implementation is present, in registration order, then
+    the installed packages' (:data:`ENTRY_POINT_GROUP`; one that fails to load is left out:
+    naming it says why)."""
+    out = [s for s in CONTROLLERS.values() if s.available]
+    for name, target in plugin_targets().items():
+        try:
+            out.append(_plugin_spec(name, target))
+        except CaccBenchError:
+            continue
+    return out
 
 
 #: Prefix of a filtered controller: ``safe:<controller>`` wraps a registered controller in the
@@ -176,14 +339,18 @@ SAFE_PREFIX = "safe:"
 
 def parse_controller_list(text: str) -> list[tuple[str, dict[str, str]]]:
     """Parse ``"mpc:solver=ipopt,horizon=30,cacc"`` into ``[("mpc", {...}), ("cacc", {})]``;
-    ``safe:bdc:scenario=catchup-v1`` is the controller ``safe:bdc`` with its option."""
-    return parse_named_list(text, "controller", name_prefixes=(SAFE_PREFIX,))
+    ``safe:bdc:scenario=catchup-v1`` is the controller ``safe:bdc`` with its option; a
+    ``package.module:Class`` reference is imported and checked here and comes back in its
+    canonical spelling (:func:`canonical_name`)."""
+    return [(canonical_name(name), options) for name, options
+            in parse_named_list(text, "controller", name_prefixes=(SAFE_PREFIX,))]
 
 
 def controller_label(name: str, options: dict[str, Any]) -> str:
     """Leaderboard label: the name, plus its non-default options in brackets, sorted (an option
-    given at its default value adds nothing: ``ovm:alpha=0.5`` is ``ovm``)."""
-    return format_label(name, canonical_options(name, options))
+    given at its default value adds nothing: ``ovm:alpha=0.5`` is ``ovm``); a reference in its
+    canonical spelling (``my_laws:MyLaw[gain=2]``)."""
+    return format_label(canonical_name(name), canonical_options(name, options))
 
 
 def _safe_spec(name: str) -> ControllerSpec:
@@ -198,6 +365,9 @@ def _safe_spec(name: str) -> ControllerSpec:
                           f"filtered command changes nothing); write {SAFE_PREFIX}"
                           f"{inner.removeprefix(SAFE_PREFIX).lstrip(':')}")
     spec = resolve(inner)
+    if runs_inside_simulator(spec):
+        raise ConfigError(f"{name!r}: {inner} is a model that drives inside SUMO; the harness "
+                          "never sees its commands, so the safety filter has none to correct")
     if spec.family == "data":
         raise ConfigError(f"{name!r}: {inner} is a recorded platoon, not a control law; it has no "
                           "commands for the safety filter to correct")
@@ -207,6 +377,8 @@ def _safe_spec(name: str) -> ControllerSpec:
 
 
 def _factory(spec: ControllerSpec) -> Callable[..., Any]:
+    if spec.name in _PLUGINS:  # the user's code: its failures are one line
+        return import_reference(spec.target, f"controller {spec.name}")
     module_name, attr = spec.target.split(":", 1)
     return getattr(importlib.import_module(module_name), attr)
 
@@ -295,25 +467,52 @@ def resolve(name: str) -> ControllerSpec:
     if name.startswith(SAFE_PREFIX):
         return _safe_spec(name)
     spec = CONTROLLERS.get(name)
+    if spec is None and is_reference(name):  # a class of the user's: package.module:Class
+        return _plugin_spec(name, name)
+    if spec is None and name in plugin_targets():  # an installed package's entry point
+        return _plugin_spec(name, plugin_targets()[name])
+    if spec is not None and not spec.available and spec.install:
+        raise ConfigError(f"{name} needs {', '.join(spec.requires)}; install it with: "
+                          f"{spec.install}")
     if spec is None or not spec.available:
-        raise UnknownNameError("controller", name, [s.name for s in available_controllers()])
+        raise UnknownNameError("controller", name, [s.name for s in available_controllers()],
+                               hint=OWN_CONTROLLER_HINT)
     return spec
 
 
-def make_controller(name: str, **options: Any) -> Any:
+def make_controller(name: str, /, **options: Any) -> Any:
     """Build a controller by registered name with keyword options (strings are coerced).
 
     An option the controller does not take is a :class:`ConfigError` naming the ones it does
     (the one rule for every controller, whether its options are a config dataclass's fields
-    or its constructor's keyword arguments)."""
+    or its constructor's keyword arguments). A class of the user's code that fails to build
+    is one :class:`ConfigError` line too (its error's first line), and one that keeps the base
+    class's name is named by its reference in the harness's messages."""
     spec = resolve(name)
+    plugin = spec.target in _PLUGINS or spec.name in _PLUGINS
     if options:
         known = controller_options(name)
         unknown = [k for k in options if k not in known]
         if unknown:
             raise ConfigError(f"{name} has no option {unknown[0]!r}; its options are: "
                               f"{', '.join(sorted(known)) or 'none'}")
-    return _factory(spec)(**spec.fixed, **options)
+        if plugin:  # the user's class takes them typed
+            types = option_types(name)
+            options = {k: coerce_option(v, types[k], k, name) for k, v in options.items()}
+    if not plugin:
+        return _factory(spec)(**spec.fixed, **options)
+    from controllers.base import Controller
+
+    try:
+        ctrl = _factory(spec)(**spec.fixed, **options)
+    except CaccBenchError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - the user's constructor: any error is one line
+        raise ConfigError(f"controller {name}: building it failed ({first_line(exc)})") from None
+    if getattr(ctrl, "name", None) == Controller.name:
+        with contextlib.suppress(AttributeError):  # a read-only name stays as it is
+            ctrl.name = name
+    return ctrl
 
 
 def build_config(config_cls: type, options: dict[str, Any], owner: str) -> Any:

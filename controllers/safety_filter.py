@@ -67,7 +67,7 @@ piece is ``m = floor((-g + sqrt(g^2 + 4 (2 R / dt - c) / beta)) / 2)`` (from
 takes the largest ``a_1`` with ``D(V_1; beta) <= R``. The answer is checked by evaluating
 ``h`` at it; where the check fails (rounding, the ``v_max`` clip) the filter brakes fully,
 ``u_min``, which the invariance makes safe. So, with ``h >= 0`` at the start, ``h >= 0`` at
-every step (``tests/controllers/test_safety_filter.py`` checks it in closed loop, with and without lag).
+every step (``tests/test_controllers/test_safety_filter.py`` checks it in closed loop, with and without lag).
 
 Parameters (options, written with a ``safe_`` prefix: ``safe:cacc:safe_min_gap_m=3``)
 --------------------------------------------------------------------------------------
@@ -82,13 +82,14 @@ still broadcasts its own, unfiltered command), and a leader that brakes harder t
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from controllers.base import Controller, EpisodeContext, Message
+from controllers.base import Controller, EpisodeContext, Message, SpacingPolicy
 from envs.params import PlatoonParams
 from envs.platoon import PlatoonState
 from envs.scenarios import Scenario
@@ -393,19 +394,50 @@ class SafetyFilter(Controller):
         """The wrapped controller's messages (the filter sends nothing)."""
         return self.inner.messages(ctx)
 
+    def spacing_policy(self, target_gap_m: float, target_speed_mps: float
+                       ) -> SpacingPolicy | None:
+        """The wrapped controller's (the filter aims at no gap of its own)."""
+        return self.inner.spacing_policy(target_gap_m, target_speed_mps)
+
     def reset(self, ctx: EpisodeContext) -> None:
         self.config.check(ctx.params)
         self.inner.reset(ctx)
         self.params = ctx.params
+        #: a string of vehicle classes: per class, its physics (its lag and bounds), the filter's
+        #: options with the predecessor's assumed braking of the run (no class brakes harder
+        #: than the run's bound) and its seats; None: the homogeneous platoon
+        self._groups: list[tuple[PlatoonParams, SafetyFilterConfig, np.ndarray]] | None = None
+        vehicles = ctx.scenario.vehicle_arrays(ctx.n_vehicles, ctx.params)
+        if vehicles is not None:
+            cfg = dataclasses.replace(self.config, pred_brake_mps2=self.config.brake_mps2(
+                ctx.params))
+            seats: dict[PlatoonParams, list[int]] = {}
+            for i in range(ctx.n_vehicles):
+                p_i = dataclasses.replace(ctx.params, lag_s=float(vehicles.lag_s[i]),
+                                          accel_min_mps2=float(vehicles.accel_min_mps2[i]),
+                                          accel_max_mps2=float(vehicles.accel_max_mps2[i]))
+                seats.setdefault(p_i, []).append(i)
+            self._groups = [(p_i, cfg, np.array(v, dtype=np.int64)) for p_i, v in seats.items()]
         self.interventions = np.zeros(ctx.batch_size, dtype=np.int64)
         self.correction_sum_mps2 = np.zeros(ctx.batch_size)
 
     def act(self, state: PlatoonState, observation: np.ndarray | None) -> np.ndarray:
         given = self.inner.act(state, observation)
         self.solver_failures = int(getattr(self.inner, "solver_failures", 0))
-        out, changed, correction = filter_commands(
-            given, state.gap_m, state.speed_mps, state.pred_speed_mps,
-            state.realised_accel_mps2, self.params, self.config)
+        if self._groups is None:
+            out, changed, correction = filter_commands(
+                given, state.gap_m, state.speed_mps, state.pred_speed_mps,
+                state.realised_accel_mps2, self.params, self.config)
+        else:  # each class's seats by its own lag and bounds
+            out = np.empty_like(given, dtype=np.float64)
+            changed = np.zeros(given.shape, dtype=bool)
+            correction = np.zeros(given.shape)
+            pred = state.pred_speed_mps
+            for p_i, cfg, cols in self._groups:
+                o, c, k = filter_commands(
+                    given[:, cols], state.gap_m[:, cols], state.speed_mps[:, cols], pred[:, cols],
+                    state.realised_accel_mps2[:, cols], p_i, cfg)
+                out[:, cols], changed[:, cols], correction[:, cols] = o, c, k
         running = ~state.done  # an ended episode is frozen: its commands are not applied
         if np.any(changed & running[:, None]):
             self.interventions += np.where(running, changed.sum(axis=1), 0)

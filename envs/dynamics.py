@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from envs.params import OVM_ACTIONS, PlatoonParams, RewardWeights
+from envs.vehicle_classes import VehicleArrays
 
 FloatArray = np.ndarray
 
@@ -92,6 +93,7 @@ def physics_step(
     leader_speed_next_mps: FloatArray,
     params: PlatoonParams = PlatoonParams(),
     ring: bool = False,
+    vehicles: VehicleArrays | None = None,
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
     """Advance all followers by one step ``dt`` from the current state (published rules).
 
@@ -106,6 +108,9 @@ def physics_step(
     ring : bool
         A ring road: follower 1's predecessor is follower N (its speeds at t and t+1 take the
         leader's place), so the gaps sum to the same length at every step.
+    vehicles : VehicleArrays, optional
+        Per-vehicle lags and bounds of a heterogeneous string (:mod:`envs.vehicle_classes`);
+        None (the default): the run-wide ones of ``params``, by the unchanged homogeneous code.
 
     Returns
     -------
@@ -114,11 +119,15 @@ def physics_step(
         it exceed the command bounds).
     """
     dt = params.dt_s
-    u = np.clip(command_mps2, params.accel_min_mps2, params.accel_max_mps2)
-    if params.lag_s > 0:
+    if vehicles is not None:  # per vehicle: the same operations, (N,) rows broadcast over B
+        u = np.clip(command_mps2, vehicles.accel_min_mps2, vehicles.accel_max_mps2)
+        a = np.where(vehicles.has_lag,
+                     realised_accel_mps2 + (u - realised_accel_mps2) * vehicles.lag_gain, u)
+    elif params.lag_s > 0:
+        u = np.clip(command_mps2, params.accel_min_mps2, params.accel_max_mps2)
         a = realised_accel_mps2 + (u - realised_accel_mps2) * params.lag_gain
     else:
-        a = u
+        a = np.clip(command_mps2, params.accel_min_mps2, params.accel_max_mps2)
     v_next = a * dt
     v_next += speed_mps
     np.clip(v_next, 0.0, params.speed_max_mps, out=v_next)

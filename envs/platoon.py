@@ -30,6 +30,7 @@ from envs.dynamics import (
 from envs.humans import HumanDrivers
 from envs.params import OVM_ACTIONS, PlatoonParams, RewardWeights
 from envs.scenarios import Scenario, as_scenario, check_vehicles
+from envs.vehicle_classes import VehicleArrays
 from infra.errors import ConfigError
 
 COLLISION_MODES = ("terminate", "published")
@@ -254,6 +255,13 @@ class PlatoonEnv:
         self._leader_held = np.zeros((0, 0, 2))
         self._channels: tuple[Any, Any] | None = None
         self._humans: HumanDrivers | None = None
+        self.vehicles: VehicleArrays | None = None
+        self._string_power: Any = None
+        self._drag_saving: Any = None
+
+    #: The step of the physics (:func:`envs.dynamics.physics_step`'s signature); another simulator
+    #: behind the same env (:class:`envs.sumo.env.SumoPlatoonEnv`) overrides it.
+    _physics = staticmethod(physics_step)
 
     @property
     def obs_dim(self) -> int:
@@ -293,6 +301,21 @@ class PlatoonEnv:
         self.seeds = seeds_arr
         self.perturbation = ep.perturbation
         self.arrangement = self.scenario.arrangement(n)
+        #: per-vehicle lags and bounds of a heterogeneous string (None: the published platoon)
+        self.vehicles = self.scenario.vehicle_arrays(n, self.params)
+        self._string_power = None
+        if self.vehicles is not None:
+            from envs.energy.classes import StringPower
+
+            self._string_power = StringPower(self.vehicles.classes, self._i3_power_kw)
+        #: the platoon's drag saving (scenario option drag_saving; None: off, the default)
+        self._drag_saving = None
+        if self.scenario.options.get("drag_saving", "none") != "none":
+            from envs.energy.classes import DragSaving
+            from envs.vehicle_classes import VEHICLE_CLASSES
+
+            self._drag_saving = DragSaving(self.vehicles.classes if self.vehicles is not None
+                                           else (VEHICLE_CLASSES["i3"],) * n)
         self._humans = (None if self.arrangement.homogeneous else
                         HumanDrivers(self.arrangement, seeds_arr, self.n_steps, self.params,
                                      self.scenario.ring))
@@ -404,7 +427,7 @@ class PlatoonEnv:
                 self.params)
         lead_now = s.leader_speed_mps[:, t]
         lead_next = s.leader_speed_mps[:, t + 1]
-        gap, v, a, applied = physics_step(
+        gap, v, a, applied = self._physics(
             s.gap_m,
             s.speed_mps,
             s.realised_accel_mps2,
@@ -413,8 +436,11 @@ class PlatoonEnv:
             lead_next,
             self.params,
             s.ring,
+            self.vehicles,
         )
         power = self.battery_power_kw(v, applied)
+        if self._drag_saving is not None:  # a follower's power in its predecessor's wake
+            power = power + self._drag_saving.delta_kw(gap, v, applied)
         terms = reward_terms(
             gap,
             v,
@@ -446,7 +472,12 @@ class PlatoonEnv:
                 s.done |= s.collided
             else:
                 s.done |= s.collided & ((t + 1) % 60 == 0)
-        if self.params.lag_s <= 0:
+        if self.vehicles is not None:
+            command = np.clip(command_mps2, self.vehicles.accel_min_mps2,
+                              self.vehicles.accel_max_mps2)
+            if frozen.any():
+                command = np.where(frozen[:, None], s.command_mps2, command)
+        elif self.params.lag_s <= 0:
             command = a  # without lag the realised acceleration is the clipped command
         else:
             command = np.clip(command_mps2, self.params.accel_min_mps2, self.params.accel_max_mps2)
@@ -463,6 +494,14 @@ class PlatoonEnv:
         return StepResult(reward, s.done.copy(), s.collided.copy(), power, applied, obs, tracking)
 
     def battery_power_kw(self, speed_mps: np.ndarray, accel_mps2: np.ndarray) -> np.ndarray:
+        """Battery power (kW) of every follower: the fitted polynomial inside its fit domain, or,
+        in a heterogeneous string, each vehicle's class model (:mod:`envs.energy.classes`; the
+        ``i3`` seats keep the polynomial)."""
+        if self._string_power is not None:
+            return self._string_power(speed_mps, accel_mps2)
+        return self._i3_power_kw(speed_mps, accel_mps2)
+
+    def _i3_power_kw(self, speed_mps: np.ndarray, accel_mps2: np.ndarray) -> np.ndarray:
         """Battery power (kW) by the fitted polynomial, evaluated inside its fit domain."""
         lo, hi = self.power_accel_range_mps2
         if accel_mps2.min() < lo or accel_mps2.max() > hi:

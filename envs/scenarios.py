@@ -29,9 +29,19 @@ from envs.humans import (
 )
 from envs.params import PlatoonParams
 from envs.streams import episode_stream
-from infra.errors import ConfigError, UnknownNameError
+from envs.vehicle_classes import (
+    VehicleArrays,
+    VehicleClass,
+    canonical_classes,
+    check_drag_saving,
+    classes_for,
+    parse_class_sequence,
+    vehicle_arrays,
+)
+from infra.errors import CaccBenchError, ConfigError, UnknownNameError
 from infra.limits import MAX_SEED
-from infra.naming import coerce_option, format_label, parse_label, parse_named_list
+from infra.naming import coerce_option, format_label, is_reference, parse_label, parse_named_list
+from infra.plugins import entry_points, first_line, import_reference
 
 MIN_VEHICLES = 2
 MAX_VEHICLES = 64
@@ -95,6 +105,16 @@ class Scenario:
     #: Mixed-traffic metrics start this long after the start (s): the ring's first minute,
     #: when its waves are still forming, is left out; 0 elsewhere.
     settle_s: float = 0.0
+    #: The ``package.module:NAME`` it was built from when it is a scenario of one's own
+    #: (:attr:`base_name`); empty for a registered id.
+    reference: str = field(default="", repr=False, compare=False)
+
+    @property
+    def base_name(self) -> str:
+        """The name :func:`make_scenario` builds it from, without options: its id, or the
+        ``package.module:NAME`` reference of a scenario of one's own (whose id alone names
+        nothing; the head of its :attr:`label`), as given when it was built."""
+        return self.reference or self.id
 
     def arrangement(self, n_vehicles: int) -> Arrangement:
         """Which of the ``n_vehicles`` follower seats are automated, and how the human ones drive
@@ -107,6 +127,26 @@ class Scenario:
             For human positions beyond ``n_vehicles`` or more automated vehicles than seats.
         """
         return arrangement_of(self.options, n_vehicles, self.label or self.id)
+
+    def vehicle_classes(self, n_vehicles: int) -> tuple[VehicleClass, ...] | None:
+        """The classes of the ``n_vehicles`` followers (options ``classes``, ``class_mix``,
+        ``class_seed``; :mod:`envs.vehicle_classes`), or None for the homogeneous platoon.
+
+        Raises
+        ------
+        ConfigError
+            When the classes named are not exactly ``n_vehicles``.
+        """
+        o = self.options
+        return classes_for(o.get("classes", ""), o.get("class_mix", ""),
+                           int(o.get("class_seed", 0)), n_vehicles, self.label or self.id)
+
+    def vehicle_arrays(self, n_vehicles: int, params: PlatoonParams) -> VehicleArrays | None:
+        """The per-vehicle lags and bounds of the followers' classes in a run with ``params``
+        (:func:`envs.vehicle_classes.vehicle_arrays`), or None without classes."""
+        classes = self.vehicle_classes(n_vehicles)
+        return None if classes is None else vehicle_arrays(classes, params,
+                                                           self.label or self.id)
 
     def episodes(
         self,
@@ -159,6 +199,7 @@ def check_size_fits(scenario: Scenario, n_vehicles: int) -> None:
             f"ring (its option vehicles), not {n_vehicles}: set the count on the scenario "
             f"({scenario.id}:vehicles={n_vehicles}) and leave --vehicles out")
     scenario.arrangement(n_vehicles)
+    scenario.vehicle_classes(n_vehicles)
 
 
 # --------------------------------------------------------------------------- arrangements
@@ -174,6 +215,10 @@ ARRANGEMENT_DEFAULTS: dict[str, Any] = {
     "human_model": "idm",
     "reaction_delay_s": 0.0,
     "human_noise_mps2": 0.2,
+    "classes": "",
+    "class_mix": "",
+    "class_seed": 0,
+    "drag_saving": "none",
 }
 
 
@@ -213,10 +258,34 @@ def _check_arrangement(scenario_id: str, opts: dict[str, Any], given: dict[str, 
         raise ConfigError(f"{scenario_id}: human_model must be one of {', '.join(HUMAN_MODELS)}, "
                           f"got {opts['human_model']!r}")
     check_reaction_delay(opts["reaction_delay_s"], scenario_id)
+    _check_classes(scenario_id, opts, given)
+    check_drag_saving(opts["drag_saving"], scenario_id)
     check_human_noise(opts["human_noise_mps2"], scenario_id)
     if not 0 <= opts["placement_seed"] <= MAX_SEED:
         raise ConfigError(f"{scenario_id}: placement_seed must lie in 0..{MAX_SEED}, got "
                           f"{opts['placement_seed']}")
+
+
+def _check_classes(scenario_id: str, opts: dict[str, Any], given: dict[str, Any]) -> None:
+    """The vehicle-class options' rules: known names in the grammar of
+    :func:`envs.vehicle_classes.parse_class_sequence`, one of ``classes`` and ``class_mix``,
+    ``class_seed`` only with a mix; writes the sequence in one spelling (``car+car`` is
+    ``car*2``)."""
+    for key in ("classes", "class_mix"):
+        if key in given:
+            if not opts[key].strip():
+                raise ConfigError(f"{scenario_id}: {key}= names no class; give the followers' "
+                                  "classes (classes=bus+van+car*6), or leave the option out")
+            opts[key] = canonical_classes(parse_class_sequence(opts[key], f"{scenario_id}: {key}"))
+    if opts["classes"] and opts["class_mix"]:
+        raise ConfigError(f"{scenario_id}: classes and class_mix both say the followers' "
+                          "classes; give classes for an order or class_mix for a seeded mix")
+    if "class_seed" in given and not opts["class_mix"]:
+        raise ConfigError(f"{scenario_id}: class_seed shuffles a class_mix; add class_mix, or "
+                          "leave class_seed out")
+    if not 0 <= opts["class_seed"] <= MAX_SEED:
+        raise ConfigError(f"{scenario_id}: class_seed must lie in 0..{MAX_SEED}, got "
+                          f"{opts['class_seed']}")
 
 
 def arrangement_of(opts: dict[str, Any], n_vehicles: int, who: str) -> Arrangement:
@@ -699,6 +768,241 @@ for _spec in (
 #: Scenarios that `cacc-bench run` uses by default.
 DEFAULT_SCENARIOS: tuple[str, ...] = ("catchup-v1", "slowdown-v1")
 
+#: The entry-point group through which an installed package adds scenarios: in its
+#: ``pyproject.toml``, ``[project.entry-points."cacc_bench.scenarios"]`` then
+#: ``hill-v1 = "my_scenarios:HILL"``, a :class:`ScenarioSpec` whose id is the entry point's name.
+ENTRY_POINT_GROUP = "cacc_bench.scenarios"
+
+_PLUGINS: dict[str, ScenarioSpec] = {}  # the specs of references and entry points, once loaded
+
+
+def plugin_targets() -> dict[str, str]:
+    """``id -> "package.module:NAME"`` of the installed packages' scenarios
+    (:data:`ENTRY_POINT_GROUP`), read without importing them; an id a built-in holds is left
+    out."""
+    return {name: target for name, target in entry_points(ENTRY_POINT_GROUP).items()
+            if name not in SCENARIOS}
+
+
+def _plugin_spec(name: str, target: str) -> ScenarioSpec:
+    """The :class:`ScenarioSpec` at ``target`` in the user's code (``name``: the reference
+    itself, or an entry point's name, which must be the spec's id). Its id must be versioned
+    and not a built-in's; a reference's runs are labelled by the reference
+    (``my_scenarios:HILL[grade=0.02]``), so any process can build it again.
+
+    Raises
+    ------
+    ConfigError
+        One line for each way it fails (:func:`infra.plugins.import_reference`, and the above).
+    """
+    spec = _PLUGINS.get(name)
+    if spec is not None:
+        return spec
+    who = f"scenario {name}" + (f" ({target})" if target != name else "")
+    obj = import_reference(target, who)
+    if not isinstance(obj, ScenarioSpec):
+        raise ConfigError(f"{who}: {target.split(':', 1)[1]} is {_kind_of(obj)}, not a "
+                          "ScenarioSpec (envs.scenarios.ScenarioSpec; docs/contributing.md, Add "
+                          "a scenario)")
+    try:
+        scenario_family(obj.id)
+    except ValueError as exc:
+        raise ConfigError(f"{who}: {exc}") from None
+    if obj.id in SCENARIOS:
+        raise ConfigError(f"{who}: its id {obj.id} is a built-in scenario's; give it an id of "
+                          "its own")
+    if target != name and obj.id != name:
+        raise ConfigError(f"{who}: the entry point {name} names a scenario with id {obj.id}; "
+                          "give the entry point the scenario's id")
+    _check_plugin_spec(obj, who)
+    _PLUGINS[name] = obj
+    return obj
+
+
+def _kind_of(obj: Any) -> str:
+    """What a reference found, for messages: ``a class``, ``a function``, ``a module`` or ``an
+    object of type X``."""
+    import inspect
+
+    if inspect.isclass(obj):
+        return "a class"
+    if inspect.isroutine(obj):
+        return "a function"
+    if inspect.ismodule(obj):
+        return "a module"
+    return f"an object of type {type(obj).__name__}"
+
+
+#: The types an option's default may have (those :func:`infra.naming.coerce_option` reads a
+#: command-line value as).
+OPTION_TYPES: tuple[type, ...] = (bool, int, float, str)
+
+
+def _is_number(value: Any) -> bool:
+    return (not isinstance(value, bool) and isinstance(value, int | float | np.integer | np.floating)
+            and math.isfinite(value))
+
+
+def _check_plugin_spec(spec: ScenarioSpec, who: str) -> None:
+    """Check a user's :class:`ScenarioSpec` once, when it is loaded, so that a mistake in it is
+    one line before any work rather than a traceback or a failed run: text fields are text,
+    the targets finite and in range (``0 < target_gap_m <=``
+    :data:`infra.limits.MAX_SPACING_M`, ``0 < target_speed_mps <=`` the speed bound),
+    ``n_steps`` a whole number in 1..:data:`infra.limits.MAX_EPISODE_STEPS`,
+    ``default_vehicles`` a platoon size (:func:`check_vehicles`), ``settle_s`` within the
+    episode, ``builder`` and ``check`` callables, and the options in ``defaults`` and ``fixed``
+    named as identifiers, typed as :data:`OPTION_TYPES` and not shadowing an option every
+    scenario takes (:data:`ARRANGEMENT_DEFAULTS`) or each other.
+
+    Raises
+    ------
+    ConfigError
+        ``<who>: <what is wrong> (envs.scenarios.ScenarioSpec; ...)``.
+    """
+    from infra.limits import MAX_EPISODE_STEPS, MAX_SPACING_M
+
+    def bad(what: str) -> ConfigError:
+        return ConfigError(f"{who}: {what} (envs.scenarios.ScenarioSpec; docs/contributing.md, "
+                           "Add a scenario)")
+
+    params = PlatoonParams()
+    for name in ("description", "note"):
+        if not isinstance(getattr(spec, name), str):
+            raise bad(f"its {name} must be text, got {_kind_of(getattr(spec, name))}")
+    for name in ("published", "ring"):
+        if not isinstance(getattr(spec, name), bool):
+            raise bad(f"its {name} must be True or False, got {getattr(spec, name)!r}")
+    if not (_is_number(spec.target_gap_m) and 0 < spec.target_gap_m <= MAX_SPACING_M):
+        raise bad(f"its target_gap_m must be a finite number in (0, {MAX_SPACING_M:g}] m, got "
+                  f"{spec.target_gap_m!r}")
+    if not (_is_number(spec.target_speed_mps)
+            and 0 < spec.target_speed_mps <= params.speed_max_mps):
+        raise bad(f"its target_speed_mps must be a finite number in (0, "
+                  f"{params.speed_max_mps:g}] m/s, got {spec.target_speed_mps!r}")
+    if (isinstance(spec.n_steps, bool) or not isinstance(spec.n_steps, int | np.integer)
+            or not 1 <= spec.n_steps <= MAX_EPISODE_STEPS):
+        raise bad(f"its n_steps must be a whole number of {params.dt_s:g} s steps in "
+                  f"1..{MAX_EPISODE_STEPS}, got {spec.n_steps!r}")
+    length_s = spec.n_steps * params.dt_s
+    if not (_is_number(spec.settle_s) and 0 <= spec.settle_s < length_s):
+        raise bad(f"its settle_s must be a finite number in [0, {length_s:g}) s (the episode's "
+                  f"length), got {spec.settle_s!r}")
+    if (isinstance(spec.default_vehicles, bool)
+            or not isinstance(spec.default_vehicles, int | np.integer)
+            or not MIN_VEHICLES <= spec.default_vehicles <= MAX_VEHICLES):
+        raise bad(f"its default_vehicles must be a whole number from {MIN_VEHICLES} to "
+                  f"{MAX_VEHICLES}, got {spec.default_vehicles!r}")
+    if not callable(spec.builder):
+        raise bad(f"its builder must be a function (scenario, seeds, perturbation, n_vehicles) "
+                  f"-> EpisodeBatch, got {_kind_of(spec.builder)}")
+    if spec.check is not None and not callable(spec.check):
+        raise bad(f"its check must be a function of the options dict, or None; got "
+                  f"{_kind_of(spec.check)}")
+    for field_name in ("defaults", "fixed"):
+        table = getattr(spec, field_name)
+        if not isinstance(table, dict):
+            raise bad(f"its {field_name} must be a dict, got {_kind_of(table)}")
+        named = [k for k in table if not (isinstance(k, str) and k.isidentifier())]
+        if named:
+            raise bad(f"its {field_name} name an option {named[0]!r}; an option's name is an "
+                      "identifier (letters, digits, _)")
+        shadowed = [k for k in table if k in ARRANGEMENT_DEFAULTS]
+        if shadowed:
+            raise bad(f"its {field_name} name {shadowed[0]}, an option every scenario takes "
+                      f"(the arrangement: {', '.join(ARRANGEMENT_DEFAULTS)}); give its own "
+                      "option another name")
+    for key, value in spec.defaults.items():
+        if not isinstance(value, OPTION_TYPES) or (isinstance(value, float)
+                                                   and not math.isfinite(value)):
+            raise bad(f"the default of its option {key} must be a bool, a whole number, a "
+                      f"finite number or text, got {value!r}")
+    both = [k for k in spec.fixed if k in spec.defaults]
+    if both:
+        raise bad(f"{both[0]} is both an option (defaults) and a fixed setting (fixed); keep "
+                  "it in one of them")
+
+
+def _run_check(spec: ScenarioSpec, opts: dict[str, Any], name: str) -> None:
+    """``spec.check(opts)``; a scenario of one's own whose check raises anything but a
+    :class:`ConfigError` (its way of refusing a value) is one line naming it."""
+    assert spec.check is not None
+    if SCENARIOS.get(spec.id) is spec:  # a built-in's check: its own errors are ours
+        spec.check(opts)
+        return
+    try:
+        spec.check(opts)
+    except CaccBenchError:
+        raise
+    except (Exception, SystemExit) as exc:  # noqa: BLE001 - the user's code: one line
+        why = (f"it called sys.exit({exc.code!r})" if isinstance(exc, SystemExit)
+               else first_line(exc))
+        raise ConfigError(f"scenario {name}: its check of the options failed ({why}); a check "
+                          "refuses a value by raising infra.errors.ConfigError") from None
+
+
+def check_episode(scenario: Scenario, n_vehicles: int) -> None:
+    """Refuse, before any run, a scenario of one's own whose builder fails or builds what the
+    env cannot run: build the episode of seed 0 with ``n_vehicles`` followers and check its
+    arrays (``gap_m`` and ``speed_mps`` ``(1, N)``, ``leader_speed_mps`` ``(1, n_steps + 1)``,
+    finite numbers). The built-in scenarios pass at once (their builders are tested); a
+    command's preflight calls this for every setting (:func:`commands.run.preflight`).
+
+    Raises
+    ------
+    ConfigError
+        One line naming the scenario and what its builder did.
+    """
+    if SCENARIOS.get(scenario.id) is not None:
+        return
+    who = f"scenario {scenario.label or scenario.id}"
+    try:
+        batch = scenario.episodes([0], n_vehicles)
+    except CaccBenchError:
+        raise
+    except (Exception, SystemExit) as exc:  # noqa: BLE001 - the user's builder: one line
+        why = (f"it called sys.exit({exc.code!r})" if isinstance(exc, SystemExit)
+               else first_line(exc))
+        raise ConfigError(f"{who}: building an episode with N = {n_vehicles} failed ({why}); "
+                          "fix its builder") from None
+    if not isinstance(batch, EpisodeBatch):
+        raise ConfigError(f"{who}: its builder returned {_kind_of(batch)}, not an "
+                          "envs.scenarios.EpisodeBatch")
+    for field_name, shape in (("gap_m", (1, n_vehicles)), ("speed_mps", (1, n_vehicles)),
+                              ("leader_speed_mps", (1, scenario.n_steps + 1))):
+        values = np.asarray(getattr(batch, field_name))
+        if values.shape != shape:
+            raise ConfigError(f"{who}: its builder's {field_name} has shape {values.shape}, "
+                              f"expected {shape} (B = 1 episode, N = {n_vehicles} followers, "
+                              f"n_steps + 1 = {scenario.n_steps + 1} leader speeds)")
+        if values.dtype.kind not in "fiu" or not np.isfinite(values).all():
+            raise ConfigError(f"{who}: its builder's {field_name} holds values that are not "
+                              "finite numbers")
+
+
+def scenario_spec(name: str) -> ScenarioSpec:
+    """The spec a scenario name stands for: a registered id, an installed package's scenario
+    (:data:`ENTRY_POINT_GROUP`) or a :class:`ScenarioSpec` in the user's code named by
+    ``package.module:NAME``.
+
+    Raises
+    ------
+    UnknownNameError
+        If it is none of these (the message lists the valid ids).
+    ConfigError
+        If the user's object cannot be loaded or is not a scenario (:func:`_plugin_spec`).
+    """
+    spec = SCENARIOS.get(name)
+    if spec is not None:
+        return spec
+    if is_reference(name):
+        return _plugin_spec(name, name)
+    targets = plugin_targets()
+    if name in targets:
+        return _plugin_spec(name, targets[name])
+    raise UnknownNameError("scenario", name, [*SCENARIOS, *targets],
+                           hint="or a ScenarioSpec of your own as package.module:NAME "
+                                "(docs/contributing.md, Add a scenario)")
+
 
 def make_scenario(scenario_id: str, /, **options: Any) -> Scenario:
     """Build a registered scenario by id, with options (e.g. ``frequency_hz`` of ``sine-v1``);
@@ -715,11 +1019,9 @@ def make_scenario(scenario_id: str, /, **options: Any) -> Scenario:
         For an unknown option or an impossible value.
     """
     base, given = parse_label(scenario_id, "scenario")
-    scenario_id, options = base, {**given, **options}
-    try:
-        spec = SCENARIOS[scenario_id]
-    except KeyError:
-        raise UnknownNameError("scenario", scenario_id, SCENARIOS) from None
+    name, options = base, {**given, **options}
+    spec = scenario_spec(name)
+    scenario_id = spec.id  # a reference's id is its spec's; its label starts with the reference
     defaults = spec.all_defaults
     opts = dict(defaults)
     for key, value in options.items():
@@ -734,7 +1036,7 @@ def make_scenario(scenario_id: str, /, **options: Any) -> Scenario:
         opts[key] = coerce_option(value if isinstance(value, str) else str(value), kind, key,
                                   scenario_id)
     if spec.check is not None:
-        spec.check(opts)
+        _run_check(spec, opts, name)
     _check_arrangement(scenario_id, opts, options)
     # which seats are automated: one of three ways; the one given replaces the default's
     seat_given = [k for k in SEAT_OPTIONS if k in options]
@@ -769,9 +1071,10 @@ def make_scenario(scenario_id: str, /, **options: Any) -> Scenario:
         default_vehicles=vehicles,
         note=spec.note,
         _builder=spec.builder,
-        label=format_label(scenario_id, changed),
+        label=format_label(name, changed),
         ring=spec.ring,
         settle_s=spec.settle_s,
+        reference=name if name != scenario_id else "",
     )
 
 
@@ -809,5 +1112,12 @@ def parse_scenario_list(text: str) -> list[str]:
 
 
 def list_scenarios() -> list[ScenarioSpec]:
-    """All registered scenarios, in registration order."""
-    return list(SCENARIOS.values())
+    """All registered scenarios, in registration order, then the installed packages'
+    (:data:`ENTRY_POINT_GROUP`; one that fails to load is left out: naming it says why)."""
+    out = list(SCENARIOS.values())
+    for name, target in plugin_targets().items():
+        try:
+            out.append(_plugin_spec(name, target))
+        except ConfigError:
+            continue
+    return out

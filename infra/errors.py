@@ -19,11 +19,13 @@ class ConfigError(CaccBenchError, ValueError):
 class UnknownNameError(CaccBenchError, KeyError):
     """An unknown registered name (scenario, controller, algorithm)."""
 
-    def __init__(self, kind: str, name: str, valid: Iterable[str]) -> None:
+    def __init__(self, kind: str, name: str, valid: Iterable[str], hint: str = "") -> None:
         self.kind = kind
         self.name = name
         self.valid = sorted(valid)
-        super().__init__(f"unknown {kind} {name!r}; valid {kind}s are: {', '.join(self.valid)}")
+        more = f"; {hint}" if hint else ""
+        super().__init__(f"unknown {kind} {name!r}; valid {kind}s are: "
+                         f"{', '.join(self.valid)}{more}")
 
     def __str__(self) -> str:  # KeyError would quote the message
         return str(self.args[0])

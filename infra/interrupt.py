@@ -106,6 +106,20 @@ def raise_if_interrupted() -> None:
         raise Interrupted(_received)
 
 
+def caught_by_library(signum: int) -> None:
+    """A library caught a signal meant for the command and reported it as its own status (OSQP
+    ends its solve with status ``OSQP_SIGINT``; our handler never runs): record it as received
+    and raise :class:`Interrupted` as the handler would (inside :func:`held`: only recorded).
+    Without :func:`install`'s handlers (a Python caller) it is the user's Ctrl-C: a
+    :class:`KeyboardInterrupt`."""
+    global _received
+    if signal.getsignal(signal.SIGINT) is not _handler:
+        raise KeyboardInterrupt(signal.Signals(signum).name)
+    if _received is None:
+        _received = signum
+    raise_if_interrupted()
+
+
 @contextmanager
 def held() -> Iterator[None]:
     """Within the block, SIGINT and SIGTERM are recorded but raise nothing (a cleanup that must

@@ -28,6 +28,18 @@ MAX_ROLLOUT_AGENT_STEPS = 2**24
 TRAIN_SEED_STRIDE = 10_000_000
 #: Largest training seed whose episode seeds stay below 2**32 for a longest run (418).
 MAX_TRAIN_SEED = (2**32 - 1 - MAX_TRAIN_STEPS - MAX_EPISODES_PARALLEL) // TRAIN_SEED_STRIDE - 1
+#: Largest time gap (s) of a controller's spacing policy (``acc``/``cacc``, the SUMO and Plexe
+#: models, ``stability --time-gap``): wide around any platoon (the IDM's range is 0.5-3 s),
+#: narrow enough that the spacing a run records and the analytic loop stay finite (``1e13`` s
+#: ran, then its record's spacing of 1e14 m was refused; ``1e308`` overflowed the analysis).
+MAX_TIME_GAP_S = 10.0
+#: Most steps of one episode of a scenario of one's own (10 minutes at 0.1 s; the built-ins'
+#: longest, the ring, has 3000): a rollout's arrays of (steps x episodes x followers) must
+#: stay allocatable (``10**12`` steps asked for 7 TiB).
+MAX_EPISODE_STEPS = 6000
+#: Largest distance (m) of a spacing policy (a standstill distance, a constant spacing): wide
+#: around any platoon, finite in every metric (``1e308`` m was stored, then refused).
+MAX_SPACING_M = 100.0
 
 
 def training_episode_seeds(run_seed: int, first: int, count: int) -> np.ndarray:

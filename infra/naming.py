@@ -3,11 +3,18 @@
 On the command line: ``name:key=value,key=value`` in a comma list, where a ``key=value`` item
 belongs to the name before it (``mpc:horizon=30,solver=ipopt,cacc``). In labels (the leaderboard,
 the store): ``name[key=value,...]`` with the keys sorted. Both forms parse back.
+
+A name may also be a reference to an object in the user's own code, ``package.module:Attribute``
+(the grammar of Python entry points), with its options after a further colon:
+``my_pkg.laws:MyController:gain=2``. An item is a reference when it starts with dotted Python
+identifiers, a colon and a dotted identifier, followed by nothing, ``:`` or ``[`` (a registered
+name with an option, ``mpc:horizon=30``, never is: ``=`` follows).
 """
 
 from __future__ import annotations
 
 import math
+import re
 import typing
 from collections.abc import Sequence
 from pathlib import Path
@@ -17,13 +24,37 @@ from infra.errors import ConfigError
 
 T = TypeVar("T")
 
+#: ``package.module:Attribute``: a reference to an object in Python code (entry-point grammar).
+REFERENCE = re.compile(r"[A-Za-z_]\w*(?:\.[A-Za-z_]\w*)*:[A-Za-z_]\w*(?:\.[A-Za-z_]\w*)*")
+
+
+def split_reference(item: str) -> tuple[str, str] | None:
+    """``("pkg.mod:Attr", "key=value,...")`` for an item that is a reference, with what follows
+    its further colon (``""`` if nothing); None for any other item (``mpc:horizon=30``,
+    ``sine-v1``, a label with brackets)."""
+    m = REFERENCE.match(item)
+    if m is None:
+        return None
+    rest = item[m.end():]
+    if not rest:
+        return m.group(), ""
+    if rest.startswith(":"):
+        return m.group(), rest[1:]
+    return None
+
+
+def is_reference(name: str) -> bool:
+    """Whether ``name`` is exactly a ``package.module:Attribute`` reference."""
+    return REFERENCE.fullmatch(name) is not None
+
 
 def parse_named_list(text: str, kind: str, name_prefixes: tuple[str, ...] = ()
                      ) -> list[tuple[str, dict[str, str]]]:
     """Parse ``"mpc:solver=ipopt,horizon=30,cacc"`` into ``[("mpc", {...}), ("cacc", {})]``;
     labels (``"sine-v1[amplitude_mps=2]"``) are accepted as items too. An item that starts with
     one of ``name_prefixes`` (``"safe:"``, repeated or not) keeps it in its name:
-    ``safe:bdc:seed=1`` is ``("safe:bdc", {"seed": "1"})``."""
+    ``safe:bdc:seed=1`` is ``("safe:bdc", {"seed": "1"})``; a reference keeps its colon:
+    ``my_mod:MyLaw:gain=2`` is ``("my_mod:MyLaw", {"gain": "2"})``."""
     out: list[tuple[str, dict[str, str]]] = []
     for raw in _split_outside_brackets(text):
         item = raw.strip()
@@ -37,7 +68,13 @@ def parse_named_list(text: str, kind: str, name_prefixes: tuple[str, ...] = ()
             name, options = parse_label(item, kind)
             out.append((prefix + name, options))
             continue
-        if prefix or ":" in item:
+        reference = split_reference(item)
+        if reference is not None:
+            out.append((prefix + reference[0], {}))
+            item = reference[1]
+            if not item:
+                continue
+        elif prefix or ":" in item:
             name, _, opt = item.partition(":")
             out.append((prefix + name.strip(), {}))
             item = opt
@@ -130,6 +167,8 @@ def parse_label(label: str, kind: str = "name") -> tuple[str, dict[str, str]]:
     text = label.strip()
     if text.endswith("]") and "[" in text:
         name, inner = text[:-1].split("[", 1)
+    elif (reference := split_reference(text)) is not None:
+        name, inner = reference
     elif ":" in text:
         name, inner = text.split(":", 1)
     else:

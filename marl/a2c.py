@@ -806,6 +806,57 @@ class Trainer:
         return [out[r.index] for r in taking]
 
 
+    def run_state(self, run: Run) -> dict[str, Any]:
+        """Everything ``run`` continues from bit for bit once one of its batches ended (where
+        :meth:`train` calls ``on_batch``; its next batch starts from new episodes): its rows of
+        the weights, buffers and RMSprop's averages, its random stream, counters, return
+        statistics, bit tallies and the algorithm's state (:mod:`marl.checkpoint`'s
+        snapshots). Nothing else carries over: a run draws only from its own generator, its
+        episodes' streams from their seeds."""
+        from marl.checkpoint import plain_state
+
+        name = {id(p): n for n, p in self.net.named_parameters()}
+        return {
+            "seed": run.seed,
+            "tensors": {n: t[run.rows].detach().cpu().clone() for n, t in self._tensors()},
+            "square_avg": {name[id(p)]: sq[run.rows].cpu().clone()
+                           for (p, _), sq in zip(self.params, self._square_avg, strict=True)},
+            "generator": run.generator.get_state(),
+            "counters": [run.steps, run.episodes, run.updates, run.episode_counter],
+            "return_stats": list(run.return_stats),
+            "bits": dict(run.bits),
+            "hook_state": plain_state(run.hook_state, (run.generator,)),
+        }
+
+    @torch.no_grad()
+    def restore_run(self, run: Run, state: dict[str, Any]) -> None:
+        """Continue ``run`` from :meth:`run_state`'s ``state`` (before :meth:`train`)."""
+        from marl.checkpoint import restore_state
+
+        name = {id(p): n for n, p in self.net.named_parameters()}
+        mine = dict(self._tensors())
+        saved, squares = state["tensors"], state["square_avg"]
+        if state["seed"] != run.seed or saved.keys() != mine.keys() or any(
+                saved[n].shape != mine[n][run.rows].shape for n in mine):
+            raise ConfigError(f"the snapshot of seed {state['seed']} is not this {self.algo.name} "
+                              f"run's (seed {run.seed}, N = {self.n_vehicles}); remove it to "
+                              "train from the start")
+        for n, t in mine.items():
+            t[run.rows] = saved[n].to(self.device)
+        for (p, _), sq in zip(self.params, self._square_avg, strict=True):
+            sq[run.rows] = squares[name[id(p)]].to(self.device)
+        run.generator.set_state(state["generator"])
+        run.steps, run.episodes, run.updates, run.episode_counter = state["counters"]
+        run.return_stats = tuple(state["return_stats"])  # type: ignore[assignment]
+        run.bits = dict(state["bits"])
+        run.hook_state = restore_state(run.hook_state, state["hook_state"], (run.generator,),
+                                       self.device)
+
+    def _tensors(self) -> list[tuple[str, torch.Tensor]]:
+        """Every parameter and buffer of the stack by name (each ``(K N, ...)``)."""
+        return [*self.net.named_parameters(), *self.net.named_buffers()]
+
+
 def _merge_rows(base: dict[str, Any], new: dict[str, Any], runs: Sequence[Run]) -> dict[str, Any]:
     """``base`` (an act's output, nested dicts of ``(A, ...)`` tensors) with the rows of
     ``runs`` taken from ``new``."""

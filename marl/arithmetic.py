@@ -5,7 +5,7 @@ PyTorch's CPU kernels pick their instructions by processor: MKL's float32 produc
 own AVX-512 or AVX2 loops, numpy's OpenBLAS and its elementwise loops, and PyTorch's float32
 square root, which rounds about a fifth of its results to a neighbour, otherwise on an Intel
 and an AMD processor. A sampled training run carries any last bit into other weights
-(``tests/marl/test_marl_losses.py`` pins one hash per processor family in the default, ``native``,
+(``tests/test_marl/test_marl_losses.py`` pins one hash per processor family in the default, ``native``,
 mode).
 
 ``portable`` starts a process with :func:`portable_env`: MKL's conditional numerical
@@ -13,7 +13,7 @@ reproducibility branch ``COMPATIBLE`` (``MKL_CBWR``) and, on a processor with AV
 AVX2 kernels of PyTorch (``ATEN_CPU_CAPABILITY``), of numpy's OpenBLAS
 (``OPENBLAS_CORETYPE=Haswell``) and of numpy's own loops (its AVX-512 targets disabled); in such
 a process the learners take a correctly rounded square root (:func:`marl.layers.sqrt`). The
-short trainings then give one hash on both processors (``tests/marl/test_arithmetic.py``), and so do
+short trainings then give one hash on both processors (``tests/test_marl/test_arithmetic.py``), and so do
 numpy's linear algebra, which the MPC controllers use, and its elementwise functions
 (:mod:`marl.arithmetic_fingerprint`). MKL's branch alone held the weights across
 instruction sets on one processor, but not from the Xeon to the EPYC.

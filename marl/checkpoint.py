@@ -169,6 +169,230 @@ def _writer(payload: dict[str, Any]) -> Callable[[Path], None]:
     return lambda tmp: write_payload(tmp, payload, atomic=False)
 
 
+# ---------------------------------------------------------------------------- resumable snapshots
+#: Seconds of training between two resumable snapshots of a run (``<stem>.snapshot.pt``): the
+#: most work, beside the batch or update in flight, that an interruption loses.
+SNAPSHOT_EVERY_S = 60.0
+#: The format of a snapshot file.
+SNAPSHOT_FORMAT = 1
+SNAPSHOT_SUFFIX = ".snapshot.pt"
+
+
+class Snapshots:
+    """The resumable snapshot of one training run, written every :data:`SNAPSHOT_EVERY_S`.
+
+    The file (``<stem>.snapshot.pt`` beside the run's files) holds everything the run continues
+    from bit for bit at a boundary of its loop (a batch of the paper's learners, an update of
+    the shared ones, a round of the distiller): weights, optimiser state, random streams,
+    counters, the curve so far and the kept snapshot, as the trainer's state dict (tensors,
+    numbers, strings; read with ``torch.load(weights_only=True)``, no pickled code) with its
+    SHA-256 and the run it belongs to (``identity``: learner, scenario, N, seed, budget, config,
+    arithmetic, energy model). Each write is atomic (:mod:`infra.atomic`): an interruption
+    leaves the last snapshot whole. The run removes the file when its own files are written.
+
+    Parameters
+    ----------
+    path : path
+        The snapshot file.
+    identity : dict
+        What the run is; a file recording another is refused (:meth:`read`).
+    every_s : float, optional
+        Seconds between writes (default :data:`SNAPSHOT_EVERY_S`; 0: at every boundary).
+    """
+
+    def __init__(self, path: str | Path, identity: dict[str, Any],
+                 every_s: float | None = None) -> None:
+        import time
+
+        self.path = Path(path)
+        self.identity = dict(identity)
+        self.every_s = SNAPSHOT_EVERY_S if every_s is None else float(every_s)
+        self._clock = time.monotonic
+        self._last = self._clock()
+
+    def due(self) -> bool:
+        """Whether :attr:`every_s` passed since the last write (or since the run started)."""
+        return self._clock() - self._last >= self.every_s
+
+    def write(self, steps: int, state: dict[str, Any]) -> None:
+        """Replace the file with ``state`` (the trainer's, after ``steps`` environment steps)."""
+        from infra.atomic import write_with
+
+        buffer = io.BytesIO()
+        torch.save(state, buffer)
+        blob = buffer.getvalue()
+        payload = {"format_version": SNAPSHOT_FORMAT, "identity": self.identity,
+                   "steps": int(steps), "sha256": hashlib.sha256(blob).hexdigest(),
+                   "state": blob}
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        write_with(self.path, lambda tmp: save_to_file(payload, tmp))
+        self._last = self._clock()
+
+    def steps(self) -> int | None:
+        """The environment steps the file's run had taken (None without a file); verified as
+        :meth:`read` does."""
+        header = self._header()
+        return None if header is None else int(header["steps"])
+
+    def read(self) -> dict[str, Any] | None:
+        """The state the file holds, or None without a file.
+
+        Raises
+        ------
+        ConfigError
+            A damaged file (unreadable, another format, a hash that does not match), or one of
+            another run (learner, scenario, N, seed, budget, config, arithmetic or energy
+            model differ); the one line names the file and what to do.
+        """
+        header = self._header()
+        if header is None:
+            return None
+        state = torch.load(io.BytesIO(header["state"]), map_location="cpu", weights_only=True)
+        if not isinstance(state, dict):
+            raise self._damaged("its state is not a dict")
+        return state
+
+    def remove(self) -> None:
+        """Remove the file (the run finished: its checkpoint is the product)."""
+        self.path.unlink(missing_ok=True)
+
+    def _damaged(self, what: str) -> ConfigError:
+        return ConfigError(f"snapshot {self.path} is damaged ({what}); remove it to train this "
+                           "run from the start")
+
+    def _header(self) -> dict[str, Any] | None:
+        if not self.path.exists():
+            return None
+        try:
+            data = torch.load(io.BytesIO(self.path.read_bytes()), map_location="cpu",
+                              weights_only=True)
+        except Exception as exc:  # noqa: BLE001 - any failure means an unusable file
+            reason = " ".join(str(exc).split()).split(". ")[0][:160] or type(exc).__name__
+            raise self._damaged(f"it cannot be read: {reason}") from None
+        if not isinstance(data, dict) or data.get("format_version") != SNAPSHOT_FORMAT:
+            got = data.get("format_version") if isinstance(data, dict) else None
+            raise self._damaged(f"format {got}, this cacc-bench reads {SNAPSHOT_FORMAT}")
+        blob = data.get("state")
+        if not isinstance(blob, bytes) or hashlib.sha256(blob).hexdigest() != data.get("sha256"):
+            raise self._damaged("its content hash does not match")
+        got = data.get("identity")
+        if not isinstance(got, dict) or not isinstance(data.get("steps"), int):
+            raise self._damaged("no identity or steps")
+        if got != self.identity:
+            raise ConfigError(
+                f"snapshot {self.path} is of another run ({', '.join(_differ(got, self.identity))}"
+                " differ); resume with the options it was made with, or remove it to train this "
+                "run from the start")
+        return data
+
+
+def _differ(a: dict[str, Any], b: dict[str, Any]) -> list[str]:
+    """The keys where ``a`` and ``b`` differ (``config fields x, y`` inside a dict)."""
+    out = []
+    for k in sorted({*a, *b}):
+        x, y = a.get(k), b.get(k)
+        if x == y:
+            continue
+        if isinstance(x, dict) and isinstance(y, dict):
+            fields = sorted(f for f in {*x, *y} if x.get(f) != y.get(f))
+            out.append(f"{k} fields {', '.join(fields)}")
+        else:
+            out.append(k)
+    return out
+
+
+def plain_state(value: Any, shared: Sequence[torch.Generator] = ()) -> Any:
+    """``value`` as the plain data a snapshot holds: tensors and arrays copied to CPU tensors,
+    numbers, strings, lists, dicts with string keys, an object's attributes by name, and a
+    generator of ``shared`` by its place (restored as the trainer's own,
+    :func:`restore_state`).
+
+    Raises
+    ------
+    TypeError
+        For anything else (a learner keeping such state cannot be snapshotted: say how).
+    """
+    import numpy as np
+
+    if value is None or isinstance(value, bool | int | float | str):
+        return value
+    if isinstance(value, torch.Tensor):
+        return value.detach().to("cpu", copy=True)
+    if isinstance(value, np.ndarray):
+        return {"__array__": torch.from_numpy(np.array(value, copy=True))}
+    if isinstance(value, torch.Generator):
+        for i, g in enumerate(shared):
+            if value is g:
+                return {"__generator__": i}
+        raise TypeError("a snapshot holds the trainer's own generators only")
+    if isinstance(value, list | tuple):
+        return [plain_state(v, shared) for v in value]
+    if isinstance(value, dict) and all(isinstance(k, str) for k in value):
+        return {k: plain_state(v, shared) for k, v in value.items()}
+    if hasattr(value, "__dict__") and not callable(value):
+        return {"__object__": type(value).__qualname__,
+                "attributes": {k: plain_state(v, shared) for k, v in vars(value).items()}}
+    raise TypeError(f"a snapshot cannot hold a {type(value).__name__}")
+
+
+def restore_state(current: Any, state: Any, shared: Sequence[torch.Generator] = (),
+                  device: torch.device | str = "cpu") -> Any:
+    """The value :func:`plain_state` made ``state`` of, rebuilt on ``current`` (the value of a
+    freshly made trainer it replaces): an object is filled in place, a tuple stays a tuple,
+    tensors go to ``current``'s device (``device`` where it has none)."""
+    if isinstance(state, dict) and "__object__" in state:
+        if current is None or type(current).__qualname__ != state["__object__"]:
+            raise ConfigError(f"a snapshot holds a {state['__object__']} where this trainer "
+                              f"has {type(current).__name__}: remove it to train from the start")
+        for k, v in state["attributes"].items():
+            setattr(current, k, restore_state(getattr(current, k, None), v, shared, device))
+        return current
+    if isinstance(state, dict) and "__generator__" in state:
+        return shared[state["__generator__"]]
+    if isinstance(state, dict) and "__array__" in state:
+        return state["__array__"].numpy().copy()
+    if isinstance(state, torch.Tensor):
+        return state.to(current.device if isinstance(current, torch.Tensor) else device)
+    if isinstance(state, list):
+        items = list(current) if isinstance(current, list | tuple) else []
+        out = [restore_state(items[i] if i < len(items) else None, v, shared, device)
+               for i, v in enumerate(state)]
+        return tuple(out) if isinstance(current, tuple) else out
+    if isinstance(state, dict):
+        named = current if isinstance(current, dict) else {}
+        return {k: restore_state(named.get(k), v, shared, device) for k, v in state.items()}
+    return state
+
+
+def process_rng_state() -> dict[str, Any]:
+    """The process-wide random streams (torch's, numpy's, Python's) as plain data."""
+    import random
+
+    import numpy as np
+
+    # numpy's global stream: training draws none, kept so that nothing can differ
+    kind, keys, pos, has_gauss, cached = np.random.get_state()  # noqa: NPY002
+    version, internal, gauss = random.getstate()
+    return {"torch": torch.get_rng_state(),
+            "numpy": [kind, torch.from_numpy(np.array(keys, dtype=np.int64)), int(pos),
+                      int(has_gauss), float(cached)],
+            "python": [int(version), list(internal), gauss]}
+
+
+def set_process_rng_state(state: dict[str, Any]) -> None:
+    """Put back :func:`process_rng_state`'s streams."""
+    import random
+
+    import numpy as np
+
+    torch.set_rng_state(state["torch"])
+    kind, keys, pos, has_gauss, cached = state["numpy"]
+    keys = keys.numpy().astype(np.uint32)
+    np.random.set_state((kind, keys, pos, has_gauss, cached))  # noqa: NPY002
+    version, internal, gauss = state["python"]
+    random.setstate((version, tuple(internal), gauss))
+
+
 def save_to_file(payload: dict[str, Any], path: str | Path) -> None:
     """``torch.save`` into memory, then one plain write of the bytes to ``path``: a full disk
     is then an ``OSError`` (``ENOSPC``) naming the file, where torch's zip writer raised a

@@ -12,6 +12,7 @@ that trains them is :mod:`marl.a2c`.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import importlib
 import math
@@ -182,18 +183,27 @@ class A2CConfig:
 
     def resolved(self, scenario: str | Scenario) -> A2CConfig:
         """This config with ``reward_alpha`` and ``power_baseline_kw`` filled in for
-        ``scenario`` (an id, or a built one; where they were None)."""
-        out: A2CConfig = self
-        if out.reward_alpha is None:
-            family = scenario_family(as_scenario(scenario).id)
-            alpha = self.PUBLISHED_REWARD_ALPHA.get(family, self.DEFAULT_REWARD_ALPHA)
-            out = dataclasses.replace(out, reward_alpha=alpha)
-        if out.power_baseline_kw is None:
-            from envs.energy import load_power_polynomial
+        ``scenario`` (built, or an id; where they were None).
 
-            v_star = as_scenario(scenario).target_speed_mps
-            p0 = float(load_power_polynomial()(np.array([v_star]), np.array([0.0]))[0])
-            out = dataclasses.replace(out, power_baseline_kw=round(p0, 6))
+        The config was checked where it was built; the values filled in come from the
+        published table and the energy model, so the copy is not checked again."""
+        filled: dict[str, float] = {}
+        if self.reward_alpha is None or self.power_baseline_kw is None:
+            sc = as_scenario(scenario)
+            if self.reward_alpha is None:
+                family = scenario_family(sc.id)
+                filled["reward_alpha"] = self.PUBLISHED_REWARD_ALPHA.get(
+                    family, self.DEFAULT_REWARD_ALPHA)
+            if self.power_baseline_kw is None:
+                from envs.energy import load_power_polynomial
+
+                p0 = load_power_polynomial()(np.array([sc.target_speed_mps]), np.array([0.0]))
+                filled["power_baseline_kw"] = round(float(p0[0]), 6)
+        if not filled:
+            return self
+        out = copy.copy(self)  # no __init__: nothing checked twice
+        for name, value in filled.items():
+            object.__setattr__(out, name, value)
         return out
 
     def reward_weights(self) -> RewardWeights:

@@ -24,10 +24,12 @@ builds ``mpc``): here it is any ``make_expert(env) -> act(state) -> (B, N) comma
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -39,7 +41,7 @@ from envs.scenarios import Scenario, as_scenario, check_vehicles
 from infra.errors import ConfigError
 from infra.limits import training_episode_seeds
 from marl.acting import agent_inputs
-from marl.ppo import Evaluator, PPOResult, validation
+from marl.ppo import Evaluator, PPOResult, module_tensors, validation
 from marl.ppo_nets import (
     PPOConfig,
     SharedActor,
@@ -47,6 +49,9 @@ from marl.ppo_nets import (
     check_finite_weights,
     check_learning_rate,
 )
+
+if TYPE_CHECKING:
+    from marl.checkpoint import Snapshots
 
 #: ``make_expert(env)`` after ``env.reset(seeds)``: the expert's ``act(state) -> (B, N)``.
 ExpertFactory = Callable[[PlatoonEnv], Callable[[PlatoonState], np.ndarray]]
@@ -71,7 +76,8 @@ class DistillConfig:
         Adam steps on the whole data set after each round (the actor and its optimiser carry
         over from round to round), rows per step, learning rate.
     hidden : int
-        Width of the actor (as :class:`marl.ppo.PPOConfig`).
+        Width of the actor (as :class:`marl.ppo.PPOConfig`, which checks it: the actor's
+        config is built once, with this config, :meth:`actor_config`).
     """
 
     expert: str = "mpc"
@@ -84,9 +90,9 @@ class DistillConfig:
     hidden: int = 64
 
     def __post_init__(self) -> None:
-        from infra.limits import MAX_EPISODES_PARALLEL, check_hidden
+        from infra.limits import MAX_EPISODES_PARALLEL
 
-        check_hidden(self.hidden)
+        self.actor_config()  # built, and its hidden size checked, once: here
         for name, high in (("rounds", 10**6), ("episodes_per_round", MAX_EPISODES_PARALLEL),
                            ("grad_steps", 10**6), ("minibatch_rows", 10**6)):
             if not 1 <= getattr(self, name) <= high:
@@ -97,6 +103,10 @@ class DistillConfig:
 
     def actor_config(self) -> PPOConfig:
         """The actor's network settings (accel mode) as the shared learners write them."""
+        return self._actor
+
+    @functools.cached_property
+    def _actor(self) -> PPOConfig:
         return PPOConfig(hidden=self.hidden)
 
 
@@ -110,6 +120,7 @@ def distill(
     log: Callable[[str], None] | None = None,
     evaluate: Evaluator | None = None,
     max_steps: int | None = None,
+    snapshots: Snapshots | None = None,
 ) -> PPOResult:
     """Distil the expert into the shared actor on ``scenario`` with N followers.
 
@@ -118,7 +129,9 @@ def distill(
     is fitted on what it holds and is the last. Returns the round whose actor has the fewest
     validation collisions, then the best validation reward (actions sampled as trained, scored
     by ``evaluate``), as :class:`marl.ppo.PPOResult` (``steps``: environment steps collected);
-    the last round when ``evaluate`` is None.
+    the last round when ``evaluate`` is None. With ``snapshots`` it continues from the run's
+    snapshot file where there is one, and keeps one there after a round every so often (the
+    actor, Adam's state, the data set, the generators, the curve and the kept round).
     """
     cfg, sc = config, as_scenario(scenario)
     n = check_vehicles(n_vehicles)
@@ -132,8 +145,25 @@ def distill(
     curve: list[dict[str, float]] = []
     best: dict[str, float] = {}
     best_state = as_shipped(actor).state_dict()
-    steps, t0 = 0, time.perf_counter()
-    for rnd in range(cfg.rounds):
+    steps, first, before_s = 0, 0, 0.0
+    state = snapshots.read() if snapshots is not None else None
+    if state is not None:
+        assert snapshots is not None
+        with torch.no_grad():
+            for k, t in module_tensors(actor).items():
+                t.copy_(state["actor"][k])
+        opt.load_state_dict(state["optimiser"])
+        obs_rows, label_rows = [state["data"][0]], [state["data"][1]]
+        curve, best, best_state = state["curve"], state["best"], state["best_state"]
+        steps, first, before_s = state["steps"], state["round"], state["elapsed_s"]
+        gen.set_state(state["generator"])
+        from marl.checkpoint import set_process_rng_state
+
+        set_process_rng_state(state["process_rng"])
+        if log:
+            log(f"resumed from {snapshots.path}: round {first}, {steps} steps")
+    t0 = time.perf_counter()
+    for rnd in range(first, cfg.rounds):
         if max_steps is not None and steps >= max_steps:
             break
         env = PlatoonEnv(sc, n, params, action_mode="accel", channel=ChannelConfig())
@@ -171,17 +201,30 @@ def distill(
         shipped = as_shipped(actor)
         if evaluate is None:
             best_state = shipped.state_dict()
-            continue
-        score = validation(evaluate, shipped)
-        curve.append({"steps": float(steps), **score})
-        if log:
-            log(f"distill {cfg.expert} {sc.id} seed {seed}: round {rnd} ({len(data_u)} labels), "
-                f"validation reward {score['reward']:.1f}, collisions {score['collisions']:.0f}")
-        if not best or (score["collisions"], -score["reward"]) <= (best["collisions"], -best["reward"]):
-            best = {"steps": float(steps), "round": float(rnd), **score}
-            best_state = shipped.state_dict()
+        else:
+            score = validation(evaluate, shipped)
+            curve.append({"steps": float(steps), **score})
+            if log:
+                log(f"distill {cfg.expert} {sc.id} seed {seed}: round {rnd} ({len(data_u)} "
+                    f"labels), validation reward {score['reward']:.1f}, collisions "
+                    f"{score['collisions']:.0f}")
+            if not best or ((score["collisions"], -score["reward"])
+                            <= (best["collisions"], -best["reward"])):
+                best = {"steps": float(steps), "round": float(rnd), **score}
+                best_state = shipped.state_dict()
+        last = rnd + 1 == cfg.rounds or (max_steps is not None and steps >= max_steps)
+        if snapshots is not None and not last and snapshots.due():
+            from marl.checkpoint import process_rng_state
+
+            snapshots.write(steps, {
+                "actor": {k: t.detach().clone() for k, t in module_tensors(actor).items()},
+                "optimiser": opt.state_dict(), "data": [data_x, data_u],
+                "curve": curve, "best": best, "best_state": best_state, "steps": steps,
+                "round": rnd + 1, "generator": gen.get_state(),
+                "process_rng": process_rng_state(),
+                "elapsed_s": before_s + time.perf_counter() - t0})
     actor.load_state_dict(best_state)
-    rate = steps / max(time.perf_counter() - t0, 1e-9)
+    rate = steps / max(before_s + time.perf_counter() - t0, 1e-9)
     return PPOResult(actor, steps, curve, best, rate, actor_cfg)
 
 

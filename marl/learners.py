@@ -109,6 +109,12 @@ LEARNERS: dict[str, LearnerSpec] = {s.name: s for s in (
         "BDC-MARL's consensus on the acceleration-action learner: an actor and critic per "
         "follower, critics agreeing by binary differential consensus, QSGD critic gradients "
         "(shipped N = 8 checkpoint, that N only; actions sampled, mode=greedy for the mode)"),
+    LearnerSpec(
+        "ippo-gains", "ppo", "marl.ippo_gains:GainScheduleConfig", "marl.ippo_gains",
+        "marl.ippo_gains:GainActing", False, _ACCEL_V2V,
+        "one policy shared by every follower (PPO) that schedules cacc's gains and time gap "
+        "along a segment certified string stable, any N (shipped N = 8 checkpoint; actions "
+        "sampled, mode=greedy for the mode)"),
 )}
 
 

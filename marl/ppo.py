@@ -43,6 +43,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -56,6 +57,9 @@ from infra.errors import ConfigError
 from infra.limits import MAX_ROLLOUT_AGENT_STEPS, MAX_SEED, training_episode_seeds
 from marl.acting import agent_inputs, to_command
 from marl.ppo_nets import Critic, PPOConfig, SharedActor, as_shipped, check_finite_weights
+
+if TYPE_CHECKING:
+    from marl.checkpoint import Snapshots
 
 #: Scores a policy on the validation seeds: ``(actor, mode) -> {"reward", "collisions", ...}``
 #: (:func:`benchmark.policy_eval.validation_evaluator`, given by the layer above).
@@ -185,17 +189,26 @@ class PPOTrainer:
         torch.manual_seed(self.seed)  # nn.init draws from the global generator
         n_agents = self.n if cfg.per_agent else 0
         self.actor, self.critic = SharedActor(cfg, params, n_agents), Critic(cfg, n_agents)
+        before = set(vars(self))
         self.setup()
+        #: the attributes :meth:`setup` made: the learner's own state, which snapshots keep
+        self.own_state = tuple(sorted(set(vars(self)) - before))
         self.opt = torch.optim.Adam([*self.actor.parameters(), *self.critic.parameters()],
                                     lr=cfg.lr, eps=1e-5)
         self.world = self.make_world(scenario, self.n, cfg.comm_delay_s, cfg.packet_loss)
         self.scale = RewardScale(cfg.gamma)
         self.scale.reset(cfg.n_envs, self.n)
         self.episode = self.steps = self.updates = 0
+        #: the batch of episodes in progress, to rebuild its env in a snapshot: the generator's
+        #: state before its world was drawn (randomised), and the commands it has stepped
+        self.world_draw: torch.Tensor | None = None
+        self.commands: list[np.ndarray] = []
         self.obs = self.new_episodes()
         self.curve: list[dict[str, float]] = []  # validations: steps, reward, collisions
         self.best: dict[str, float] = {}  # the kept snapshot's validation
         self.best_state: dict[str, torch.Tensor] = {}
+        self.next_eval = 0  # environment steps of the next validation
+        self.elapsed_s = 0.0  # seconds trained in earlier processes (a resumed run)
 
     def setup(self) -> None:
         """What a learner adds before its optimiser (``ippo-bdc``: its compressor)."""
@@ -245,8 +258,10 @@ class PPOTrainer:
         seeds = training_episode_seeds(self.seed, self.episode, b)
         self.episode += b
         if self.cfg.randomised:
+            self.world_draw = self.gen.get_state()
             self.world = self.draw_world()
         self.scale.reset(b, self.world.n)
+        self.commands = []
         obs = self.world.env.reset(seeds)
         return torch.from_numpy(agent_inputs(obs, self.cfg.action_mode))
 
@@ -282,8 +297,9 @@ class PPOTrainer:
                 logp, _ = actor.log_prob_entropy(out, action)
                 ro.critic_obs[t] = critic.inputs(nobs, s.step / env.n_steps)
                 ro.value[t] = critic.body(ro.critic_obs[t])[..., 0]
-            res = env.step(to_command(actor, action, env.state, env.params, obs.numpy(),
-                                      w.targets))
+            command = to_command(actor, action, env.state, env.params, obs.numpy(), w.targets)
+            self.commands.append(command.copy())
+            res = env.step(command)
             ro.obs[t], ro.action[t], ro.logp[t], ro.live[t] = nobs, action, logp, live_seats
             reward = (torch.from_numpy(res.reward.astype(np.float32)) + w.baseline) * live[:, None]
             if cfg.reward_alpha > 0:
@@ -418,19 +434,36 @@ class PPOTrainer:
                 f"reward {score['reward']:.1f}, collisions {score['collisions']:.0f}")
 
     def train(self, evaluate: Evaluator | None = None,
-              log: Callable[[str], None] | None = None) -> PPOResult:
+              log: Callable[[str], None] | None = None,
+              snapshots: Snapshots | None = None) -> PPOResult:
         """Train until ``total_steps``; returns the snapshot with the fewest validation
-        collisions, then the best validation reward (the last when ``evaluate`` is None)."""
-        self.curve, self.best = [], {}
-        self.best_state = as_shipped(self.actor).state_dict()
-        next_eval = 0
+        collisions, then the best validation reward (the last when ``evaluate`` is None).
+
+        With ``snapshots``, the run continues from its snapshot file where there is one, and
+        keeps one there every so often (after an update; :meth:`snapshot_state`)."""
+        if snapshots is not None:  # a learner keeping what a snapshot cannot hold: at once
+            from marl.checkpoint import plain_state
+
+            plain_state({k: getattr(self, k) for k in self.own_state}, (self.gen,))
+        state = snapshots.read() if snapshots is not None else None
+        if state is None:
+            self.curve, self.best = [], {}
+            self.best_state = as_shipped(self.actor).state_dict()
+            self.next_eval = 0
+        else:
+            assert snapshots is not None
+            self.restore(state)
+            if log:
+                log(f"resumed from {snapshots.path}: {self.steps} steps, {self.updates} updates")
         t0 = time.perf_counter()
         while self.steps < self.total_steps:
-            if evaluate is not None and self.steps >= next_eval:
+            if evaluate is not None and self.steps >= self.next_eval:
                 self.validate(evaluate, log)
-                next_eval += self.cfg.eval_every_steps
+                self.next_eval += self.cfg.eval_every_steps
             self.update(self.collect())
-        rate = self.steps / max(time.perf_counter() - t0, 1e-9)
+            if snapshots is not None and self.steps < self.total_steps and snapshots.due():
+                snapshots.write(self.steps, self.snapshot_state(time.perf_counter() - t0))
+        rate = self.steps / max(self.elapsed_s + time.perf_counter() - t0, 1e-9)
         if evaluate is None:
             actor = as_shipped(self.actor)
         else:
@@ -439,6 +472,91 @@ class PPOTrainer:
             actor.load_state_dict(self.best_state)
         return PPOResult(actor, self.steps, self.curve, self.best, rate, self.cfg,
                          self.bits_per_agent())
+
+    # ---- resumable snapshots: everything the run continues from, bit for bit
+    def snapshot_state(self, elapsed_s: float = 0.0) -> dict[str, Any]:
+        """The run's state between two updates (:class:`marl.checkpoint.Snapshots`): the
+        networks' weights and buffers, Adam's state, the run's generator and the process's
+        (torch's, numpy's, Python's), the reward statistics, counters, the learning curve and
+        the kept snapshot, what :meth:`setup` made (:attr:`own_state`), and the batch of
+        episodes in progress as its draw and the commands it stepped (its env is rebuilt by
+        stepping them again, :meth:`restore`). ``elapsed_s``: seconds trained in this
+        process."""
+        from marl.checkpoint import plain_state, process_rng_state
+
+        scale = self.scale
+        return {
+            "modules": {name: {k: v.detach().clone() for k, v in module_tensors(m).items()}
+                        for name, m in self._modules().items()},
+            "optimiser": self.opt.state_dict(),
+            "generator": self.gen.get_state(),
+            "process_rng": process_rng_state(),
+            "own": plain_state({k: getattr(self, k) for k in self.own_state}, (self.gen,)),
+            "scale": [scale.count, scale.mean, scale.var, scale.returns.clone()],
+            "counters": [self.episode, self.steps, self.updates, self.next_eval],
+            "elapsed_s": self.elapsed_s + elapsed_s,
+            "curve": [dict(row) for row in self.curve],
+            "best": dict(self.best),
+            "best_state": {k: v.clone() for k, v in self.best_state.items()},
+            "batch": {"world_draw": self.world_draw,
+                      "commands": torch.from_numpy(np.stack(self.commands)) if self.commands
+                      else torch.zeros(0),
+                      "obs": self.obs.clone()},
+        }
+
+    def restore(self, state: dict[str, Any]) -> None:
+        """Continue from :meth:`snapshot_state`'s ``state`` (this trainer freshly made with
+        the same arguments): the batch in progress is rebuilt by resetting its episodes and
+        stepping its commands again, and must give the recorded observations."""
+        from marl.checkpoint import restore_state, set_process_rng_state
+
+        with torch.no_grad():
+            for name, module in self._modules().items():
+                mine = module_tensors(module)
+                saved = state["modules"][name]
+                if mine.keys() != saved.keys() or any(
+                        mine[k].shape != saved[k].shape for k in mine):
+                    raise ConfigError(f"the snapshot's {name} is not this learner's network; "
+                                      "remove the snapshot to train from the start")
+                for k, t in mine.items():
+                    t.copy_(saved[k])
+        self.opt.load_state_dict(state["optimiser"])
+        self.episode, self.steps, self.updates, self.next_eval = state["counters"]
+        self.elapsed_s = float(state["elapsed_s"])
+        self.curve = [dict(row) for row in state["curve"]]
+        self.best, self.best_state = dict(state["best"]), dict(state["best_state"])
+        for k, v in restore_state({k: getattr(self, k) for k in self.own_state}, state["own"],
+                                  (self.gen,)).items():
+            setattr(self, k, v)
+        batch = state["batch"]
+        self.world_draw = batch["world_draw"]
+        if self.world_draw is not None:  # the world this batch drew
+            self.gen.set_state(self.world_draw)
+            self.world = self.draw_world()
+        env, b = self.world.env, self.cfg.n_envs
+        obs = env.reset(training_episode_seeds(self.seed, self.episode - b, b))
+        self.commands = [c.numpy() for c in batch["commands"]]
+        for command in self.commands:
+            obs = env.step(command.copy()).observation
+        self.obs = torch.from_numpy(agent_inputs(obs, self.cfg.action_mode))
+        if not torch.equal(self.obs, batch["obs"]):
+            raise ConfigError("the snapshot's episodes in progress step to other observations "
+                              "here (another cacc-bench or numpy?); remove the snapshot to "
+                              "train from the start")
+        self.gen.set_state(state["generator"])
+        set_process_rng_state(state["process_rng"])
+        count, mean, var, returns = state["scale"]
+        self.scale.count, self.scale.mean, self.scale.var = count, mean, var
+        self.scale.returns = returns.clone()
+
+    def _modules(self) -> dict[str, nn.Module]:
+        return {"actor": self.actor, "critic": self.critic}
+
+
+def module_tensors(module: nn.Module) -> dict[str, torch.Tensor]:
+    """Every parameter and buffer of ``module`` by name (a state dict leaves out the
+    observation count, which training needs)."""
+    return dict([*module.named_parameters(), *module.named_buffers()])
 
 
 def _absorbing(penalty: float, gamma: float, remaining: int) -> float:
@@ -457,6 +575,7 @@ def train(
     params: PlatoonParams = PlatoonParams(),
     log: Callable[[str], None] | None = None,
     evaluate: Evaluator | None = None,
+    snapshots: Snapshots | None = None,
 ) -> PPOResult:
     """Train one policy of ``config.algo`` on ``scenario`` with N followers for ``total_steps``
     environment steps (one step of one episode each).
@@ -464,13 +583,14 @@ def train(
     Returns the snapshot with the fewest validation collisions, then the best validation reward
     (actions sampled as trained, scored by ``evaluate``: the layer above gives
     :func:`benchmark.policy_eval.validation_evaluator`), or the last one when ``evaluate`` is
-    None.
+    None. With ``snapshots`` it continues from the run's snapshot file and keeps one
+    (:meth:`PPOTrainer.train`).
     """
     from marl.learners import LEARNERS, load
 
     trainer_cls = load(f"{LEARNERS[config.algo].module}:TRAINER")
     return trainer_cls(as_scenario(scenario), n_vehicles, seed, total_steps, config,
-                       params).train(evaluate, log)
+                       params).train(evaluate, log, snapshots)
 
 
 #: The trainer of ``ippo`` and ``mappo`` (the learner registry names this module).

@@ -18,7 +18,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 
@@ -31,6 +31,9 @@ from marl.a2c import Run, Trainer
 from marl.checkpoint import CURVE_EVAL_KEYS
 from marl.config import A2CConfig, Algorithm
 from marl.networks import AgentNet, execution_bits_per_agent_step, training_step_bits_per_agent
+
+if TYPE_CHECKING:
+    from marl.checkpoint import Snapshots
 
 ProgressFn = Callable[[int, int, dict[str, float]], None]
 
@@ -74,6 +77,7 @@ def run_training(
     schedule_steps: int | None = None,
     evaluate: Evaluator | None = None,
     device: str | torch.device = "cpu",
+    snapshots: Snapshots | None = None,
 ) -> TrainResult:
     """Train ``algo`` for ``total_steps`` environment steps; write checkpoints and curve CSV.
 
@@ -102,9 +106,13 @@ def run_training(
         validation seeds, :func:`benchmark.policy_eval.validation_evaluator`.
     device : str or torch.device
         Where to train (:func:`training_device`); validation and checkpoints stay on the CPU.
+    snapshots : marl.checkpoint.Snapshots, optional
+        The run's resumable snapshot: it continues from the file where there is one, and keeps
+        one there every so often (removed when the run's files are written).
     """
     return run_population(algo, [config], scenario, n_vehicles, total_steps, [seed], out_dir,
-                          progress, [log], schedule_steps, evaluate, device)[0]
+                          progress, [log], schedule_steps, evaluate, device,
+                          None if snapshots is None else [snapshots])[0]
 
 
 def run_population(
@@ -120,10 +128,16 @@ def run_population(
     schedule_steps: int | None = None,
     evaluate: Evaluator | None = None,
     device: str | torch.device = "cpu",
+    snapshots: Sequence[Snapshots | None] | None = None,
 ) -> list[TrainResult]:
     """Train K runs of ``algo`` at once (one :class:`marl.a2c.Trainer`): run ``k`` with
     ``configs[k]`` and ``seeds[k]``, each evaluated, selected and saved exactly as
     :func:`run_training` alone.
+
+    ``snapshots[k]`` (optional) is run k's resumable snapshot: the run continues from it where
+    the file exists (each run from its own: a run trains as it would alone, whatever the
+    others do) and keeps one at the end of a batch every so often
+    (:meth:`marl.a2c.Trainer.run_state`, with its curve, validation schedule and kept snapshot).
 
     A run stops at its own budget; one whose weights become non-finite stops there while the
     others go on, and the error is raised after they finished (their checkpoints are written).
@@ -149,6 +163,25 @@ def run_population(
     results = [TrainResult(algo.name, scenario.id, n_vehicles, r.seed, 0, 0, 0.0, 0.0, {},
                            curves[r.index]) for r in runs]
     views: dict[int, AgentNet] = {}  # each run's acting network, reused at every validation
+    snaps = list(snapshots) if snapshots is not None else [None] * len(runs)
+    # seconds a resumed run spent before, in all and training (not validating)
+    before = [(0.0, 0.0) for _ in runs]
+    for r, snap in zip(runs, snaps, strict=True):
+        if snap is not None:  # an algorithm keeping what a snapshot cannot hold: at once
+            from marl.checkpoint import plain_state
+
+            plain_state(r.hook_state, (r.generator,))
+        state = snap.read() if snap is not None else None
+        if state is None:
+            continue
+        trainer.restore_run(r, state["run"])
+        curves[r.index].extend(dict(row) for row in state["curve"])
+        next_eval[r.index], best[r.index] = state["next_eval"], tuple(state["best"])
+        results[r.index].kept = state["kept"]
+        before[r.index] = (float(state["seconds"][0]), float(state["seconds"][1]))
+        log = log_of[r.index]
+        if log is not None and snap is not None:
+            log(f"resumed from {snap.path}: {r.steps} steps, {r.episodes} episodes")
     t0 = time.perf_counter()
     evaluating = 0.0  # seconds spent in validation, not training
 
@@ -180,8 +213,8 @@ def run_population(
             better = score >= best[k]
             best[k] = max(best[k], score)
             now = time.perf_counter()
-            _finish(results[k], trainer, r, net, now - t0, now - t0 - evaluating - (now - te),
-                    out_dir, better)
+            _finish(results[k], trainer, r, net, before[k][0] + now - t0,
+                    before[k][1] + now - t0 - evaluating - (now - te), out_dir, better)
             evaluating += time.perf_counter() - te
             if log is not None:
                 log(
@@ -195,6 +228,13 @@ def run_population(
                 )
         if progress is not None:
             progress(r.steps, total_steps, row)
+        snap = snaps[k]
+        if snap is not None and not last and snap.due():
+            now = time.perf_counter()
+            snap.write(r.steps, {
+                "run": trainer.run_state(r), "curve": curves[k], "next_eval": next_eval[k],
+                "best": list(best[k]), "kept": results[k].kept,
+                "seconds": [before[k][0] + now - t0, before[k][1] + now - t0 - evaluating]})
         return not last
 
     trainer.train(on_batch)
@@ -204,8 +244,11 @@ def run_population(
         if r.failed is not None:
             continue
         res = results[r.index]
-        _finish(res, trainer, r, acting_net(trainer, r, views), wall, train_time, out_dir, False,
-                final=True)
+        _finish(res, trainer, r, acting_net(trainer, r, views), before[r.index][0] + wall,
+                before[r.index][1] + train_time, out_dir, False, final=True)
+        snap = snaps[r.index]
+        if snap is not None:  # the run's files are written: they are the product
+            snap.remove()
         log = log_of[r.index]
         if log is not None:
             log(

@@ -22,6 +22,7 @@ from infra.naming import checkpoint_stem
 from marl.learners import LEARNERS, load
 
 if TYPE_CHECKING:
+    from marl.checkpoint import Snapshots
     from marl.selection import TrainResult
 
 
@@ -84,6 +85,19 @@ class TrainingKey:
         together when it finishes, so each names finished work that training would replace."""
         return [p for seed in self.seeds for suffix in (".pt", ".final.pt", ".curve.csv", ".log")
                 if (p := self.out / f"{self.stem(seed)}{suffix}").exists()]
+
+    def snapshots(self, seed: int) -> Snapshots:
+        """The resumable snapshot of the run of ``seed`` (:class:`marl.checkpoint.Snapshots`):
+        ``<stem>.snapshot.pt`` in the folder, recording the run it belongs to (everything of
+        the key but the folder, its other seeds and the progress display)."""
+        from marl.checkpoint import SNAPSHOT_SUFFIX, Snapshots, energy_model_id
+
+        identity = {"algo": self.algo, "scenario": self.scenario.label, "n_vehicles":
+                    self.n_vehicles, "seed": int(seed), "budget_steps": self.steps,
+                    "config": self.stored_config(), "arithmetic": self.arithmetic,
+                    "device": self.device, "validation_episodes": self.validation_episodes,
+                    "energy_model": energy_model_id()}
+        return Snapshots(self.out / f"{self.stem(seed)}{SNAPSHOT_SUFFIX}", identity)
 
     def resolved_config(self) -> Any:
         """The config the runs train with (the paper learners': resolved for the scenario)."""
@@ -152,16 +166,18 @@ def run_shared(key: TrainingKey, log: Callable[[str], None],
 
     (seed,) = key.seeds
     t0 = time.perf_counter()
+    snapshots = key.snapshots(seed)
     if key.family == "distill":
         from marl.distill import distill
 
         result = distill(key.scenario, expert(key.config.expert), key.n_vehicles, seed,
-                         key.config, log=log, evaluate=evaluate, max_steps=key.steps)
+                         key.config, log=log, evaluate=evaluate, max_steps=key.steps,
+                         snapshots=snapshots)
     else:
         from marl.ppo import train
 
         result = train(key.scenario, key.n_vehicles, seed, key.steps, key.config, log=log,
-                       evaluate=evaluate)
+                       evaluate=evaluate, snapshots=snapshots)
     wall = time.perf_counter() - t0
     summary = {f"best_{k}": v for k, v in result.best.items()}
     summary.update(budget_steps=float(key.steps), env_steps_per_s=result.env_steps_per_s,
@@ -174,6 +190,7 @@ def run_shared(key: TrainingKey, log: Callable[[str], None],
         algo=key.algo, config=key.stored_config(), scenario=key.scenario.id,
         n_vehicles=key.n_vehicles, seed=seed, steps=result.steps, curve_summary=summary,
         weights=dict(result.actor.state_dict()))})
+    snapshots.remove()  # the run's files are written: they are the product
     best = result.best
     log(f"done: {result.steps} steps in {wall:.1f} s ({result.env_steps_per_s:.0f} env steps/s "
         f"while learning); kept the snapshot at {best['steps']:.0f} steps: validation reward "

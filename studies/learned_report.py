@@ -186,6 +186,49 @@ def comparisons_frame(ep: Any) -> Any:
     return pd.DataFrame(rows)
 
 
+def policy_sweeps(ep: Any, cache: Any = None, executor: str = "serial",
+                  workers: int = 1) -> Any:
+    """Per policy, scenario and V2V setting of ``ep`` (:func:`episodes_frame`): the standard
+    frequency sweep's peak ``|Gamma|`` (:func:`benchmark.sweep.sweep_peak` at the setting's N
+    and channel; a learned policy with the checkpoint it ran on the scenario), the largest over
+    its training seeds, and whether it is string stable (every seed's peak at most 1 +
+    tolerance). ``cache``: a :class:`benchmark.sweep.SweepCache` read first and added to."""
+    import pandas as pd
+
+    from benchmark.sweep import SWEEP_TOL, row_sweeps
+    from controllers.registry import controller_label
+
+    configs = ep[["policy", "train_seed", "scenario", "n_vehicles", "comm_delay_s",
+                  "packet_loss"]].drop_duplicates()
+    records, of = [], []
+    for _, r in configs.iterrows():
+        ctrl, opts = POLICIES[r["policy"]]
+        options = {**opts, "seed": str(int(r["train_seed"]))} if r["train_seed"] else dict(opts)
+        records.append({"controller": controller_label(ctrl, options), "name": ctrl,
+                        "options": json.dumps(options, sort_keys=True),
+                        "scenario": r["scenario"], "n_vehicles": int(r["n_vehicles"]),
+                        "comm_delay_s": float(r["comm_delay_s"]),
+                        "packet_loss": float(r["packet_loss"]), "lag_s": 0.0, "status": "ok"})
+        of.append((r["policy"], r["scenario"], float(r["comm_delay_s"]),
+                   float(r["packet_loss"])))
+    found = row_sweeps(records, cache, executor=executor, workers=workers)
+    peaks: dict[tuple[str, str, float, float], list[float]] = {}
+    for rec, key in zip(records, of, strict=True):
+        res = found.get((rec["controller"], rec["scenario"], rec["n_vehicles"],
+                         rec["comm_delay_s"], rec["packet_loss"], 0.0))
+        peaks.setdefault(key, []).append(math.nan if res is None else res.peak_gain)
+    rows = []
+    for (policy, scenario, delay, loss), values in peaks.items():
+        peak = math.nan if any(math.isnan(v) for v in values) else max(values)
+        rows.append({"scenario": scenario, "comm_delay_s": delay, "packet_loss": loss,
+                     "policy": policy, "sweep_peak_gain": peak,
+                     "sweep_string_stable": (None if math.isnan(peak)
+                                             else bool(peak <= 1.0 + SWEEP_TOL))})
+    cols = ["scenario", "comm_delay_s", "packet_loss", "policy", "sweep_peak_gain",
+            "sweep_string_stable"]
+    return pd.DataFrame(rows, columns=cols).sort_values(cols[:4]).reset_index(drop=True)
+
+
 def policy_table(ep: Any) -> Any:
     """Per policy, scenario and V2V setting: episodes, training seeds, collisions and the means
     of reward, energy, gap RMSE and compute per step."""
@@ -238,8 +281,30 @@ def _decomposition(comp: Any) -> list[str]:
     return [f"The gap, {_num(total['difference'])}, is {parts}.", ""]
 
 
-def write_report(ep: Any, comp: Any, out: Path, command: str) -> Path:
-    """Write ``report.md`` (policy table, the three questions with every comparison) in ``out``."""
+def _sweep_cells(sweeps: Any, r: Any) -> str:
+    """The sweep peak and string-stability mark of a policy table row (``n/a``: none)."""
+    if sweeps is None:
+        return ""
+    hit = sweeps[(sweeps["scenario"] == r["scenario"]) & (sweeps["policy"] == r["policy"])
+                 & (sweeps["comm_delay_s"] == r["comm_delay_s"])
+                 & (sweeps["packet_loss"] == r["packet_loss"])]
+    peak = float(hit["sweep_peak_gain"].iloc[0]) if len(hit) else math.nan
+    if math.isnan(peak):
+        return " n/a | n/a |"
+    mark = "yes" if peak <= 1.0 + _tol() else "**no**"
+    return f" {'collides' if math.isinf(peak) else f'{peak:.3f}'} | {mark} |"
+
+
+def _tol() -> float:
+    from benchmark.sweep import SWEEP_TOL
+
+    return SWEEP_TOL
+
+
+def write_report(ep: Any, comp: Any, out: Path, command: str, sweeps: Any = None) -> Path:
+    """Write ``report.md`` (policy table, the three questions with every comparison) in ``out``;
+    with ``sweeps`` (:func:`policy_sweeps`) the policy table shows each row's sweep peak and
+    string-stability mark."""
     table = policy_table(ep)
     n = sorted(ep["n_vehicles"].unique())
     lines = [
@@ -251,13 +316,20 @@ def write_report(ep: Any, comp: Any, out: Path, command: str) -> Path:
         "difference is ours minus other in mean episode reward (higher is better) with its 95 % "
         "paired two-stage bootstrap interval over training seeds and episodes; collisions "
         "decide first, then the reward when its interval excludes zero, otherwise "
-        "\"inconclusive\". Tables: `policies.csv`, `comparisons.csv`, `episodes.csv`.",
+        "\"inconclusive\". Tables: `policies.csv`, `comparisons.csv`, `episodes.csv`"
+        + (", `sweeps.csv`" if sweeps is not None else "") + ".",
         "",
+        *([("Sweep peak: the largest over the training seeds of the peak |Gamma| of the "
+            "standard frequency sweep (`benchmark.sweep`: a sinusoidal leader at 0.05 to 0.4 Hz, "
+            "the row's N and V2V); string stable (yes) when it is at most 1 + "
+            f"{_tol():g}; the reward is measured on the scenario, the sweep on the sweep's "
+            "leader."), ""] if sweeps is not None else []),
         "## The policies",
         "",
         "| scenario | V2V | policy | seeds | episodes | collisions | reward | energy kWh/100 km "
-        "| gap RMSE m | compute ms/step (median) |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| gap RMSE m | compute ms/step (median) |"
+        + (" sweep peak | string stable |" if sweeps is not None else ""),
+        "|---|---|---|---|---|---|---|---|---|---|" + ("---|---|" if sweeps is not None else ""),
     ]
     for _, r in table.iterrows():
         v2v = "ideal" if r["comm_delay_s"] == 0 and r["packet_loss"] == 0 else (
@@ -265,7 +337,7 @@ def write_report(ep: Any, comp: Any, out: Path, command: str) -> Path:
         lines.append(f"| {r['scenario']} | {v2v} | `{r['policy']}` | {r['train_seeds']} | "
                      f"{r['episodes']} | {r['collisions']} | {_num(r['reward'])} | "
                      f"{_num(r['energy_kwh_per_100km'])} | {_num(r['gap_rmse_m'])} | "
-                     f"{_num(r['compute_ms_p50'], 3)} |")
+                     f"{_num(r['compute_ms_p50'], 3)} |" + _sweep_cells(sweeps, r))
     titles = {
         "the gap": "The gap between learned control on the published action set and mpc",
         "action set and information": ("1. How much of the gap is the action set and "

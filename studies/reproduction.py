@@ -340,7 +340,9 @@ def learning_curve_figure(curves: Mapping[CurveKey, Any], algos: Sequence[str], 
             missing.append(algo)
             continue
         n = sum(1 for s, _ in per_seed if len(s))
-        ax.plot(grid, mean, color=cmap(j % 10), label=f"{algo} ({n} seed{'s' if n > 1 else ''})")
+        # markers: a curve of one validation point (a short run) is a visible dot, not nothing
+        ax.plot(grid, mean, color=cmap(j % 10), marker="o", ms=3,
+                label=f"{algo} ({n} seed{'s' if n > 1 else ''})")
         ax.fill_between(grid, lo, hi, color=cmap(j % 10), alpha=0.15)
     ax.set_xlabel("training environment steps")
     ax.set_ylabel("validation reward (sampled)")

@@ -189,8 +189,8 @@ def write_report(jobs: list[dict[str, Any]], names: dict[str, str], built: Seque
         for sc in scenarios:
             sub = lb[lb["controller"].isin([*SHARING_ALGOS, "ovm", "mpc"])]
             stem = f"radar__{sc}"
-            plot_radar(sub, sc, N_VEHICLES, fig_dir, stem)
-            lines.append(f"![radar {sc}](figures/{stem}.png)")
+            if plot_radar(sub, sc, N_VEHICLES, fig_dir, stem):  # none for one controller
+                lines.append(f"![radar {sc}](figures/{stem}.png)")
         with_traj = store.trajectory_ids()
         shown = [n for n in ("ia2c", "commnet", "bdc", "wac", "dcea") if n in policy_names]
         for sc in scenarios:

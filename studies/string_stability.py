@@ -472,7 +472,9 @@ def goal_frame(ep: Any, sweeps: Any, entries: Sequence[Entry], reference: str = 
                                    and row["collision_free"] and row["above_reference"]
                                    and row.get("loses_less", False))
             rows.append(row)
-    return pd.DataFrame(rows)
+    # no learned entry: the table is empty but keeps its header (a reader of goal.csv, and the
+    # report read back from it, see "no goal to check", not a damaged file)
+    return pd.DataFrame(rows) if rows else pd.DataFrame(columns=["entry", "scenario", "goal_met"])
 
 
 def v2v_worth(table: Any) -> Any:

@@ -30,7 +30,7 @@ def test_consensus_mutation_score(tmp_path: Path) -> None:
     toml = (copy / "pyproject.toml").read_text()
     toml = re.sub(r"only_mutate = \[[^\]]*\]", f'only_mutate = ["{MODULE}"]', toml)
     toml = re.sub(r"pytest_add_cli_args_test_selection = \[[^\]]*\]",
-                  'pytest_add_cli_args_test_selection = ["tests/marl/test_marl_kernels.py"]', toml)
+                  'pytest_add_cli_args_test_selection = ["tests/test_marl/test_marl_kernels.py"]', toml)
     (copy / "pyproject.toml").write_text(toml)
     subprocess.run([str(mutmut), "run", "--max-children", "2"], cwd=copy, capture_output=True,
                    text=True, timeout=1800)

@@ -33,17 +33,67 @@ def test_setup_has_exactly_two_commands_and_ci_uses_them() -> None:
     assert main_cmd.startswith(".venv/bin/cacc-bench run")
 
 
-def test_main_command_in_small_form(tmp_path: Path) -> None:
-    _, main_cmd = _blocks("Set up")
+def _extras_modules() -> set[str]:
+    """The top-level modules of every optional dependency (pyproject's extras), as installed
+    here, and not of a base dependency."""
+    import importlib.metadata
+    import tomllib
+
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+
+    def dist(req: str) -> str:
+        return re.split(r"[\[<>=!~; ]", req, maxsplit=1)[0].lower().replace("_", "-")
+
+    base = {dist(r) for r in project["dependencies"]}
+    extras = {dist(r) for reqs in project["optional-dependencies"].values() for r in reqs} - base
+    out = set()
+    for module, dists in importlib.metadata.packages_distributions().items():
+        if any(d.lower().replace("_", "-") in extras for d in dists):
+            out.add(module)
+    return out
+
+
+#: Runs the command line with the extras' modules unimportable, as on the base install.
+BASE_INSTALL = """
+import importlib.abc, sys
+BLOCKED = set(sys.argv.pop(1).split(","))
+class Extras(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path, target=None):
+        if name.split(".")[0] in BLOCKED:
+            raise ModuleNotFoundError(f"No module named {name!r} (an extra)", name=name)
+sys.meta_path.insert(0, Extras())
+from commands.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def test_main_command_in_small_form_on_the_base_install(tmp_path: Path) -> None:
+    """The README's install is the base package alone: the main command runs (in small form)
+    with no module of an extra importable (Ray, Optuna, Gymnasium, PettingZoo, the test and
+    documentation tools), and so do ``list`` and ``stability``."""
+    blocked = _extras_modules()
+    assert {"optuna", "gymnasium", "pettingzoo", "pytest"} <= blocked  # installed here, as CI's
+    install, main_cmd = _blocks("Set up")
+    assert install.endswith("pip install -e .")
     args = shlex.split(main_cmd)[2:]  # after ".venv/bin/cacc-bench run"
-    exe = Path(sys.executable).parent / "cacc-bench"
     small = ["--episodes", "1", "--out", str(tmp_path / "run")]
-    res = subprocess.run([str(exe), "run", *args, *small], cwd=tmp_path, capture_output=True,
-                         text=True, timeout=900)
+
+    def base(*argv: str) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-c", BASE_INSTALL, ",".join(sorted(blocked)),
+                               *argv], cwd=tmp_path, capture_output=True, text=True, timeout=900)
+
+    res = base("run", *args, *small)
     assert res.returncode == 0, res.stderr
     lb = pd.read_csv(tmp_path / "run" / "leaderboard.csv")
     assert len(lb) >= 2
     assert "leaderboard.csv" in res.stdout
+    assert "next: `cacc-bench plot run`" in res.stdout
+    for argv in (["list"], ["stability", "--out", str(tmp_path / "s")]):
+        res = base(*argv)
+        assert res.returncode == 0, (argv, res.stderr)
+    res = base("tune", "--out", str(tmp_path / "t"))  # an extra's command: one line, exit 2
+    assert res.returncode == 2 and res.stderr.count("\n") == 1
+    assert "pip install -e '.[marl]'" in res.stderr
 
 
 def test_tour_commands_in_small_form(tmp_path: Path) -> None:

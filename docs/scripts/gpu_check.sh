@@ -9,7 +9,7 @@ out=${OUT:-results/gpu-check}
 mkdir -p "$out"
 { nvidia-smi -L; nproc; python3 -c "import torch; print('torch', torch.__version__)"; } 2>&1 | tee "$out/machine.txt"
 # 1. the GPU tests (they skip on a machine without one)
-timeout 100 python3 -m pytest tests/marl/test_marl_device.py -q -p no:cacheprovider 2>&1 | tee "$out/gpu-tests.log"
+timeout 100 python3 -m pytest tests/test_marl/test_marl_device.py -q -p no:cacheprovider 2>&1 | tee "$out/gpu-tests.log"
 # 2. training throughput, one process and one torch thread: one run and a population of six,
 #    on the GPU and on this machine's CPU, the function `cacc-bench perf` times
 timeout 150 python3 - <<'PY' 2>&1 | tee "$out/throughput.txt"

@@ -14,7 +14,7 @@ import pandas as pd
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
-sys.path.insert(0, str(HERE.parent / "benchmark"))
+sys.path.insert(0, str(HERE.parent / "test_benchmark"))
 
 from test_harness import GOLDEN_FILES, golden_frame  # noqa: E402
 from test_leaderboard_rank import golden_leaderboard  # noqa: E402

@@ -115,9 +115,30 @@ def test_the_committed_report_is_its_episodes_read_again(tmp_path: Path) -> None
     committed = (DOCS / "report.md").read_text()
     command = committed.split("Made by `", 1)[1].split(" --out FOLDER`", 1)[0]
     comp = comparisons_frame(ep)
-    write_report(ep, comp, tmp_path, command)
+    write_report(ep, comp, tmp_path, command, pd.read_csv(DOCS / "sweeps.csv"))
     assert (tmp_path / "report.md").read_text() == committed
     pd.testing.assert_frame_equal(comp, pd.read_csv(DOCS / "comparisons.csv"), check_dtype=False)
+
+
+@pytest.mark.parametrize(("policy", "scenario", "delay", "loss"), [
+    ("cacc", "catchup-v1", 0.2, 0.3),
+    ("ippo (residual, time-aware critic)", "slowdown-v1", 0.0, 0.0)])
+def test_the_committed_sweeps_are_the_shipped_policies(policy, scenario, delay, loss) -> None:
+    """A committed sweep peak (``sweeps.csv``, :func:`studies.learned_report.policy_sweeps`)
+    recomputed: the model-based law exactly, a sampled policy within 0.05 % (across CPUs)."""
+    from studies.learned_report import policy_sweeps
+
+    ep = pd.read_csv(DOCS / "episodes.csv")
+    ep = ep[(ep["policy"] == policy) & (ep["scenario"] == scenario)
+            & (ep["comm_delay_s"] == delay) & (ep["packet_loss"] == loss)]
+    got = policy_sweeps(ep)
+    want = pd.read_csv(DOCS / "sweeps.csv")
+    want = want[(want["policy"] == policy) & (want["scenario"] == scenario)
+                & (want["comm_delay_s"] == delay) & (want["packet_loss"] == loss)]
+    assert len(got) == len(want) == 1
+    assert got["sweep_peak_gain"].iloc[0] == pytest.approx(want["sweep_peak_gain"].iloc[0],
+                                                           rel=5e-4)
+    assert bool(got["sweep_string_stable"].iloc[0]) == bool(want["sweep_string_stable"].iloc[0])
 
 
 @pytest.mark.parametrize(("policy", "scenario"), [
@@ -146,7 +167,9 @@ def test_the_readme_answer_is_the_committed_report() -> None:
     import re
 
     readme = (DOCS.parents[1] / "README.md").read_text()
-    section = readme[readme.index("## Learned control"):readme.index("## Off the training scenario")]
+    # the answer's bullets up to the string-stability one (that one quotes its own report,
+    # docs/string-stability, checked by tests/test_studies/test_string_stability_report.py)
+    section = readme[readme.index("## Learned control"):readme.index("- **String stability.**")]
     report = (DOCS / "report.md").read_text()
     numbers = re.findall(r"(?<![\d.])-?\d+\.\d\d(?!\d)", section)
     assert len(numbers) >= 15

@@ -1,7 +1,7 @@
 """The MPC family on strings with human drivers (``mpc``, ``mpc-qp``, ``cmpc``): human seats are
 not solved, a follower behind a human gets no plan and predicts it by the stated model from its
 own sensors, cmpc plans the automated seats only and learns of a human only what an automated
-follower senses. The homogeneous pin is ``tests/controllers/test_mpc.py``, unchanged."""
+follower senses. The homogeneous pin is ``tests/test_controllers/test_mpc.py``, unchanged."""
 
 from __future__ import annotations
 

@@ -22,8 +22,8 @@ PACKAGES = ("infra", "envs", "marl", "controllers", "benchmark", "analysis", "st
 
 def test_the_derived_lists() -> None:
     assert PAPER_ALGORITHMS == ("ia2c", "fprint", "dial", "commnet", "wac", "dcea", "bdc")
-    assert PPO_LEARNERS == ("ippo", "mappo", "ippo-bdc")
-    assert SHARED_LEARNERS == ("ippo", "mappo", "distill", "ippo-bdc")
+    assert PPO_LEARNERS == ("ippo", "mappo", "ippo-bdc", "ippo-gains")
+    assert SHARED_LEARNERS == ("ippo", "mappo", "distill", "ippo-bdc", "ippo-gains")
     assert PER_AGENT_SHARED == ("ippo-bdc",)
     assert {s.family for s in LEARNERS.values()} == set(LEARNER_FAMILIES)
 

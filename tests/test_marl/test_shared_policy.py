@@ -43,7 +43,7 @@ def _weights(actor: SharedActor) -> dict[str, torch.Tensor]:
 
 
 @pytest.mark.parametrize(("field", "value", "needle"), [
-    ("algo", "ppo", "algo must be one of ippo, mappo, ippo-bdc"),
+    ("algo", "ppo", "algo must be one of ippo, mappo, ippo-bdc, ippo-gains"),
     ("consensus_eps", 0.0, "consensus_eps must lie in"),
     ("action_mode", "gains", "unknown action mode"),
     ("n_envs", 0, "n_envs must lie in"),

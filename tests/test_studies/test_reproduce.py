@@ -30,7 +30,7 @@ def _curve(steps: list[float], values: list[float], train: list[float] | None = 
 
 
 def test_convergence_step_is_first_step_within_the_band_of_the_plateau_for_good() -> None:
-    """The rule of docs/claim-rules.md (its own tests: tests/studies/test_claim_rules.py). Formerly a
+    """The rule of docs/claim-rules.md (its own tests: tests/test_studies/test_claim_rules.py). Formerly a
     curve that did not rise "converged at its first point"; now it has not converged (NaN)."""
     steps = np.array([1.0, 2, 3, 4, 5, 6, 7])
     # rises from -100 to a plateau of 0 (last three); band 10 % of the rise: |value| <= 10

@@ -108,7 +108,7 @@ def test_run_writes_files_with_contract_columns(tmp_path: Path) -> None:
     assert (lb["rank"] == 1).all()
     traj = pd.read_csv(out / "trajectories" / "ovm__catchup-v1__n3__s2000.csv")
     assert list(traj.columns) == ["step", "time_s", "vehicle", "gap_m", "speed_mps", "accel_mps2",
-                                  "power_kw"]
+                                  "power_kw", "position_m"]
     assert len(traj) == 601 * 4
     assert traj[traj.vehicle == 0]["gap_m"].isna().all()
     assert (traj[traj.step == 0]["accel_mps2"] == 0).all()
@@ -384,7 +384,7 @@ def test_the_batch_invariant_controllers_are_the_cheap_laws() -> None:
     assert _batch_invariant_names() == ["ovm", "duty", "acc", "cacc", "idm", "followerstopper",
                                         "pi-saturation", "ia2c", "fprint", "dial",
                                         "commnet", "wac", "dcea", "bdc", "ippo", "mappo",
-                                        "distill", "ippo-bdc"]
+                                        "distill", "ippo-bdc", "ippo-gains"]
 
 
 def _assert_each_record_equals_its_run_alone(keys, batched) -> None:

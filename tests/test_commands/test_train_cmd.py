@@ -165,7 +165,9 @@ def test_tune_the_shared_learners_with_a_fixed_field(tmp_path: Path, capsys) -> 
     assert main(["tune", "--algos", "bdc", "--set", "prior=cacc", "--out", str(tmp_path / "b")]) == 2
     assert main(["tune", "--algos", "ippo", "--set", "nope=1", "--out", str(tmp_path / "c")]) == 2
     err = capsys.readouterr().err
-    assert "Traceback" not in err and "--set fixes a field of ippo/mappo/ippo-bdc only" in err
+    from commands.tune import SHARED_TUNED
+
+    assert "Traceback" not in err and f"--set fixes a field of {'/'.join(SHARED_TUNED)} only" in err
 
 
 @FULL

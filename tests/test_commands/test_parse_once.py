@@ -38,8 +38,9 @@ def test_a_run_parses_each_scenario_once(tmp_path: Path, parsed: list[str]) -> N
     assert cli(["run", "--controllers", "ovm,cacc", "--scenarios",
                 "catchup-v1,sine-v1:amplitude_mps=2", "--vehicles", "3,4", "--episodes", "2",
                 "--lag", "0,0.1", "--executor", "serial", "--out", str(out), "--quiet"]) == 0
-    # 2 controllers x 2 scenarios x 2 sizes x 2 lags x 2 seeds = 32 runs, 2 scenarios built
-    assert parsed == ["catchup-v1", "sine-v1"]
+    # 2 controllers x 2 scenarios x 2 sizes x 2 lags x 2 seeds = 32 runs, 2 scenarios built;
+    # then the standard frequency sweep's own leader (benchmark.sweep), once for the command
+    assert parsed == ["catchup-v1", "sine-v1", "sine-v1"]
     runs = pd.read_csv(out / "runs.csv")
     assert len(runs) == 32 and (runs["status"] == "ok").all()
     assert sorted(set(runs["scenario"])) == ["catchup-v1", "sine-v1[amplitude_mps=2.0]"]
@@ -109,11 +110,13 @@ def test_the_label_is_the_one_scenario_label_gives() -> None:
 UNKNOWN = ("cacc-bench: error: unknown scenario 'nope'; valid scenarios are: brake-v1, "
            "catchup-v1, mixed-v1, mixed-v2, openacc-l-v1, openacc-m-v1, openacc-s-v1, "
            "openacc-train-l-v1, "
-           "openacc-train-m-v1, openacc-train-s-v1, ring-v1, sine-v1, slowdown-v1, slowdown-v2\n")
+           "openacc-train-m-v1, openacc-train-s-v1, ring-v1, sine-v1, slowdown-v1, slowdown-v2; "
+           "or a ScenarioSpec of your own as package.module:NAME (docs/contributing.md, Add a "
+           "scenario)\n")
 NO_OPTION = ("cacc-bench: error: scenario sine-v1 has no option 'nope'; its options are: "
              "amplitude_mps, frequency_hz; and the arrangement of every scenario: humans, "
              "cav_fraction, cavs, placement, placement_seed, human_model, reaction_delay_s, "
-             "human_noise_mps2\n")
+             "human_noise_mps2, classes, class_mix, class_seed, drag_saving\n")
 
 
 @pytest.mark.parametrize("argv", [
