@@ -48,6 +48,7 @@ from benchmark.string_gain import time_domain_string_gain as time_domain_string_
 from benchmark.sweep import fit_sinusoid as fit_sinusoid
 from infra.errors import ConfigError
 from infra.interrupt import raise_if_interrupted
+from infra.limits import check_nonnegative
 
 if TYPE_CHECKING:  # pragma: no cover
     import control
@@ -56,13 +57,6 @@ if TYPE_CHECKING:  # pragma: no cover
 ANALYTIC_TOL = 1e-9
 
 
-def _check_value(value: float, name: str, *, positive: bool = False) -> float:
-    if isinstance(value, bool) or not isinstance(value, int | float | np.floating | np.integer):
-        raise ConfigError(f"{name} must be a number, got {value!r}")
-    out = float(value)
-    if not math.isfinite(out) or out < 0 or (positive and out == 0):
-        raise ConfigError(f"{name} must be {'> 0' if positive else '>= 0'}, got {value!r}")
-    return out
 
 
 @dataclass(frozen=True)
@@ -91,11 +85,11 @@ class PloegLoop:
     feedforward: bool = True
 
     def __post_init__(self) -> None:
-        _check_value(self.kp, "kp", positive=True)
-        _check_value(self.kd, "kd", positive=True)
-        _check_value(self.time_gap_s, "time_gap_s")
-        _check_value(self.delay_s, "delay_s")
-        _check_value(self.lag_s, "lag_s")
+        check_nonnegative(self.kp, "kp", positive=True)
+        check_nonnegative(self.kd, "kd", positive=True)
+        check_nonnegative(self.time_gap_s, "time_gap_s")
+        check_nonnegative(self.delay_s, "delay_s")
+        check_nonnegative(self.lag_s, "lag_s")
 
     def replace(self, **changes: Any) -> PloegLoop:
         """A copy with some fields changed."""
@@ -280,7 +274,7 @@ def peak_gain_grid(
 
 
 def _discrete_parts(loop: PloegLoop, dt_s: float) -> tuple[float, float, int]:
-    dt = _check_value(dt_s, "dt_s", positive=True)
+    dt = check_nonnegative(dt_s, "dt_s", positive=True)
     h = loop.time_gap_s
     alpha = math.exp(-dt / h) if h > 0 else 0.0
     beta = 1.0 if loop.lag_s == 0 else 1.0 - math.exp(-dt / loop.lag_s)
@@ -453,9 +447,9 @@ def empirical_gain(
     from envs.channel import ChannelConfig
     from envs.params import PlatoonParams
 
-    params = PlatoonParams(lag_s=_check_value(lag_s, "lag_s"))
-    channel = ChannelConfig(_check_value(delay_s, "delay_s"), packet_loss, params.dt_s)
-    _check_value(amplitude_mps, "amplitude_mps", positive=True)
+    params = PlatoonParams(lag_s=check_nonnegative(lag_s, "lag_s"))
+    channel = ChannelConfig(check_nonnegative(delay_s, "delay_s"), packet_loss, params.dt_s)
+    check_nonnegative(amplitude_mps, "amplitude_mps", positive=True)
     ctrl = make_controller(controller_name, **dict(options or {}))
     m = measure_gains(ctrl, omegas_rad_s, amplitude_mps, n_vehicles=n_vehicles, params=params,
                       channel=channel, transient_s=transient_s, periods=periods,

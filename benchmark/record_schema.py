@@ -18,7 +18,7 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from benchmark.suite import KEY_COLUMNS, MAX_SEED, RunKey
-from envs.scenarios import MAX_VEHICLES, MIN_VEHICLES
+from infra.limits import MAX_VEHICLES, MIN_VEHICLES
 
 #: Metrics an ``ok`` run with at least one step must hold as finite numbers (not ``null``).
 FINITE_WHEN_OK: tuple[str, ...] = (

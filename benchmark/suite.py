@@ -18,8 +18,7 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from controllers.base import check_fits
-from controllers.registry import canonical_options, controller_label, resolve
+from controllers.registry import canonical_options, check_fits, controller_label, resolve
 from envs.channel import ChannelConfig
 from envs.params import PlatoonParams
 from envs.scenarios import Scenario, as_scenario

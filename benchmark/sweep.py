@@ -47,6 +47,7 @@ from envs.params import PlatoonParams
 from envs.scenarios import EpisodeBatch, Scenario, make_scenario, scenario_spec
 from infra.errors import CaccBenchError, ConfigError
 from infra.interrupt import raise_if_interrupted
+from infra.limits import check_nonnegative
 
 # ------------------------------------------------------------------------- the standard sweep
 
@@ -185,13 +186,6 @@ def _sine_episodes(sc: Scenario, seeds: np.ndarray, u: np.ndarray, n: int, *,
     )
 
 
-def _check_number(value: float, name: str, *, positive: bool = False) -> float:
-    if isinstance(value, bool) or not isinstance(value, int | float | np.floating | np.integer):
-        raise ConfigError(f"{name} must be a number, got {value!r}")
-    out = float(value)
-    if not math.isfinite(out) or out < 0 or (positive and out == 0):
-        raise ConfigError(f"{name} must be {'> 0' if positive else '>= 0'}, got {value!r}")
-    return out
 
 
 def measure_gains(
@@ -256,13 +250,13 @@ def measure_gains(
             f"frequencies must lie below the Nyquist frequency {math.pi / dt:.3g} rad/s")
     amps = np.broadcast_to(np.asarray(amplitudes_mps, dtype=np.float64), omegas.shape).copy()
     for a in amps:
-        _check_number(float(a), "amplitude_mps", positive=True)
-    _check_number(transient_s, "transient_s")
-    _check_number(periods, "periods", positive=True)
-    _check_number(min_window_s, "min_window_s", positive=True)
+        check_nonnegative(float(a), "amplitude_mps", positive=True)
+    check_nonnegative(transient_s, "transient_s")
+    check_nonnegative(periods, "periods", positive=True)
+    check_nonnegative(min_window_s, "min_window_s", positive=True)
     if isinstance(replicas, bool) or not isinstance(replicas, int) or replicas < 1:
         raise ConfigError(f"replicas must be an integer >= 1, got {replicas!r}")
-    if not 0.0 <= _check_number(min_fraction, "min_fraction") < 1.0:
+    if not 0.0 <= check_nonnegative(min_fraction, "min_fraction") < 1.0:
         raise ConfigError(f"min_fraction must lie in [0, 1), got {min_fraction!r}")
 
     window_s = np.maximum(periods * 2 * np.pi / omegas, min_window_s)
@@ -431,7 +425,7 @@ def _configuration(
     from infra.limits import check_delay, check_packet_loss, check_whole_steps
 
     n = check_vehicles(n_vehicles)
-    params = PlatoonParams(lag_s=_check_number(lag_s, "lag_s"))
+    params = PlatoonParams(lag_s=check_nonnegative(lag_s, "lag_s"))
     check_delay(comm_delay_s, "comm_delay_s")
     check_whole_steps(comm_delay_s, "comm_delay_s", params.dt_s)
     check_packet_loss(packet_loss, "packet_loss")
@@ -501,8 +495,7 @@ def sweep_peak(
         the sweep (a recorded platoon; a policy without its checkpoint), or a policy other than
         ``policy_sha256``.
     """
-    from controllers.base import check_fits
-    from controllers.registry import make_controller
+    from controllers.registry import check_fits, make_controller
 
     n, params, channel, opts, label, pinned = _configuration(
         controller_name, options, n_vehicles, comm_delay_s, packet_loss, lag_s, scenario)

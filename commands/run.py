@@ -188,8 +188,7 @@ def preflight(controllers: list[tuple[str, dict[str, str]]], scenarios: list[Sce
     checkpoints, a loop unstable with the lag, a setting ``simulator`` does not run or a
     scenario of one's own whose builder fails (:func:`envs.scenarios.check_episode`) fail
     before any run."""
-    from controllers.base import check_fits
-    from controllers.registry import make_controller
+    from controllers.registry import check_fits, make_controller
     from envs.params import PlatoonParams
     from envs.scenarios import check_episode
     from envs.simulators import check_runs_in, check_setting

@@ -137,8 +137,8 @@ class _Bar:
 def model_expert(name: str) -> Callable[[Any], Callable[[Any], Any]]:
     """A registered model-based controller as :func:`marl.distill.distill`'s expert: for a
     reset env, its commands for the env's states (its V2V through its own ideal channels)."""
-    from controllers.base import EpisodeContext, check_fits, reset_controller
-    from controllers.registry import make_controller
+    from controllers.base import EpisodeContext, reset_controller
+    from controllers.registry import check_fits, make_controller
 
     def make(env: Any) -> Callable[[Any], Any]:
         ctrl = make_controller(name)

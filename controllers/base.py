@@ -23,8 +23,8 @@ from envs.channel import ChannelConfig, V2VChannel
 from envs.humans import Arrangement
 from envs.params import PlatoonParams
 from envs.platoon import PlatoonState
-from envs.scenarios import Scenario, check_size_fits
-from infra.errors import ConfigError, ControllerContractError
+from envs.scenarios import Scenario
+from infra.errors import ControllerContractError
 
 FAMILIES = ("human", "linear", "mpc", "marl", "data")
 
@@ -301,47 +301,6 @@ class Controller(ABC):
     def describe(self) -> str:
         """Options as a stable string (recorded in the run's provenance)."""
         return ",".join(f"{k}={v}" for k, v in sorted(self.options.items()))
-
-
-def check_fits(controller: Controller, scenario: Scenario, n_vehicles: int,
-               params: PlatoonParams | None = None) -> None:
-    """Refuse, before any work, a setting ``controller`` cannot run (:class:`ConfigError` naming
-    what works): a string with human drivers for a controller that cannot drive one, a ring for
-    one that needs a leader, a string with no automated vehicle for anything but a human-driver
-    model, vehicle classes for a recorded platoon (``openacc-real``: they would relabel the
-    recording); then the controller's own :meth:`Controller.preflight`. Every sweep calls this for
-    each setting before its first run."""
-    from controllers.registry import mixed_traffic_controllers
-
-    check_size_fits(scenario, n_vehicles)
-    if params is not None:  # vehicle classes and a run-wide lag at once are refused
-        scenario.vehicle_arrays(n_vehicles, params)
-    arrangement = scenario.arrangement(n_vehicles)
-    where = f"{scenario.label or scenario.id} with N = {n_vehicles}"
-    if arrangement.n_automated == 0 and controller.family != "human":
-        raise ConfigError(
-            f"{controller.name} is an automated controller and {where} has no automated "
-            "vehicle; its all-human baseline is a human-driver model (--controllers idm), or "
-            "give the scenario automated vehicles (cav_fraction=0.25, cavs=1, humans=2+5)")
-    if not arrangement.homogeneous and not controller.drives_mixed:
-        raise ConfigError(
-            f"{controller.name} cannot run on {where}: it has human drivers "
-            f"({len(arrangement.automated) - arrangement.n_automated} of "
-            f"{len(arrangement.automated)}) and {controller.name} was made for a string of "
-            "automated vehicles only; the controllers that run on mixed strings: "
-            f"{', '.join(mixed_traffic_controllers())}")
-    classes = scenario.options.get("classes") or scenario.options.get("class_mix")
-    if classes and getattr(controller, "recorded", None) is not None:
-        raise ConfigError(
-            f"{controller.name} is a recorded platoon, the vehicles as they drove; vehicle "
-            f"classes ({classes}) would label the recording as vehicles it is not: name "
-            f"{scenario.id} without classes or class_mix")
-    if scenario.ring and controller.needs_leader:
-        raise ConfigError(
-            f"{controller.name} needs a scripted leader and {where} is a ring road without one; "
-            "the controllers that run on the ring: "
-            f"{', '.join(mixed_traffic_controllers(ring=True))}")
-    controller.preflight(scenario, n_vehicles, params)
 
 
 def reset_controller(controller: Controller, ctx: EpisodeContext) -> None:

@@ -23,8 +23,10 @@ import re
 import typing
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
+from envs.params import PlatoonParams
+from envs.scenarios import Scenario, check_size_fits
 from infra.errors import CaccBenchError, ConfigError, UnknownNameError
 from infra.naming import (
     canonical_value,
@@ -35,6 +37,9 @@ from infra.naming import (
 )
 from infra.plugins import canonical_reference, entry_points, first_line, import_reference
 from marl.learners import LEARNERS
+
+if TYPE_CHECKING:
+    from controllers.base import Controller
 
 
 @dataclass(frozen=True)
@@ -534,3 +539,42 @@ def build_config(config_cls: type, options: dict[str, Any], owner: str) -> Any:
         return config_cls(**kwargs)
     except TypeError as exc:
         raise ConfigError(f"bad options for {owner}: {exc}") from None
+
+
+def check_fits(controller: Controller, scenario: Scenario, n_vehicles: int,
+               params: PlatoonParams | None = None) -> None:
+    """Refuse, before any work, a setting ``controller`` cannot run (:class:`ConfigError` naming
+    what works): a string with human drivers for a controller that cannot drive one, a ring for
+    one that needs a leader, a string with no automated vehicle for anything but a human-driver
+    model, vehicle classes for a recorded platoon (``openacc-real``: they would relabel the
+    recording); then the controller's own :meth:`Controller.preflight`. Every sweep calls this for
+    each setting before its first run."""
+    check_size_fits(scenario, n_vehicles)
+    if params is not None:  # vehicle classes and a run-wide lag at once are refused
+        scenario.vehicle_arrays(n_vehicles, params)
+    arrangement = scenario.arrangement(n_vehicles)
+    where = f"{scenario.label or scenario.id} with N = {n_vehicles}"
+    if arrangement.n_automated == 0 and controller.family != "human":
+        raise ConfigError(
+            f"{controller.name} is an automated controller and {where} has no automated "
+            "vehicle; its all-human baseline is a human-driver model (--controllers idm), or "
+            "give the scenario automated vehicles (cav_fraction=0.25, cavs=1, humans=2+5)")
+    if not arrangement.homogeneous and not controller.drives_mixed:
+        raise ConfigError(
+            f"{controller.name} cannot run on {where}: it has human drivers "
+            f"({len(arrangement.automated) - arrangement.n_automated} of "
+            f"{len(arrangement.automated)}) and {controller.name} was made for a string of "
+            "automated vehicles only; the controllers that run on mixed strings: "
+            f"{', '.join(mixed_traffic_controllers())}")
+    classes = scenario.options.get("classes") or scenario.options.get("class_mix")
+    if classes and getattr(controller, "recorded", None) is not None:
+        raise ConfigError(
+            f"{controller.name} is a recorded platoon, the vehicles as they drove; vehicle "
+            f"classes ({classes}) would label the recording as vehicles it is not: name "
+            f"{scenario.id} without classes or class_mix")
+    if scenario.ring and controller.needs_leader:
+        raise ConfigError(
+            f"{controller.name} needs a scripted leader and {where} is a ring road without one; "
+            "the controllers that run on the ring: "
+            f"{', '.join(mixed_traffic_controllers(ring=True))}")
+    controller.preflight(scenario, n_vehicles, params)

@@ -39,12 +39,9 @@ from envs.vehicle_classes import (
     vehicle_arrays,
 )
 from infra.errors import CaccBenchError, ConfigError, UnknownNameError
-from infra.limits import MAX_SEED
+from infra.limits import MAX_SEED, MAX_VEHICLES, MIN_VEHICLES
 from infra.naming import coerce_option, format_label, is_reference, parse_label, parse_named_list
 from infra.plugins import entry_points, first_line, import_reference
-
-MIN_VEHICLES = 2
-MAX_VEHICLES = 64
 
 
 def published_perturbation(seed: int) -> float:

@@ -36,6 +36,8 @@ from infra.errors import ConfigError
 
 #: Stream name of the seeded class mix (``class_mix`` with ``class_seed``).
 CLASS_MIX_STREAM = "class-mix"
+#: The scenario options that set the followers' classes.
+CLASS_OPTIONS: tuple[str, ...] = ("classes", "class_mix", "class_seed")
 
 
 def zheng_lag_s(mass_kg: float) -> float:
@@ -201,9 +203,9 @@ def parse_class_sequence(text: str, who: str = "classes") -> tuple[str, ...]:
     ------
     ConfigError
         For an empty item, an unknown class, a repeat that is not a whole number >= 1 (ASCII
-        digits), or more classes than a platoon has (``envs.scenarios.MAX_VEHICLES``).
+        digits), or more classes than a platoon has (``infra.limits.MAX_VEHICLES``).
     """
-    from envs.scenarios import MAX_VEHICLES  # the platoon's limit (imports this module)
+    from infra.limits import MAX_VEHICLES  # the platoon's limit
 
     out: list[str] = []
     for raw in text.split("+"):
@@ -316,3 +318,43 @@ def vehicle_arrays(classes: tuple[VehicleClass, ...], params: PlatoonParams,
     amin = np.maximum([-c.decel_max_mps2 for c in classes], params.accel_min_mps2)
     return VehicleArrays(tuple(classes), lag, gain, amin.astype(np.float64),
                          amax.astype(np.float64))
+
+
+# ---------------------------------------------------------------------------- class features
+#: Names of the class features a shared policy trained with ``class_features`` reads after its
+#: observation (:func:`class_features`), in order: the actuator lag over
+#: :data:`CLASS_LAG_SCALE_S`, the acceleration bound over the run's, and ``log10`` of the mass
+#: over 1000 kg. (The braking bound is not one: no class brakes less hard than the run's bound,
+#: so it is the run's for every vehicle, a constant column.)
+CLASS_FEATURE_NAMES: tuple[str, ...] = ("lag", "accel_max", "log_mass")
+#: The lag that maps to the feature 1 (s).
+CLASS_LAG_SCALE_S: float = 1.0
+#: The mass that maps to the feature 0 (kg).
+CLASS_MASS_SCALE_KG: float = 1000.0
+#: The class whose mass the homogeneous (published) platoon's features carry: the car of the
+#: energy model.
+HOMOGENEOUS_CLASS: str = "i3"
+
+
+def class_features(vehicles: VehicleArrays | None, n_vehicles: int,
+                   params: PlatoonParams) -> np.ndarray:
+    """Each follower's own class parameters, normalised: ``(N, F)`` float32, columns
+    :data:`CLASS_FEATURE_NAMES`.
+
+    The lag and the acceleration bound are what the dynamics use (:class:`VehicleArrays`: the
+    class lag, the tighter of the class's and the run's bound). The homogeneous platoon
+    (``vehicles`` None) gets the published platoon's: the run's lag (``params.lag_s``, 0 by
+    default) and bound, and the mass of the energy model's car (:data:`HOMOGENEOUS_CLASS`).
+    """
+    if vehicles is None:
+        lag = np.full(n_vehicles, params.lag_s)
+        amax = np.full(n_vehicles, params.accel_max_mps2)
+        mass = np.full(n_vehicles, VEHICLE_CLASSES[HOMOGENEOUS_CLASS].mass_kg)
+    else:
+        if len(vehicles.classes) != n_vehicles:
+            raise ValueError(f"{len(vehicles.classes)} classes for {n_vehicles} followers")
+        lag, amax = vehicles.lag_s, vehicles.accel_max_mps2
+        mass = np.array([c.mass_kg for c in vehicles.classes])
+    out = np.stack([lag / CLASS_LAG_SCALE_S, amax / params.accel_max_mps2,
+                    np.log10(mass / CLASS_MASS_SCALE_KG)], axis=-1)
+    return out.astype(np.float32)

@@ -14,6 +14,9 @@ from infra.errors import ConfigError
 MAX_V2V_DELAY_S = 60.0
 #: Seeds feed 32-bit generators (numpy, torch, Optuna's sampler with ``seed + trial``).
 MAX_SEED = 2**31 - 1
+#: Followers N of a platoon, the range every command and scenario checks.
+MIN_VEHICLES = 2
+MAX_VEHICLES = 64
 #: Most environment steps one training run may ask for (the paper's budget is 6e5).
 MAX_TRAIN_STEPS = 10**8
 #: Most episodes one learner steps together.
@@ -118,3 +121,15 @@ def check_range(value: int, flag: str, low: int, high: int) -> int:
     if not low <= value <= high:
         raise ConfigError(f"{flag} must lie in {low}..{high}, got {value}")
     return value
+
+
+def check_nonnegative(value: float, name: str, *, positive: bool = False) -> float:
+    """``value`` as a float if it is a finite number >= 0 (> 0 with ``positive``), else a
+    ConfigError naming ``name`` (the one check of a physical setting given from Python: a
+    frequency, an amplitude, a lag, a duration)."""
+    if isinstance(value, bool) or not isinstance(value, int | float | np.floating | np.integer):
+        raise ConfigError(f"{name} must be a number, got {value!r}")
+    out = float(value)
+    if not math.isfinite(out) or out < 0 or (positive and out == 0):
+        raise ConfigError(f"{name} must be {'> 0' if positive else '>= 0'}, got {value!r}")
+    return out

@@ -7,8 +7,7 @@ import numpy as np
 import pytest
 
 from benchmark.rollout import rollout
-from controllers.base import check_fits
-from controllers.registry import make_controller, parse_controller_list
+from controllers.registry import check_fits, make_controller, parse_controller_list
 from envs.params import PlatoonParams
 from envs.scenarios import make_scenario
 from envs.vehicle_classes import VEHICLE_CLASSES

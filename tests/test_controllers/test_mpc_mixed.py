@@ -12,13 +12,13 @@ import numpy as np
 import pytest
 
 from benchmark.rollout import rollout_batch
-from controllers.base import EpisodeContext, check_fits, reset_controller
+from controllers.base import EpisodeContext, reset_controller
 from controllers.cmpc import human_watchers
 from controllers.mpc_model import (
     human_predecessor_mask,
     idm_prediction_mps,
 )
-from controllers.registry import make_controller
+from controllers.registry import check_fits, make_controller
 from envs.humans import IDMParams, idm_accel_mps2
 from envs.params import PlatoonParams
 from envs.platoon import PlatoonEnv, PlatoonState

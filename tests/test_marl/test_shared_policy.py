@@ -677,7 +677,8 @@ def test_the_tuning_readings_are_the_committed_trials_and_logs() -> None:
 def _drive(ctrl: Any, text: str, steps: int) -> tuple[Any, np.ndarray]:
     """Step ``ctrl`` by hand on the scenario ``text`` (8 followers, seed 2000); returns the
     episode context and the last commands."""
-    from controllers.base import EpisodeContext, check_fits, reset_controller
+    from controllers.base import EpisodeContext, reset_controller
+    from controllers.registry import check_fits
     from envs.platoon import PlatoonEnv
     from envs.scenarios import make_scenario
 
