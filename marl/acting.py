@@ -22,6 +22,7 @@ from envs import accel_mode
 from envs.dynamics import OBS_DIM, action_to_command_mps2, agent_observations, vehicle_blocks
 from envs.params import PlatoonParams
 from envs.platoon import PlatoonState
+from envs.vehicle_classes import class_features
 from infra.errors import ConfigError
 from marl.config import algorithm, config_from_dict
 from marl.learners import LEARNERS, load
@@ -197,16 +198,24 @@ class PaperActing(Acting):
 
 
 # ---------------------------------------------------------------------------- the shared
-def agent_inputs(obs: np.ndarray | None, action_mode: str) -> np.ndarray:
+def agent_inputs(obs: np.ndarray | None, action_mode: str,
+                 features: np.ndarray | None = None) -> np.ndarray:
     """What the networks read from the env's observation ``(B, N, D)``: the ``accel`` one as it
-    is, the ``ovm-gain`` one with the position features appended (float32)."""
+    is, the ``ovm-gain`` one with the position features appended (float32); then, for a policy
+    trained with ``class_features``, each follower's ``features (N, F)``
+    (:func:`envs.vehicle_classes.class_features`)."""
     if obs is None:
         raise ValueError("the env does not observe (observe=False)")
-    if action_mode == "accel":
-        return np.ascontiguousarray(obs, dtype=np.float32)
     b, n, _ = obs.shape
-    pos = np.broadcast_to(accel_mode.position_features(n)[None].astype(np.float32), (b, n, 3))
-    return np.concatenate([obs.astype(np.float32), pos], axis=-1)
+    if action_mode == "accel":
+        out = np.ascontiguousarray(obs, dtype=np.float32)
+    else:
+        pos = np.broadcast_to(accel_mode.position_features(n)[None].astype(np.float32), (b, n, 3))
+        out = np.concatenate([obs.astype(np.float32), pos], axis=-1)
+    if features is None:
+        return out
+    extra = np.broadcast_to(features[None].astype(np.float32), (b, n, features.shape[-1]))
+    return np.concatenate([out, extra], axis=-1)
 
 
 def to_command(actor: SharedActor, action: torch.Tensor, state: PlatoonState | None,
@@ -253,7 +262,8 @@ def sample_with_uniforms(actor: SharedActor, out: torch.Tensor, uniforms: np.nda
 def load_actor(data: dict[str, Any], params: PlatoonParams = PlatoonParams()) -> SharedActor:
     """The actor of a loaded checkpoint dict (float32 weights); a config or weights that do not
     make this learner's actor give a :class:`ConfigError`."""
-    acting = ("algo", "action_mode", "hidden", "obs_clip", "prior")  # what its shape and acting read
+    acting = ("algo", "action_mode", "hidden", "obs_clip", "prior",  # what its shape and acting
+              "class_features")                                       # read
     try:
         config = PPOConfig(**{k: v for k, v in data["config"].items() if k in acting})
         actor = SharedActor(config, params, int(data["n_vehicles"]) if config.per_agent else 0)
@@ -312,6 +322,10 @@ class SharedActing(Acting):
         self.lanes, self.params = lanes, ctx.params
         self.targets = (ctx.target_gap_m, ctx.target_speed_mps)
         b, n = ctx.batch_size, ctx.n_vehicles
+        # a policy trained with class features reads each follower's own (the published
+        # platoon's on the homogeneous string); one trained without runs without them
+        self.features = (class_features(ctx.scenario.vehicle_arrays(n, ctx.params), n, ctx.params)
+                         if self.net.class_features else None)
         if self.net.continuous:
             self.pred_channel = ctx.channel(accel_mode.PRED_MESSAGE[0])
             self.leader_channel = ctx.channel(accel_mode.LEADER_MESSAGE[0])
@@ -335,8 +349,10 @@ class SharedActing(Acting):
             uniforms: np.ndarray | None) -> np.ndarray:
         obs = self._observation(state)
         b = len(obs)
+        x = obs if self.features is None else np.concatenate(
+            [obs, np.broadcast_to(self.features[None], (b, *self.features.shape))], axis=-1)
         with torch.no_grad():
-            out = self.net(torch.from_numpy(np.ascontiguousarray(pad_rows(obs, self.lanes))))
+            out = self.net(torch.from_numpy(np.ascontiguousarray(pad_rows(x, self.lanes))))
             action = sample_with_uniforms(self.net, out, uniforms)[:b]
             command = to_command(self.net, action, state, self.params, obs, self.targets)
         if self.net.continuous:

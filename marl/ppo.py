@@ -53,6 +53,7 @@ from envs.channel import ChannelConfig
 from envs.params import PlatoonParams
 from envs.platoon import PlatoonEnv
 from envs.scenarios import Scenario, as_scenario, check_vehicles, make_scenario
+from envs.vehicle_classes import canonical_classes, class_features
 from infra.errors import ConfigError
 from infra.limits import MAX_ROLLOUT_AGENT_STEPS, MAX_SEED, training_episode_seeds
 from marl.acting import agent_inputs, to_command
@@ -97,6 +98,7 @@ class World:
     sharing: torch.Tensor   # (N, N): agent i learns from sum_j alpha^|i-j| r_j
     baseline: float         # minus the power weight times the cruise power P(v*, 0)
     automated: torch.Tensor  # (N,) bool: seats the policy drives
+    features: np.ndarray | None = None  # (N, F) class features the networks read, or None
 
     @property
     def targets(self) -> tuple[float, float]:
@@ -175,6 +177,12 @@ class PPOTrainer:
         self.sc, self.params = scenario, params
         self.n, self.seed, self.total_steps = check_vehicles(n_vehicles), int(seed), total_steps
         roads = self.roads = cfg.roads or [scenario]
+        for mix in cfg.mixes:  # each batch's classes name its N: one N, no ring's own
+            if len(mix) != self.n or cfg.vehicles_min or cfg.vehicles_max or any(
+                    s.ring for s in roads):
+                raise ConfigError(f"class_mixes={cfg.class_mixes!r}: every arrangement names "
+                                  f"the run's {self.n} followers (--vehicles), with no vehicles "
+                                  "range (vehicles_min, vehicles_max: 0) and no ring road")
         rollout = cfg.n_envs * cfg.rollout_steps  # environment steps per update
         widest = max([self.n, cfg.vehicles_max] + [s.default_vehicles for s in roads if s.ring])
         if rollout * widest > MAX_ROLLOUT_AGENT_STEPS:
@@ -222,11 +230,18 @@ class PPOTrainer:
         sharing = self.cfg.reward_alpha ** (idx[:, None] - idx[None, :]).abs()
         p0 = float(env.power(np.array([sc.target_speed_mps]), np.array([0.0]))[0])
         automated = torch.from_numpy(np.asarray(sc.arrangement(n).automated, dtype=bool))
-        return World(env, n, sharing, -env.weights.power * p0, automated)
+        features = (class_features(sc.vehicle_arrays(n, self.params), n, self.params)
+                    if self.cfg.class_features else None)
+        return World(env, n, sharing, -env.weights.power * p0, automated, features)
+
+    def inputs(self, obs: np.ndarray | None, world: World | None = None) -> torch.Tensor:
+        """What the networks read of ``world``'s (this batch's) observation ``obs``."""
+        w = self.world if world is None else world
+        return torch.from_numpy(agent_inputs(obs, self.cfg.action_mode, w.features))
 
     def draw_world(self) -> World:
-        """This batch's road, from the run's generator: its scenario, N, V2V and automated
-        seats (in that order; each draw only where the config randomises it)."""
+        """This batch's road, from the run's generator: its scenario, N, V2V, automated seats
+        and vehicle classes (in that order; each draw only where the config randomises it)."""
         cfg, gen, dt = self.cfg, self.gen, self.params.dt_s
         n_lo, n_hi = cfg.vehicles_min or self.n, cfg.vehicles_max or self.n
         if n_lo > n_hi:
@@ -249,6 +264,10 @@ class PPOTrainer:
             placement_seed = int(torch.randint(MAX_SEED + 1, (1,), generator=gen))
             sc = make_scenario(sc.label, cav_fraction=share, placement="random",
                                placement_seed=placement_seed)
+        if cfg.class_mixes:  # one arrangement of the list, in the order of a drawn class_seed
+            mix = cfg.mixes[int(torch.randint(len(cfg.mixes), (1,), generator=gen))]
+            class_seed = int(torch.randint(MAX_SEED + 1, (1,), generator=gen))
+            sc = make_scenario(sc.label, class_mix=canonical_classes(mix), class_seed=class_seed)
         return self.make_world(sc, n, delay, loss)
 
     def new_episodes(self) -> torch.Tensor:
@@ -263,7 +282,7 @@ class PPOTrainer:
         self.scale.reset(b, self.world.n)
         self.commands = []
         obs = self.world.env.reset(seeds)
-        return torch.from_numpy(agent_inputs(obs, self.cfg.action_mode))
+        return self.inputs(obs)
 
     # ---- rollout: T steps of B episodes (fewer where a randomised batch ends)
     def collect(self) -> Rollout:
@@ -315,9 +334,9 @@ class PPOTrainer:
                 with torch.no_grad():  # truncated at the time limit: bootstrap from the last
                     # state; a time-aware critic knows the time is up (a finite horizon: 0)
                     last = torch.zeros(b, n_r) if cfg.critic_time else critic(actor.normalise(
-                        torch.from_numpy(agent_inputs(res.observation, cfg.action_mode))))
+                        self.inputs(res.observation, w)))
             else:
-                next_obs = torch.from_numpy(agent_inputs(res.observation, cfg.action_mode))
+                next_obs = self.inputs(res.observation, w)
                 last = None
             if ended.any():
                 if last is None:
@@ -538,7 +557,7 @@ class PPOTrainer:
         self.commands = [c.numpy() for c in batch["commands"]]
         for command in self.commands:
             obs = env.step(command.copy()).observation
-        self.obs = torch.from_numpy(agent_inputs(obs, self.cfg.action_mode))
+        self.obs = self.inputs(obs)
         if not torch.equal(self.obs, batch["obs"]):
             raise ConfigError("the snapshot's episodes in progress step to other observations "
                               "here (another cacc-bench or numpy?); remove the snapshot to "

@@ -106,6 +106,18 @@ class PPOConfig:
         followers uniformly from this range and places them at random (a seeded ``placement``
         drawn from the run's generator); the other seats are human drivers
         (:mod:`envs.humans`), whose agent-steps the policy never learns from.
+    class_features : bool
+        False (the default, every shipped policy): the networks read the observation alone.
+        True: each follower's own class parameters are appended to its observation
+        (:func:`envs.vehicle_classes.class_features`: lag, acceleration bound, mass; on the
+        homogeneous string the published platoon's), and the acting controller feeds them
+        the same way (the checkpoint's config records it).
+    class_mixes : str
+        "": the training episodes' vehicle classes are the scenarios' own. Otherwise
+        arrangements of vehicle classes separated by ``;`` (``bus+van+car*6;truck+car*7``,
+        each a multiset of the scenario option ``class_mix`` naming the run's N): each batch
+        draws one uniformly and a ``class_seed`` from the run's generator (a class
+        distribution); validation scores each road with the first at ``class_seed`` 0.
     """
 
     algo: str = "ippo"
@@ -142,6 +154,8 @@ class PPOConfig:
     scenarios: str = ""
     cav_share_min: float = 1.0
     cav_share_max: float = 1.0
+    class_features: bool = False
+    class_mixes: str = ""
 
     def __post_init__(self) -> None:
         if self.algo not in PPO_LEARNERS:
@@ -205,6 +219,19 @@ class PPOConfig:
                     raise ConfigError(f"scenarios: {label} sets its automated seats or their "
                                       "placement, which cav_share_min..cav_share_max draw at "
                                       "random; leave them out")
+        if self.class_mixes:
+            from envs.vehicle_classes import CLASS_OPTIONS
+
+            if self.per_agent:
+                raise ConfigError("ippo-bdc has a network per follower: it trains on one string "
+                                  "(class_mixes: '')")
+            if any(len(m) < 2 for m in self.mixes):  # parsed (and refused) here, once
+                raise ConfigError(f"class_mixes={self.class_mixes!r}: each arrangement names "
+                                  "the run's N >= 2 followers (bus+van+car*6;truck+car*7)")
+            for label in [sc.label for sc in self.roads]:
+                if any(f"{k}=" in label for k in CLASS_OPTIONS):
+                    raise ConfigError(f"scenarios: {label} sets its vehicle classes, which "
+                                      "class_mixes draws for every batch; leave them out")
         if self.comm_delay_max_s:
             check_delay(self.comm_delay_max_s, "comm_delay_max_s")
             if self.comm_delay_max_s < self.comm_delay_s:
@@ -234,7 +261,16 @@ class PPOConfig:
         """Whether batches of training episodes draw their N, V2V setting, scenario or
         automated seats."""
         return bool(self.vehicles_min or self.vehicles_max or self.comm_delay_max_s
-                    or self.packet_loss_max or self.scenarios or self.mixed_traffic)
+                    or self.packet_loss_max or self.scenarios or self.mixed_traffic
+                    or self.class_mixes)
+
+    @functools.cached_property
+    def mixes(self) -> list[tuple[str, ...]]:
+        """The arrangements ``class_mixes`` names, each its class names (none when empty)."""
+        from envs.vehicle_classes import parse_class_sequence
+
+        return [parse_class_sequence(m, "class_mixes") for m in self.class_mixes.split(";")
+                ] if self.class_mixes else []
 
     @property
     def mixed_traffic(self) -> bool:
@@ -265,6 +301,11 @@ class PPOConfig:
         from envs.scenarios import make_scenario
 
         roads = self.roads or [scenario]
+        if self.class_mixes:  # the first arrangement, in the order of class_seed 0
+            from envs.vehicle_classes import canonical_classes
+
+            mix = canonical_classes(self.mixes[0])
+            roads = [make_scenario(sc.label, class_mix=mix, class_seed=0) for sc in roads]
         if not self.mixed_traffic:
             return roads
         return [road for sc in roads for road in ([sc] if sc.ring else []) + [
@@ -278,8 +319,12 @@ class PPOConfig:
     @property
     def obs_dim(self) -> int:
         """Floats per agent the networks read (the ``ovm-gain`` observation gets the position
-        features appended; the ``accel`` one has them)."""
-        return 12 if self.action_mode == "accel" else 15 + 3
+        features appended; the ``accel`` one has them), plus the class features
+        (``class_features``)."""
+        from envs.vehicle_classes import CLASS_FEATURE_NAMES
+
+        extra = len(CLASS_FEATURE_NAMES) if self.class_features else 0
+        return (12 if self.action_mode == "accel" else 15 + 3) + extra
 
 
 # ---------------------------------------------------------------------------- networks
@@ -339,6 +384,7 @@ class SharedActor(nn.Module):
         super().__init__()
         self.continuous = config.action_mode == "accel"
         self.prior = config.prior
+        self.class_features = bool(config.class_features)  # its input ends with them
         self.n_agents = n_agents  # 0: shared by every follower, else one network per agent
         n_out = 1 if self.continuous else len(OVM_ACTIONS)
         self.body = _mlp(config.obs_dim, config.hidden, n_out, 0.01, n_agents)

@@ -93,6 +93,9 @@ NOT_IN_MATRIX: tuple[tuple[str, str], ...] = (
                          "reproduce` copies and judges in its own report"),
     ("variants/bdc-noqsgd/*", "BDC without QSGD, the paper reproduction's ablation, judged in "
                               "its report"),
+    ("variants/class-features/*", "ippo with class features, trained on strings of vehicle "
+                                  "classes (one seed), read on a heterogeneous string in "
+                                  "docs/learned-control.md"),
     ("variants/mixed-traffic/*", "ippo trained on mixed traffic (humans in the string, the "
                                  "ring), whose study is the penetration study "
                                  "(`cacc-bench penetration`)"),
