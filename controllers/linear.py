@@ -46,7 +46,7 @@ from envs.params import PlatoonParams
 from envs.platoon import PlatoonState
 from envs.scenarios import Scenario
 from infra.errors import ConfigError
-from infra.limits import MAX_SPACING_M, MAX_TIME_GAP_S
+from infra.limits import MAX_LINEAR_GAIN, MAX_SPACING_M, MAX_TIME_GAP_S
 
 
 def _finite(value: float, name: str) -> float:
@@ -109,6 +109,10 @@ class PloegConfig:
             raise ConfigError(
                 f"kd must be > 0: tau s^3 + s^2 + kd s + kp is not Hurwitz otherwise, got {kd}"
             )
+        for name, gain in (("kp", kp), ("kd", kd)):
+            if gain > MAX_LINEAR_GAIN:
+                raise ConfigError(f"{name} must be at most {MAX_LINEAR_GAIN:g} (a larger gain "
+                                  f"only switches between the acceleration bounds), got {gain:g}")
         if self.standstill_m is not None:
             r = _finite(self.standstill_m, "standstill_m")
             if r < 0:

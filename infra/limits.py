@@ -43,6 +43,10 @@ MAX_EPISODE_STEPS = 6000
 #: Largest distance (m) of a spacing policy (a standstill distance, a constant spacing): wide
 #: around any platoon, finite in every metric (``1e308`` m was stored, then refused).
 MAX_SPACING_M = 100.0
+#: Largest feedback gain of the linear laws (kp in 1/s^2, kd in 1/s): at 100 a spacing error
+#: of 2.5 cm already commands the 2.5 m/s^2 bound, so a larger gain is only a switch (``kp=1e308``
+#: ran as one, and the frequency sweep called it string stable).
+MAX_LINEAR_GAIN = 100.0
 
 
 def training_episode_seeds(run_seed: int, first: int, count: int) -> np.ndarray:

@@ -425,3 +425,14 @@ def test_stability_a_users_law_failing_past_its_first_steps_is_one_line(
     err = _one_line(capsys.readouterr().err)
     assert "late_h9:LateFail" in err and "broke after fifty steps" in err
     assert not (out / "stability_summary.csv").exists()
+
+
+@pytest.mark.parametrize("option", ["kp=1e308", "kd=1e13", "kp=101"])
+def test_a_linear_gain_beyond_any_law_is_refused_before_work(
+        tmp_path: Path, option: str, capsys: pytest.CaptureFixture[str]) -> None:
+    """``cacc:kp=1e308`` ran as a switch between the bounds, and its sweep called it stable."""
+    out = tmp_path / "r"
+    assert _exit_code(["run", "--controllers", f"cacc:{option}", "--scenarios", "catchup-v1",
+                       "--episodes", "1", "--out", str(out)]) == 2
+    assert "must be at most 100" in _one_line(capsys.readouterr().err)
+    assert not (out / "runs.csv").exists()
