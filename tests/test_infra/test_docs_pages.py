@@ -159,3 +159,16 @@ def test_the_home_page_counts_the_packages_it_lists() -> None:
     in_contract = re.findall(r'"(\w+)"', contract.group(1))
     assert words[said.group(1)] == len(listed) == len(in_contract)
     assert sorted(listed) == sorted(in_contract)  # every layer of the import contract
+
+
+def test_the_python_notebook_holds_the_guides_code() -> None:
+    """docs/guide/python-notebook.ipynb (rendered by the site) has the page's Python blocks as its code
+    cells, in order, so the notebook runs what the test above runs (the install cell aside)."""
+    import json
+
+    nb = json.loads((DOCS / "guide" / "python-notebook.ipynb").read_text())
+    cells = ["".join(c["source"]) for c in nb["cells"] if c["cell_type"] == "code"]
+    python = [c for c in cells if not c.startswith("%%bash")]
+    blocks = _python_blocks(DOCS / "guide" / "python.md")
+    assert [c.strip() for c in python] == [b.strip() for b in blocks]
+    assert nb["metadata"]["kernelspec"]["name"] == "python3"
