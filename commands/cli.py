@@ -84,6 +84,17 @@ def report_command(prog: str, argv: Sequence[str]) -> str:
     return " ".join([f"cacc-bench {prog}", *(shlex.quote(a) for a in shown)])
 
 
+def check_executor(workers: int, ray_address: str | None = None) -> None:
+    """The executor options of every command that runs in parallel, checked before any work:
+    ``--workers`` at least 1 and a ``--ray-address`` that answers."""
+    from benchmark.executors import check_ray_address
+    from infra.errors import ConfigError
+
+    if workers < 1:
+        raise ConfigError(f"--workers must be >= 1, got {workers}")
+    check_ray_address(ray_address)
+
+
 def scenarios_argument(text: str, option: str = "--scenarios") -> list[Scenario]:
     """The scenarios a ``--scenarios`` (or ``--scenario``) argument names, each built and checked
     once, here (:func:`envs.scenarios.parse_scenarios`), one per canonical label, in order. The

@@ -13,8 +13,7 @@ import argparse
 import sys
 
 from benchmark.executors import add_executor_options
-from commands.cli import plain, report_command
-from infra.errors import ConfigError
+from commands.cli import check_executor, plain, report_command
 
 #: Training seeds of the shipped learned policies.
 TRAIN_SEEDS: tuple[int, ...] = (0, 1, 2)
@@ -84,13 +83,10 @@ def main(argv: list[str]) -> int:
     )
 
     args = _parser().parse_args(argv)
-    from benchmark.executors import check_ray_address
 
-    check_ray_address(args.ray_address)
     scenarios = scenarios_argument(args.scenarios)
     check_vehicles(args.vehicles)
-    if args.workers < 1:
-        raise ConfigError(f"--workers must be >= 1, got {args.workers}")
+    check_executor(args.workers, args.ray_address)
     seeds = seeds_from_episodes(args.episodes)
     specs = controller_specs([sc.label for sc in scenarios], args.vehicles)
     keys = sorted({k for delay, loss in (IDEAL, DEGRADED)

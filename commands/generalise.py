@@ -15,7 +15,7 @@ import argparse
 import sys
 
 from benchmark.executors import add_executor_options
-from commands.cli import plain, report_command
+from commands.cli import check_executor, plain, report_command
 from infra.errors import ConfigError
 
 
@@ -110,11 +110,8 @@ def main(argv: list[str]) -> int:
     )
 
     args = _parser().parse_args(argv)
-    from benchmark.executors import check_ray_address
 
-    check_ray_address(args.ray_address)
-    if args.workers < 1:
-        raise ConfigError(f"--workers must be >= 1, got {args.workers}")
+    check_executor(args.workers, args.ray_address)
     seeds = seeds_from_set("test", args.episodes)
     learned = learned_rows(_available)
     rows = [*learned, *([] if args.no_safety_filter else [with_safety_filter(r) for r in learned]),

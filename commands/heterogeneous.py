@@ -15,7 +15,7 @@ import argparse
 from pathlib import Path
 
 from benchmark.executors import add_executor_options
-from commands.cli import plain, report_command
+from commands.cli import check_executor, plain, report_command
 from infra.errors import ConfigError
 
 #: The figures the study writes, under ``figures/``.
@@ -85,7 +85,6 @@ def main(argv: list[str]) -> int:
     """Entry point of ``cacc-bench heterogeneous``."""
     import pandas as pd
 
-    from benchmark.executors import check_ray_address
     from benchmark.export import write_csv
     from benchmark.folder_lock import folder_lock
     from benchmark.paths import writable_dir
@@ -105,9 +104,7 @@ def main(argv: list[str]) -> int:
     )
 
     args = _parser().parse_args(argv)
-    check_ray_address(args.ray_address)
-    if args.workers < 1:
-        raise ConfigError(f"--workers must be >= 1, got {args.workers}")
+    check_executor(args.workers, args.ray_address)
     seeds = seeds_from_set("test", args.episodes)
     families = parse_controller_list(args.controllers)
     if (BASELINE, {}) in families:

@@ -8,9 +8,8 @@ import argparse
 from pathlib import Path
 
 from benchmark.store import ResultStore
-from commands.cli import plain
+from commands.cli import check_executor, plain
 from commands.run import add_rank_by_option
-from infra.errors import ConfigError
 
 
 def main(argv: list[str]) -> int:
@@ -30,8 +29,7 @@ def main(argv: list[str]) -> int:
                         "(default: serial)")
     p.add_argument("--workers", type=int, default=2, help="processes (default 2)")
     args = p.parse_args(argv)
-    if args.workers < 1:
-        raise ConfigError(f"--workers must be >= 1, got {args.workers}")
+    check_executor(args.workers)
     for folder in args.results_dir:
         with ResultStore(Path(folder), create=False, writer=True) as store:
             records = store.records()

@@ -18,7 +18,7 @@ from typing import Any
 
 from benchmark.executors import add_executor_options
 from benchmark.export import write_csv
-from commands.cli import plain
+from commands.cli import check_executor, plain
 from infra.errors import ConfigError, UnknownNameError
 from infra.files import read_csv
 
@@ -141,9 +141,7 @@ def main(argv: list[str]) -> int:
     from envs.scenarios import check_vehicles
 
     args = _parser().parse_args(argv)
-    from benchmark.executors import check_ray_address
 
-    check_ray_address(args.ray_address)  # an address that does not answer: refused before work
     scenarios = scenarios_argument(args.scenarios)
     labels = [sc.label for sc in scenarios]
     families = list(dict.fromkeys(f.strip() for f in args.families.split(",") if f.strip()))
@@ -155,8 +153,7 @@ def main(argv: list[str]) -> int:
     if args.episodes < 1:
         raise ConfigError(f"--episodes must be >= 1, got {args.episodes}")
     check_vehicles(args.vehicles)
-    if args.workers < 1:
-        raise ConfigError(f"--workers must be >= 1, got {args.workers}")
+    check_executor(args.workers, args.ray_address)
     settings = settings_for(families, labels, args.vehicles)
     if args.controllers is not None:
         from controllers.registry import controller_label, parse_controller_list

@@ -14,7 +14,7 @@ import argparse
 from pathlib import Path
 
 from benchmark.executors import add_executor_options
-from commands.cli import plain, report_command
+from commands.cli import check_executor, plain, report_command
 from infra.errors import ConfigError
 
 #: Most placements a mixed share is drawn at.
@@ -85,11 +85,8 @@ def main(argv: list[str]) -> int:
     )
 
     args = _parser().parse_args(argv)
-    from benchmark.executors import check_ray_address
 
-    check_ray_address(args.ray_address)
-    if args.workers < 1:
-        raise ConfigError(f"--workers must be >= 1, got {args.workers}")
+    check_executor(args.workers, args.ray_address)
     check_range(args.placements, "--placements", 1, MAX_PLACEMENTS)
     seeds = seeds_from_set("test", args.episodes)
     families = parse_controller_list(args.controllers)  # names with their options

@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from benchmark.executors import EXECUTORS
-from commands.cli import plain, scenarios_argument
+from commands.cli import check_executor, plain, scenarios_argument
 from commands.policy_training import make_job, source_file, train_stage, tuned_config
 from commands.train import (
     add_arithmetic_argument,
@@ -199,9 +199,7 @@ def main(argv: list[str]) -> int:
 
     t0 = time.perf_counter()
     args = _parser().parse_args(argv)
-    from benchmark.executors import check_ray_address
 
-    check_ray_address(args.ray_address)  # an address that does not answer: refused before work
     budget = BUDGETS[args.budget]
     algos = [a.strip() for a in args.algos.split(",") if a.strip()]
     if algos == ["all"]:
@@ -213,8 +211,7 @@ def main(argv: list[str]) -> int:
             raise UnknownNameError("algorithm", a, PAPER_ALGORITHMS)
     built = scenarios_argument(args.scenarios)
     scenarios = [sc.label for sc in built]  # names of checkpoints, report sections, the manifest
-    if args.workers < 1:
-        raise ConfigError(f"--workers must be >= 1, got {args.workers}")
+    check_executor(args.workers, args.ray_address)
     check_population(args.population)
     training_device(args.device)  # ConfigError for an unknown device or a missing GPU
     check_arithmetic(args.arithmetic, args.device)

@@ -26,7 +26,7 @@ from benchmark.suite import (
     seeds_from_set,
     unique,
 )
-from commands.cli import scenarios_argument
+from commands.cli import check_executor, scenarios_argument
 from controllers.registry import default_controllers, parse_controller_list
 from envs.params import SEED_SETS, TEST_SEEDS, VALIDATION_SEEDS, PlatoonParams
 from envs.scenarios import (
@@ -158,8 +158,7 @@ def _validate(args: argparse.Namespace
     for lag in args.lag:
         if lag < 0:
             raise ConfigError(f"--lag must be >= 0 s, got {lag}")
-    if args.workers < 1:
-        raise ConfigError(f"--workers must be >= 1, got {args.workers}")
+    check_executor(args.workers)  # the Ray address (or RAY_ADDRESS) in main, for --executor ray
     check_simulator(args.simulator)  # sumo without the extra: the install command
     if args.pool_seeds and args.simulator != SIMULATORS[0]:
         raise ConfigError("--pool-seeds pools the built-in simulator's policies; leave it out "

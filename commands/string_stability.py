@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from benchmark.executors import add_executor_options
-from commands.cli import plain, report_command
+from commands.cli import check_executor, plain, report_command
 from infra.errors import ConfigError
 
 
@@ -104,7 +104,6 @@ def _design(out: Path, args: argparse.Namespace, scenarios: list[str],
 
 def main(argv: list[str]) -> int:
     """Entry point of ``cacc-bench string-stability``."""
-    from benchmark.executors import check_ray_address
     from benchmark.folder_lock import folder_lock
     from benchmark.paths import writable_dir
     from benchmark.suite import build_sweep, seeds_from_set
@@ -117,11 +116,9 @@ def main(argv: list[str]) -> int:
     from studies import string_stability as st
 
     args = _parser().parse_args(argv)
-    check_ray_address(args.ray_address)
     scenarios = scenarios_argument(args.scenarios)
     labels = [sc.label for sc in scenarios]
-    if args.workers < 1:
-        raise ConfigError(f"--workers must be >= 1, got {args.workers}")
+    check_executor(args.workers, args.ray_address)
     test_seeds = seeds_from_set("test", args.episodes)
     if args.validation_episodes is not None:
         check_range(args.validation_episodes, "--validation-episodes", 1, len(VALIDATION_SEEDS))

@@ -13,6 +13,7 @@ checkpoint files, action uniforms, opening the channels).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Any, ClassVar
 
 import numpy as np
@@ -259,21 +260,31 @@ def sample_with_uniforms(actor: SharedActor, out: torch.Tensor, uniforms: np.nda
     return (cdf < u.unsqueeze(-1)).sum(-1).clamp_(max=out.shape[-1] - 1)
 
 
-def load_actor(data: dict[str, Any], params: PlatoonParams = PlatoonParams()) -> SharedActor:
-    """The actor of a loaded checkpoint dict (float32 weights); a config or weights that do not
-    make this learner's actor give a :class:`ConfigError`."""
-    acting = ("algo", "action_mode", "hidden", "obs_clip", "prior",  # what its shape and acting
-              "class_features")                                       # read
+def load_weights(data: dict[str, Any], build: Callable[[dict[str, Any]], Any]) -> Any:
+    """The network ``build(config)`` makes from a loaded checkpoint dict's config, holding its
+    weights (as float32), in evaluation mode; a config or weights that do not make it give a
+    :class:`ConfigError`."""
     try:
-        config = PPOConfig(**{k: v for k, v in data["config"].items() if k in acting})
-        actor = SharedActor(config, params, int(data["n_vehicles"]) if config.per_agent else 0)
-        actor.load_state_dict({k: v.float() for k, v in data["weights"].items()}, strict=True)
+        net = build(data["config"])
+        net.load_state_dict({k: v.float() for k, v in data["weights"].items()}, strict=True)
     except (TypeError, ValueError, RuntimeError, KeyError) as exc:
         reason = " ".join(str(exc).split())[:200]
         raise ConfigError(f"a {data.get('algo')} checkpoint whose config or weights do not fit "
                           f"this learner ({reason}); train it again") from None
-    actor.eval()
-    return actor
+    net.eval()
+    return net
+
+
+def load_actor(data: dict[str, Any], params: PlatoonParams = PlatoonParams()) -> SharedActor:
+    """The actor of a loaded checkpoint dict (:func:`load_weights`)."""
+    acting = ("algo", "action_mode", "hidden", "obs_clip", "prior",  # what its shape and acting
+              "class_features")                                       # read
+
+    def build(saved: dict[str, Any]) -> SharedActor:
+        config = PPOConfig(**{k: v for k, v in saved.items() if k in acting})
+        return SharedActor(config, params, int(data["n_vehicles"]) if config.per_agent else 0)
+
+    return load_weights(data, build)
 
 
 class SharedActing(Acting):

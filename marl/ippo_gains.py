@@ -47,7 +47,7 @@ from envs.params import PlatoonParams
 from envs.platoon import PlatoonEnv, PlatoonState, StepResult
 from envs.scenarios import Scenario
 from infra.errors import ConfigError
-from marl.acting import SharedActing, pad_rows, sample_with_uniforms
+from marl.acting import SharedActing, load_weights, pad_rows, sample_with_uniforms
 from marl.ppo import PPOTrainer, World
 from marl.ppo_nets import PPOConfig, SharedActor
 
@@ -174,18 +174,10 @@ class GainScheduleTrainer(PPOTrainer):
 
 def load_gain_actor(data: dict[str, Any]) -> GainActor:
     """The actor of a loaded ``ippo-gains`` checkpoint dict (float32 weights, the segment its
-    config records); a config or weights that do not make it give a :class:`ConfigError`."""
+    config records; :func:`marl.acting.load_weights`)."""
     fields = {f.name for f in dataclasses.fields(GainScheduleConfig)}
-    try:
-        config = GainScheduleConfig(**{k: v for k, v in data["config"].items() if k in fields})
-        actor = GainActor(config)
-        actor.load_state_dict({k: v.float() for k, v in data["weights"].items()}, strict=True)
-    except (TypeError, ValueError, RuntimeError, KeyError) as exc:
-        reason = " ".join(str(exc).split())[:200]
-        raise ConfigError(f"an ippo-gains checkpoint whose config or weights do not fit this "
-                          f"learner ({reason}); train it again") from None
-    actor.eval()
-    return actor
+    return load_weights(data, lambda saved: GainActor(
+        GainScheduleConfig(**{k: v for k, v in saved.items() if k in fields})))
 
 
 class GainActing(SharedActing):
