@@ -175,3 +175,29 @@ def test_the_main_table_on_the_test_seeds_is_what_the_controllers_score() -> Non
         assert pooled == pytest.approx(float(row[label]), rel=5e-4), label  # across CPUs
     assert (cacc - float(row["ippo[seeds=0+1+2,variant=residual-cacc]"])) / -cacc < 0.01
     assert float(row["ippo[seeds=0+1+2,variant=residual-timed]"]) > cacc  # the reading's lead
+
+
+def test_the_string_stability_readings_are_the_committed_tables() -> None:
+    """The main table's reading (only `cacc` and `cmpc` string stable; the leading residual's
+    sweep peak against its time-domain gain), the mark's threshold, and the string-stability
+    bullet's "fixed gains at the segment's ends score as well" (docs/string-stability)."""
+    import pandas as pd
+
+    from benchmark.sweep import SWEEP_TOL
+
+    text = (ROOT / "README.md").read_text()
+    flat = " ".join(text.split())
+    assert f"**string stable** `yes` when at most {1 + SWEEP_TOL:g}" in flat
+    rows = [[c.strip() for c in ln.strip("|").split("|")] for ln in text.splitlines()
+            if ln.startswith("| catchup-v1 |")]
+    stable = sorted(r[2].strip("`") for r in rows if r[11] == "yes")
+    assert stable == ["cacc", "cmpc"] and "only `cacc` and `cmpc` are string stable" in flat
+    lead = next(r for r in rows if r[1] == "1")
+    assert f"oscillation {float(lead[10]):.1f}-fold per vehicle" in flat
+    assert f"its time-domain gain on this scenario, {lead[9]}, does not show it" in flat
+    rewards = pd.read_csv(ROOT / "docs" / "string-stability" / "rewards.csv")
+    ideal = rewards[rewards["channel"] == "ideal"].groupby(["entry", "scenario"])["reward"].first()
+    assert "fixed gains at the segment's ends score as well" in flat
+    for sc in ("catchup-v1", "slowdown-v1"):
+        ends = max(ideal[(f"cacc (segment's {e} end)", sc)] for e in ("stiff", "soft"))
+        assert ends >= ideal[("ippo-gains", sc)], sc

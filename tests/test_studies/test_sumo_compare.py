@@ -71,3 +71,29 @@ def test_the_ploeg_and_human_tables_are_recomputed() -> None:
                and "diff" not in c]
         np.testing.assert_allclose(fresh[num].to_numpy(float), committed[num].to_numpy(float),
                                    rtol=1e-5, err_msg=name)
+
+
+def test_the_readme_states_what_the_committed_report_shows() -> None:
+    """The README's SUMO paragraph: its tolerances are the study's, and the committed tables
+    hold them (matched trajectories, the MPC's, the energy models; Plexe's Ploeg reproduced by
+    our law with Plexe's Euler filter step)."""
+    readme = " ".join((Path(__file__).resolve().parents[2] / "README.md").read_text().split())
+    part = readme[readme.index("## In SUMO"):readme.index("## Where the rest lives")]
+    assert "within 1e-8 m (the MPC's within 1e-3 m)" in part
+    assert (1e-8, 1e-3) == (sc.MATCHED_GAP_TOL_M, sc.MATCHED_MPC_TOL)
+    assert f"within {sc.ENERGY_TOL_PCT:g} % of the battery's throughput" in part
+    docs = Path(__file__).resolve().parents[2] / "docs" / "sumo"
+    agree = pd.read_csv(docs / "agreement.csv")
+    matched = agree[agree["simulator"] == "sumo"]
+    mpc = matched["controller"] == "mpc-qp"
+    assert (matched[~mpc]["max_gap_diff_m"] <= sc.MATCHED_GAP_TOL_M).all()
+    assert (matched[mpc]["max_gap_diff_m"] <= sc.MATCHED_MPC_TOL).all()
+    energy = pd.read_csv(docs / "energy.csv")
+    assert (energy["poly_vs_mmpevem_pct_of_throughput"].abs() <= sc.ENERGY_TOL_PCT).all()
+    assert "Plexe's Euler filter step, which reproduces" in part
+    ploeg = pd.read_csv(docs / "ploeg.csv")
+    assert "once our 30 m/s speed bound is lifted" in part
+    euler = ploeg[ploeg["ours"].str.contains("Euler")]
+    bounded_slowdown = (euler["scenario"] == "slowdown-v1") & (euler["speed_bound_mps"] == 30)
+    assert (euler[~bounded_slowdown]["max_gap_diff_m"] <= sc.PLOEG_REPLICA_TOL).all()
+    assert (euler[bounded_slowdown]["max_gap_diff_m"] > 1.0).all()  # why the README says so
