@@ -105,6 +105,14 @@ class Scenario:
     #: The ``package.module:NAME`` it was built from when it is a scenario of one's own
     #: (:attr:`base_name`); empty for a registered id.
     reference: str = field(default="", repr=False, compare=False)
+    #: The options its label names (typed), which :meth:`derive` builds on.
+    given: dict[str, Any] = field(default_factory=dict, repr=False, compare=False)
+
+    def derive(self, **options: Any) -> Scenario:
+        """This scenario with ``options`` set on top of those it was built with, checked as
+        :func:`make_scenario` checks them (a training run's drawn arrangement or classes);
+        built from the typed options, not from the label."""
+        return make_scenario(self.base_name, **{**self.given, **options})
 
     @property
     def base_name(self) -> str:
@@ -1051,6 +1059,7 @@ def make_scenario(scenario_id: str, /, **options: Any) -> Scenario:
     changed = {k: repr(opts[k]) if isinstance(opts[k], float) else str(opts[k])
                for k in options
                if opts[k] != defaults[k] or (k in SEAT_OPTIONS and seats_changed)}
+    given = {k: opts[k] for k in changed}  # the label's options, typed
     opts.update(spec.fixed)
     target_gap_m, target_speed_mps, vehicles = (spec.target_gap_m, spec.target_speed_mps,
                                                 spec.default_vehicles)
@@ -1072,6 +1081,7 @@ def make_scenario(scenario_id: str, /, **options: Any) -> Scenario:
         ring=spec.ring,
         settle_s=spec.settle_s,
         reference=name if name != scenario_id else "",
+        given=given,
     )
 
 

@@ -52,7 +52,7 @@ from torch import nn
 from envs.channel import ChannelConfig
 from envs.params import PlatoonParams
 from envs.platoon import PlatoonEnv
-from envs.scenarios import Scenario, as_scenario, check_vehicles, make_scenario
+from envs.scenarios import Scenario, as_scenario, check_vehicles
 from envs.vehicle_classes import canonical_classes, class_features
 from infra.errors import ConfigError
 from infra.limits import MAX_ROLLOUT_AGENT_STEPS, MAX_SEED, training_episode_seeds
@@ -262,12 +262,12 @@ class PPOTrainer:
             share = cfg.cav_share_min + (cfg.cav_share_max - cfg.cav_share_min) * float(
                 torch.rand(1, generator=gen, dtype=torch.float64))
             placement_seed = int(torch.randint(MAX_SEED + 1, (1,), generator=gen))
-            sc = make_scenario(sc.label, cav_fraction=share, placement="random",
+            sc = sc.derive(cav_fraction=share, placement="random",
                                placement_seed=placement_seed)
         if cfg.class_mixes:  # one arrangement of the list, in the order of a drawn class_seed
             mix = cfg.mixes[int(torch.randint(len(cfg.mixes), (1,), generator=gen))]
             class_seed = int(torch.randint(MAX_SEED + 1, (1,), generator=gen))
-            sc = make_scenario(sc.label, class_mix=canonical_classes(mix), class_seed=class_seed)
+            sc = sc.derive(class_mix=canonical_classes(mix), class_seed=class_seed)
         return self.make_world(sc, n, delay, loss)
 
     def new_episodes(self) -> torch.Tensor:

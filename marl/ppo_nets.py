@@ -298,18 +298,16 @@ class PPOConfig:
         each of them instead; on mixed traffic each with half its followers automated, placed
         at random (placement seed 0), and a ring also as it is (by default one automated
         vehicle among humans)."""
-        from envs.scenarios import make_scenario
-
         roads = self.roads or [scenario]
         if self.class_mixes:  # the first arrangement, in the order of class_seed 0
             from envs.vehicle_classes import canonical_classes
 
             mix = canonical_classes(self.mixes[0])
-            roads = [make_scenario(sc.label, class_mix=mix, class_seed=0) for sc in roads]
+            roads = [sc.derive(class_mix=mix, class_seed=0) for sc in roads]
         if not self.mixed_traffic:
             return roads
         return [road for sc in roads for road in ([sc] if sc.ring else []) + [
-            make_scenario(sc.label, cav_fraction=0.5, placement="random")]]
+            sc.derive(cav_fraction=0.5, placement="random")]]
 
     @property
     def per_agent(self) -> bool:
