@@ -24,7 +24,7 @@ from typing import Any
 
 from benchmark.executors import EXECUTORS
 from commands.cli import check_executor, plain, scenarios_argument
-from commands.policy_training import make_job, source_file, train_stage, tuned_config
+from commands.policy_training import train_stage, tuned_config
 from commands.train import (
     add_arithmetic_argument,
     add_device_argument,
@@ -32,10 +32,11 @@ from commands.train import (
     check_arithmetic,
     check_population,
 )
-from envs.scenarios import Scenario
+from envs.scenarios import Scenario, as_scenario, make_scenario
 from infra.atomic import write_text
 from infra.errors import ConfigError, UnknownNameError
 from infra.files import read_csv, read_json
+from marl.training import PolicyJob
 from studies.paper import (
     ABLATIONS,
     BASELINES,
@@ -87,48 +88,46 @@ def _parser() -> argparse.ArgumentParser:
 
 
 # ------------------------------------------------------------------------------ training
-def _train_plan(algos: list[str], scenarios: list[str], budget: Budget, out: Path,
-                studies: set[str]) -> list[dict[str, Any]]:
+def _train_plan(algos: list[str], scenarios: Sequence[Scenario | str], budget: Budget,
+                out: Path, studies: set[str]) -> list[PolicyJob]:
     """Every training run of the reproduction, with its tuned config and its folder.
 
     - ``main``: each algorithm (and ablation) on each scenario at N = 8;
     - ``sizes``: :data:`SIZE_ALGOS` at N in :data:`SIZES` on catchup-v1 (catchup-v1's tuned config);
     - ``openacc``: BDC on each OpenACC training family at N = 4 (catchup-v1's tuned config).
     """
+    built = {sc.label: sc for sc in map(as_scenario, scenarios)}
     ckpt = out / "checkpoints"
     variants: list[tuple[str, str, dict[str, Any]]] = [(a, a, {}) for a in algos]
     if "ablations" in studies:
         variants += [(name, a, extra) for name, (a, extra) in ABLATIONS.items() if a in algos]
-    jobs = []
-    for name, algo, extra in variants:
-        folder = ckpt if name == algo else ckpt / name
-        for sc in scenarios:
-            options = tuned_config(algo, sc, extra, name)
-            jobs += [make_job(name, algo, sc, N_VEHICLES, seed, folder, options, budget.steps,
-                              "main", budget.validation_episodes) for seed in budget.seeds]
-    if "sizes" in studies and SIZE_SCENARIO in scenarios:
-        for algo in (a for a in SIZE_ALGOS if a in algos):
-            options = tuned_config(algo, SIZE_SCENARIO, {}, algo)
-            jobs += [make_job(algo, algo, SIZE_SCENARIO, n, seed, ckpt, options, budget.steps,
-                              "sizes", budget.validation_episodes)
-                     for n in SIZES for seed in budget.seeds]
+    # (name, algo, scenario, N, folder, config, study) of the runs, each trained with every seed
+    runs: list[tuple[str, str, Scenario, int, Path, Any, str]] = [
+        (name, algo, sc, N_VEHICLES, ckpt if name == algo else ckpt / name,
+         tuned_config(algo, label, extra, name), "main")
+        for name, algo, extra in variants for label, sc in built.items()]
+    if "sizes" in studies and SIZE_SCENARIO in built:
+        runs += [(algo, algo, built[SIZE_SCENARIO], n, ckpt, config, "sizes")
+                 for algo in SIZE_ALGOS if algo in algos
+                 for config in [tuned_config(algo, SIZE_SCENARIO, {}, algo)] for n in SIZES]
     if "openacc" in studies and "bdc" in algos:
-        options = tuned_config("bdc", SIZE_SCENARIO, {}, "bdc")
-        jobs += [make_job("bdc", "bdc", train_id, OPENACC_VEHICLES, seed, ckpt, options,
-                          budget.steps, "openacc", budget.validation_episodes)
-                 for train_id in OPENACC_GROUPS.values() for seed in budget.seeds]
-    return jobs
+        config = tuned_config("bdc", SIZE_SCENARIO, {}, "bdc")
+        runs += [("bdc", "bdc", make_scenario(train_id), OPENACC_VEHICLES, ckpt, config, "openacc")
+                 for train_id in OPENACC_GROUPS.values()]
+    return [PolicyJob(name, algo, sc, n, seed, folder, config, budget.steps, study,
+                      budget.validation_episodes)
+            for name, algo, sc, n, folder, config, study in runs for seed in budget.seeds]
 
 
 # ------------------------------------------------------------------------------ evaluation
-def _policy(job: dict[str, Any]) -> tuple[str, dict[str, str]]:
-    opts = {"checkpoint_dir": job["out"], "seed": str(job["seed"])}
-    if job["study"] == "openacc":
-        opts["scenario"] = job["scenario"]
-    return job["algo"], opts
+def _policy(job: PolicyJob) -> tuple[str, dict[str, str]]:
+    opts = {"checkpoint_dir": str(job.out), "seed": str(job.seed)}
+    if job.study == "openacc":
+        opts["scenario"] = job.scenario.label
+    return job.algo, opts
 
 
-def eval_keys(jobs: list[dict[str, Any]], scenarios: Sequence[Scenario | str], budget: Budget
+def eval_keys(jobs: list[PolicyJob], scenarios: Sequence[Scenario | str], budget: Budget
               ) -> tuple[list[Any], dict[str, str]]:
     """The evaluation runs of every study and the map label -> name shown in the tables."""
     from benchmark.suite import build_sweep, seeds_from_episodes
@@ -147,7 +146,7 @@ def eval_keys(jobs: list[dict[str, Any]], scenarios: Sequence[Scenario | str], b
     seen: dict[str, tuple[str, tuple[str, dict[str, str]]]] = {}
     for j in jobs:
         algo, opts = _policy(j)
-        seen.setdefault(json.dumps([j["study"], algo, opts], sort_keys=True), (j["name"], (algo, opts)))
+        seen.setdefault(json.dumps([j.study, algo, opts], sort_keys=True), (j.name, (algo, opts)))
     by_study: dict[str, list[tuple[str, tuple[str, dict[str, str]]]]] = {}
     for key, val in seen.items():
         by_study.setdefault(json.loads(key)[0], []).append(val)
@@ -166,7 +165,7 @@ def eval_keys(jobs: list[dict[str, Any]], scenarios: Sequence[Scenario | str], b
     return sorted(keys), names
 
 
-def eval_stage(jobs: list[dict[str, Any]], scenarios: Sequence[Scenario], budget: Budget,
+def eval_stage(jobs: list[PolicyJob], scenarios: Sequence[Scenario], budget: Budget,
                args: argparse.Namespace, out: Path) -> dict[str, str]:
     """Run every policy and baseline on the evaluation seeds (resumable store)."""
     from commands.run import execute_sweep
@@ -247,15 +246,15 @@ def main(argv: list[str]) -> int:
     # is relative to it, so --out spelled otherwise or a moved folder reruns nothing
     with working_in(out):
         here = Path(".")
-        jobs = _train_plan(algos, scenarios, budget, here, studies)
+        jobs = _train_plan(algos, built, budget, here, studies)
         check_job_files(jobs)  # a damaged file of a finished job: refused before any work
         manifest: dict[str, Any] = {"settings": settings,
                                     "command": command_text("cacc-bench reproduce", argv)}
         write_text(here / MANIFEST, json.dumps({**manifest, "status": "started"}, indent=1))
         train_stage(jobs, args, reuse_shipped=budget.name == "paper" and not args.retrain)
         names = eval_stage(jobs, built, budget, args, here)
-        train_wall = sum(float(read_json(source_file(j), "the source record").get("wall_s")
-                               or 0.0) for j in jobs)
+        train_wall = sum(float(read_json(j.file(".source.json"), "the source record")
+                               .get("wall_s") or 0.0) for j in jobs)
         runs = read_csv(here / "runs" / "runs.csv", "the runs table", columns=("wall_s",))
         manifest.update({"wall_s": time.perf_counter() - t0, "train_wall_s": train_wall,
                          "eval_wall_s": float(runs["wall_s"].sum())})

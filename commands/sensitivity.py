@@ -14,6 +14,7 @@ folders relative to it, so OUT spelled otherwise or moved reruns nothing.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 from collections.abc import Sequence
@@ -29,6 +30,7 @@ from infra.atomic import write_text
 from infra.errors import ConfigError, UnknownNameError
 from infra.files import read_csv, read_json
 from infra.limits import step_count
+from marl.training import PolicyJob
 
 #: Multiples of the tuned consensus eps tried (two decades and more around it).
 EPS_FACTORS: tuple[float, ...] = (0.01, 0.1, 1.0, 10.0)
@@ -105,28 +107,24 @@ def _base_value(knob: str, tuned: dict[str, Any]) -> Any:
             "gamma": tuned["gamma"]}[knob]
 
 
-def plan(scenarios: list[str], knobs: list[str], seeds: list[int], steps: int,
-         validation_episodes: int, out: Path) -> tuple[list[dict[str, Any]],
-                                                      list[dict[str, Any]]]:
-    """Training jobs and evaluation settings (see :func:`studies.sensitivity.sensitivity_frame`;
-    ``training`` holds the jobs until their summaries are read)."""
-    from commands.policy_training import make_job, tuned_config
+def plan(built: Sequence[Scenario], knobs: list[str], seeds: list[int], steps: int,
+         validation_episodes: int, out: Path) -> tuple[list[PolicyJob], list[dict[str, Any]]]:
+    """Training jobs and evaluation settings on the scenarios ``built`` (see
+    :func:`studies.sensitivity.sensitivity_frame`; ``training`` holds the jobs until their
+    summaries are read)."""
+    from commands.policy_training import tuned_config
     from controllers.registry import controller_label
-    from marl.config import algorithm
 
-    jobs: list[dict[str, Any]] = []
+    jobs: list[PolicyJob] = []
     settings: list[dict[str, Any]] = []
-    for sc in scenarios:
-        import dataclasses
-
-        tuned_opts = tuned_config("bdc", sc, {}, "bdc")
-        tuned = dataclasses.asdict(algorithm("bdc").config_cls(**tuned_opts))
+    for sc in built:
+        tuned = dataclasses.asdict(tuned_config("bdc", sc.label, {}, "bdc"))
         for v in variants(knobs, tuned):
             folder = out / "checkpoints" / v["name"]
-            options = tuned_config("bdc", sc, v["overrides"], f"bdc {v['name']}")
-            vjobs = [make_job("bdc" if v["is_base"] else f"bdc-{v['name']}", "bdc", sc,
-                              N_VEHICLES, seed, folder, options, steps, "sensitivity",
-                              validation_episodes) for seed in seeds]
+            config = tuned_config("bdc", sc.label, v["overrides"], f"bdc {v['name']}")
+            vjobs = [PolicyJob("bdc" if v["is_base"] else f"bdc-{v['name']}", "bdc", sc,
+                               N_VEHICLES, seed, folder, config, steps, "sensitivity",
+                               validation_episodes) for seed in seeds]
             jobs += vjobs
             ctrls = [("bdc", {"checkpoint_dir": str(folder), "seed": str(seed)})
                      for seed in seeds]
@@ -142,15 +140,14 @@ def plan(scenarios: list[str], knobs: list[str], seeds: list[int], steps: int,
             else:
                 rows = [(v["knob"], v["value"], 0.0, 0.0)]
             for knob, value, delay, loss in rows:
-                settings.append({"scenario": sc, "knob": knob, "knob_value": value,
+                settings.append({"scenario": sc.label, "knob": knob, "knob_value": value,
                                  "variant": v["name"], "is_base": v["is_base"] and not delay
                                  and not loss, "labels": labels, "controllers": ctrls,
-                                 "comm_delay_s": delay,
-                                 "packet_loss": loss, "training": vjobs})
-        settings.append({"scenario": sc, "knob": "reference", "knob_value": "", "variant": "ovm",
-                         "is_base": False, "labels": ["ovm"], "controllers": [("ovm", {})],
-                         "comm_delay_s": 0.0,
-                         "packet_loss": 0.0, "training": []})
+                                 "comm_delay_s": delay, "packet_loss": loss, "training": vjobs})
+        settings.append({"scenario": sc.label, "knob": "reference", "knob_value": "",
+                         "variant": "ovm", "is_base": False, "labels": ["ovm"],
+                         "controllers": [("ovm", {})], "comm_delay_s": 0.0, "packet_loss": 0.0,
+                         "training": []})
     return jobs, settings
 
 
@@ -169,7 +166,6 @@ def _eval_keys(settings: list[dict[str, Any]], seeds: list[int],
 def _summaries(settings: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """``settings`` with each training job replaced by its checkpoint's curve summary (each
     checkpoint verified, :func:`marl.checkpoint.load_checkpoint`)."""
-    from commands.policy_training import stem
     from marl.checkpoint import load_checkpoint
 
     cache: dict[str, dict[str, float]] = {}
@@ -177,10 +173,10 @@ def _summaries(settings: list[dict[str, Any]]) -> list[dict[str, Any]]:
     for s in settings:
         summaries = []
         for job in s["training"]:
-            path = str(Path(job["out"]) / f"{stem(job)}.pt")
+            path = str(job.file(".pt"))
             if path not in cache:
-                cache[path] = load_checkpoint(path, algo=job["algo"],
-                                              n_vehicles=job["vehicles"])["curve_summary"]
+                cache[path] = load_checkpoint(path, algo=job.algo,
+                                              n_vehicles=job.vehicles)["curve_summary"]
             summaries.append(cache[path])
         out.append({**s, "training": summaries})
     return out
@@ -260,8 +256,7 @@ def main(argv: list[str]) -> int:
     # spelled otherwise or a moved folder reruns nothing
     with working_in(out):
         here = Path(".")
-        jobs, settings = plan(scenarios, knobs, seeds, args.steps, args.validation_episodes,
-                              here)
+        jobs, settings = plan(built, knobs, seeds, args.steps, args.validation_episodes, here)
         check_job_files(jobs)  # a damaged file of a finished job: refused before any work
         write_text(here / MANIFEST, json.dumps(settings_key, indent=1))
         print(f"sensitivity: {len(jobs)} training runs, {len(settings)} settings",

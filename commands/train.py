@@ -403,20 +403,6 @@ def learner_config(algo: str, options: dict[str, Any], owner: str = "") -> Any:
     return build_config(cls, options, owner or f"{algo} (--set)")
 
 
-def job_key(job: dict[str, Any]) -> TrainingKey:
-    """The key of a job dict of :mod:`commands.policy_training` (``algo``, ``scenario``,
-    ``vehicles``, ``seed`` or ``seeds``, ``steps``, ``out``, ``options``; ``arithmetic``,
-    ``device`` and ``validation_episodes`` when given)."""
-    from envs.scenarios import as_scenario
-    from marl.training import TrainingKey
-
-    return TrainingKey(job["algo"], as_scenario(job["scenario"]), job["vehicles"],
-                       tuple(job.get("seeds", [job["seed"]])), job["steps"],
-                       learner_config(job["algo"], job["options"]), Path(job["out"]),
-                       job.get("arithmetic", "native"), job.get("device", "cpu"),
-                       job.get("validation_episodes"))
-
-
 def main(argv: list[str]) -> int:
     """Entry point: ``cacc-bench train --algo NAME --scenario ID [...]``."""
     from benchmark.executors import check_ray_address, map_jobs

@@ -1,5 +1,6 @@
-"""A training job as a typed key (:class:`TrainingKey`), and the run of the shared-policy
-learners (:func:`run_shared`; the paper's learners run in :func:`marl.selection.run_population`).
+"""A training job as a typed key (:class:`TrainingKey`), a study's training run
+(:class:`PolicyJob`), and the run of the shared-policy learners (:func:`run_shared`; the
+paper's learners run in :func:`marl.selection.run_population`).
 
 A key says everything a job trains from, built once at the command line: the learner, the
 scenario itself, N, the seeds (runs that differ only in their seed train as one population), the
@@ -109,6 +110,53 @@ class TrainingKey:
         if self.family != "a2c":
             out.setdefault("action_mode", "accel")
         return out
+
+
+@dataclass(frozen=True)
+class PolicyJob:
+    """One policy-training run of a study (``cacc-bench reproduce``, ``sensitivity``), trained
+    as :meth:`key` into ``out``.
+
+    Attributes
+    ----------
+    name, algo : str
+        The algorithm or an ablation or variant of it (its shipped folder); the learner
+        (:data:`marl.learners.LEARNERS`).
+    scenario : Scenario
+        Built once where the job is made.
+    vehicles, seed, steps, validation_episodes : int
+        Followers N; the training seed; environment steps; the validation seeds that choose
+        the kept snapshot.
+    out : Path
+        The folder of its files (:meth:`file`).
+    config : object
+        The learner's config (:func:`config_class`), built and checked once.
+    study, arithmetic : str
+        The study it serves (``main``, ``sizes``, ``openacc``, ``sensitivity``);
+        :mod:`marl.arithmetic`'s mode.
+    """
+
+    name: str
+    algo: str
+    scenario: Scenario
+    vehicles: int
+    seed: int
+    out: Path
+    config: Any
+    steps: int
+    study: str
+    validation_episodes: int = 32
+    arithmetic: str = "native"
+
+    def key(self, device: str = "cpu") -> TrainingKey:
+        """The job as a training key (a population of one) on ``device``."""
+        return TrainingKey(self.algo, self.scenario, self.vehicles, (self.seed,), self.steps,
+                           self.config, self.out, self.arithmetic, device,
+                           self.validation_episodes)
+
+    def file(self, suffix: str) -> Path:
+        """Its file ``<stem><suffix>`` (:meth:`TrainingKey.stem`; ``.pt``, ``.source.json``)."""
+        return self.out / f"{self.key().stem(self.seed)}{suffix}"
 
 
 def finished(key: TrainingKey) -> bool:

@@ -13,7 +13,7 @@ from typing import Any
 
 from benchmark.export import write_csv
 from envs.scenarios import Scenario
-from infra.naming import checkpoint_stem
+from marl.training import PolicyJob
 from studies.paper import (
     BASELINES,
     N_VEHICLES,
@@ -26,13 +26,7 @@ from studies.paper import (
 )
 
 
-def _file(job: dict[str, Any], suffix: str) -> Path:
-    """The file ``<stem><suffix>`` of a training job (``.pt``, ``.curve.csv``, ``.source.json``)."""
-    return Path(job["out"]) / (
-        checkpoint_stem(job["algo"], job["scenario"], job["vehicles"], job["seed"]) + suffix)
-
-
-def check_job_files(jobs: list[dict[str, Any]]) -> None:
+def check_job_files(jobs: list[PolicyJob]) -> None:
     """Read every file a training job of a study left in its folder, before any work: its
     source record (:func:`infra.files.read_json`), its learning curve
     (:func:`studies.reproduction.read_curve`) and its checkpoint, verified as evaluation loads
@@ -48,25 +42,25 @@ def check_job_files(jobs: list[dict[str, Any]]) -> None:
     from studies.reproduction import read_curve
 
     for job in jobs:
-        if _file(job, ".source.json").exists():
-            read_json(_file(job, ".source.json"), "the source record",
+        if job.file(".source.json").exists():
+            read_json(job.file(".source.json"), "the source record",
                       "remove it (that run is then copied or trained again) or restore it, "
                       "and rerun with --resume")
-        if _file(job, ".curve.csv").exists():
-            read_curve(_file(job, ".curve.csv"))
-        if _file(job, ".pt").exists():
-            load_checkpoint(_file(job, ".pt"), algo=job["algo"], n_vehicles=job["vehicles"],
-                            scenario=job["scenario"])
+        if job.file(".curve.csv").exists():
+            read_curve(job.file(".curve.csv"))
+        if job.file(".pt").exists():
+            load_checkpoint(job.file(".pt"), algo=job.algo, n_vehicles=job.vehicles,
+                            scenario=job.scenario.id)
 
 
-def _curves(jobs: list[dict[str, Any]], study: str = "main",
+def _curves(jobs: list[PolicyJob], study: str = "main",
             by_size: bool = False) -> dict[tuple[str, str, int], Any]:
     """Training curves of one study, keyed (name, scenario, seed); ``by_size`` names them
     ``<name> N=<n>``."""
     from studies.reproduction import read_curve
 
-    return {(f"{j['name']} N={j['vehicles']}" if by_size else j["name"], j["scenario"], j["seed"]):
-            read_curve(_file(j, ".curve.csv")) for j in jobs if j["study"] == study}
+    return {(f"{j.name} N={j.vehicles}" if by_size else j.name, j.scenario.label, j.seed):
+            read_curve(j.file(".curve.csv")) for j in jobs if j.study == study}
 
 
 def _machine() -> str:
@@ -74,7 +68,7 @@ def _machine() -> str:
             f"Python {platform.python_version()}")
 
 
-def write_report(jobs: list[dict[str, Any]], names: dict[str, str], built: Sequence[Scenario],
+def write_report(jobs: list[PolicyJob], names: dict[str, str], built: Sequence[Scenario],
                  budget: Budget, out: Path, manifest: dict[str, Any]) -> Path:
     """``OUT/report.md``, its figures (``OUT/figures``) and CSVs, on the scenarios ``built``
     (parsed by the command)."""
@@ -91,7 +85,7 @@ def write_report(jobs: list[dict[str, Any]], names: dict[str, str], built: Seque
     scenarios = list(by_label)
     fig_dir = out / "figures"
     curves = _curves(jobs)
-    policy_names = list(dict.fromkeys(j["name"] for j in jobs if j["study"] == "main"))
+    policy_names = list(dict.fromkeys(j.name for j in jobs if j.study == "main"))
     with ResultStore(out / "runs", create=False) as store:
         records = store.records()
         all_runs = runs_frame(records)
@@ -320,22 +314,22 @@ def _scenario_reading(t2: Any) -> str:
             "ours is the signed mean (`accel_rms_mps2` is in runs.csv).")
 
 
-def _size_section(jobs: list[dict[str, Any]], runs: Any, names: dict[str, str], fig_dir: Path,
+def _size_section(jobs: list[PolicyJob], runs: Any, names: dict[str, str], fig_dir: Path,
                   out: Path, verdicts: list[Any]) -> list[str]:
     """Platoon size (Figs. 7, 8): curves per N, test metrics per N, the "6 is best" claim."""
     from studies import reproduction as rp
     from studies.claims import PAPER_QUOTES
 
     claim = "A platoon of 6 vehicles is the best balance (Figs. 7, 8)"
-    size_jobs = [j for j in jobs if j["study"] == "sizes"]
+    size_jobs = [j for j in jobs if j.study == "sizes"]
     if not size_jobs:
         why = "the size study was skipped (or catchup-v1 not run)"
         verdicts.append(rp.not_testable(claim, why, PAPER_QUOTES["size"]))
         verdicts.append(rp.not_testable("Larger platoons use less power per vehicle (Fig. 8)", why,
                                         PAPER_QUOTES["size_power"]))
         return []
-    main8 = [dict(j, study="sizes") for j in jobs if j["study"] == "main"
-             and j["scenario"] == SIZE_SCENARIO and j["algo"] in SIZE_ALGOS and j["name"] == j["algo"]]
+    main8 = [dataclasses.replace(j, study="sizes") for j in jobs if j.study == "main"
+             and j.scenario.label == SIZE_SCENARIO and j.algo in SIZE_ALGOS and j.name == j.algo]
     curves = _curves(size_jobs + main8, "sizes", by_size=True)
     lines = ["## Platoon size (Figs. 7, 8)", "",
              f"{', '.join(SIZE_ALGOS)} trained at N = {', '.join(map(str, SIZES))} and "
@@ -366,14 +360,14 @@ def _size_section(jobs: list[dict[str, Any]], runs: Any, names: dict[str, str], 
     return lines
 
 
-def _openacc_section(jobs: list[dict[str, Any]], runs: Any, names: dict[str, str], out: Path,
+def _openacc_section(jobs: list[PolicyJob], runs: Any, names: dict[str, str], out: Path,
                      verdicts: list[Any]) -> list[str]:
     """Table III: BDC trained on the OpenACC families, tested on the real windows."""
     from studies import reproduction as rp
     from studies.claims import PAPER_QUOTES
 
     claim = "BDC-MARL's IVS varies less than real ACC on the OpenACC windows (Table III)"
-    if not any(j["study"] == "openacc" for j in jobs):
+    if not any(j.study == "openacc" for j in jobs):
         verdicts.append(rp.not_testable(claim, "the OpenACC study was skipped (or BDC not run)",
                                         PAPER_QUOTES["openacc"]))
         return []
@@ -396,7 +390,7 @@ def _openacc_section(jobs: list[dict[str, Any]], runs: Any, names: dict[str, str
             rp.format_table(t3, cols, 3), ""]
 
 
-def _provenance_sentence(jobs: list[dict[str, Any]]) -> str:
+def _provenance_sentence(jobs: list[PolicyJob]) -> str:
     """How many policies were copied from the shipped checkpoints and how many trained here,
     each with the arithmetic it was trained in (its ``source.json``)."""
     from collections import Counter
@@ -405,7 +399,7 @@ def _provenance_sentence(jobs: list[dict[str, Any]]) -> str:
 
     seen: Counter[tuple[str, str]] = Counter()
     for job in jobs:
-        info = read_json(_file(job, ".source.json"), "the source record")
+        info = read_json(job.file(".source.json"), "the source record")
         seen[(info.get("source", "trained"), info.get("arithmetic", "native"))] += 1
     parts = [f"{n} {'copied from the shipped checkpoints' if src == 'shipped' else 'trained here'}"
              f" (trained with {mode} arithmetic)" for (src, mode), n in sorted(seen.items())]

@@ -14,9 +14,12 @@ from run_marks import FULL
 
 from benchmark.executors import map_jobs
 from commands.cli import main
+from commands.train import learner_config
+from envs.scenarios import make_scenario
 from infra.errors import ConfigError
 from marl import arithmetic
 from marl.arithmetic_fingerprint import PINNED_ALGOS
+from marl.training import PolicyJob, TrainingKey
 
 
 def test_portable_training_is_pinned_on_every_processor() -> None:
@@ -89,7 +92,7 @@ def test_the_portable_environment_pins_avx2_kernels_where_the_processor_has_them
 def test_a_partly_portable_process_trains_natively_only(monkeypatch) -> None:
     """Part of the portable environment (a machine that sets ``OPENBLAS_CORETYPE`` for every
     process) is native arithmetic: a portable run is refused there, a native one is not."""
-    from commands.train import job_key, train_job
+    from commands.train import train_job
 
     monkeypatch.setattr(arithmetic, "portable_env", lambda: {"MKL_CBWR": "COMPATIBLE",
                                                              "OPENBLAS_CORETYPE": "Haswell"})
@@ -97,10 +100,10 @@ def test_a_partly_portable_process_trains_natively_only(monkeypatch) -> None:
     monkeypatch.setenv("OPENBLAS_CORETYPE", "Haswell")
     assert arithmetic.current() == "native"
     arithmetic.require("native")
-    job = {"algo": "ia2c", "scenario": "catchup-v1", "vehicles": 3, "steps": 300, "seed": 0,
-           "out": "unused", "options": {}, "progress": False}
+    key = TrainingKey("ia2c", make_scenario("catchup-v1"), 3, (0,), 300, learner_config("ia2c", {}),
+                      Path("unused"), "portable")
     with pytest.raises(ConfigError, match="a portable training run in a partly portable"):
-        train_job(job_key({**job, "arithmetic": "portable"}))
+        train_job(key)
 
 
 def test_modes_and_their_records() -> None:
@@ -117,18 +120,20 @@ def test_modes_and_their_records() -> None:
 def test_a_portable_run_is_refused_in_a_native_process(monkeypatch) -> None:
     """The libraries read their settings once, at start or first use: a process started without
     them cannot train portably, and one started with them cannot train natively."""
-    from commands.train import job_key, train_job
+    from dataclasses import replace
 
-    job = {"algo": "ia2c", "scenario": "catchup-v1", "vehicles": 3, "steps": 300, "seed": 0,
-           "out": "unused", "options": {}, "progress": False, "arithmetic": "portable"}
-    for key in arithmetic.portable_env():  # whatever the machine sets for every process
-        monkeypatch.delenv(key, raising=False)
+    from commands.train import train_job
+
+    key = TrainingKey("ia2c", make_scenario("catchup-v1"), 3, (0,), 300, learner_config("ia2c", {}),
+                      Path("unused"), "portable")
+    for name in arithmetic.portable_env():  # whatever the machine sets for every process
+        monkeypatch.delenv(name, raising=False)
     with pytest.raises(ConfigError, match="portable training run in a native process"):
-        train_job(job_key(job))
-    for key, value in arithmetic.portable_env().items():
-        monkeypatch.setenv(key, value)
+        train_job(key)
+    for name, value in arithmetic.portable_env().items():
+        monkeypatch.setenv(name, value)
     with pytest.raises(ConfigError, match="native training run in a portable process"):
-        train_job(job_key({**job, "arithmetic": "native"}))
+        train_job(replace(key, arithmetic="native"))
 
 
 def test_train_records_portable_arithmetic_and_resume_checks_it(tmp_path: Path, capsys) -> None:
@@ -160,15 +165,16 @@ def test_the_training_stage_records_portable_runs(tmp_path: Path) -> None:
     ``source.json`` says so; the report says what a reader's rerun gives."""
     from types import SimpleNamespace
 
-    from commands.policy_training import make_job, source_file, train_stage
+    from commands.policy_training import train_stage
     from studies.reproduction_report import _arithmetic_sentence
 
-    job = make_job("ia2c", "ia2c", "catchup-v1", 3, 0, tmp_path, {"episodes_parallel": 2}, 300,
-                   "main", validation_episodes=2)
+    job = PolicyJob("ia2c", "ia2c", make_scenario("catchup-v1"), 3, 0, tmp_path,
+                    learner_config("ia2c", {"episodes_parallel": 2}), 300, "main",
+                    validation_episodes=2)
     args = SimpleNamespace(executor="serial", workers=1, ray_address=None, population=None,
                            arithmetic="portable")
     train_stage([job], args, reuse_shipped=False)
-    assert json.loads(source_file(job).read_text())["arithmetic"] == "portable"
+    assert json.loads(job.file(".source.json").read_text())["arithmetic"] == "portable"
     assert "same weights and evaluates the same numbers on an Intel Xeon" in _arithmetic_sentence(
         "portable")
     assert "holds them on every processor measured" in _arithmetic_sentence("native")
