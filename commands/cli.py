@@ -7,6 +7,7 @@ called, so ``cacc-bench --help`` and ``cacc-bench list`` start fast. Every user-
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import importlib
 import os
@@ -14,13 +15,18 @@ import re
 import signal
 import sys
 import threading
-from collections.abc import Callable, Sequence
-from typing import TYPE_CHECKING
+from collections.abc import Callable, Iterator, Sequence
+from typing import TYPE_CHECKING, TypeVar
 
 from infra.errors import CaccBenchError
 
 if TYPE_CHECKING:
+    import argparse
+    from pathlib import Path
+
     from envs.scenarios import Scenario
+
+T = TypeVar("T")
 
 #: subcommand -> (module with ``main(argv) -> int``, one-line help)
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
@@ -73,6 +79,37 @@ def plain(text: str | None) -> str:
     return text.replace("``", "")
 
 
+def command_parser(name: str, doc: str | None, raw: bool = False) -> argparse.ArgumentParser:
+    """The option parser of ``cacc-bench NAME``, described by the first paragraph of ``doc`` (a
+    docstring, as :func:`plain` help text; ``raw``: all of it, laid out as written)."""
+    import argparse
+
+    text = plain(doc) if raw else plain(doc).split("\n\n")[0]
+    return argparse.ArgumentParser(
+        prog=f"cacc-bench {name}", description=text,
+        formatter_class=argparse.RawDescriptionHelpFormatter if raw else argparse.HelpFormatter)
+
+
+def add_scenarios_option(parser: argparse.ArgumentParser, default: str) -> None:
+    """``--scenarios``: the comma list of scenario ids a study runs on (read by
+    :func:`scenarios_argument`)."""
+    parser.add_argument("--scenarios", default=default,
+                        help="comma list of scenario ids (default: %(default)s)")
+
+
+def add_study_options(parser: argparse.ArgumentParser, out: str, what: str = "study",
+                      executor: str = "process") -> None:
+    """The options every study command ends with: ``--out`` (default ``out``), ``--resume``
+    (complete the ``what`` in ``--out``) and the executor options
+    (:func:`benchmark.executors.add_executor_options`, default ``executor``: a study's sweep of
+    many runs takes the cores)."""
+    from benchmark.executors import add_executor_options
+
+    parser.add_argument("--out", default=out, help="output folder (default: %(default)s)")
+    parser.add_argument("--resume", action="store_true", help=f"complete a {what} in --out")
+    add_executor_options(parser, default=executor)
+
+
 def report_command(prog: str, argv: Sequence[str]) -> str:
     """The command line a report prints: ``cacc-bench PROG`` and its options without ``--out``
     (the report names its own folder, never a machine's path) and ``--resume``."""
@@ -95,6 +132,69 @@ def check_executor(workers: int, ray_address: str | None = None) -> None:
     check_ray_address(ray_address)
 
 
+@contextlib.contextmanager
+def out_folder(text: str, check: Callable[[Path], None] | None = None) -> Iterator[Path]:
+    """``--out`` as a folder files can be written in (:func:`benchmark.paths.writable_dir`),
+    then ``check``ed (refusals before any work), then held by this command alone inside the
+    block (:func:`benchmark.folder_lock.folder_lock`: a second writer is refused, naming the
+    first)."""
+    from benchmark.folder_lock import folder_lock
+    from benchmark.paths import writable_dir
+
+    out = writable_dir(text)
+    if check is not None:
+        check(out)
+    with folder_lock(out):
+        yield out
+
+
+def check_study_folder(out: Path, resume: bool, study: str, files: Sequence[str],
+                       remade: str) -> None:
+    """Refuse, before any run, a folder holding a ``study`` study (the first two of its
+    ``files``, report and table, or its store) unless ``resume`` (a finished file changes only
+    when asked; ``remade``: what a resumed study makes again), and output paths that cannot be
+    written (a folder where one of ``files`` goes, a file where ``runs/`` or ``figures/`` go).
+
+    Raises
+    ------
+    ConfigError
+        Naming the first file found and what to do.
+    """
+    from infra.errors import ConfigError
+
+    held = [name for name in (*files[:2], "runs/store.sqlite") if (out / name).exists()]
+    if held and not resume:
+        raise ConfigError(f"--out {out} already holds a {study} study ({held[0]}); add "
+                          f"--resume to complete it (stored runs are kept; {remade} are made "
+                          "again), or choose another --out")
+    wrong = ([out / name for name in files if (out / name).is_dir()]
+             + [p for p in (out / "runs", out / "figures") if p.exists() and not p.is_dir()])
+    if wrong:
+        kind = "a folder" if wrong[0].is_dir() else "a file"
+        raise ConfigError(f"--out {out}: {wrong[0].relative_to(out)} is {kind}, where the study "
+                          "writes the other; move it away, or choose another --out")
+
+
+def named_once(items: Sequence[T], labels: Sequence[str], option: str) -> list[T]:
+    """``items`` once per label, in order (:func:`infra.naming.merge_repeats`); a repeat is
+    said on standard error."""
+    from infra.naming import merge_repeats
+
+    once, note = merge_repeats(items, labels, option)
+    if note:
+        print(note, file=sys.stderr)
+    return once
+
+
+def controllers_argument(text: str) -> list[tuple[str, dict[str, str]]]:
+    """The controllers a ``--controllers`` argument names, with their options, each setting
+    once (by its leaderboard label, :func:`controllers.registry.controller_label`)."""
+    from controllers.registry import controller_label, parse_controller_list
+
+    given = parse_controller_list(text)
+    return named_once(given, [controller_label(*c) for c in given], "--controllers")
+
+
 def scenarios_argument(text: str, option: str = "--scenarios") -> list[Scenario]:
     """The scenarios a ``--scenarios`` (or ``--scenario``) argument names, each built and checked
     once, here (:func:`envs.scenarios.parse_scenarios`), one per canonical label, in order. The
@@ -107,15 +207,11 @@ def scenarios_argument(text: str, option: str = "--scenarios") -> list[Scenario]
     """
     from envs.scenarios import parse_scenarios
     from infra.errors import ConfigError
-    from infra.naming import merge_repeats
 
     if not text.strip(" ,"):
         raise ConfigError(f"{option}: no scenario named")
     built = parse_scenarios(text)
-    scenarios, note = merge_repeats(built, [sc.label for sc in built], option)
-    if note:
-        print(note, file=sys.stderr)
-    return scenarios
+    return named_once(built, [sc.label for sc in built], option)
 
 
 def fail(message: str) -> int:

@@ -12,8 +12,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from benchmark.executors import add_executor_options
-from commands.cli import check_executor, plain, report_command
+from commands.cli import add_scenarios_option, add_study_options, command_parser
 
 #: Training seeds of the shipped learned policies.
 TRAIN_SEEDS: tuple[int, ...] = (0, 1, 2)
@@ -22,17 +21,12 @@ SHARED_N = 8
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="cacc-bench compare-learned",
-                                description=plain(__doc__.split("\n")[0]))
-    p.add_argument("--scenarios", default="catchup-v1,slowdown-v1",
-                   help="comma list of scenario ids (default: %(default)s)")
+    p = command_parser("compare-learned", __doc__)
+    add_scenarios_option(p, "catchup-v1,slowdown-v1")
     p.add_argument("--episodes", type=int, default=50,
                    help="first K published evaluation seeds (default: %(default)s)")
     p.add_argument("--vehicles", type=int, default=8, help="followers N (default: 8)")
-    p.add_argument("--out", default="results/compare-learned",
-                   help="output folder (default: %(default)s)")
-    p.add_argument("--resume", action="store_true", help="complete a comparison in --out")
-    add_executor_options(p, default="process")
+    add_study_options(p, "results/compare-learned", "comparison")
     return p
 
 
@@ -65,22 +59,13 @@ def controller_specs(scenarios: list[str], n_vehicles: int) -> list[tuple[str, d
 def main(argv: list[str]) -> int:
     """Entry point of ``cacc-bench compare-learned``."""
     from benchmark.export import write_csv
-    from benchmark.folder_lock import folder_lock
-    from benchmark.paths import writable_dir
     from benchmark.suite import build_sweep, seeds_from_episodes
-    from commands.cli import scenarios_argument
-    from commands.run import execute_sweep
+    from benchmark.sweep import SweepCache
+    from commands.cli import check_executor, report_command, scenarios_argument
+    from commands.run import study_sweep
     from envs.scenarios import check_vehicles
     from infra.files import read_csv
-    from studies.learned_report import (
-        DEGRADED,
-        IDEAL,
-        comparisons_frame,
-        episodes_frame,
-        policy_sweeps,
-        policy_table,
-        write_report,
-    )
+    from studies import learned_report as study
 
     args = _parser().parse_args(argv)
 
@@ -89,28 +74,21 @@ def main(argv: list[str]) -> int:
     check_executor(args.workers, args.ray_address)
     seeds = seeds_from_episodes(args.episodes)
     specs = controller_specs([sc.label for sc in scenarios], args.vehicles)
-    keys = sorted({k for delay, loss in (IDEAL, DEGRADED)
-                   for k in build_sweep(specs, scenarios, [args.vehicles], seeds, [delay], [loss])})
-    out = writable_dir(args.out)
-    command = report_command("compare-learned", argv)
-    with folder_lock(out):
-        print(f"compare-learned: {len(specs)} controllers x {len(scenarios)} scenarios x 2 V2V "
-              f"settings x {len(seeds)} episodes = {len(keys)} runs", file=sys.stderr)
-        rc = execute_sweep(keys, out / "runs", resume=args.resume, executor=args.executor,
-                           workers=args.workers, ray_address=args.ray_address, quiet=True,
-                           first_seed=seeds[0], sweeps=True)
-        ep = episodes_frame(read_csv(out / "runs" / "runs.csv", "the runs table"))
+    keys = {k for delay, loss in (study.IDEAL, study.DEGRADED)
+            for k in build_sweep(specs, scenarios, [args.vehicles], seeds, [delay], [loss])}
+    with study_sweep(keys, args, f"compare-learned: {len(specs)} controllers x {len(scenarios)} "
+                     f"scenarios x 2 V2V settings x {len(seeds)} episodes = {len(keys)} runs",
+                     seeds[0], sweeps=True) as (out, rc):
+        ep = study.episodes_frame(read_csv(out / "runs" / "runs.csv", "the runs table"))
         ep = ep[ep["n_vehicles"] == args.vehicles]
-        comp = comparisons_frame(ep)
-        from benchmark.sweep import SweepCache
-
+        comp = study.comparisons_frame(ep)
         cache = SweepCache(out / "runs")  # the runs' leaderboard measured them: read back
-        sweeps = policy_sweeps(ep, cache)
+        sweeps = study.policy_sweeps(ep, cache)
         cache.save()
         write_csv(ep, out / "episodes.csv")
-        write_csv(policy_table(ep), out / "policies.csv")
+        write_csv(study.policy_table(ep), out / "policies.csv")
         write_csv(comp, out / "comparisons.csv")
         write_csv(sweeps, out / "sweeps.csv")
-        report = write_report(ep, comp, out, command, sweeps)
+        report = study.write_report(ep, comp, out, report_command("compare-learned", argv), sweeps)
     print(f"wrote {report} and the tables beside it")
     return rc

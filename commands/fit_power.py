@@ -16,20 +16,17 @@ from pathlib import Path
 
 import numpy as np
 
+from commands.cli import command_parser
 from envs import energy
 from envs.energy import power
 from infra import atomic
 
 
 def _parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="cacc-bench fit-power",
-        description=(
-            "Refit the battery-power model P(v, u) = max(5x5 polynomial, regeneration floor) (kW) "
-            "to the BMW i3 efficiency-map model, print its quality and compare it with the "
-            "shipped coefficients."
-        ),
-    )
+    parser = command_parser("fit-power", "Refit the battery-power model P(v, u) = max(5x5 "
+                            "polynomial, regeneration floor) (kW) to the BMW i3 efficiency-map "
+                            "model, print its quality and compare it with the shipped "
+                            "coefficients.")
     parser.add_argument(
         "--write",
         action="store_true",

@@ -12,16 +12,13 @@ shipped checkpoints no row runs, with why (:data:`studies.generalisation.NOT_IN_
 from __future__ import annotations
 
 import argparse
-import sys
 
-from benchmark.executors import add_executor_options
-from commands.cli import check_executor, plain, report_command
+from commands.cli import add_study_options, command_parser
 from infra.errors import ConfigError
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="cacc-bench generalise",
-                                description=plain(__doc__.split("\n")[0]))
+    p = command_parser("generalise", __doc__)
     p.add_argument("--episodes", type=int, default=10,
                    help="first K test seeds per cell and training seed (default: %(default)s)")
     p.add_argument("--no-safety-filter", action="store_true",
@@ -32,10 +29,7 @@ def _parser() -> argparse.ArgumentParser:
                         "my_module:MyController, mpc:horizon=30) is one more row")
     p.add_argument("--columns", default=None,
                    help="only these columns (comma list of their names; default: all)")
-    p.add_argument("--out", default="results/generalise",
-                   help="output folder (default: %(default)s)")
-    p.add_argument("--resume", action="store_true", help="complete a matrix in --out")
-    add_executor_options(p, default="process")
+    add_study_options(p, "results/generalise", "matrix")
     return p
 
 
@@ -53,16 +47,12 @@ def _select_rows(rows: list, text: str) -> list:
     them; any other controller that is not a learned policy (a registered one with no row, one
     with options, a ``package.module:Class`` of the user's) is one more row, labelled as in the
     leaderboard. Repeats are said on standard error."""
-    from controllers.registry import controller_label, parse_controller_list, resolve
-    from infra.naming import merge_repeats
+    from commands.cli import controllers_argument
+    from controllers.registry import controller_label, resolve
     from studies.generalisation import Row
 
-    given = parse_controller_list(text)
-    given, note = merge_repeats(given, [controller_label(*g) for g in given], "--controllers")
-    if note:
-        print(note, file=sys.stderr)
     out = []
-    for name, options in given:
+    for name, options in controllers_argument(text):
         mine = [r for r in rows if r.controller == name] if not options else []
         if not mine and resolve(name).family == "marl":
             raise ConfigError(f"--controllers: no row of {name}"
@@ -73,55 +63,32 @@ def _select_rows(rows: list, text: str) -> list:
     return out
 
 
-def _once(text: str, option: str) -> list[str]:
-    """The names of a comma list, each once (a repeat is said on standard error)."""
-    from infra.naming import merge_repeats
-
-    names = [c.strip() for c in text.split(",") if c.strip()]
-    names, note = merge_repeats(names, names, option)
-    if note:
-        print(note, file=sys.stderr)
-    return names
-
-
 def main(argv: list[str]) -> int:
     """Entry point of ``cacc-bench generalise``."""
     import pandas as pd
 
     from benchmark.export import write_csv
-    from benchmark.folder_lock import folder_lock
-    from benchmark.paths import writable_dir
     from benchmark.suite import build_sweep, seeds_from_set
-    from commands.run import execute_study_sweep
+    from commands.cli import check_executor, named_once, report_command
+    from commands.run import study_sweep
     from controllers.policy import CHECKPOINT_DIR
     from infra.atomic import write_text
-    from studies.generalisation import (
-        COLUMNS,
-        MODEL_BASED,
-        Row,
-        cell_frame,
-        filter_cost,
-        learned_rows,
-        plot_heatmap,
-        rows_json,
-        unrun_checkpoints,
-        with_safety_filter,
-        write_report,
-    )
+    from studies import generalisation as study
 
     args = _parser().parse_args(argv)
 
     check_executor(args.workers, args.ray_address)
     seeds = seeds_from_set("test", args.episodes)
-    learned = learned_rows(_available)
-    rows = [*learned, *([] if args.no_safety_filter else [with_safety_filter(r) for r in learned]),
-            *(Row(name, name, (), False) for name in MODEL_BASED)]
+    learned = study.learned_rows(_available)
+    rows = [*learned, *([] if args.no_safety_filter else map(study.with_safety_filter, learned)),
+            *(study.Row(name, name, (), False) for name in study.MODEL_BASED)]
     if args.controllers is not None:
         rows = _select_rows(rows, args.controllers)
-    columns = list(COLUMNS)
+    columns = list(study.COLUMNS)
     if args.columns is not None:
-        names = _once(args.columns, "--columns")
-        known = {c.name: c for c in COLUMNS}
+        names = [c.strip() for c in args.columns.split(",") if c.strip()]
+        names = named_once(names, names, "--columns")
+        known = {c.name: c for c in study.COLUMNS}
         bad = [c for c in names if c not in known]
         if bad or not names:
             raise ConfigError(f"--columns: unknown {', '.join(bad) or 'nothing named'}; the "
@@ -134,18 +101,14 @@ def main(argv: list[str]) -> int:
                 keys.update(build_sweep(row.specs(), [col.built],
                                         [col.n_vehicles], seeds, [col.comm_delay_s],
                                         [col.packet_loss]))
-    out = writable_dir(args.out)
-    command = report_command("generalise", argv)
-    with folder_lock(out):
-        rc = execute_study_sweep(keys, out, args, f"generalise: {len(rows)} rows x "
-                                 f"{len(columns)} columns x {len(seeds)} test episodes = "
-                                 f"{len(keys)} runs", seeds[0])
-        cells = cell_frame(pd.read_csv(out / "runs" / "runs.csv"), rows, columns)
+    with study_sweep(keys, args, f"generalise: {len(rows)} rows x {len(columns)} columns x "
+                     f"{len(seeds)} test episodes = {len(keys)} runs", seeds[0]) as (out, rc):
+        cells = study.cell_frame(pd.read_csv(out / "runs" / "runs.csv"), rows, columns)
         write_csv(cells, out / "matrix.csv")
-        write_csv(filter_cost(cells), out / "filter_cost.csv")
-        write_text(out / "rows.json", rows_json(rows) + "\n")
-        plot_heatmap(cells, out / "figures", columns)
-        report = write_report(cells, out, command, len(seeds), columns,
-                              unrun_checkpoints(CHECKPOINT_DIR, learned))
+        write_csv(study.filter_cost(cells), out / "filter_cost.csv")
+        write_text(out / "rows.json", study.rows_json(rows) + "\n")
+        study.plot_heatmap(cells, out / "figures", columns)
+        report = study.write_report(cells, out, report_command("generalise", argv), len(seeds),
+                                    columns, study.unrun_checkpoints(CHECKPOINT_DIR, learned))
     print(f"wrote {report} and the matrix beside it")
     return rc

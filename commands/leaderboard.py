@@ -4,11 +4,10 @@ measured and added to it)."""
 
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 
 from benchmark.store import ResultStore
-from commands.cli import check_executor, plain
+from commands.cli import check_executor, command_parser
 from commands.run import add_rank_by_option
 
 
@@ -17,7 +16,7 @@ def main(argv: list[str]) -> int:
     from analysis.tables import format_leaderboard
     from benchmark.export import write_csvs
 
-    p = argparse.ArgumentParser(prog="cacc-bench leaderboard", description=plain(__doc__))
+    p = command_parser("leaderboard", __doc__)
     p.add_argument("results_dir", nargs="+", help="results folder(s) written by `cacc-bench run`")
     p.add_argument("--quiet", action="store_true", help="do not print the table")
     p.add_argument("--pool-seeds", action="store_true",

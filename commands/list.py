@@ -3,9 +3,7 @@ and those of installed packages (entry points ``cacc_bench.controllers``, ``cacc
 
 from __future__ import annotations
 
-import argparse
-
-from commands.cli import plain
+from commands.cli import command_parser
 from controllers.registry import (
     CONTROLLERS,
     ENTRY_POINT_GROUP,
@@ -23,8 +21,7 @@ from infra.errors import CaccBenchError
 
 def main(argv: list[str]) -> int:
     """Print the registered scenarios and controllers."""
-    parser = argparse.ArgumentParser(prog="cacc-bench list", description=plain(__doc__))
-    parser.parse_args(argv)
+    command_parser("list", __doc__).parse_args(argv)
     print("scenarios (id: targets d*, v*; length; description):")
     for s in list_scenarios():
         opts = ", ".join(f"{k}={v}" for k, v in s.defaults.items())

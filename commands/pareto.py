@@ -16,9 +16,8 @@ import argparse
 import sys
 from typing import Any
 
-from benchmark.executors import add_executor_options
 from benchmark.export import write_csv
-from commands.cli import check_executor, plain
+from commands.cli import add_scenarios_option, add_study_options, check_executor, command_parser
 from infra.errors import ConfigError, UnknownNameError
 from infra.files import read_csv
 
@@ -63,9 +62,8 @@ FAMILY_GROUPS: dict[str, tuple[str, ...]] = {
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="cacc-bench pareto", description=plain(__doc__.split("\n")[0]))
-    p.add_argument("--scenarios", default="catchup-v1",
-                   help="comma list of scenario ids (default: %(default)s)")
+    p = command_parser("pareto", __doc__)
+    add_scenarios_option(p, "catchup-v1")
     p.add_argument("--episodes", type=int, default=3,
                    help="first K published evaluation seeds per setting (default: %(default)s)")
     p.add_argument("--vehicles", type=int, default=8, help="followers N (default: 8)")
@@ -80,9 +78,7 @@ def _parser() -> argparse.ArgumentParser:
                         "steady cruise at the leader's mean speed (docs/controllable-energy.md); "
                         "controllable writes pareto-controllable.csv and its own figures beside "
                         "pareto.csv (default: %(default)s)")
-    p.add_argument("--out", default="results/pareto", help="output folder (default: %(default)s)")
-    p.add_argument("--resume", action="store_true", help="complete a sweep in --out")
-    add_executor_options(p, default="process")  # a sweep of many runs: both cores
+    add_study_options(p, "results/pareto", "sweep")
     return p
 
 
@@ -137,7 +133,7 @@ def main(argv: list[str]) -> int:
     from analysis.pareto import ENERGY_METRICS, pareto_frame, plot_pareto
     from benchmark.suite import build_sweep, seeds_from_episodes
     from commands.cli import scenarios_argument
-    from commands.run import execute_sweep
+    from commands.run import study_sweep
     from envs.scenarios import check_vehicles
 
     args = _parser().parse_args(argv)
@@ -170,20 +166,12 @@ def main(argv: list[str]) -> int:
     seeds = seeds_from_episodes(args.episodes)
     keys = build_sweep([(s["controller"], s["options"]) for s in settings], scenarios,
                        [args.vehicles], seeds)
-    from benchmark.paths import writable_dir
-
-    out = writable_dir(args.out)
-    from benchmark.folder_lock import folder_lock
-
-    with folder_lock(out):  # one writer per folder, as `run`
-        controllers = len({s["label"] for s in settings})
-        shared = (f" ({len(settings)} sweep points: a default lies in two sweeps)"
-                  if len(settings) > controllers else "")
-        print(f"pareto: {controllers} controllers{shared} x {len(scenarios)} scenarios x "
-              f"{len(seeds)} episodes = {len(keys)} runs", file=sys.stderr)
-        rc = execute_sweep(keys, out / "runs", resume=args.resume, executor=args.executor,
-                           workers=args.workers, ray_address=args.ray_address, quiet=True,
-                           first_seed=seeds[0])
+    controllers = len({s["label"] for s in settings})
+    shared = (f" ({len(settings)} sweep points: a default lies in two sweeps)"
+              if len(settings) > controllers else "")
+    with study_sweep(keys, args, f"pareto: {controllers} controllers{shared} x "
+                     f"{len(scenarios)} scenarios x {len(seeds)} episodes = {len(keys)} runs",
+                     seeds[0]) as (out, rc):
         runs = read_csv(out / "runs" / "runs.csv", "the runs table",
                         columns=("status", "n_vehicles"))
         runs = runs[(runs["status"] == "ok") & (runs["n_vehicles"] == args.vehicles)]

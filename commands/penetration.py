@@ -11,10 +11,8 @@ at no automated vehicle), through the results store (resumable, ``--resume``); w
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
-from benchmark.executors import add_executor_options
-from commands.cli import check_executor, plain, report_command
+from commands.cli import add_scenarios_option, add_study_options, command_parser
 from infra.errors import ConfigError
 
 #: Most placements a mixed share is drawn at.
@@ -24,42 +22,17 @@ MAX_PLACEMENTS = 20
 def _parser() -> argparse.ArgumentParser:
     from studies.penetration import DEFAULT_FAMILIES, SCENARIOS
 
-    p = argparse.ArgumentParser(prog="cacc-bench penetration",
-                                description=plain(__doc__.split("\n\n")[0]))
+    p = command_parser("penetration", __doc__)
     p.add_argument("--episodes", type=int, default=5,
                    help="first K test seeds per placement (default: %(default)s)")
     p.add_argument("--placements", type=int, default=3,
                    help="seeded random placements of each mixed share (default: %(default)s)")
-    p.add_argument("--scenarios", default=",".join(SCENARIOS),
-                   help="comma list of scenario ids (default: %(default)s)")
+    add_scenarios_option(p, ",".join(SCENARIOS))
     p.add_argument("--controllers", default=",".join(DEFAULT_FAMILIES),
                    help="the families (comma list of registered controllers; default: "
                         "%(default)s)")
-    p.add_argument("--out", default="results/penetration",
-                   help="output folder (default: %(default)s)")
-    p.add_argument("--resume", action="store_true", help="complete a study in --out")
-    add_executor_options(p, default="process")
+    add_study_options(p, "results/penetration")
     return p
-
-
-def _check_outputs(out: Path, resume: bool, scenarios: list[str]) -> None:
-    """Refuse, before any run, a folder holding a study unless ``resume`` (a finished file
-    changes only when asked), and output paths that cannot be written (a folder where a file
-    goes, a file where a folder goes)."""
-    held = [name for name in ("report.md", "cells.csv", "runs/store.sqlite")
-            if (out / name).exists()]
-    if held and not resume:
-        raise ConfigError(f"--out {out} already holds a penetration study ({held[0]}); add "
-                          "--resume to complete it (stored runs are kept; the table, figures "
-                          "and report are made again), or choose another --out")
-    files = [out / "report.md", out / "cells.csv",
-             *(out / "figures" / f"penetration-{sc}.png" for sc in scenarios)]
-    wrong = ([p for p in files if p.is_dir()]
-             + [p for p in (out / "runs", out / "figures") if p.exists() and not p.is_dir()])
-    if wrong:
-        kind = "a folder" if wrong[0].is_dir() else "a file"
-        raise ConfigError(f"--out {out}: {wrong[0].relative_to(out)} is {kind}, where the study "
-                          "writes the other; move it away, or choose another --out")
 
 
 def main(argv: list[str]) -> int:
@@ -67,22 +40,13 @@ def main(argv: list[str]) -> int:
     import pandas as pd
 
     from benchmark.export import write_csv
-    from benchmark.folder_lock import folder_lock
-    from benchmark.paths import writable_dir
-    from benchmark.suite import build_sweep, seeds_from_set
-    from commands.cli import scenarios_argument
-    from commands.run import execute_study_sweep, preflight
+    from benchmark.suite import seeds_from_set
+    from commands.cli import check_executor, check_study_folder, report_command, scenarios_argument
+    from commands.run import study_keys, study_sweep
     from controllers.registry import parse_controller_list
     from envs.scenarios import PLACEMENT_OPTIONS, SEAT_OPTIONS, make_scenario
     from infra.limits import check_range
-    from studies.penetration import (
-        BASELINE,
-        cells,
-        controllers_for,
-        design,
-        plot_shares,
-        write_report,
-    )
+    from studies import penetration as study
 
     args = _parser().parse_args(argv)
 
@@ -90,10 +54,11 @@ def main(argv: list[str]) -> int:
     check_range(args.placements, "--placements", 1, MAX_PLACEMENTS)
     seeds = seeds_from_set("test", args.episodes)
     families = parse_controller_list(args.controllers)  # names with their options
-    if (BASELINE, {}) in families:
-        raise ConfigError(f"--controllers {BASELINE}: {BASELINE} is the study's all-human "
-                          "baseline (share 0 of every scenario), not a family to compare with "
-                          "it; name the automated families (or an idm with options of its own)")
+    if (study.BASELINE, {}) in families:
+        raise ConfigError(f"--controllers {study.BASELINE}: {study.BASELINE} is the study's "
+                          "all-human baseline (share 0 of every scenario), not a family to "
+                          "compare with it; name the automated families (or an idm with options "
+                          "of its own)")
     bases = []
     set_by_study = (*SEAT_OPTIONS, *PLACEMENT_OPTIONS)
     for given in scenarios_argument(args.scenarios):
@@ -103,24 +68,19 @@ def main(argv: list[str]) -> int:
                               f"automated itself ({', '.join(set_by_study)}); name the scenario "
                               "without them")
         bases.append(given.label)
-    settings = design(list(dict.fromkeys(bases)), args.placements)
-    keys = set()
-    for setting in settings:
-        sc = [setting.build()]
-        specs = controllers_for(setting.share, families)
-        n = sc[0].default_vehicles
-        preflight(specs, sc, [n], [0.0])  # refused before any run, with exit status 2
-        keys.update(build_sweep(specs, sc, [n], seeds, [0.0], [0.0]))
-    out = writable_dir(args.out)
-    _check_outputs(out, args.resume, bases)
-    command = report_command("penetration", argv)
-    with folder_lock(out):
-        rc = execute_study_sweep(keys, out, args, f"penetration: {len(settings)} scenario "
-                                 f"settings x {len(seeds)} test episodes = {len(keys)} runs",
-                                 seeds[0])
-        table = cells(pd.read_csv(out / "runs" / "runs.csv"), settings)
+    settings = study.design(list(dict.fromkeys(bases)), args.placements)
+    keys = study_keys(((study.controllers_for(s.share, families), s.build()) for s in settings),
+                      seeds)
+    files = ["report.md", "cells.csv", *(f"figures/penetration-{sc}.png" for sc in bases)]
+    with study_sweep(keys, args, f"penetration: {len(settings)} scenario settings x "
+                     f"{len(seeds)} test episodes = {len(keys)} runs", seeds[0],
+                     lambda out: check_study_folder(out, args.resume, "penetration", files,
+                                                    "the table, figures and report")
+                     ) as (out, rc):
+        table = study.cells(pd.read_csv(out / "runs" / "runs.csv"), settings)
         write_csv(table, out / "cells.csv")
-        figures = plot_shares(table, out / "figures")
-        report = write_report(table, out, command, len(seeds), args.placements, figures)
+        figures = study.plot_shares(table, out / "figures")
+        report = study.write_report(table, out, report_command("penetration", argv), len(seeds),
+                                    args.placements, figures)
     print(f"wrote {report} and the table beside it")
     return rc

@@ -9,7 +9,6 @@ environment steps/s.
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import time
@@ -17,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from commands.cli import plain
+from commands.cli import command_parser
 
 PUBLISHED_ENV_VEHICLE_STEPS_PER_S = 32_000.0
 PUBLISHED_TRAIN_STEPS_PER_S = {"ia2c": 307.0, "bdc": 195.0}
@@ -203,8 +202,7 @@ def main(argv: list[str]) -> int:
     from infra.errors import ConfigError, ControllerContractError
     from marl.learners import PAPER_ALGORITHMS
 
-    p = argparse.ArgumentParser(prog="cacc-bench perf", description=plain(__doc__),
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = command_parser("perf", __doc__, raw=True)
     p.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
     p.add_argument("--quick", action="store_true", help="shorter measurements (for tests)")
     p.add_argument("--only", default="env,harness,controllers,train",

@@ -3,14 +3,13 @@ headless)."""
 
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from benchmark.store import STORE_NAME, ResultStore
-from commands.cli import plain
+from commands.cli import command_parser
 
 if TYPE_CHECKING:
     from controllers.base import SpacingPolicy
@@ -23,7 +22,7 @@ def main(argv: list[str]) -> int:
     from benchmark.export import leaderboard_frame, runs_frame
     from infra.errors import ConfigError
 
-    p = argparse.ArgumentParser(prog="cacc-bench plot", description=plain(__doc__))
+    p = command_parser("plot", __doc__)
     p.add_argument("results_dir", help="results folder written by `cacc-bench run`, or a training "
                                        "folder of `cacc-bench train --out` (learning curves)")
     p.add_argument("--out", default=None, help="figure folder (default: RESULTS_DIR/figures)")

@@ -6,6 +6,8 @@ import argparse
 import math
 import shlex
 import sys
+from collections.abc import Callable, Iterable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -26,8 +28,8 @@ from benchmark.suite import (
     seeds_from_set,
     unique,
 )
-from commands.cli import check_executor, scenarios_argument
-from controllers.registry import default_controllers, parse_controller_list
+from commands.cli import check_executor, command_parser, controllers_argument, scenarios_argument
+from controllers.registry import default_controllers
 from envs.params import SEED_SETS, TEST_SEEDS, VALIDATION_SEEDS, PlatoonParams
 from envs.scenarios import (
     DEFAULT_SCENARIOS,
@@ -63,13 +65,9 @@ def _csv(kind: str, cast: type) -> Any:
 
 def build_parser() -> argparse.ArgumentParser:
     """The options of ``cacc-bench run``."""
-    p = argparse.ArgumentParser(
-        prog="cacc-bench run",
-        description=(
-            "Run every controller on the same episodes (controllers x scenarios x sizes x seeds), "
-            "store each finished run, and write runs.csv and leaderboard.csv."
-        ),
-    )
+    p = command_parser("run", "Run every controller on the same episodes (controllers x "
+                       "scenarios x sizes x seeds), store each finished run, and write runs.csv "
+                       "and leaderboard.csv.")
     p.add_argument("--controllers", default=",".join(default_controllers()),
                    help="comma list; options as name:key=value,key=value (default: %(default)s)")
     p.add_argument("--scenarios", default=",".join(DEFAULT_SCENARIOS),
@@ -135,13 +133,7 @@ def add_rank_by_option(p: argparse.ArgumentParser) -> None:
 
 def _validate(args: argparse.Namespace
               ) -> tuple[list[tuple[str, dict[str, str]]], list[Scenario], list[int]]:
-    from controllers.registry import controller_label
-    from infra.naming import merge_repeats
-
-    given = parse_controller_list(args.controllers)
-    controllers, note = merge_repeats(given, [controller_label(*c) for c in given], "--controllers")
-    if note:
-        print(note, file=sys.stderr)
+    controllers = controllers_argument(args.controllers)
     scenarios = scenarios_argument(args.scenarios)  # each built and checked once, here
     for n in args.vehicles or ():
         if not MIN_VEHICLES <= n <= MAX_VEHICLES:
@@ -261,14 +253,35 @@ def _refuse_changed_policies(keys: list[RunKey], stored: list[dict], out: Path) 
         "those runs used")
 
 
-def execute_study_sweep(keys: set[RunKey], out: Path, args: argparse.Namespace, banner: str,
-                        first_seed: int) -> int:
-    """A study command's sweep (``generalise``, ``penetration``): :func:`execute_sweep` of
-    ``keys`` into ``out/runs`` with the command's ``--resume`` and executor options, quietly,
-    ``banner`` on standard error once the store is checked."""
-    return execute_sweep(sorted(keys), out / "runs", resume=args.resume, executor=args.executor,
-                         workers=args.workers, ray_address=args.ray_address, quiet=True,
-                         first_seed=first_seed, banner=banner)
+def study_keys(settings: Iterable[tuple[list[tuple[str, dict[str, str]]], Scenario]],
+               seeds: list[int]) -> set[RunKey]:
+    """The runs of a study's settings, each (controllers, built scenario) at the scenario's
+    default N with ideal V2V and no lag, each setting checked by :func:`preflight` first
+    (refused before any run)."""
+    keys: set[RunKey] = set()
+    for controllers, sc in settings:
+        n = sc.default_vehicles
+        preflight(controllers, [sc], [n], [0.0])
+        keys.update(build_sweep(controllers, [sc], [n], seeds))
+    return keys
+
+
+@contextmanager
+def study_sweep(keys: Iterable[RunKey], args: argparse.Namespace, banner: str, first_seed: int,
+                check: Callable[[Path], None] | None = None, sweeps: bool = False
+                ) -> Iterator[tuple[Path, int]]:
+    """A study command's folder and sweep: ``--out`` checked (``check(out)`` too) and held by
+    the command (:func:`commands.cli.out_folder`) while the block writes the study's tables;
+    before it, :func:`execute_sweep` of ``keys`` into ``out/runs`` with the command's
+    ``--resume`` and executor options, quietly, ``banner`` on standard error once the store is
+    checked (a refusal stays one line). Yields ``--out`` and the sweep's exit status."""
+    from commands.cli import out_folder
+
+    with out_folder(args.out, check) as out:
+        yield out, execute_sweep(sorted(keys), out / "runs", resume=args.resume,
+                                 executor=args.executor, workers=args.workers,
+                                 ray_address=args.ray_address, quiet=True,
+                                 first_seed=first_seed, banner=banner, sweeps=sweeps)
 
 
 def execute_sweep(

@@ -22,6 +22,7 @@ import numpy as np
 
 from analysis.stability_report import SUMMARY_COLUMNS, Entry, StabilityTables
 from benchmark.export import write_csv
+from commands.cli import command_parser
 from envs.params import PlatoonParams
 from infra.errors import CaccBenchError, ConfigError, ControllerContractError
 from infra.interrupt import raise_if_interrupted
@@ -46,11 +47,9 @@ def setting_line(args: argparse.Namespace, given: set[str]) -> str:
 
 def build_parser() -> argparse.ArgumentParser:
     """Options of ``cacc-bench stability``."""
-    p = argparse.ArgumentParser(
-        prog="cacc-bench stability",
-        description="String stability of platoon controllers: analytic |Gamma(jw)| for the linear "
-        "laws (acc, cacc), measured frequency sweeps for any registered controller.",
-    )
+    p = command_parser("stability", "String stability of platoon controllers: analytic "
+                       "|Gamma(jw)| for the linear laws (acc, cacc), measured frequency sweeps "
+                       "for any registered controller.")
     p.add_argument(
         "--controllers",
         default="cacc,acc",

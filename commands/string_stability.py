@@ -17,16 +17,13 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from benchmark.executors import add_executor_options
-from commands.cli import check_executor, plain, report_command
+from commands.cli import add_scenarios_option, add_study_options, command_parser
 from infra.errors import ConfigError
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="cacc-bench string-stability",
-                                description=plain(__doc__.split("\n")[0]))
-    p.add_argument("--scenarios", default="catchup-v1,slowdown-v1",
-                   help="comma list of scenario ids (default: %(default)s)")
+    p = command_parser("string-stability", __doc__)
+    add_scenarios_option(p, "catchup-v1,slowdown-v1")
     p.add_argument("--episodes", type=int, default=None,
                    help="first K test seeds per controller and training seed (default: all 100)")
     p.add_argument("--validation-episodes", type=int, default=None,
@@ -39,10 +36,7 @@ def _parser() -> argparse.ArgumentParser:
                    help="only these entries of the report, by their controller name (comma "
                         "list, e.g. cacc,ippo-gains; default: all; cacc is always kept, the "
                         "reference of the goal)")
-    p.add_argument("--out", default="results/string-stability",
-                   help="output folder (default: %(default)s)")
-    p.add_argument("--resume", action="store_true", help="complete a report in --out")
-    add_executor_options(p, default="process")
+    add_study_options(p, "results/string-stability", "report")
     return p
 
 
@@ -104,12 +98,10 @@ def _design(out: Path, args: argparse.Namespace, scenarios: list[str],
 
 def main(argv: list[str]) -> int:
     """Entry point of ``cacc-bench string-stability``."""
-    from benchmark.folder_lock import folder_lock
-    from benchmark.paths import writable_dir
     from benchmark.suite import build_sweep, seeds_from_set
     from benchmark.sweep import SweepCache
-    from commands.cli import scenarios_argument
-    from commands.run import execute_sweep
+    from commands.cli import check_executor, report_command, scenarios_argument
+    from commands.run import study_sweep
     from envs.params import VALIDATION_SEEDS
     from infra.files import read_csv
     from infra.limits import check_range
@@ -126,18 +118,12 @@ def main(argv: list[str]) -> int:
     sizes = _sizes(args.sizes)
     entries = _entries(args.controllers, labels)
     specs = st.run_specs(entries)
-    keys = sorted({k for delay, loss in st.CHANNELS.values()
-                   for k in build_sweep(specs, scenarios, [st.REWARD_N], test_seeds, [delay],
-                                        [loss])})
-    out = writable_dir(args.out)
-    command = report_command("string-stability", argv)
-    with folder_lock(out):
-        print(f"string-stability: {len(specs)} controllers x {len(scenarios)} scenarios x "
-              f"{len(st.CHANNELS)} V2V settings x {len(test_seeds)} test episodes = {len(keys)} "
-              "runs", file=sys.stderr)
-        rc = execute_sweep(keys, out / "runs", resume=args.resume, executor=args.executor,
-                           workers=args.workers, ray_address=args.ray_address, quiet=True,
-                           first_seed=test_seeds[0])
+    keys = {k for delay, loss in st.CHANNELS.values()
+            for k in build_sweep(specs, scenarios, [st.REWARD_N], test_seeds, [delay], [loss])}
+    with study_sweep(keys, args, f"string-stability: {len(specs)} controllers x "
+                     f"{len(scenarios)} scenarios x {len(st.CHANNELS)} V2V settings x "
+                     f"{len(test_seeds)} test episodes = {len(keys)} runs",
+                     test_seeds[0]) as (out, rc):
         episodes = st.episodes_frame(read_csv(out / "runs" / "runs.csv", "the runs table"),
                                      entries)
         rewards = st.reward_table(episodes, entries)
@@ -160,6 +146,6 @@ def main(argv: list[str]) -> int:
             "segments": st.checkpoint_segments(labels),
             "design": design, "tradeoff": st.tradeoff(design, labels),
         }
-        report = st.write_tables(tables, episodes, out, command)
+        report = st.write_tables(tables, episodes, out, report_command("string-stability", argv))
     print(f"wrote {report} and the tables beside it")
     return rc

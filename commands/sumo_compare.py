@@ -8,22 +8,20 @@ against SUMO's IDM, and the speeds. Needs the sumo extra (``pip install -e '.[su
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
-from commands.cli import plain
+from commands.cli import command_parser, out_folder
 from infra.errors import ConfigError
 
 
 def main(argv: list[str]) -> int:
     """Entry point of ``cacc-bench sumo-compare``."""
-    from benchmark.paths import writable_dir
     from benchmark.suite import seeds_from_episodes
     from envs.simulators import check_simulator
+    from infra.limits import check_range
 
-    p = argparse.ArgumentParser(prog="cacc-bench sumo-compare", description=plain(__doc__),
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = command_parser("sumo-compare", __doc__, raw=True)
     p.add_argument("--out", default="docs/sumo", help="report folder (default: %(default)s)")
     p.add_argument("--episodes", type=int, default=3,
                    help="the first K published evaluation seeds of every comparison "
@@ -32,14 +30,11 @@ def main(argv: list[str]) -> int:
                    help="make the report in --out again when it holds one (its files are "
                         "replaced together once the new report is whole)")
     args = p.parse_args(argv)
-    if not 1 <= args.episodes <= 50:
-        raise ConfigError(f"--episodes must lie in 1..50, got {args.episodes}")
+    check_range(args.episodes, "--episodes", 1, 50)
     check_simulator("sumo")  # without the extra: the install command, exit 2
-    out = writable_dir(args.out)
-    from benchmark.folder_lock import folder_lock
     from studies.sumo_compare import write_report
 
-    with folder_lock(out):  # a second writer of the folder is refused, naming the first
+    with out_folder(args.out) as out:  # a second writer of the folder is refused, naming the first
         _check_outputs(out, args.overwrite)
         path = write_report(out, seeds_from_episodes(args.episodes))
     print(f"wrote {path}")

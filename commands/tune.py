@@ -50,6 +50,7 @@ from pathlib import Path
 from typing import Any
 
 from benchmark.export import write_csv
+from commands.cli import command_parser
 from envs.scenarios import Scenario
 from infra.errors import ConfigError, UnknownNameError
 from infra.limits import step_count
@@ -138,10 +139,8 @@ def trial_score(summary: dict[str, float]) -> float:
 def _parser() -> argparse.ArgumentParser:
     from marl.learners import PAPER_ALGORITHMS
 
-    p = argparse.ArgumentParser(
-        prog="cacc-bench tune",
-        description="Tune every MARL algorithm with the same budget (Optuna, validation seeds).",
-    )
+    p = command_parser("tune", "Tune every MARL algorithm with the same budget (Optuna, "
+                       "validation seeds).")
     p.add_argument("--algos", default=",".join(PAPER_ALGORITHMS),
                    help="comma list of algorithms (default: all seven; also ippo, mappo, "
                         "ippo-bdc)")
@@ -392,16 +391,13 @@ def main(argv: list[str]) -> int:
     except ImportError:
         raise ConfigError("cacc-bench tune needs Optuna, in the marl extra: install it with "
                           "`pip install -e '.[marl]'`") from None
-    from benchmark.paths import writable_dir
-
-    out = writable_dir(args.out)
-    jobs = [StudyJob(a, sc, args.vehicles, args.trials, args.steps, args.seed, Path(out), fixed)
-            for a in algos for sc in scenarios]
-    from benchmark.folder_lock import folder_lock
+    from commands.cli import out_folder
     from infra.atomic import write_text
 
     # one writer per folder, as `run`: a second tune on --out is refused naming the first
-    with folder_lock(out):
+    with out_folder(args.out) as out:
+        jobs = [StudyJob(a, sc, args.vehicles, args.trials, args.steps, args.seed, out, fixed)
+                for a in algos for sc in scenarios]
         studies = [Path("studies") / f"{job.name}.sqlite3" for job in jobs]
         held = [p for p in (*studies, Path("trials.csv"), Path("tuned_configs.json"))
                 if (out / p).exists()]
