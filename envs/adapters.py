@@ -29,7 +29,7 @@ from pettingzoo import ParallelEnv
 
 from envs.channel import ChannelConfig
 from envs.params import OVM_ACTIONS, PlatoonParams
-from envs.platoon import PlatoonEnv, check_actions
+from envs.platoon import PlatoonEnv, StepResult, check_actions
 from envs.scenarios import make_scenario
 from infra.errors import ConfigError
 from infra.limits import MAX_SEED, check_seeds, check_whole_steps
@@ -58,24 +58,47 @@ def _reset(env: PlatoonEnv, episode_seed: int, options: dict[str, Any] | None) -
     return obs
 
 
-def _make_env(scenario: str, n_vehicles: int | None, params: PlatoonParams, training: bool,
-              collision_mode: str, action_mode: str, comm_delay_s: float, packet_loss: float,
-              options: dict[str, Any]) -> PlatoonEnv:
-    sc = make_scenario(scenario, **options)  # one rule with every command's --scenarios
-    channel = ChannelConfig(comm_delay_s, packet_loss, params.dt_s)
-    check_whole_steps(channel.delay_s, "comm_delay_s", params.dt_s)  # as run --comm-delay
-    env = PlatoonEnv(sc, sc.default_vehicles if n_vehicles is None else n_vehicles, params,
-                     training=training, collision_mode=collision_mode, observe=True,
-                     action_mode=action_mode, channel=channel)
-    if sc.arrangement(env.n_vehicles).n_automated == 0:  # as run refuses a controller there
-        raise ConfigError(f"{sc.label} with N = {env.n_vehicles} has no automated follower, so "
-                          "no action would act; give the scenario automated followers "
-                          "(cav_fraction > 0, cavs >= 1)")
-    if env.action_mode != "accel" and (channel.delay_s or channel.packet_loss):
-        raise ConfigError("comm_delay_s and packet_loss act on the V2V messages of the accel "
-                          "mode; the ovm-gain observations are exact (published): give "
-                          "action_mode='accel' or leave them at 0")
-    return env
+class _PlatoonAdapter:
+    """What both adapters share: the wrapped env (B = 1), built by the command line's rules
+    (parameters: :class:`PlatoonParallelEnv`), and its step."""
+
+    def __init__(
+        self,
+        scenario: str = "catchup-v1",
+        n_vehicles: int | None = 8,
+        params: PlatoonParams = PlatoonParams(),
+        training: bool = False,
+        collision_mode: str = "terminate",
+        action_mode: str = "ovm-gain",
+        comm_delay_s: float = 0.0,
+        packet_loss: float = 0.0,
+        **scenario_options: Any,
+    ) -> None:
+        sc = make_scenario(scenario, **scenario_options)  # one rule with every --scenarios
+        channel = ChannelConfig(comm_delay_s, packet_loss, params.dt_s)
+        check_whole_steps(channel.delay_s, "comm_delay_s", params.dt_s)  # as run --comm-delay
+        self.env = PlatoonEnv(sc, sc.default_vehicles if n_vehicles is None else n_vehicles,
+                              params, training=training, collision_mode=collision_mode,
+                              observe=True, action_mode=action_mode, channel=channel)
+        if sc.arrangement(self.env.n_vehicles).n_automated == 0:  # as run refuses a controller
+            raise ConfigError(f"{sc.label} with N = {self.env.n_vehicles} has no automated "
+                              "follower, so no action would act; give the scenario automated "
+                              "followers (cav_fraction > 0, cavs >= 1)")
+        if self.env.action_mode != "accel" and (channel.delay_s or channel.packet_loss):
+            raise ConfigError("comm_delay_s and packet_loss act on the V2V messages of the accel "
+                              "mode; the ovm-gain observations are exact (published): give "
+                              "action_mode='accel' or leave them at 0")
+        self.action_mode = action_mode
+        self._spaces()
+
+    def _spaces(self) -> None:
+        """Set the observation and action spaces."""
+
+    def _step(self, actions: np.ndarray) -> tuple[StepResult, bool, bool]:
+        """One step of checked actions ``(1, N)``: the result, collided, over."""
+        env = self.env
+        res = env.step(actions) if self.action_mode == "accel" else env.step_actions(actions)
+        return res, bool(res.collided[0]), bool(res.done[0])
 
 
 def _accel_space(params: PlatoonParams, shape: tuple[int, ...]) -> spaces.Box:
@@ -84,7 +107,7 @@ def _accel_space(params: PlatoonParams, shape: tuple[int, ...]) -> spaces.Box:
                       shape, np.float32)
 
 
-class PlatoonParallelEnv(ParallelEnv):
+class PlatoonParallelEnv(_PlatoonAdapter, ParallelEnv):
     """PettingZoo parallel env: agents ``follower_1 .. follower_N``.
 
     Parameters
@@ -120,27 +143,13 @@ class PlatoonParallelEnv(ParallelEnv):
 
     metadata = {"name": "cacc_platoon_v1", "render_modes": [], "is_parallelizable": True}
 
-    def __init__(
-        self,
-        scenario: str = "catchup-v1",
-        n_vehicles: int | None = 8,
-        params: PlatoonParams = PlatoonParams(),
-        training: bool = False,
-        collision_mode: str = "terminate",
-        action_mode: str = "ovm-gain",
-        comm_delay_s: float = 0.0,
-        packet_loss: float = 0.0,
-        **scenario_options: Any,
-    ) -> None:
-        self.env = _make_env(scenario, n_vehicles, params, training, collision_mode,
-                             action_mode, comm_delay_s, packet_loss, scenario_options)
-        self.action_mode = action_mode
+    def _spaces(self) -> None:
         self.possible_agents = [f"follower_{i}" for i in range(1, self.env.n_vehicles + 1)]
         self.agents: list[str] = []
         self.render_mode = None
         self._obs_space = spaces.Box(-OBS_BOUND, OBS_BOUND, (self.env.obs_dim,), np.float32)
         self._act_space: spaces.Space = (
-            _accel_space(params, (1,)) if action_mode == "accel"
+            _accel_space(self.env.params, (1,)) if self.action_mode == "accel"
             else spaces.Discrete(len(OVM_ACTIONS)))
         self._rng = np.random.Generator(np.random.PCG64())
         self.episode_seed: int | None = None
@@ -192,11 +201,8 @@ class PlatoonParallelEnv(ParallelEnv):
     ]:
         if not self.agents:
             raise RuntimeError("episode over: call reset()")
-        a = self._actions(actions)
-        res = self.env.step(a) if self.action_mode == "accel" else self.env.step_actions(a)
+        res, collided, over = self._step(self._actions(actions))
         assert res.observation is not None
-        collided = bool(res.collided[0])
-        over = bool(res.done[0])
         obs = self._obs_dict(res.observation)
         rewards = {ag: float(res.reward[0, i]) for i, ag in enumerate(self.agents)}
         terms = {ag: collided and over for ag in self.agents}
@@ -216,7 +222,7 @@ class PlatoonParallelEnv(ParallelEnv):
         return None
 
 
-class PlatoonGymEnv(gymnasium.Env):
+class PlatoonGymEnv(_PlatoonAdapter, gymnasium.Env):
     """Gymnasium single-agent (centralised) view: one agent chooses every follower's action.
 
     Observation ``(N, 15)`` floats and action ``MultiDiscrete([4] * N)`` (``ovm-gain``), or
@@ -227,26 +233,12 @@ class PlatoonGymEnv(gymnasium.Env):
 
     metadata = {"render_modes": []}
 
-    def __init__(
-        self,
-        scenario: str = "catchup-v1",
-        n_vehicles: int | None = 8,
-        params: PlatoonParams = PlatoonParams(),
-        training: bool = False,
-        collision_mode: str = "terminate",
-        action_mode: str = "ovm-gain",
-        comm_delay_s: float = 0.0,
-        packet_loss: float = 0.0,
-        **scenario_options: Any,
-    ) -> None:
-        self.env = _make_env(scenario, n_vehicles, params, training, collision_mode,
-                             action_mode, comm_delay_s, packet_loss, scenario_options)
-        self.action_mode = action_mode
+    def _spaces(self) -> None:
         self.n_vehicles = n = self.env.n_vehicles
         self.observation_space = spaces.Box(-OBS_BOUND, OBS_BOUND, (n, self.env.obs_dim),
                                             np.float32)
         self.action_space: spaces.Space = (
-            _accel_space(params, (n,)) if action_mode == "accel"
+            _accel_space(self.env.params, (n,)) if self.action_mode == "accel"
             else spaces.MultiDiscrete([len(OVM_ACTIONS)] * n))
 
     def reset(
@@ -260,21 +252,12 @@ class PlatoonGymEnv(gymnasium.Env):
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict]:
         accel = self.action_mode == "accel"
         a = check_actions(action, (self.n_vehicles,), self.env.params, not accel, "action")
-        if accel:
-            res = self.env.step(a.astype(np.float64).reshape(1, -1))
-        else:
-            res = self.env.step_actions(a.astype(np.int64).reshape(1, -1))
+        res, collided, over = self._step(a.astype(np.float64 if accel else np.int64)
+                                         .reshape(1, -1))
         assert res.observation is not None
-        collided = bool(res.collided[0])
-        over = bool(res.done[0])
         info = {"power_kw": res.power_kw[0].copy(), "collision": collided}
-        return (
-            res.observation[0].copy(),
-            float(res.reward[0].sum()),
-            collided and over,
-            over and not collided,
-            info,
-        )
+        return (res.observation[0].copy(), float(res.reward[0].sum()), collided and over,
+                over and not collided, info)
 
 
 #: Gymnasium namespace of the registered scenarios: ``gymnasium.make("cacc_bench/catchup-v1")``.

@@ -224,17 +224,13 @@ def reward_terms(
     The benchmark metrics use this same function, so the reward is computed in one place.
     """
     e = gap_m - target_gap_m
-    terms = {
+    return {
         "gap": weights.gap * e * e,
         "speed": weights.speed * np.square(speed_mps - target_speed_mps),
         "accel": weights.accel * np.square(applied_accel_mps2),
         "safety": weights.safety * np.square(np.maximum(2 * params.gap_stop_m - gap_m, 0.0)),
+        "power": np.zeros_like(e) if power_kw is None else weights.power * power_kw,
     }
-    if power_kw is None:
-        terms["power"] = np.zeros_like(e)
-    else:
-        terms["power"] = weights.power * power_kw
-    return terms
 
 
 def combine_reward(

@@ -23,6 +23,7 @@ here, so every controller meets the same humans on the same seed, alone or in a 
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -164,18 +165,13 @@ PARAMS_KEY: int = 0x706172616D  # "param"
 NOISE_LEVELS: int = 1 << 16
 
 
+@functools.cache
 def _normal_levels() -> np.ndarray:
     """The :data:`NOISE_LEVELS` quantiles ``Phi^-1((k + 1/2) / 2^16)``, scaled to unit variance."""
-    global _LEVELS
-    if _LEVELS is None:
-        from scipy.special import ndtri
+    from scipy.special import ndtri
 
-        q = ndtri((np.arange(NOISE_LEVELS) + 0.5) / NOISE_LEVELS)
-        _LEVELS = q / np.sqrt(np.mean(q * q))
-    return _LEVELS
-
-
-_LEVELS: np.ndarray | None = None
+    q = ndtri((np.arange(NOISE_LEVELS) + 0.5) / NOISE_LEVELS)
+    return q / np.sqrt(np.mean(q * q))
 
 
 class HumanNoise:

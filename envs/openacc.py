@@ -128,43 +128,26 @@ _M_NOTE = (
     "the paper's."
 )
 
+
+def _zalazone_window(setting: str, part: int, t_start_s: int, target_gap_m: float,
+                     note: str = "") -> OpenACCWindowSpec:
+    """The 60 s window from ``t_start_s`` of ZalaZONE ``dynamic_part<part>`` at the ACC distance
+    setting ``setting`` (its name), replayed by ``openacc-<setting>-v1`` at v* = 11 m/s."""
+    t_end_s = t_start_s + 60
+    return OpenACCWindowSpec(
+        name=setting, scenario_id=f"openacc-{setting.lower()}-v1",
+        file_name=f"ZalaZONE_dynamic_part{part}_{t_start_s}-{t_end_s}s.csv",
+        source_file_name=f"ZalaZONE_dynamic_part{part}.csv", t_start_s=float(t_start_s),
+        t_end_s=float(t_end_s), target_gap_m=target_gap_m, target_speed_mps=11.0,
+        distance_setting=setting, note=note)
+
+
 #: The three benchmark windows, by name.
-WINDOWS: dict[str, OpenACCWindowSpec] = {
-    "S": OpenACCWindowSpec(
-        name="S",
-        scenario_id="openacc-s-v1",
-        file_name="ZalaZONE_dynamic_part1_316-376s.csv",
-        source_file_name="ZalaZONE_dynamic_part1.csv",
-        t_start_s=316.0,
-        t_end_s=376.0,
-        target_gap_m=12.0,
-        target_speed_mps=11.0,
-        distance_setting="S",
-    ),
-    "M": OpenACCWindowSpec(
-        name="M",
-        scenario_id="openacc-m-v1",
-        file_name="ZalaZONE_dynamic_part8_1250-1310s.csv",
-        source_file_name="ZalaZONE_dynamic_part8.csv",
-        t_start_s=1250.0,
-        t_end_s=1310.0,
-        target_gap_m=16.0,
-        target_speed_mps=11.0,
-        distance_setting="M",
-        note=_M_NOTE,
-    ),
-    "L": OpenACCWindowSpec(
-        name="L",
-        scenario_id="openacc-l-v1",
-        file_name="ZalaZONE_dynamic_part2_450-510s.csv",
-        source_file_name="ZalaZONE_dynamic_part2.csv",
-        t_start_s=450.0,
-        t_end_s=510.0,
-        target_gap_m=20.0,
-        target_speed_mps=11.0,
-        distance_setting="L",
-    ),
-}
+WINDOWS: dict[str, OpenACCWindowSpec] = {w.name: w for w in (
+    _zalazone_window("S", 1, 316, 12.0),
+    _zalazone_window("M", 8, 1250, 16.0, _M_NOTE),
+    _zalazone_window("L", 2, 450, 20.0),
+)}
 
 
 @dataclass(frozen=True)
@@ -300,11 +283,10 @@ class RealFollowersRecord:
         Follower accelerations from differentiated speed [m/s^2].
     power_kw : numpy.ndarray or None, shape (T, K)
         Battery power from ``envs.energy.battery_power_kw(..., model="poly")`` [kW], or None
-        when the energy model is not available.
+        (``with_energy=False``).
     energy_kwh : numpy.ndarray or None, shape (K,)
         Energy per follower over the window [kWh], ``envs.energy.energy_kwh(power_kw, 0.1)``
-        (rectangle rule over all T samples, regeneration counted negative), or None when the
-        energy model is not available.
+        (rectangle rule over all T samples, regeneration counted negative), or None.
     """
 
     window: str
@@ -338,9 +320,7 @@ class RealFollowersRecord:
         return out
 
 
-# --------------------------------------------------------------------------------------------
-# Reading and validation
-# --------------------------------------------------------------------------------------------
+# -------------------------------------------------------------------------- reading and validation
 
 
 def read_openacc_header(path: str | Path) -> OpenACCHeader:
@@ -362,21 +342,20 @@ def read_openacc_header(path: str | Path) -> OpenACCHeader:
         If the file is missing or unreadable, or a metadata line is not the expected one.
     """
     path = Path(path)
+    where = f"OpenACC file {str(path)!r}"
     if not path.is_file():
-        raise OpenACCDataError(f"OpenACC file {str(path)!r} not found")
+        raise OpenACCDataError(f"{where} not found")
     try:
         with path.open(encoding="utf-8", newline=None) as fh:
             lines = [fh.readline().rstrip("\r\n") for _ in range(N_METADATA_LINES)]
     except (OSError, UnicodeDecodeError) as exc:
-        raise OpenACCDataError(f"OpenACC file {str(path)!r}: cannot read: {exc}") from exc
+        raise OpenACCDataError(f"{where}: cannot read: {exc}") from exc
     fields: list[list[str]] = []
     for i, (key, line) in enumerate(zip(_HEADER_KEYS, lines), start=1):
         parts = [p.strip() for p in line.split(",")]
         if parts[0] != key:
-            raise OpenACCDataError(
-                f"OpenACC file {str(path)!r}: metadata line {i} should start with {key!r}, "
-                f"got {line[:60]!r}"
-            )
+            raise OpenACCDataError(f"{where}: metadata line {i} should start with {key!r}, "
+                                   f"got {line[:60]!r}")
         while parts and parts[-1] == "":
             parts.pop()
         fields.append(parts[1:])
@@ -389,13 +368,10 @@ def read_openacc_header(path: str | Path) -> OpenACCHeader:
     try:
         n_vehicles = int(fields[2][0])
     except (IndexError, ValueError) as exc:
-        raise OpenACCDataError(
-            f"OpenACC file {str(path)!r}: metadata line 3 has no integer Number_of_vehicles"
-        ) from exc
+        raise OpenACCDataError(f"{where}: metadata line 3 has no integer Number_of_vehicles"
+                               ) from exc
     if n_vehicles < 1:
-        raise OpenACCDataError(
-            f"OpenACC file {str(path)!r}: Number_of_vehicles is {n_vehicles}, expected >= 1"
-        )
+        raise OpenACCDataError(f"{where}: Number_of_vehicles is {n_vehicles}, expected >= 1")
     return OpenACCHeader(
         date=date,
         vehicle_names=tuple(fields[1]),
@@ -582,9 +558,7 @@ def read_openacc_csv(
     return df
 
 
-# --------------------------------------------------------------------------------------------
-# Windows
-# --------------------------------------------------------------------------------------------
+# ----------------------------------------------------------------------------------------- windows
 
 
 def _spec(name: str) -> OpenACCWindowSpec:
@@ -725,15 +699,6 @@ def load_window(name: str, n_followers: int | None = None) -> OpenACCWindow:
     )
 
 
-def _energy_functions() -> tuple[Any, Any] | None:
-    """Return ``(battery_power_kw, energy_kwh)`` from ``envs.energy``, or None if unavailable."""
-    try:
-        from envs.energy import battery_power_kw, energy_kwh
-    except ImportError:
-        return None
-    return battery_power_kw, energy_kwh
-
-
 def real_followers_record(
     window: OpenACCWindow | str,
     n_followers: int | None = None,
@@ -749,10 +714,9 @@ def real_followers_record(
     n_followers : int, optional
         Number of followers, front to back (default: all in ``window``).
     with_energy : bool
-        If True and ``envs.energy`` is importable, add ``power_kw`` (the ``"poly"`` battery
-        power model at each sample) and ``energy_kwh`` per follower
-        (``envs.energy.energy_kwh(power_kw, 0.1)``: rectangle rule over the T samples,
-        regeneration negative).
+        If True, add ``power_kw`` (the ``"poly"`` battery power model at each sample) and
+        ``energy_kwh`` per follower (``envs.energy.energy_kwh(power_kw, 0.1)``: rectangle rule
+        over the T samples, regeneration negative).
 
     Returns
     -------
@@ -773,12 +737,12 @@ def real_followers_record(
     speed = win.follower_speed_mps[:, :k]
     accel = win.follower_accel_mps2[:, :k]
     power_kw: np.ndarray | None = None
-    energy_kwh: np.ndarray | None = None
-    funcs = _energy_functions() if with_energy else None
-    if funcs is not None:
-        power_fn, energy_fn = funcs
-        power_kw = np.asarray(power_fn(speed, accel, model="poly"), dtype=np.float64)
-        energy_kwh = np.asarray(energy_fn(power_kw, DT_S, axis=0), dtype=np.float64)
+    energy: np.ndarray | None = None
+    if with_energy:
+        from envs.energy import battery_power_kw, energy_kwh
+
+        power_kw = np.asarray(battery_power_kw(speed, accel, model="poly"), dtype=np.float64)
+        energy = np.asarray(energy_kwh(power_kw, DT_S, axis=0), dtype=np.float64)
     return RealFollowersRecord(
         window=win.name,
         time_s=win.time_s,
@@ -787,5 +751,5 @@ def real_followers_record(
         gap_m=win.follower_gap_m[:, :k],
         accel_mps2=accel,
         power_kw=power_kw,
-        energy_kwh=energy_kwh,
+        energy_kwh=energy,
     )

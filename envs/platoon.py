@@ -30,7 +30,7 @@ from envs.dynamics import (
 from envs.humans import HumanDrivers
 from envs.params import OVM_ACTIONS, PlatoonParams, RewardWeights
 from envs.scenarios import Scenario, as_scenario, check_vehicles
-from envs.vehicle_classes import VehicleArrays
+from envs.vehicle_classes import VEHICLE_CLASSES, VehicleArrays
 from infra.errors import ConfigError
 
 COLLISION_MODES = ("terminate", "published")
@@ -240,13 +240,12 @@ class PlatoonEnv:
         from envs.energy import load_power_polynomial
 
         self.power = load_power_polynomial()
-        grid = self.power.metadata.get("grid", {})
         #: The polynomial is evaluated inside its fit domain only: beyond the hardest braking of
         #: the fit (-3 m/s^2) the friction brakes take the rest, so the battery power stays at the
         #: edge value (this matters for the published slowdown-v1 quirk, whose first step
         #: "decelerates" at tens of m/s^2).
-        self.power_accel_range_mps2 = tuple(grid.get("accel_range_mps2", (-3.0, 2.5)))
-        self.power_speed_range_mps = (0.0, float(grid.get("speed_range_mps", (0.5, 30.0))[1]))
+        self.power_accel_range_mps2 = tuple(self.power.metadata.get("grid", {})
+                                            .get("accel_range_mps2", (-3.0, 2.5)))
         self.state: PlatoonState | None = None
         self.seeds: np.ndarray = np.zeros(0, dtype=np.int64)
         self._obs: np.ndarray | None = None
@@ -303,19 +302,14 @@ class PlatoonEnv:
         self.arrangement = self.scenario.arrangement(n)
         #: per-vehicle lags and bounds of a heterogeneous string (None: the published platoon)
         self.vehicles = self.scenario.vehicle_arrays(n, self.params)
-        self._string_power = None
-        if self.vehicles is not None:
-            from envs.energy.classes import StringPower
+        from envs.energy.classes import DragSaving, StringPower
 
-            self._string_power = StringPower(self.vehicles.classes, self._i3_power_kw)
+        classes = None if self.vehicles is None else self.vehicles.classes
+        self._string_power = (None if classes is None
+                              else StringPower(classes, self._i3_power_kw))
         #: the platoon's drag saving (scenario option drag_saving; None: off, the default)
-        self._drag_saving = None
-        if self.scenario.options.get("drag_saving", "none") != "none":
-            from envs.energy.classes import DragSaving
-            from envs.vehicle_classes import VEHICLE_CLASSES
-
-            self._drag_saving = DragSaving(self.vehicles.classes if self.vehicles is not None
-                                           else (VEHICLE_CLASSES["i3"],) * n)
+        self._drag_saving = (None if self.scenario.options.get("drag_saving", "none") == "none"
+                             else DragSaving(classes or (VEHICLE_CLASSES["i3"],) * n))
         self._humans = (None if self.arrangement.homogeneous else
                         HumanDrivers(self.arrangement, seeds_arr, self.n_steps, self.params,
                                      self.scenario.ring))
@@ -472,15 +466,11 @@ class PlatoonEnv:
                 s.done |= s.collided
             else:
                 s.done |= s.collided & ((t + 1) % 60 == 0)
-        if self.vehicles is not None:
-            command = np.clip(command_mps2, self.vehicles.accel_min_mps2,
-                              self.vehicles.accel_max_mps2)
-            if frozen.any():
-                command = np.where(frozen[:, None], s.command_mps2, command)
-        elif self.params.lag_s <= 0:
+        if self.vehicles is None and self.params.lag_s <= 0:
             command = a  # without lag the realised acceleration is the clipped command
-        else:
-            command = np.clip(command_mps2, self.params.accel_min_mps2, self.params.accel_max_mps2)
+        else:  # the bounds of each vehicle's class, or the run's
+            bounds: PlatoonParams | VehicleArrays = self.vehicles or self.params
+            command = np.clip(command_mps2, bounds.accel_min_mps2, bounds.accel_max_mps2)
             if frozen.any():
                 command = np.where(frozen[:, None], s.command_mps2, command)
         s.gap_m, s.speed_mps, s.realised_accel_mps2, s.applied_accel_mps2 = gap, v, a, applied

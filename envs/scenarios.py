@@ -41,7 +41,7 @@ from envs.vehicle_classes import (
 from infra.errors import CaccBenchError, ConfigError, UnknownNameError
 from infra.limits import MAX_SEED, MAX_VEHICLES, MIN_VEHICLES
 from infra.naming import coerce_option, format_label, is_reference, parse_label, parse_named_list
-from infra.plugins import entry_points, first_line, import_reference
+from infra.plugins import entry_points, first_line, load_plugin
 
 
 def published_perturbation(seed: int) -> float:
@@ -320,27 +320,19 @@ def arrangement_of(opts: dict[str, Any], n_vehicles: int, who: str) -> Arrangeme
 def _equilibrium(
     sc: Scenario, seeds: np.ndarray, u: np.ndarray, n: int, leader: np.ndarray
 ) -> EpisodeBatch:
+    """Every follower at the targets behind the leader profile ``leader``."""
     b = len(seeds)
-    return EpisodeBatch(
-        seeds=seeds,
-        perturbation=u,
-        gap_m=np.full((b, n), sc.target_gap_m),
-        speed_mps=np.full((b, n), sc.target_speed_mps),
-        leader_speed_mps=np.broadcast_to(leader, (b, sc.n_steps + 1)).copy(),
-    )
+    return EpisodeBatch(seeds=seeds, perturbation=u, gap_m=np.full((b, n), sc.target_gap_m),
+                        speed_mps=np.full((b, n), sc.target_speed_mps),
+                        leader_speed_mps=np.broadcast_to(leader, (b, sc.n_steps + 1)).copy())
 
 
 def _catchup(sc: Scenario, seeds: np.ndarray, u: np.ndarray, n: int) -> EpisodeBatch:
     b = len(seeds)
     gap = np.full((b, n), 20.0)
     gap[:, 0] = 20.0 * (1.5 + u)
-    return EpisodeBatch(
-        seeds=seeds,
-        perturbation=u,
-        gap_m=gap,
-        speed_mps=np.full((b, n), 15.0),
-        leader_speed_mps=np.full((b, sc.n_steps + 1), 15.0),
-    )
+    return EpisodeBatch(seeds=seeds, perturbation=u, gap_m=gap, speed_mps=np.full((b, n), 15.0),
+                        leader_speed_mps=np.full((b, sc.n_steps + 1), 15.0))
 
 
 def _slowdown(sc: Scenario, seeds: np.ndarray, u: np.ndarray, n: int) -> EpisodeBatch:
@@ -352,13 +344,8 @@ def _slowdown(sc: Scenario, seeds: np.ndarray, u: np.ndarray, n: int) -> Episode
     ramp = min(300, sc.n_steps + 1)
     for k in range(b):
         leader[k, :ramp] = np.linspace(v0[k], 15.0, 300)[:ramp]
-    return EpisodeBatch(
-        seeds=seeds,
-        perturbation=u,
-        gap_m=np.full((b, n), 20.0),
-        speed_mps=np.repeat(v0[:, None], n, axis=1),
-        leader_speed_mps=leader,
-    )
+    return EpisodeBatch(seeds=seeds, perturbation=u, gap_m=np.full((b, n), 20.0),
+                        speed_mps=np.repeat(v0[:, None], n, axis=1), leader_speed_mps=leader)
 
 
 def _sine(sc: Scenario, seeds: np.ndarray, u: np.ndarray, n: int) -> EpisodeBatch:
@@ -395,23 +382,13 @@ def _openacc(sc: Scenario, seeds: np.ndarray, u: np.ndarray, n: int) -> EpisodeB
     lead = np.asarray(window.leader_speed_mps, dtype=np.float64)
     if len(lead) < sc.n_steps + 1:
         raise ConfigError(f"OpenACC window {window.name} has only {len(lead)} samples")
-    k = window.follower_speed_mps.shape[1]
-    speed0 = np.empty(n)
-    gap0 = np.empty(n)
-    m = min(n, k)
-    speed0[:m] = window.follower_speed_mps[0, :m]
-    gap0[:m] = window.follower_gap_m[0, :m]
     # Followers beyond the real platoon start as the last real follower (speed and gap).
-    speed0[m:] = speed0[m - 1]
-    gap0[m:] = gap0[m - 1]
+    real = np.minimum(np.arange(n), window.follower_speed_mps.shape[1] - 1)
     b = len(seeds)
-    return EpisodeBatch(
-        seeds=seeds,
-        perturbation=u,
-        gap_m=np.tile(gap0, (b, 1)),
-        speed_mps=np.tile(speed0, (b, 1)),
-        leader_speed_mps=np.tile(lead[: sc.n_steps + 1], (b, 1)),
-    )
+    return EpisodeBatch(seeds=seeds, perturbation=u,
+                        gap_m=np.tile(window.follower_gap_m[0, real], (b, 1)),
+                        speed_mps=np.tile(window.follower_speed_mps[0, real], (b, 1)),
+                        leader_speed_mps=np.tile(lead[: sc.n_steps + 1], (b, 1)))
 
 
 def dynamic_platform_profile_mps(
@@ -798,30 +775,11 @@ def _plugin_spec(name: str, target: str) -> ScenarioSpec:
     Raises
     ------
     ConfigError
-        One line for each way it fails (:func:`infra.plugins.import_reference`, and the above).
+        One line for each way it fails (:func:`infra.plugins.import_reference`,
+        :func:`_check_plugin_spec`).
     """
-    spec = _PLUGINS.get(name)
-    if spec is not None:
-        return spec
-    who = f"scenario {name}" + (f" ({target})" if target != name else "")
-    obj = import_reference(target, who)
-    if not isinstance(obj, ScenarioSpec):
-        raise ConfigError(f"{who}: {target.split(':', 1)[1]} is {_kind_of(obj)}, not a "
-                          "ScenarioSpec (envs.scenarios.ScenarioSpec; docs/contributing.md, Add "
-                          "a scenario)")
-    try:
-        scenario_family(obj.id)
-    except ValueError as exc:
-        raise ConfigError(f"{who}: {exc}") from None
-    if obj.id in SCENARIOS:
-        raise ConfigError(f"{who}: its id {obj.id} is a built-in scenario's; give it an id of "
-                          "its own")
-    if target != name and obj.id != name:
-        raise ConfigError(f"{who}: the entry point {name} names a scenario with id {obj.id}; "
-                          "give the entry point the scenario's id")
-    _check_plugin_spec(obj, who)
-    _PLUGINS[name] = obj
-    return obj
+    return load_plugin(_PLUGINS, "scenario", name, target,
+                       lambda obj, who: _check_plugin_spec(obj, who, name, target))
 
 
 def _kind_of(obj: Any) -> str:
@@ -848,12 +806,13 @@ def _is_number(value: Any) -> bool:
             and math.isfinite(value))
 
 
-def _check_plugin_spec(spec: ScenarioSpec, who: str) -> None:
-    """Check a user's :class:`ScenarioSpec` once, when it is loaded, so that a mistake in it is
-    one line before any work rather than a traceback or a failed run: text fields are text,
-    the targets finite and in range (``0 < target_gap_m <=``
-    :data:`infra.limits.MAX_SPACING_M`, ``0 < target_speed_mps <=`` the speed bound),
-    ``n_steps`` a whole number in 1..:data:`infra.limits.MAX_EPISODE_STEPS`,
+def _check_plugin_spec(spec: Any, who: str, name: str, target: str) -> ScenarioSpec:
+    """``spec``, the object at ``target`` for the scenario ``name`` (:func:`_plugin_spec`),
+    checked once, when it is loaded, so that a mistake in it is one line before any work rather
+    than a traceback or a failed run: a :class:`ScenarioSpec` with a versioned id of its own
+    (an entry point's name is that id), text fields are text, the targets finite and in range
+    (``0 < target_gap_m <=`` :data:`infra.limits.MAX_SPACING_M`, ``0 < target_speed_mps <=``
+    the speed bound), ``n_steps`` a whole number in 1..:data:`infra.limits.MAX_EPISODE_STEPS`,
     ``default_vehicles`` a platoon size (:func:`check_vehicles`), ``settle_s`` within the
     episode, ``builder`` and ``check`` callables, and the options in ``defaults`` and ``fixed``
     named as identifiers, typed as :data:`OPTION_TYPES` and not shadowing an option every
@@ -862,7 +821,7 @@ def _check_plugin_spec(spec: ScenarioSpec, who: str) -> None:
     Raises
     ------
     ConfigError
-        ``<who>: <what is wrong> (envs.scenarios.ScenarioSpec; ...)``.
+        ``<who>: <what is wrong>`` (a field's, with ``(envs.scenarios.ScenarioSpec; ...)``).
     """
     from infra.limits import MAX_EPISODE_STEPS, MAX_SPACING_M
 
@@ -870,13 +829,25 @@ def _check_plugin_spec(spec: ScenarioSpec, who: str) -> None:
         return ConfigError(f"{who}: {what} (envs.scenarios.ScenarioSpec; docs/contributing.md, "
                            "Add a scenario)")
 
+    if not isinstance(spec, ScenarioSpec):
+        raise bad(f"{target.split(':', 1)[1]} is {_kind_of(spec)}, not a ScenarioSpec")
+    try:
+        scenario_family(spec.id)
+    except ValueError as exc:
+        raise ConfigError(f"{who}: {exc}") from None
+    if spec.id in SCENARIOS:
+        raise ConfigError(f"{who}: its id {spec.id} is a built-in scenario's; give it an id of "
+                          "its own")
+    if target != name and spec.id != name:
+        raise ConfigError(f"{who}: the entry point {name} names a scenario with id {spec.id}; "
+                          "give the entry point the scenario's id")
     params = PlatoonParams()
-    for name in ("description", "note"):
-        if not isinstance(getattr(spec, name), str):
-            raise bad(f"its {name} must be text, got {_kind_of(getattr(spec, name))}")
-    for name in ("published", "ring"):
-        if not isinstance(getattr(spec, name), bool):
-            raise bad(f"its {name} must be True or False, got {getattr(spec, name)!r}")
+    for attr in ("description", "note"):
+        if not isinstance(getattr(spec, attr), str):
+            raise bad(f"its {attr} must be text, got {_kind_of(getattr(spec, attr))}")
+    for attr in ("published", "ring"):
+        if not isinstance(getattr(spec, attr), bool):
+            raise bad(f"its {attr} must be True or False, got {getattr(spec, attr)!r}")
     if not (_is_number(spec.target_gap_m) and 0 < spec.target_gap_m <= MAX_SPACING_M):
         raise bad(f"its target_gap_m must be a finite number in (0, {MAX_SPACING_M:g}] m, got "
                   f"{spec.target_gap_m!r}")
@@ -925,6 +896,7 @@ def _check_plugin_spec(spec: ScenarioSpec, who: str) -> None:
     if both:
         raise bad(f"{both[0]} is both an option (defaults) and a fixed setting (fixed); keep "
                   "it in one of them")
+    return spec
 
 
 def _run_check(spec: ScenarioSpec, opts: dict[str, Any], name: str) -> None:
@@ -939,10 +911,8 @@ def _run_check(spec: ScenarioSpec, opts: dict[str, Any], name: str) -> None:
     except CaccBenchError:
         raise
     except (Exception, SystemExit) as exc:  # noqa: BLE001 - the user's code: one line
-        why = (f"it called sys.exit({exc.code!r})" if isinstance(exc, SystemExit)
-               else first_line(exc))
-        raise ConfigError(f"scenario {name}: its check of the options failed ({why}); a check "
-                          "refuses a value by raising infra.errors.ConfigError") from None
+        raise ConfigError(f"scenario {name}: its check of the options failed ({first_line(exc)}); "
+                          "a check refuses a value by raising infra.errors.ConfigError") from None
 
 
 def check_episode(scenario: Scenario, n_vehicles: int) -> None:
@@ -965,10 +935,8 @@ def check_episode(scenario: Scenario, n_vehicles: int) -> None:
     except CaccBenchError:
         raise
     except (Exception, SystemExit) as exc:  # noqa: BLE001 - the user's builder: one line
-        why = (f"it called sys.exit({exc.code!r})" if isinstance(exc, SystemExit)
-               else first_line(exc))
-        raise ConfigError(f"{who}: building an episode with N = {n_vehicles} failed ({why}); "
-                          "fix its builder") from None
+        raise ConfigError(f"{who}: building an episode with N = {n_vehicles} failed "
+                          f"({first_line(exc)}); fix its builder") from None
     if not isinstance(batch, EpisodeBatch):
         raise ConfigError(f"{who}: its builder returned {_kind_of(batch)}, not an "
                           "envs.scenarios.EpisodeBatch")

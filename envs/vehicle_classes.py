@@ -25,6 +25,7 @@ run-wide lag and per-class lags at once are refused, :func:`vehicle_arrays`).
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass
 
@@ -69,13 +70,14 @@ class VehicleClass:
     length_m : float
         Vehicle length.
     standstill_gap_m : float
-        Standstill gap (SUMO's ``minGap``).
+        Standstill gap (SUMO's ``minGap``; 2.5 m by default).
     powertrain : str
         ``"i3-map"``: the BMW i3 efficiency map and its fitted polynomial (the env's energy
-        model); ``"bev-physics"``: the battery-electric physics model of
+        model); ``"bev-physics"`` (the default): the battery-electric physics model of
         :mod:`envs.energy.classes`.
     drive_efficiency : float
-        Battery-to-wheel efficiency when motoring (and wheel-to-battery when regenerating).
+        Battery-to-wheel efficiency when motoring (and wheel-to-battery when regenerating;
+        0.85 by default).
     regen_power_max_kw : float
         Regenerative braking power limit (friction brakes take the rest).
     aux_power_kw : float
@@ -94,12 +96,12 @@ class VehicleClass:
     accel_max_mps2: float
     decel_max_mps2: float
     length_m: float
-    standstill_gap_m: float
-    powertrain: str
-    drive_efficiency: float
     regen_power_max_kw: float
     aux_power_kw: float
     sources: str
+    standstill_gap_m: float = 2.5
+    powertrain: str = "bev-physics"
+    drive_efficiency: float = 0.85
 
     def __post_init__(self) -> None:
         positive = ("mass_kg", "drag_coeff", "frontal_area_m2", "rolling_coeff",
@@ -128,24 +130,21 @@ VEHICLE_CLASSES: dict[str, VehicleClass] = {c.name: c for c in (
         "car", "small car (Saturn SL1 body of NREL ADVISOR's VEH_SMCAR), battery-electric",
         mass_kg=1191.0, drag_coeff=0.335, frontal_area_m2=2.0, rolling_coeff=0.009,
         lag_s=round(zheng_lag_s(1191.0), 3), accel_max_mps2=2.6, decel_max_mps2=4.5,
-        length_m=4.4, standstill_gap_m=2.5, powertrain="bev-physics", drive_efficiency=0.85,
-        regen_power_max_kw=40.0, aux_power_kw=0.36,
+        length_m=4.4, regen_power_max_kw=40.0, aux_power_kw=0.36,
         sources="body: ADVISOR VEH_SMCAR; lag: Zheng et al. 2017 rule; limits: "
                 + _SUMO_PASSENGER),
     VehicleClass(
         "i3", "BMW i3 (2013-2017, 125 kW): the car of the benchmark's energy model",
         mass_kg=1417.0, drag_coeff=0.29, frontal_area_m2=2.38, rolling_coeff=0.007,
         lag_s=round(zheng_lag_s(1417.0), 3), accel_max_mps2=2.6, decel_max_mps2=4.5,
-        length_m=4.0, standstill_gap_m=2.5, powertrain="i3-map", drive_efficiency=0.85,
-        regen_power_max_kw=50.0, aux_power_kw=0.36,
+        length_m=4.0, regen_power_max_kw=50.0, aux_power_kw=0.36, powertrain="i3-map",
         sources="body and powertrain: SUMO MMPEVEM bmw_i3.dat (Koch et al. ITSC 2021); lag: "
                 "Zheng et al. 2017 rule; limits: " + _SUMO_PASSENGER),
     VehicleClass(
         "van", "full-size cargo van (NREL ADVISOR VEH_cargoVan body), battery-electric",
         mass_kg=2182.0, drag_coeff=0.45, frontal_area_m2=3.4, rolling_coeff=0.009,
         lag_s=round(zheng_lag_s(2182.0), 3), accel_max_mps2=2.6, decel_max_mps2=4.5,
-        length_m=6.5, standstill_gap_m=2.5, powertrain="bev-physics", drive_efficiency=0.85,
-        regen_power_max_kw=60.0, aux_power_kw=0.5,
+        length_m=6.5, regen_power_max_kw=60.0, aux_power_kw=0.5,
         sources="body: ADVISOR VEH_cargoVan; lag: Zheng et al. 2017 rule at its 2000 kg end; "
                 "limits and length: SUMO vClass delivery defaults"),
     VehicleClass(
@@ -153,8 +152,7 @@ VEHICLE_CLASSES: dict[str, VehicleClass] = {c.name: c for c in (
                "battery-electric",
         mass_kg=12156.0, drag_coeff=0.79, frontal_area_m2=7.9, rolling_coeff=0.00938,
         lag_s=0.8, accel_max_mps2=1.2, decel_max_mps2=4.0,
-        length_m=12.0, standstill_gap_m=2.5, powertrain="bev-physics", drive_efficiency=0.85,
-        regen_power_max_kw=150.0, aux_power_kw=5.0,
+        length_m=12.0, regen_power_max_kw=150.0, aux_power_kw=5.0,
         sources="body: ADVISOR VEH_RTS06; limits and length: SUMO vClass bus defaults; lag: "
                 "assumed, the top of Zheng et al.'s range (no public source for a bus)"),
     VehicleClass(
@@ -162,8 +160,7 @@ VEHICLE_CLASSES: dict[str, VehicleClass] = {c.name: c for c in (
                  "VEH_KENT800), battery-electric",
         mass_kg=18506.0, drag_coeff=0.70, frontal_area_m2=8.55, rolling_coeff=0.008,
         lag_s=0.8, accel_max_mps2=1.3, decel_max_mps2=4.0,
-        length_m=16.5, standstill_gap_m=2.5, powertrain="bev-physics", drive_efficiency=0.85,
-        regen_power_max_kw=200.0, aux_power_kw=2.0,
+        length_m=16.5, regen_power_max_kw=200.0, aux_power_kw=2.0,
         sources="body: ADVISOR VEH_KENT800; limits: SUMO vClass truck defaults, length: SUMO "
                 "trailer; lag: assumed, as the bus"),
 )}
@@ -232,15 +229,8 @@ def parse_class_sequence(text: str, who: str = "classes") -> tuple[str, ...]:
 def canonical_classes(names: tuple[str, ...]) -> str:
     """One spelling of a class sequence: runs of a class written ``name*k``
     (``("car", "car", "van")`` -> ``"car*2+van"``)."""
-    parts: list[str] = []
-    i = 0
-    while i < len(names):
-        j = i
-        while j < len(names) and names[j] == names[i]:
-            j += 1
-        parts.append(names[i] if j - i == 1 else f"{names[i]}*{j - i}")
-        i = j
-    return "+".join(parts)
+    runs = [(name, len(list(run))) for name, run in itertools.groupby(names)]
+    return "+".join(name if k == 1 else f"{name}*{k}" for name, k in runs)
 
 
 def classes_for(classes: str, class_mix: str, class_seed: int, n_vehicles: int,

@@ -18,7 +18,6 @@ import signal
 import tempfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import IO, Any
 
 _SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
@@ -74,42 +73,14 @@ def _replacing(path: Path) -> Iterator[Path]:
     _sync_folder(path.parent)
 
 
-@contextlib.contextmanager
-def atomic_open(path: str | Path, mode: str = "w", **kwargs: Any) -> Iterator[IO[Any]]:
-    """Open a temporary file beside ``path`` for writing; on a clean exit it replaces ``path``.
-
-    Parameters
-    ----------
-    path : str or Path
-        The file to (re)place; its folder must exist.
-    mode : str
-        ``"w"`` (text) or ``"wb"`` (binary).
-    **kwargs
-        Passed to :func:`open` (``newline``, ``encoding``).
-
-    Raises
-    ------
-    OSError
-        Whatever the write, sync or rename raised; the target is left as it was.
-    """
-    if mode not in ("w", "wb"):
-        raise ValueError(f"atomic_open writes whole files: mode 'w' or 'wb', not {mode!r}")
-    with _replacing(Path(path)) as tmp, open(tmp, mode, **kwargs) as fh:
-        yield fh
-
-
 def write_bytes(path: str | Path, data: bytes) -> Path:
     """Write ``data`` to ``path`` atomically; returns ``path``."""
-    with atomic_open(path, "wb") as fh:
-        fh.write(data)
-    return Path(path)
+    return write_with(path, lambda tmp: tmp.write_bytes(data))
 
 
 def write_text(path: str | Path, text: str, encoding: str = "utf-8") -> Path:
     """Write ``text`` to ``path`` atomically; returns ``path``."""
-    with atomic_open(path, "w", encoding=encoding) as fh:
-        fh.write(text)
-    return Path(path)
+    return write_with(path, lambda tmp: tmp.write_text(text, encoding=encoding))
 
 
 def write_with(path: str | Path, writer: Callable[[Path], object]) -> Path:

@@ -69,10 +69,7 @@ def install() -> dict[int, Any]:
     the previous handlers for :func:`restore`."""
     global _received, _raised_at, _holding
     _received, _raised_at, _holding = None, None, 0
-    previous: dict[int, Any] = {}
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        previous[sig] = signal.signal(sig, _handler)
-    return previous
+    return {sig: signal.signal(sig, _handler) for sig in (signal.SIGINT, signal.SIGTERM)}
 
 
 def reinstall() -> None:

@@ -114,10 +114,7 @@ def check_seeds(seeds: list[int] | tuple[int, ...], flag: str, high: int = MAX_S
                 ) -> list[int]:
     """``seeds`` if each lies in 0..``high`` (:data:`MAX_SEED`; training seeds of the MARL
     learners: :data:`MAX_TRAIN_SEED`), else a ConfigError."""
-    bad = [s for s in seeds if not 0 <= s <= high]
-    if bad:
-        raise ConfigError(f"{flag} must lie in 0..{high}, got {bad[0]}")
-    return list(seeds)
+    return [check_range(s, flag, 0, high) for s in seeds]
 
 
 def check_range(value: int, flag: str, low: int, high: int) -> int:

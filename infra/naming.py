@@ -68,16 +68,13 @@ def parse_named_list(text: str, kind: str, name_prefixes: tuple[str, ...] = ()
             name, options = parse_label(item, kind)
             out.append((prefix + name, options))
             continue
-        reference = split_reference(item)
-        if reference is not None:
-            out.append((prefix + reference[0], {}))
-            item = reference[1]
-            if not item:
-                continue
-        elif prefix or ":" in item:
+        head = split_reference(item)
+        if head is None and (prefix or ":" in item):
             name, _, opt = item.partition(":")
-            out.append((prefix + name.strip(), {}))
-            item = opt
+            head = name.strip(), opt
+        if head is not None:  # a name, then its first option (if any)
+            out.append((prefix + head[0], {}))
+            item = head[1]
             if not item:
                 continue
         elif "=" not in item:

@@ -21,15 +21,21 @@ import importlib.metadata
 import importlib.util
 import os
 import sys
+from collections.abc import Callable
 from types import ModuleType
-from typing import Any
+from typing import Any, TypeVar
 
 from infra.errors import ConfigError
 from infra.naming import is_reference
 
+T = TypeVar("T")
+
 
 def first_line(exc: BaseException) -> str:
-    """``Type: first line of the message`` of an error raised by the user's code."""
+    """``Type: first line of the message`` of an error raised by the user's code, or ``it called
+    sys.exit(code)`` for a :class:`SystemExit`."""
+    if isinstance(exc, SystemExit):
+        return f"it called sys.exit({exc.code!r})"
     text = str(exc).strip().splitlines()
     return f"{type(exc).__name__}: {text[0]}" if text else type(exc).__name__
 
@@ -60,11 +66,9 @@ def _import_module(module_name: str, who: str) -> ModuleType:
                               f"{module_name.removeprefix(top + '.')})") from None
         raise ConfigError(f"{who}: importing {module_name} failed ({first_line(exc)}); install "
                           "what it imports") from None
-    except Exception as exc:  # noqa: BLE001 - the user's module: any error is one line
+    except (Exception, SystemExit) as exc:  # noqa: BLE001 - the user's module: one line (its
+        # sys.exit() would end the command, and `list`, silently)
         raise ConfigError(f"{who}: importing {module_name} failed ({first_line(exc)})") from None
-    except SystemExit as exc:  # sys.exit() at import ended the command (and `list`) silently
-        raise ConfigError(f"{who}: importing {module_name} failed (it called "
-                          f"sys.exit({exc.code!r}))") from None
     except KeyboardInterrupt as exc:
         if _raised_by_code(exc):  # else a real Ctrl-C or SIGTERM: the command's interrupt line
             raise ConfigError(f"{who}: importing {module_name} failed (it raised "
@@ -130,6 +134,25 @@ def canonical_reference(obj: Any, given: str) -> str:
     for part in qualname.split("."):
         found = getattr(found, part, None)
     return here if found is obj else given
+
+
+def load_plugin(cache: dict[str, T], kind: str, name: str, target: str,
+                build: Callable[[Any, str], T]) -> T:
+    """The plug-in ``name`` of a registry, built once: ``build(obj, who)`` of the object at
+    ``target`` (:func:`import_reference`; ``name`` is the reference itself or an entry point's
+    name), kept in ``cache`` by ``name``. ``who`` names it in messages: ``<kind> <name>``, with
+    ``(<target>)`` for an entry point.
+
+    Raises
+    ------
+    ConfigError
+        As :func:`import_reference`, or as ``build`` refuses the object.
+    """
+    found = cache.get(name)
+    if found is None:
+        who = f"{kind} {name}" + (f" ({target})" if target != name else "")
+        found = cache[name] = build(import_reference(target, who), who)
+    return found
 
 
 @functools.cache

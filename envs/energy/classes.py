@@ -20,6 +20,7 @@ default) is :class:`DragSaving`.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable
 
@@ -133,7 +134,9 @@ class DragSaving:
     def __init__(self, classes: tuple[VehicleClass, ...]) -> None:
         self.classes = classes
         self._length = np.array([classes[0].length_m] + [c.length_m for c in classes[:-1]])
-        self._groups = [(c, np.array([i for i, d in enumerate(classes) if d == c], np.int64))
+        # the physics model of each class (of an i3 seat too: its drag difference in the wake)
+        self._groups = [(dataclasses.replace(c, powertrain="bev-physics"),
+                         np.array([i for i, d in enumerate(classes) if d == c], np.int64))
                         for c in dict.fromkeys(classes)]
 
     def delta_kw(self, gap_m: np.ndarray, speed_mps: np.ndarray,
@@ -142,19 +145,11 @@ class DragSaving:
         and accelerations ``(B, N)``."""
         scale = 1.0 - drag_reduction(np.asarray(gap_m) / self._length)
         out = np.empty(np.shape(speed_mps), dtype=np.float64)
-        for cls, seats in self._groups:
-            phys = cls if cls.powertrain == "bev-physics" else _as_physics(cls)
+        for phys, seats in self._groups:
             v, u = speed_mps[:, seats], accel_mps2[:, seats]
             out[:, seats] = (class_power_kw(phys, v, u, scale[:, seats])
                              - class_power_kw(phys, v, u))
         return out
-
-
-def _as_physics(cls: VehicleClass) -> VehicleClass:
-    """The class with the physics powertrain (the i3's drag difference in the wake)."""
-    import dataclasses
-
-    return dataclasses.replace(cls, powertrain="bev-physics")
 
 
 # ------------------------------------------------------------------------ the NEDC, for checks

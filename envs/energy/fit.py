@@ -2,7 +2,6 @@
 quality and provenance.
 """
 
-
 from __future__ import annotations
 
 import datetime as _dt
@@ -15,7 +14,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from envs.energy.map_model import map_operating_point
+from envs.energy.map_model import map_battery_power_kw, map_operating_point
 from envs.energy.power import POLYNOMIAL_FORMAT, PowerPolynomial
 from envs.energy.vehicle import (
     DEFAULT_VEHICLE_FILE,
@@ -30,10 +29,6 @@ FloatArray = NDArray[np.floating[Any]]
 
 #: Version string written into the provenance of a fit (the package version when not installed).
 CACC_BENCH_VERSION = "0.1.0"
-
-# ---------------------------------------------------------------------------------------------
-# The fit
-# ---------------------------------------------------------------------------------------------
 
 
 @dataclass(frozen=True)
@@ -174,19 +169,16 @@ def reference_errors(
     list of (v_mps, u_mps2, map_kw, polynomial_kw, relative_error)
         ``relative_error = (polynomial_kw - map_kw) / |map_kw|``.
     """
-    v = np.array([p[0] for p in REFERENCE_POINTS])
-    u = np.array([p[1] for p in REFERENCE_POINTS])
-    ref = map_operating_point(v, u, params, loss_map).battery_power_w / 1000.0
+    v, u = np.array(REFERENCE_POINTS).T
+    ref = map_battery_power_kw(v, u, params, loss_map)
     got = polynomial(v, u)
     return [(float(a), float(b), float(m), float(g), float((g - m) / abs(m)))
             for a, b, m, g in zip(v, u, ref, got, strict=True)]
 
 
 def _package_version() -> str:
-    try:
-        from importlib.metadata import PackageNotFoundError, version
-    except ImportError:  # pragma: no cover
-        return CACC_BENCH_VERSION
+    from importlib.metadata import PackageNotFoundError, version
+
     try:
         return version("cacc-bench")
     except PackageNotFoundError:
@@ -312,8 +304,6 @@ def fit_power_polynomial(
         ss_tot = float(np.sum((t - t.mean()) ** 2))
         return 1.0 - ss_res / ss_tot, math.sqrt(ss_res / e.size), float(np.max(np.abs(e)))
 
-    r2, rmse, mx = _quality(np.ones_like(low))
-    r2_l, rmse_l, mx_l = _quality(low)
     weighting = ("unweighted" if weight_offset_kw is None
                  else f"weighted by 1 / (|P| + {weight_offset_kw:g} kW) per residual")
     grid = {
@@ -338,16 +328,6 @@ def fit_power_polynomial(
             "(all reachable points) evaluated with the SI coefficients and the floor"
         ),
     }
-    return PowerFit(
-        coefficients_kw=coef,
-        r2=r2,
-        rmse_kw=rmse,
-        max_abs_error_kw=mx,
-        r2_low_speed=r2_l,
-        rmse_kw_low_speed=rmse_l,
-        max_abs_error_kw_low_speed=mx_l,
-        n_points=int(mask.sum()),
-        n_points_low_speed=int(low.sum()),
-        grid=grid,
-        floor_kw=floor_kw,
-    )
+    # the fields in order: r2, rmse_kw, max_abs_error_kw, then the same at low speed
+    return PowerFit(coef, *_quality(np.ones_like(low)), *_quality(low), n_points=int(mask.sum()),
+                    n_points_low_speed=int(low.sum()), grid=grid, floor_kw=floor_kw)

@@ -3,7 +3,6 @@ motor limits and loss map, ``docs/spec/energy.md``) and VT-CPEM of a Nissan Leaf
 2016) for sensitivity studies.
 """
 
-
 from __future__ import annotations
 
 import math
@@ -24,9 +23,7 @@ from infra.errors import ConfigError
 
 FloatArray = NDArray[np.floating[Any]]
 
-# ---------------------------------------------------------------------------------------------
-# Map model
-# ---------------------------------------------------------------------------------------------
+# --------------------------------------------------------------------------------------- map model
 
 
 class MotorOperatingPoint(NamedTuple):
@@ -116,15 +113,11 @@ def map_operating_point(
     -------
     MotorOperatingPoint
     """
-    if params is None or loss_map is None:
-        default_params, default_map, default_table = _default_vehicle()
-        params = default_params if params is None else params
     if loss_map is None:
-        table = default_table
-        loss_map = default_map
+        _, loss_map, table = _default_vehicle()
     else:
         table = loss_map.filled()
-    p = params
+    p = _default_vehicle()[0] if params is None else params
     v = np.maximum(np.asarray(speed_mps, dtype=np.float64), 0.0)
     u = np.asarray(accel_mps2, dtype=np.float64)
     grade = np.asarray(road_grade_rad, dtype=np.float64)
@@ -190,20 +183,12 @@ def map_battery_power_kw(
     include_battery_loss: bool = False,
 ) -> FloatArray:
     """Battery power (kW) of the efficiency-map model; see :func:`map_operating_point`."""
-    op = map_operating_point(
-        speed_mps,
-        accel_mps2,
-        params,
-        loss_map,
-        road_grade_rad=road_grade_rad,
-        include_battery_loss=include_battery_loss,
-    )
-    return op.battery_power_w / 1000.0
+    return map_operating_point(speed_mps, accel_mps2, params, loss_map,
+                               road_grade_rad=road_grade_rad,
+                               include_battery_loss=include_battery_loss).battery_power_w / 1000.0
 
 
-# ---------------------------------------------------------------------------------------------
-# VT-CPEM (Nissan Leaf)
-# ---------------------------------------------------------------------------------------------
+# --------------------------------------------------------------------------- VT-CPEM (Nissan Leaf)
 
 
 @dataclass(frozen=True)

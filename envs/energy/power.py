@@ -3,7 +3,6 @@ reward, the MPC cost and the energy metric use (its fast evaluator and loader), 
 and energy integration.
 """
 
-
 from __future__ import annotations
 
 import functools
@@ -18,7 +17,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from envs.energy.horner import FloatArray, Horner2D, evaluate
-from envs.energy.vehicle import DEFAULT_POLYNOMIAL_FILE, EnergyDataError, _as_path
+from envs.energy.vehicle import DEFAULT_POLYNOMIAL_FILE, _as_path, _bad
 from infra.errors import ConfigError
 
 #: Model names accepted by :func:`battery_power_kw`.
@@ -204,6 +203,7 @@ class PowerPolynomial:
             floor = floor * speed + float(c)
         return maximum(result, floor)
 
+
 def load_power_polynomial(path: str | Path | None = None) -> PowerPolynomial:
     """Load a fitted polynomial (``power_poly.json`` format).
 
@@ -224,36 +224,27 @@ def load_power_polynomial(path: str | Path | None = None) -> PowerPolynomial:
         ``coefficients_kw``.
     """
     p = _as_path(path, DEFAULT_POLYNOMIAL_FILE)
+    kind = "power polynomial file"
     try:
         data = json.loads(p.read_text(encoding="utf-8"))
     except FileNotFoundError:
-        raise EnergyDataError(
-            f"power polynomial file {p}: not found (make it with `cacc-bench fit-power --write`)"
-        ) from None
+        raise _bad(p, "not found (make it with `cacc-bench fit-power --write`)", kind) from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise EnergyDataError(
-            f"power polynomial file {p}: cannot be read as JSON ({exc})"
-        ) from None
+        raise _bad(p, f"cannot be read as JSON ({exc})", kind) from None
     if not isinstance(data, dict) or "coefficients_kw" not in data:
-        raise EnergyDataError(f"power polynomial file {p}: no 'coefficients_kw' entry")
+        raise _bad(p, "no 'coefficients_kw' entry", kind)
     try:
         coef = np.array(data["coefficients_kw"], dtype=np.float64)
     except (TypeError, ValueError):
-        raise EnergyDataError(
-            f"power polynomial file {p}: 'coefficients_kw' is not a numeric matrix"
-        ) from None
+        raise _bad(p, "'coefficients_kw' is not a numeric matrix", kind) from None
     if coef.ndim != 2 or coef.shape[0] < 2 or coef.shape[1] < 2 or not np.all(np.isfinite(coef)):
-        raise EnergyDataError(
-            f"power polynomial file {p}: 'coefficients_kw' must be a finite matrix of at least "
-            f"2x2, got shape {coef.shape}"
-        )
+        raise _bad(p, "'coefficients_kw' must be a finite matrix of at least 2x2, got shape "
+                      f"{coef.shape}", kind)
     fmt = data.get("format", READABLE_FORMATS[0])
     if fmt not in READABLE_FORMATS:
-        raise EnergyDataError(
-            f"power polynomial file {p}: format {fmt!r}, this cacc-bench reads "
-            f"{' or '.join(repr(f) for f in READABLE_FORMATS)}; remake it with "
-            "`cacc-bench fit-power --write`"
-        )
+        raise _bad(p, f"format {fmt!r}, this cacc-bench reads "
+                      f"{' or '.join(repr(f) for f in READABLE_FORMATS)}; remake it with "
+                      "`cacc-bench fit-power --write`", kind)
     floor = data.get("floor_kw")
     if floor is not None:
         try:
@@ -261,9 +252,7 @@ def load_power_polynomial(path: str | Path | None = None) -> PowerPolynomial:
         except (TypeError, ValueError):
             floor = np.array([np.nan])
         if floor.ndim != 1 or floor.size < 1 or not np.all(np.isfinite(floor)):
-            raise EnergyDataError(
-                f"power polynomial file {p}: 'floor_kw' must be a finite list of coefficients"
-            )
+            raise _bad(p, "'floor_kw' must be a finite list of coefficients", kind)
     metadata = {k: v for k, v in data.items() if k not in ("coefficients_kw", "floor_kw")}
     return PowerPolynomial(coef, metadata, floor)
 
@@ -273,10 +262,7 @@ def _default_polynomial() -> PowerPolynomial:
     return load_power_polynomial()
 
 
-
-# ---------------------------------------------------------------------------------------------
-# Public entry points
-# ---------------------------------------------------------------------------------------------
+# ----------------------------------------------------------------------------- public entry points
 
 
 def battery_power_kw(

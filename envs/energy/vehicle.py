@@ -2,7 +2,6 @@
 BMW i3 (SUMO MMPEVEM ``.dat`` file, ``data/energy/bmw_i3.dat``), read and checked.
 """
 
-
 from __future__ import annotations
 
 import functools
@@ -32,10 +31,9 @@ class EnergyDataError(ConfigError):
     """A missing or malformed energy data file (a ``ValueError``; the message names the file)."""
 
 
-
-# ---------------------------------------------------------------------------------------------
-# Vehicle parameters and loss map
-# ---------------------------------------------------------------------------------------------
+def _bad(path: Path, what: str, kind: str = "energy data file") -> EnergyDataError:
+    """The one message of a bad data file: ``<kind> <path>: <what>``."""
+    return EnergyDataError(f"{kind} {path}: {what}")
 
 
 @dataclass(frozen=True)
@@ -100,38 +98,19 @@ class VehicleParams:
             value = getattr(self, f.name)
             if not (isinstance(value, int | float) and math.isfinite(value)):
                 raise ConfigError(f"VehicleParams.{f.name} must be a finite number, got {value!r}")
-        positive = (
-            "mass_kg",
-            "wheel_radius_m",
-            "gear_ratio",
-            "motor_torque_max_nm",
-            "motor_power_max_w",
-            "gravity_mps2",
-            "battery_resistance_ohm",
-            "battery_voltage_v",
-        )
-        for name in positive:
+        for name in ("mass_kg", "wheel_radius_m", "gear_ratio", "motor_torque_max_nm",
+                     "motor_power_max_w", "gravity_mps2", "battery_resistance_ohm",
+                     "battery_voltage_v"):
             if getattr(self, name) <= 0:
-                raise ConfigError(
-                    f"VehicleParams.{name} must be positive, got {getattr(self, name)}"
-                )
-        nonnegative = (
-            "theta_kgm2",
-            "rolling_coeff",
-            "drag_coeff",
-            "frontal_area_m2",
-            "regen_torque_max_nm",
-            "regen_power_max_w",
-            "aux_power_w",
-            "air_density_kgm3",
-        )
-        for name in nonnegative:
+                raise ConfigError(f"VehicleParams.{name} must be positive, got "
+                                  f"{getattr(self, name)}")
+        for name in ("theta_kgm2", "rolling_coeff", "drag_coeff", "frontal_area_m2",
+                     "regen_torque_max_nm", "regen_power_max_w", "aux_power_w", "air_density_kgm3"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"VehicleParams.{name} must be >= 0, got {getattr(self, name)}")
         if not 0 < self.gear_efficiency <= 1:
-            raise ConfigError(
-                f"VehicleParams.gear_efficiency must be in (0, 1], got {self.gear_efficiency}"
-            )
+            raise ConfigError(f"VehicleParams.gear_efficiency must be in (0, 1], got "
+                              f"{self.gear_efficiency}")
 
     @property
     def equivalent_mass_kg(self) -> float:
@@ -165,9 +144,9 @@ def _read_dat(path: Path) -> dict[str, str]:
     try:
         text = path.read_text(encoding="utf-8")
     except FileNotFoundError:
-        raise EnergyDataError(f"energy data file {path}: not found") from None
+        raise _bad(path, "not found") from None
     except (OSError, UnicodeDecodeError) as exc:
-        raise EnergyDataError(f"energy data file {path}: cannot be read ({exc})") from None
+        raise _bad(path, f"cannot be read ({exc})") from None
     entries: dict[str, str] = {}
     for lineno, raw in enumerate(text.splitlines(), start=1):
         line = raw.split("#", 1)[0].strip()
@@ -176,9 +155,8 @@ def _read_dat(path: Path) -> dict[str, str]:
         key, sep, value = line.partition("=")
         key, value = key.strip(), value.strip()
         if not sep or not key or not value:
-            raise EnergyDataError(
-                f"energy data file {path}, line {lineno}: expected 'key = value', got {raw.strip()!r}"
-            )
+            raise EnergyDataError(f"energy data file {path}, line {lineno}: expected "
+                                  f"'key = value', got {raw.strip()!r}")
         if key in entries:
             raise EnergyDataError(f"energy data file {path}, line {lineno}: duplicate key {key!r}")
         entries[key] = value
@@ -212,17 +190,15 @@ def load_vehicle_params(path: str | Path | None = None) -> VehicleParams:
     values: dict[str, float] = {}
     for key, name in _DAT_KEYS.items():
         if key not in entries:
-            raise EnergyDataError(f"energy data file {p}: missing parameter {key!r}")
+            raise _bad(p, f"missing parameter {key!r}")
         try:
             values[name] = float(entries[key])
         except ValueError:
-            raise EnergyDataError(
-                f"energy data file {p}: parameter {key!r} is not a number: {entries[key]!r}"
-            ) from None
+            raise _bad(p, f"parameter {key!r} is not a number: {entries[key]!r}") from None
     try:
         return VehicleParams(**values)
     except ConfigError as exc:
-        raise EnergyDataError(f"energy data file {p}: {exc}") from None
+        raise _bad(p, str(exc)) from None
 
 
 class LossMap(NamedTuple):
@@ -291,21 +267,14 @@ def _bilinear(
 
 
 def _parse_numbers(text: str, what: str, path: Path) -> NDArray[np.float64]:
-    try:
-        return np.array([float(tok) for tok in text.split(",")], dtype=np.float64)
-    except ValueError:
-        bad = next(t for t in text.split(",") if not _is_float(t))
-        raise EnergyDataError(
-            f"energy data file {path}: {_LOSS_MAP_KEY}: {what} has a non-number entry {bad.strip()!r}"
-        ) from None
-
-
-def _is_float(token: str) -> bool:
-    try:
-        float(token)
-    except ValueError:
-        return False
-    return True
+    numbers = []
+    for token in text.split(","):
+        try:
+            numbers.append(float(token))
+        except ValueError:
+            raise _bad(path, f"{_LOSS_MAP_KEY}: {what} has a non-number entry {token.strip()!r}"
+                       ) from None
+    return np.array(numbers, dtype=np.float64)
 
 
 def load_loss_map(path: str | Path | None = None) -> LossMap:
@@ -334,46 +303,32 @@ def load_loss_map(path: str | Path | None = None) -> LossMap:
     p = _as_path(path, DEFAULT_VEHICLE_FILE)
     entries = _read_dat(p)
     if _LOSS_MAP_KEY not in entries:
-        raise EnergyDataError(f"energy data file {p}: missing {_LOSS_MAP_KEY!r}")
+        raise _bad(p, f"missing {_LOSS_MAP_KEY!r}")
     parts = entries[_LOSS_MAP_KEY].split("|")
     if len(parts) != 3:
-        raise EnergyDataError(
-            f"energy data file {p}: {_LOSS_MAP_KEY} must have 3 '|'-separated parts "
-            f"(dimensions|axes|values), found {len(parts)}"
-        )
+        raise _bad(p, f"{_LOSS_MAP_KEY} must have 3 '|'-separated parts (dimensions|axes|values), "
+                      f"found {len(parts)}")
     if [s.strip() for s in parts[0].split(",")] != ["2", "1"]:
-        raise EnergyDataError(
-            f"energy data file {p}: {_LOSS_MAP_KEY} dimensions must be '2,1', got {parts[0]!r}"
-        )
+        raise _bad(p, f"{_LOSS_MAP_KEY} dimensions must be '2,1', got {parts[0]!r}")
     axes = parts[1].split(";")
     if len(axes) != 2:
-        raise EnergyDataError(
-            f"energy data file {p}: {_LOSS_MAP_KEY} needs 2 ';'-separated axes, found {len(axes)}"
-        )
+        raise _bad(p, f"{_LOSS_MAP_KEY} needs 2 ';'-separated axes, found {len(axes)}")
     speed = _parse_numbers(axes[0], "speed axis", p)
     torque = _parse_numbers(axes[1], "torque axis", p)
     for name, axis in (("speed axis", speed), ("torque axis", torque)):
         if axis.size < 2 or not np.all(np.isfinite(axis)) or np.any(np.diff(axis) <= 0):
-            raise EnergyDataError(
-                f"energy data file {p}: {_LOSS_MAP_KEY}: the {name} must have at least 2 finite, "
-                "strictly increasing values"
-            )
+            raise _bad(p, f"{_LOSS_MAP_KEY}: the {name} must have at least 2 finite, strictly "
+                          "increasing values")
     values = _parse_numbers(parts[2], "values", p)
     if values.size != speed.size * torque.size:
-        raise EnergyDataError(
-            f"energy data file {p}: {_LOSS_MAP_KEY} has {values.size} values, expected "
-            f"{torque.size} torques x {speed.size} speeds = {torque.size * speed.size}"
-        )
+        raise _bad(p, f"{_LOSS_MAP_KEY} has {values.size} values, expected {torque.size} torques "
+                      f"x {speed.size} speeds = {torque.size * speed.size}")
     if np.any(np.isinf(values)) or np.any(values < 0):
-        raise EnergyDataError(
-            f"energy data file {p}: {_LOSS_MAP_KEY} has infinite or negative losses"
-        )
+        raise _bad(p, f"{_LOSS_MAP_KEY} has infinite or negative losses")
     loss = values.reshape(torque.size, speed.size)
     empty = np.flatnonzero(np.isnan(loss).all(axis=0))
     if empty.size:
-        raise EnergyDataError(
-            f"energy data file {p}: {_LOSS_MAP_KEY}: speed column {speed[empty[0]]} rpm has no valid value"
-        )
+        raise _bad(p, f"{_LOSS_MAP_KEY}: speed column {speed[empty[0]]} rpm has no valid value")
     return LossMap(speed_rpm=speed, torque_nm=torque, loss_w=loss)
 
 

@@ -36,10 +36,9 @@ def require_sumo() -> None:
         import libsumo  # noqa: F401
     except Exception as exc:  # noqa: BLE001 - any failure to load is the same advice
         from infra.interrupt import raise_if_interrupted
+        from infra.plugins import first_line
 
         raise_if_interrupted()  # a signal during the load ends it with an ImportError too
-        text = str(exc).strip().splitlines()
         raise ConfigError(
-            f"libsumo is installed but does not load ({type(exc).__name__}"
-            f"{': ' + text[0] if text else ''}); reinstall the sumo extra (eclipse-sumo and "
-            f"libsumo {SUMO_VERSIONS}): {INSTALL_COMMAND}") from None
+            f"libsumo is installed but does not load ({first_line(exc)}); reinstall the sumo "
+            f"extra (eclipse-sumo and libsumo {SUMO_VERSIONS}): {INSTALL_COMMAND}") from None

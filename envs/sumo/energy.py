@@ -10,12 +10,11 @@ batch goes into one time line (one process).
 
 from __future__ import annotations
 
-import subprocess
 from pathlib import Path
 
 import numpy as np
 
-from envs.sumo.network import sumo_home, tool, work_folder
+from envs.sumo.network import run_tool, sumo_home, work_folder
 
 #: The wheel's MMPEVEM vehicle type of the BMW i3, and its id.
 I3_VTYPE_FILE = Path("data") / "emissions" / "MMPEVEM" / "BMW_i3.xml"
@@ -41,14 +40,9 @@ def mmpevem_power_kw(speed_mps: np.ndarray, accel_mps2: np.ndarray) -> np.ndarra
     lines = [f"{k};{float(vk)!r};{float(ak)!r}" for k, (vk, ak) in
              enumerate(zip(v.ravel(), a.ravel(), strict=True))]
     cycle.write_text("\n".join(lines) + "\n")
-    home = Path(sumo_home())
-    done = subprocess.run(
-        [tool("emissionsDrivingCycle"), "-t", str(cycle), "--additional-files",
-         str(home / I3_VTYPE_FILE), "--vtype", I3_VTYPE, "-e", "MMPEVEM", "-o", str(out)],
-        capture_output=True, text=True, check=False)
-    if done.returncode != 0 or not out.exists():
-        raise RuntimeError(f"emissionsDrivingCycle failed ({done.returncode}): "
-                           f"{done.stderr.strip()[-500:]}")
+    run_tool("emissionsDrivingCycle", ["-t", str(cycle), "--additional-files",
+                                       str(Path(sumo_home()) / I3_VTYPE_FILE), "--vtype", I3_VTYPE,
+                                       "-e", "MMPEVEM", "-o", str(out)], out)
     rows = [r.split(";") for r in out.read_text().splitlines() if r.strip()]
     if len(rows) != v.size:
         raise RuntimeError(f"emissionsDrivingCycle wrote {len(rows)} lines for {v.size}")

@@ -42,7 +42,7 @@ from envs.params import PlatoonParams
 from envs.platoon import PlatoonEnv
 from envs.scenarios import RING_VEHICLE_LENGTH_M, Scenario
 from envs.sumo.models import SumoModel
-from envs.sumo.network import network, ring_edges, road_edge, work_folder
+from envs.sumo.network import network, ring_edges, road_edge, sumo_home, work_folder
 from infra.errors import ConfigError
 
 #: The position updates the env can ask SUMO for, the matched one first.
@@ -171,19 +171,16 @@ class SumoPlatoonEnv(PlatoonEnv):
         self._commanded = automated & (self.model is None)
         ring = s.ring
         length = VEHICLE_LENGTH_M
-        # positions along each road (x: front bumper), the leader at index 0
+        # positions along each road (x: front bumper), the leader at index 0: x_N = 0, upwards
+        # to x_1 and the leader (on a ring, follower 1 is behind follower N and there is no leader)
         x0 = np.zeros((b, n + 1))
+        for i in range(n - 1, 0 if ring else -1, -1):
+            x0[:, i] = x0[:, i + 1] + s.gap_m[:, i] + length
         if ring:
             self._ring_length_m = float(self.scenario.options["length_m"])
-            # follower i behind i-1, follower 1 behind follower N: x_N = 0, upwards to x_1
-            for i in range(n - 1, 0, -1):
-                x0[:, i] = x0[:, i + 1] + s.gap_m[:, i] + length
             x0[:, 0] = np.nan
             road_m = self._ring_length_m
         else:
-            x0[:, n] = 0.0
-            for i in range(n - 1, -1, -1):
-                x0[:, i] = x0[:, i + 1] + s.gap_m[:, i] + length
             travel = float(np.max(s.leader_speed_mps.sum(axis=1)) * self.params.dt_s)
             road_m = 1000.0 * math.ceil((float(x0.max()) + travel + ROAD_MARGIN_M) / 1000.0)
         self._x0 = x0
@@ -250,14 +247,8 @@ class SumoPlatoonEnv(PlatoonEnv):
                 laps = int(math.ceil(ROAD_SPEED_LIMIT_MPS * self.n_steps * p.dt_s / road_m)) + 2
                 quarter = road_m / len(edges)
             for i in range(0 if not ring else 1, n + 1):
-                if i == 0:
-                    vtype = "cmd"
-                elif self._commanded[i - 1]:
-                    vtype = "cmd"
-                elif automated[i - 1]:
-                    vtype = "model"
-                else:
-                    vtype = "human"
+                vtype = ("cmd" if i == 0 or self._commanded[i - 1]
+                         else "model" if automated[i - 1] else "human")
                 if ring:
                     j = min(int(x0[k, i] // quarter), len(edges) - 1)
                     route = " ".join(edges[j:] + edges * laps)
@@ -279,8 +270,6 @@ class SumoPlatoonEnv(PlatoonEnv):
     def _start(self, net: Any, routes: str) -> None:
         """(Re)load SUMO with the network and routes, and step once to insert the vehicles."""
         import libsumo
-
-        from envs.sumo.network import sumo_home
 
         sumo_home()
         args = ["-n", str(net), "-r", routes, "--step-length", repr(self.params.dt_s),

@@ -41,6 +41,19 @@ def tool(name: str) -> str:
     return str(Path(sumo_home()) / "bin" / name)
 
 
+def run_tool(name: str, args: list[str], out: Path) -> None:
+    """Run the wheel's binary ``name`` with ``args``, which writes ``out``.
+
+    Raises
+    ------
+    RuntimeError
+        When it fails or writes no ``out`` (the end of its error output is in the message).
+    """
+    done = subprocess.run([tool(name), *args], capture_output=True, text=True, check=False)
+    if done.returncode != 0 or not out.exists():
+        raise RuntimeError(f"{name} failed ({done.returncode}): {done.stderr.strip()[-500:]}")
+
+
 def work_folder() -> Path:
     """This process's scratch folder for networks and route files (removed at exit)."""
     global _folder
@@ -85,16 +98,12 @@ def network(kind: str, roads: int, length_m: float, speed_limit_mps: float) -> P
         else:
             radius = length_m / (2 * math.pi)
             cx, cy = 0.0, k * (2 * radius + ROAD_SPACING_M)
-            pts = [(cx + radius * math.cos(2 * math.pi * j / RING_EDGES),
-                    cy + radius * math.sin(2 * math.pi * j / RING_EDGES))
-                   for j in range(RING_EDGES)]
             ids = ring_edges(k)
-            for j, (x, yy) in enumerate(pts):
-                nodes.append(f'<node id="n{k}_{j}" x="{x!r}" y="{yy!r}"/>')
-            for j in range(RING_EDGES):
+            for j in range(RING_EDGES):  # a quarter circle from node j, which is its start
                 arc = [(cx + radius * math.cos(2 * math.pi * (j + f / 8) / RING_EDGES),
                         cy + radius * math.sin(2 * math.pi * (j + f / 8) / RING_EDGES))
                        for f in range(9)]
+                nodes.append(f'<node id="n{k}_{j}" x="{arc[0][0]!r}" y="{arc[0][1]!r}"/>')
                 shape = " ".join(f"{x!r},{yy!r}" for x, yy in arc)
                 edges.append(f'<edge id="{ids[j]}" from="n{k}_{j}" to="n{k}_{(j + 1) % RING_EDGES}" '
                              f'numLanes="1" speed="{speed_limit_mps!r}" '
@@ -102,11 +111,8 @@ def network(kind: str, roads: int, length_m: float, speed_limit_mps: float) -> P
     nod, edg, net = (stem.with_suffix(s) for s in (".nod.xml", ".edg.xml", ".net.xml"))
     nod.write_text("<nodes>\n" + "\n".join(nodes) + "\n</nodes>\n")
     edg.write_text("<edges>\n" + "\n".join(edges) + "\n</edges>\n")
-    done = subprocess.run(
-        [tool("netconvert"), "--node-files", str(nod), "--edge-files", str(edg), "-o", str(net),
-         "--no-turnarounds", "true", "--no-internal-links", "true", "--no-warnings", "true"],
-        capture_output=True, text=True, check=False)
-    if done.returncode != 0 or not net.exists():
-        raise RuntimeError(f"netconvert failed ({done.returncode}): {done.stderr.strip()[-500:]}")
+    run_tool("netconvert", ["--node-files", str(nod), "--edge-files", str(edg), "-o", str(net),
+                            "--no-turnarounds", "true", "--no-internal-links", "true",
+                            "--no-warnings", "true"], net)
     _built[key] = net
     return net

@@ -1,7 +1,8 @@
 """Make the trimmed OpenACC window files shipped with cacc-bench.
 
 Reads the original JRC OpenACC ZalaZONE files from a folder given on the command line and
-writes, next to this script (or to ``--out``), one trimmed copy per benchmark window. The copy
+writes, next to this script (or to ``--out``), one trimmed copy per benchmark window
+(:data:`envs.openacc.WINDOWS`, which names the files and the windows). The copy
 keeps the original format byte for byte: the 5 metadata header lines, the column-name line and
 the data rows whose ``Time`` lies in the window widened by a margin (5 s on each side), with
 every column and value unchanged and the original line endings (CRLF). Nothing else changes.
@@ -10,7 +11,8 @@ Usage::
 
     python envs/data/openacc/make_windows.py /path/to/openacc/folder [--out DIR]
 
-This is a maintenance script; the package and its tests never run it.
+This is a maintenance script (it needs cacc-bench installed); the package and its tests never
+run it.
 """
 
 from __future__ import annotations
@@ -20,22 +22,12 @@ import shutil
 import sys
 from pathlib import Path
 
-#: (source file, window start [s], window end [s]) per window name.
-WINDOWS: dict[str, tuple[str, float, float]] = {
-    "S": ("ZalaZONE_dynamic_part1.csv", 316.0, 376.0),
-    "L": ("ZalaZONE_dynamic_part2.csv", 450.0, 510.0),
-    "M": ("ZalaZONE_dynamic_part8.csv", 1250.0, 1310.0),
-}
+from envs.openacc import WINDOWS
+
 MARGIN_S = 5.0
 N_HEADER_LINES = 6  # 5 metadata lines + the column-name line
 TIME_TOL_S = 0.01
 LICENCE_FILE = "JRC_copyright.txt"
-
-
-def trimmed_name(source: str, t_start_s: float, t_end_s: float) -> str:
-    """Return the trimmed file name, e.g. ``ZalaZONE_dynamic_part1_316-376s.csv``."""
-    stem = source.removesuffix(".csv")
-    return f"{stem}_{t_start_s:g}-{t_end_s:g}s.csv"
 
 
 def trim_bytes(raw: bytes, t_start_s: float, t_end_s: float, margin_s: float = MARGIN_S) -> bytes:
@@ -74,10 +66,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=Path(__file__).resolve().parent)
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
-    for name, (source, t0, t1) in WINDOWS.items():
-        raw = (args.source_dir / source).read_bytes()
-        trimmed = trim_bytes(raw, t0, t1)
-        target = args.out / trimmed_name(source, t0, t1)
+    for name, spec in WINDOWS.items():
+        raw = (args.source_dir / spec.source_file_name).read_bytes()
+        trimmed = trim_bytes(raw, spec.t_start_s, spec.t_end_s)
+        target = args.out / spec.file_name
         target.write_bytes(trimmed)
         n_rows = len(trimmed.splitlines()) - N_HEADER_LINES
         print(f"{name}: {target.name}: {n_rows} rows, {len(trimmed)} bytes")
