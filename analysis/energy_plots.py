@@ -40,13 +40,9 @@ def plot_energy_map(
     list of Path
         The PNG and PDF files written.
     """
-    import matplotlib
+    from analysis.plots import _plt, save_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    plt = _plt()
     poly = energy.load_power_polynomial() if polynomial is None else polynomial
 
     speeds = np.linspace(0.5, 30.0, int(round(29.5 / speed_step_mps)) + 1)
@@ -105,12 +101,7 @@ def plot_energy_map(
             va="bottom",
             bbox={"facecolor": "white", "alpha": 0.8, "edgecolor": "none"},
         )
-    paths = [out / f"{stem}.png", out / f"{stem}.pdf"]
     try:
-        from analysis.plots import savefig_atomic
-
-        savefig_atomic(fig, paths[0], dpi=150)
-        savefig_atomic(fig, paths[1])
+        return save_figure(fig, out_dir, stem)
     finally:
         plt.close(fig)
-    return paths

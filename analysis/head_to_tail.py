@@ -31,8 +31,7 @@ and its command ``C_i = N_i V_{i-1} + F_i C_{i-1}`` with
 The leader's command is its acceleration (``C_0 = A_0``, ``V_0 = dt C_0 / (z - 1)``), so
 ``C_i / C_{i-1} = N_i V_{i-1} / C_{i-1} + F_i`` and the head-to-tail transfer function is
 ``H(z) = P_N prod_i (C_i / C_{i-1})``: built with python-control, one transfer function per
-vehicle (:func:`vehicle_factors`), multiplied (:func:`head_to_tail_gain`; as one system:
-:func:`head_to_tail_tf`).
+vehicle (:func:`vehicle_factors`), multiplied (:func:`head_to_tail_gain`).
 
 Measured: :func:`measured_head_to_tail` runs the ``sine-v1`` sweep of
 :func:`analysis.stability.empirical_gain` on the arrangement and multiplies the measured pair
@@ -210,20 +209,6 @@ def vehicle_factors(chain: Sequence[VehicleLoop], delay_s: float = 0.0, dt_s: fl
         beta = 1.0 - math.exp(-dt_s / tau)
         factors.append(control.tf([beta, 0.0], [1.0, -(1.0 - beta)], dt_s))
     return factors
-
-
-def head_to_tail_tf(chain: Sequence[VehicleLoop], delay_s: float = 0.0, dt_s: float = 0.1
-                    ) -> control.StateSpace:
-    """``H(z) = A_N / A_0`` as one python-control system: the series connection of
-    :func:`vehicle_factors` in state space (the product of the polynomials, of order 3 N, would
-    lose its accuracy near z = 1)."""
-    import control
-
-    factors = vehicle_factors(chain, delay_s, dt_s)
-    out = control.ss(factors[0])
-    for f in factors[1:]:
-        out = control.series(out, control.ss(f))
-    return out
 
 
 def head_to_tail_gain(omega_rad_s: np.ndarray | float, chain: Sequence[VehicleLoop],

@@ -130,6 +130,8 @@ def plot_pareto(df: Any, scenario: str, out_dir: Path, stem: str,
     """Energy per vehicle (the objective ``energy`` of :data:`ENERGY_METRICS`) against gap RMSE,
     one curve per family (its knob in order), 95 % intervals as error bars, non-dominated points
     ringed, collided settings hollow."""
+    import pandas as pd
+
     from analysis.plots import _plt, _save
 
     e = _energy_metric(energy)
@@ -139,7 +141,8 @@ def plot_pareto(df: Any, scenario: str, out_dir: Path, stem: str,
     families = list(dict.fromkeys(sub["family"]))
     cmap = plt.get_cmap("tab20")
     for j, fam in enumerate(families):
-        g = sub[sub["family"] == fam].sort_values("knob_value", key=_numeric)
+        g = sub[sub["family"] == fam].sort_values("knob_value",
+                                                   key=lambda v: pd.to_numeric(v, errors="coerce"))
         color = cmap(j % 20)
         x, y = g["gap_rmse_m_mean"].to_numpy(), g[f"{e}_mean"].to_numpy()
         xerr = np.abs(np.vstack([x - g["gap_rmse_m_ci_low"], g["gap_rmse_m_ci_high"] - x]))
@@ -165,9 +168,3 @@ def plot_pareto(df: Any, scenario: str, out_dir: Path, stem: str,
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7, ncol=2)
     return _save(fig, out_dir, stem)
-
-
-def _numeric(values: Any) -> Any:
-    import pandas as pd
-
-    return pd.to_numeric(values, errors="coerce")

@@ -35,13 +35,19 @@ def savefig_atomic(fig: Any, path: Path, **kwargs: Any) -> Path:
     return write_with(path, lambda tmp: fig.savefig(tmp, format=path.suffix[1:], **kwargs))
 
 
+def save_figure(fig: Any, out_dir: str | Path, stem: str, **kwargs: Any) -> list[Path]:
+    """Write ``out_dir/stem.png`` and ``out_dir/stem.pdf`` (``savefig`` options ``kwargs``; the
+    PNG at 150 dpi unless they give one); return their paths."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = [out / f"{stem}.png", out / f"{stem}.pdf"]
+    savefig_atomic(fig, paths[0], **{"dpi": 150, **kwargs})
+    savefig_atomic(fig, paths[1], **kwargs)
+    return paths
+
+
 def _save(fig: Any, out_dir: Path, stem: str) -> list[Path]:
-    out_dir.mkdir(parents=True, exist_ok=True)
-    paths = []
-    for ext in ("png", "pdf"):
-        p = out_dir / f"{stem}.{ext}"
-        savefig_atomic(fig, p, dpi=130, bbox_inches="tight")
-        paths.append(p)
+    paths = save_figure(fig, out_dir, stem, dpi=130, bbox_inches="tight")
     _plt().close(fig)
     return paths
 

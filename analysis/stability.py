@@ -45,6 +45,7 @@ import numpy as np
 from benchmark.string_gain import STRING_GAIN_TOL as STRING_GAIN_TOL
 from benchmark.string_gain import spacing_string_gain as spacing_string_gain
 from benchmark.string_gain import time_domain_string_gain as time_domain_string_gain
+from benchmark.sweep import Measured
 from benchmark.sweep import fit_sinusoid as fit_sinusoid
 from infra.errors import ConfigError
 from infra.interrupt import raise_if_interrupted
@@ -55,8 +56,6 @@ if TYPE_CHECKING:  # pragma: no cover
 
 #: Tolerance of the analytic norm against the bound 1 (``Gamma(0) = 1`` exactly).
 ANALYTIC_TOL = 1e-9
-
-
 
 
 @dataclass(frozen=True)
@@ -330,16 +329,14 @@ def discrete_gamma_tf(loop: PloegLoop, dt_s: float = 0.1) -> control.TransferFun
     z = P([0.0, 1.0])
     zm1, zl, za = z - 1.0, z - lam, z - alpha
     core = dt * beta * z**2 * (kp * dt * (z + 1.0) + 2.0 * kd * zm1)
+    den_core = dt * beta * z**2 * (kp * dt * (z + 1.0) + 2.0 * (kp * h + kd) * zm1)
+    den_core = den_core + 2.0 * kd * h * beta * zm1**2 * z
+    den = 2.0 * zm1**2 * zl * za + (1.0 - alpha) * den_core
     if loop.feedforward:
         num = (1.0 - alpha) * (core * z**d + 2.0 * zm1**2 * zl)
-        den_core = dt * beta * z**2 * (kp * dt * (z + 1.0) + 2.0 * (kp * h + kd) * zm1)
-        den_core = den_core + 2.0 * kd * h * beta * zm1**2 * z
-        den = (2.0 * zm1**2 * zl * za + (1.0 - alpha) * den_core) * z**d
+        den = den * z**d
     else:
         num = (1.0 - alpha) * core
-        den_core = dt * beta * z**2 * (kp * dt * (z + 1.0) + 2.0 * (kp * h + kd) * zm1)
-        den_core = den_core + 2.0 * kd * h * beta * zm1**2 * z
-        den = 2.0 * zm1**2 * zl * za + (1.0 - alpha) * den_core
     # numpy Polynomial coefficients are lowest order first; python-control wants highest first
     num_c = np.trim_zeros(num.coef[::-1], "f")
     den_c = np.trim_zeros(den.coef[::-1], "f")
@@ -360,39 +357,29 @@ def discrete_internally_stable(loop: PloegLoop, dt_s: float = 0.1) -> bool:
 # ------------------------------------------------------------------------------- empirical
 
 
-@dataclass
-class EmpiricalGain:
-    """A measured frequency sweep of one controller.
+@dataclass(frozen=True)
+class EmpiricalGain(Measured):
+    """A measured frequency sweep of one controller: :class:`benchmark.sweep.Measured` (its
+    ``gain`` the empirical ``|Gamma(jw)|``), and what was measured in what setting.
 
     Attributes
     ----------
     controller : str
         Registered name.
-    omegas_rad_s : (W,)
-        Driving frequencies.
-    pair_gain : (W, N)
-        Amplitude ratio of follower i's acceleration over its predecessor's at the driving
-        frequency; column 0 is follower 1 over the leader.
-    gain : (W,)
-        Max over the follower pairs (columns 1..N-1): the empirical ``|Gamma(jw)|``.
-    collided, saturated : (W,) bool
-        A collision; a command at its bound or a speed at 0 or the speed bound (the run left the
-        linear regime: the amplitude is too large).
-    duration_s, transient_s : float
-        Simulated time and the discarded start.
+    n_vehicles : int
+    amplitude_mps : float
+        The leader's speed amplitude.
+    delay_s, lag_s : float
+        V2V delay and actuator lag.
+    transient_s : float
+        The discarded start.
     """
 
     controller: str
-    omegas_rad_s: np.ndarray
-    pair_gain: np.ndarray
-    gain: np.ndarray
-    collided: np.ndarray
-    saturated: np.ndarray
     n_vehicles: int
     amplitude_mps: float
     delay_s: float
     lag_s: float
-    duration_s: float
     transient_s: float
 
 
@@ -455,16 +442,8 @@ def empirical_gain(
                       channel=channel, transient_s=transient_s, periods=periods,
                       min_window_s=min_window_s, seed=seed, scenario_options=scenario_options)
     return EmpiricalGain(
-        controller=controller_name,
-        omegas_rad_s=m.omegas_rad_s,
-        pair_gain=m.pair_gain,
-        gain=m.gain,
-        collided=m.collided,
-        saturated=m.saturated,
-        n_vehicles=int(n_vehicles),
-        amplitude_mps=float(amplitude_mps),
-        delay_s=float(delay_s),
-        lag_s=float(lag_s),
-        duration_s=m.duration_s,
+        **{f.name: getattr(m, f.name) for f in dataclasses.fields(m)},
+        controller=controller_name, n_vehicles=int(n_vehicles),
+        amplitude_mps=float(amplitude_mps), delay_s=float(delay_s), lag_s=float(lag_s),
         transient_s=float(transient_s),
     )

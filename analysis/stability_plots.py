@@ -1,14 +1,14 @@
 """Figures of the string-stability analysis (headless: matplotlib ``Figure`` objects, never shown).
 
 Every function takes computed data and returns a :class:`matplotlib.figure.Figure`;
-:func:`save_figure` writes it as PNG and PDF. Nothing here touches pyplot's global state.
+:func:`analysis.plots.save_figure` writes it as PNG and PDF. Nothing here touches pyplot's global
+state.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 from matplotlib.axes import Axes
@@ -144,15 +144,3 @@ def plot_peak_grid(
     ax.grid(True, alpha=0.3)
     ax.legend(fontsize=8, loc="best", ncol=2)
     return fig
-
-
-def save_figure(fig: Figure, out_dir: str | Path, stem: str) -> list[Path]:
-    """Write ``out_dir/stem.png`` (150 dpi) and ``out_dir/stem.pdf``; return their paths."""
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    paths = [out / f"{stem}.png", out / f"{stem}.pdf"]
-    from analysis.plots import savefig_atomic
-
-    savefig_atomic(fig, paths[0], dpi=150)
-    savefig_atomic(fig, paths[1])
-    return paths

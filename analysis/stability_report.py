@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from benchmark.string_gain import is_string_stable
 from envs.params import PlatoonParams
 
 SUMMARY_COLUMNS = (
@@ -122,6 +123,7 @@ def design(entries: list[Entry], time_gap_s: float, delay_s: float, lag_s: float
     requested laws' ``|Gamma|`` at other time gaps, and their figures (into ``figures_dir``)."""
     from analysis import stability as st
     from analysis import stability_plots as sp
+    from analysis.plots import save_figure
 
     out = StabilityTables()
     loops = [e.loop for e in entries if e.loop is not None]
@@ -175,10 +177,10 @@ def design(entries: list[Entry], time_gap_s: float, delay_s: float, lag_s: float
         v2v = f", θ = {delay_s:g} s" if lp.feedforward else " (no V2V)"
         panels.append((f"{label}: kp = {lp.kp:g}, kd = {lp.kd:g}, τ = {lag_s:g} s{v2v}", drawn))
     gains = f"kp = {base.kp:g}, kd = {base.kd:g}"
-    out.figures += sp.save_figure(sp.plot_gain_panels(panels), figures_dir, "gamma_time_gaps")
-    out.figures += sp.save_figure(
+    out.figures += save_figure(sp.plot_gain_panels(panels), figures_dir, "gamma_time_gaps")
+    out.figures += save_figure(
         sp.plot_h_min(delays, h_min_by_lag, acc_hmin, gains), figures_dir, "h_min_delay")
-    out.figures += sp.save_figure(
+    out.figures += save_figure(
         sp.plot_peak_grid(grid_h, delays, grid_gain, f"CACC, {gains}, τ = {lag_s:g} s"),
         figures_dir, "peak_gain_grid")
     return out
@@ -192,6 +194,7 @@ def empirical(entries: list[Entry], omegas: np.ndarray, omegas_plot: np.ndarray,
     frequency where the sweep left the linear regime (collision or saturation)."""
     from analysis import stability as st
     from analysis import stability_plots as sp
+    from analysis.plots import save_figure
 
     out = StabilityTables()
     dt_s = PlatoonParams().dt_s
@@ -218,7 +221,7 @@ def empirical(entries: list[Entry], omegas: np.ndarray, omegas_plot: np.ndarray,
             "controller": e.label, "kind": "empirical", "time_gap_s": h, "delay_s": delay_s,
             "lag_s": lag_s, "peak_gain": peak,
             "peak_omega_rad_s": float(omegas[i]) if ok.any() else math.nan, "h_min_s": None,
-            "string_stable": bool(ok.any() and peak <= 1.0 + st.STRING_GAIN_TOL),
+            "string_stable": is_string_stable(peak),
         })
         out.curves += _curve_rows(e.label, "empirical", h, delay_s, lag_s, omegas, res.gain)
         if e.loop is not None:
@@ -232,6 +235,6 @@ def empirical(entries: list[Entry], omegas: np.ndarray, omegas_plot: np.ndarray,
         drawn.append(sp.GainCurve(f"{e.label} measured (sine-v1, N = {res.n_vehicles})", omegas,
                                   res.gain, "empirical", k))
     title = f"measured vs analytic, θ = {delay_s:g} s, τ = {lag_s:g} s, A = {amplitude_mps:g} m/s"
-    out.figures += sp.save_figure(sp.plot_gain_panels([(title, drawn)]), figures_dir,
+    out.figures += save_figure(sp.plot_gain_panels([(title, drawn)]), figures_dir,
                                   "gamma_empirical")
     return out

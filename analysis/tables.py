@@ -74,12 +74,6 @@ def markdown_leaderboard(lb: Any, columns: Sequence[Column] = DEFAULT_COLUMNS) -
     return "\n".join([head, rule, *rows])
 
 
-def _sweep_tol() -> float:
-    from benchmark.sweep import SWEEP_TOL
-
-    return SWEEP_TOL
-
-
 #: Width of the printed leaderboard (``run``, ``leaderboard``): a row fits it unless its label
 #: is longer than the room left, when the label takes a line of its own (never cut).
 TERMINAL_WIDTH = 100
@@ -107,6 +101,8 @@ def format_leaderboard(lb: Any, width: int = TERMINAL_WIDTH) -> str:
     ``failed`` column only where some run failed. The other columns (tracking reward, jerk,
     V2V bits, ...) are in ``leaderboard.csv``."""
     import textwrap
+
+    from benchmark.sweep import SWEEP_TOL
 
     if len(lb) == 0:
         return "(no runs)"
@@ -143,7 +139,7 @@ def format_leaderboard(lb: Any, width: int = TERMINAL_WIDTH) -> str:
             "time-dom. str. gain: the acceleration ratio on the row's own scenario; sweep peak: "
             "the controller's peak |Gamma| over the standard frequency sweep at the row's N, "
             "V2V and lag, string stable (yes) when at most 1 + "
-            f"{_sweep_tol():g} (benchmark.sweep). "
+            f"{SWEEP_TOL:g} (benchmark.sweep). "
             "Deterministic controllers vary only through the scenario's perturbation, so their "
             "intervals are episode variation, not training variance; stochastic ones (sampled "
             "MARL policies) are marked *. A row over several training seeds (seeds=0+1+2) has a "

@@ -13,6 +13,7 @@ import numpy as np
 from benchmark.metrics import class_energy_columns
 from benchmark.rollout import Trajectory
 from benchmark.statistics import bootstrap_ci, hierarchical_bootstrap_ci
+from benchmark.string_gain import is_string_stable
 from benchmark.suite import KEY_COLUMNS
 from infra.errors import ConfigError
 
@@ -275,8 +276,6 @@ def _with_sweeps(runs: Any, sweeps: Mapping[Any, Any]) -> Any:
 def _row_sweep(grp: Any) -> dict[str, Any]:
     """A leaderboard row's :data:`SWEEP_COLUMNS`: the largest peak of its runs' settings (a
     pooled row: the worst training seed), unknown if one of them has none."""
-    from benchmark.sweep import SWEEP_TOL
-
     peaks = grp["_sweep_peak"].to_numpy(dtype=float)
     if len(peaks) == 0 or np.isnan(peaks).any():
         return {"sweep_peak_gain": math.nan, "sweep_peak_omega_rad_s": math.nan,
@@ -285,7 +284,7 @@ def _row_sweep(grp: Any) -> dict[str, Any]:
     peak = float(peaks[i])
     return {"sweep_peak_gain": peak,
             "sweep_peak_omega_rad_s": float(grp["_sweep_omega"].to_numpy(dtype=float)[i]),
-            "sweep_string_stable": bool(math.isfinite(peak) and peak <= 1.0 + SWEEP_TOL)}
+            "sweep_string_stable": is_string_stable(peak)}
 
 
 def write_csvs(

@@ -12,7 +12,7 @@ import math
 import numpy as np
 
 from benchmark.rollout import Trajectory
-from benchmark.string_gain import STRING_GAIN_TOL, spacing_string_gain, time_domain_string_gain
+from benchmark.string_gain import is_string_stable, spacing_string_gain, time_domain_string_gain
 from controllers.base import SpacingPolicy
 
 #: Columns of runs.csv that hold measured times (they differ between identical reruns).
@@ -322,7 +322,7 @@ def run_metrics(
         "reward": float(traj.reward.mean()) if steps else math.nan,
         "tracking_reward": float(traj.tracking_reward.mean()) if steps else math.nan,
         "string_gain": gain,
-        "string_stable": bool(gain <= 1.0 + STRING_GAIN_TOL) if math.isfinite(gain) else False,
+        "string_stable": is_string_stable(gain),
         "spacing_string_gain": spacing_gain,
         **dict(zip(("compute_ms_p50", "compute_ms_p95", "compute_ms_p99"),
                    _percentiles(rest, (50, 95, 99)), strict=True)),

@@ -63,7 +63,6 @@ class Progress:
                             strict=True):
                 self._left[g] = self._left.get(g, 0.0) + float(w)
         self._cost: dict[str, tuple[float, float]] = {}  # group -> (seconds, work) measured
-        self._note = ""
         self._bar: Any = None
         if self.enabled:
             from tqdm import tqdm

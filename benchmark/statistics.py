@@ -41,7 +41,12 @@ def bootstrap_ci(
         return mean, mean, mean
     rng = np.random.Generator(np.random.PCG64(seed))
     idx = rng.integers(0, x.size, size=(n_resamples, x.size))
-    means = x[idx].mean(axis=1)
+    return _percentile_interval(mean, x[idx].mean(axis=1), confidence)
+
+
+def _percentile_interval(mean: float, means: np.ndarray, confidence: float
+                         ) -> tuple[float, float, float]:
+    """``mean`` and the central ``confidence`` interval of the resampled ``means``."""
     alpha = (1.0 - confidence) / 2.0
     lo, hi = np.quantile(means, [alpha, 1.0 - alpha])
     return mean, float(lo), float(hi)
@@ -94,10 +99,7 @@ def hierarchical_bootstrap_ci(
             idx = rng.integers(0, a.size, size=(m, a.size))
             sums[sel] += a[idx].sum(axis=1)
             counts[sel] += a.size
-    means = sums / counts
-    alpha = (1.0 - confidence) / 2.0
-    lo, hi = np.quantile(means, [alpha, 1.0 - alpha])
-    return mean, float(lo), float(hi)
+    return _percentile_interval(mean, sums / counts, confidence)
 
 
 #: Statistics of :func:`paired_ci`, per episode, from ``ours`` and ``other`` (seeds averaged).
@@ -167,6 +169,4 @@ def paired_ci(
                          np.take_along_axis(rb, episodes, axis=1).mean(1))
     else:
         means = np.take_along_axis(stat(ra, rb), episodes, axis=1).mean(1)
-    alpha = (1.0 - confidence) / 2.0
-    lo, hi = np.quantile(means, [alpha, 1.0 - alpha])
-    return mean, float(lo), float(hi)
+    return _percentile_interval(mean, means, confidence)

@@ -11,6 +11,8 @@ leaderboard row carries, is :mod:`benchmark.sweep`.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 #: Tolerance of the time-domain and empirical string gains: string stable if gain <= 1 + tol
@@ -18,14 +20,9 @@ import numpy as np
 STRING_GAIN_TOL = 1e-2
 
 
-def _norm_ratio(x: np.ndarray, min_norm: float) -> np.ndarray | float:
-    norms = np.linalg.norm(np.asarray(x, dtype=np.float64), axis=-2)  # (..., V)
-    num, den = norms[..., 1:], norms[..., :-1]
-    ok = den > min_norm
-    ratio = np.where(ok, num / np.where(ok, den, 1.0), -np.inf)
-    out = np.max(ratio, axis=-1)
-    out = np.where(np.isfinite(out), out, np.nan)
-    return float(out) if out.ndim == 0 else out
+def is_string_stable(gain: float) -> bool:
+    """Whether a measured string gain is at most ``1 + STRING_GAIN_TOL`` (NaN, inf: never)."""
+    return bool(math.isfinite(gain) and gain <= 1.0 + STRING_GAIN_TOL)
 
 
 def time_domain_string_gain(accel_mps2: np.ndarray, min_norm: float = 1e-9) -> np.ndarray | float:
@@ -44,9 +41,15 @@ def time_domain_string_gain(accel_mps2: np.ndarray, min_norm: float = 1e-9) -> n
     float or (...) array
         String stable if ``<= 1 + STRING_GAIN_TOL``.
     """
-    return _norm_ratio(accel_mps2, min_norm)
+    norms = np.linalg.norm(np.asarray(accel_mps2, dtype=np.float64), axis=-2)  # (..., V)
+    num, den = norms[..., 1:], norms[..., :-1]
+    ok = den > min_norm
+    ratio = np.where(ok, num / np.where(ok, den, 1.0), -np.inf)
+    out = np.max(ratio, axis=-1)
+    out = np.where(np.isfinite(out), out, np.nan)
+    return float(out) if out.ndim == 0 else out
 
 
 def spacing_string_gain(spacing_error_m: np.ndarray, min_norm: float = 1e-9) -> np.ndarray | float:
     """``max_{i>=2} ||e_i||_2 / ||e_{i-1}||_2`` on spacing errors ``(..., T, N)`` of followers."""
-    return _norm_ratio(spacing_error_m, min_norm)
+    return time_domain_string_gain(spacing_error_m, min_norm)

@@ -137,12 +137,15 @@ def _setting(key: RunKey) -> tuple[PlatoonParams, ChannelConfig]:
     return params, ChannelConfig(key.comm_delay_s, key.packet_loss, params.dt_s)
 
 
-def _finish(record: dict, traj: Any, target_gap_m: float, target_speed_mps: float,
-            keep_trajectory: bool, controller: Any = None) -> dict:
+def _finish(record: dict, traj: Any, scenario: Scenario, keep_trajectory: bool,
+            controller: Any) -> dict:
+    """``record`` with the policy ``controller`` acted with and the metrics of its run ``traj``
+    on ``scenario``."""
     from benchmark.metrics import run_metrics
 
-    spacing = (controller.spacing_policy(target_gap_m, target_speed_mps)
-               if controller is not None else None)
+    record["policy_sha256"] = str(getattr(controller, "policy_sha256", ""))
+    target_gap_m, target_speed_mps = scenario.target_gap_m, scenario.target_speed_mps
+    spacing = controller.spacing_policy(target_gap_m, target_speed_mps)
     record.update(run_metrics(traj, target_gap_m, target_speed_mps, spacing))
     if spacing is not None:  # the controller's own gap target, for the figures
         record["spacing_standstill_m"] = float(spacing.standstill_m)
@@ -169,9 +172,7 @@ def execute_run(key: RunKey, keep_trajectory: bool = False) -> dict:
         params, channel = _setting(key)
         traj = rollout(controller, scenario, key.n_vehicles, key.seed, params, channel,
                        key.simulator)
-        record["policy_sha256"] = str(getattr(controller, "policy_sha256", ""))
-        _finish(record, traj, scenario.target_gap_m, scenario.target_speed_mps, keep_trajectory,
-                controller)
+        _finish(record, traj, scenario, keep_trajectory, controller)
     except Exception as exc:  # a failing controller must not end the sweep
         raise_if_interrupted()  # an interrupted run is not a failed run: it is not stored
         record["status"] = "failed"
@@ -212,13 +213,10 @@ def execute_batch(keys: Sequence[RunKey], keep_trajectory: bool = False) -> list
         return [execute_run(k, keep_trajectory) for k in keys]
     wall_s = (time.perf_counter() - t0) / len(keys)
     records = []
-    policy = str(getattr(controller, "policy_sha256", ""))
     for key, traj in zip(keys, trajs, strict=True):
         record = _record(key)
         record["deterministic"] = bool(getattr(controller, "deterministic", True))
-        record["policy_sha256"] = policy
-        _finish(record, traj, scenario.target_gap_m, scenario.target_speed_mps, keep_trajectory,
-                controller)
+        _finish(record, traj, scenario, keep_trajectory, controller)
         record["wall_s"] = wall_s
         records.append(record)
     return records

@@ -41,7 +41,7 @@ from typing import Any
 
 import numpy as np
 
-from benchmark.string_gain import STRING_GAIN_TOL
+from benchmark.string_gain import STRING_GAIN_TOL, is_string_stable
 from envs.channel import ChannelConfig
 from envs.params import PlatoonParams
 from envs.scenarios import EpisodeBatch, Scenario, make_scenario, scenario_spec
@@ -184,8 +184,6 @@ def _sine_episodes(sc: Scenario, seeds: np.ndarray, u: np.ndarray, n: int, *,
         speed_mps=np.concatenate([p.speed_mps for p in parts]),
         leader_speed_mps=np.concatenate([p.leader_speed_mps for p in parts]),
     )
-
-
 
 
 def measure_gains(
@@ -360,7 +358,7 @@ class SweepResult:
     @property
     def string_stable(self) -> bool:
         """Whether the peak is at most ``1 + SWEEP_TOL`` (a collision never is)."""
-        return bool(math.isfinite(self.peak_gain) and self.peak_gain <= 1.0 + SWEEP_TOL)
+        return is_string_stable(self.peak_gain)
 
     @property
     def key(self) -> str:

@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from controllers.registry import build_config
 from envs.channel import ChannelConfig, V2VChannel
 from envs.humans import Arrangement
 from envs.params import PlatoonParams
@@ -202,6 +203,21 @@ class EpisodeContext:
         """V2V bits sent so far by all channels, over all episodes of the batch."""
         return sum(ch.bits_sent for ch in self.channels.values())
 
+    def class_groups(self) -> list[tuple[PlatoonParams, np.ndarray]] | None:
+        """On a string of vehicle classes (:mod:`envs.vehicle_classes`): each distinct physics
+        (the run's, with a class's actuator lag and acceleration bounds) and its seats ``(k,)``,
+        in the order of their first seat; None: the homogeneous platoon."""
+        vehicles = self.scenario.vehicle_arrays(self.n_vehicles, self.params)
+        if vehicles is None:
+            return None
+        seats: dict[PlatoonParams, list[int]] = {}
+        for i in range(self.n_vehicles):
+            p_i = dataclasses.replace(self.params, lag_s=float(vehicles.lag_s[i]),
+                                      accel_min_mps2=float(vehicles.accel_min_mps2[i]),
+                                      accel_max_mps2=float(vehicles.accel_max_mps2[i]))
+            seats.setdefault(p_i, []).append(i)
+        return [(p_i, np.array(s, dtype=np.int64)) for p_i, s in seats.items()]
+
 
 class Controller(ABC):
     """Base class of every controller (linear law, MPC, learned policy).
@@ -236,11 +252,17 @@ class Controller(ABC):
     drives_mixed: bool = True
     #: Whether it needs a scripted leader (its profile or broadcast): refused on a ring.
     needs_leader: bool = False
+    #: The frozen config dataclass whose fields are the controller's options (None: its options
+    #: are its constructor's keyword arguments); :meth:`__init__` builds :attr:`config` from it.
+    config_cls: type | None = None
+    config: Any
     _policy_sha256: str = ""
 
-    def __init__(self) -> None:
+    def __init__(self, **options: object) -> None:
         self.solver_failures = 0
-        self.options: dict[str, object] = {}
+        self.options: dict[str, object] = dict(options)
+        if self.config_cls is not None:  # strings coerced, unknown options refused
+            self.config = build_config(self.config_cls, options, self.name)
 
     @property
     def policy_sha256(self) -> str:

@@ -17,7 +17,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from controllers.base import ClosedLoop, Controller, EpisodeContext
-from controllers.registry import build_config
 from envs.dynamics import action_to_command_mps2
 from envs.params import VALIDATION_SEEDS, PlatoonParams, check_decision_seeds
 from envs.platoon import PlatoonState
@@ -92,8 +91,9 @@ def duty_scores(
                 "duty: choosing k runs episodes through the benchmark's closed loop; run duty "
                 "through benchmark.rollout (cacc-bench run), pass "
                 "closed_loop=benchmark.rollout.rollout_batch, or give k")
-        ks = np.repeat(np.arange(1, k_max + 1), len(seed_list))
-        trajs = closed_loop(_Schedules(ks), sc, n_vehicles, seed_list * k_max, params)
+        schedules = DutyController(k=1)  # no search of its own: a k per episode, ks
+        schedules.ks = ks = np.repeat(np.arange(1, k_max + 1), len(seed_list))
+        trajs = closed_loop(schedules, sc, n_vehicles, seed_list * k_max, params)
         out = []
         for k in range(1, k_max + 1):
             mine = [t for t, kk in zip(trajs, ks, strict=True) if kk == k]
@@ -117,30 +117,6 @@ def best_k(
     return min(scores, key=lambda r: (r[1], -r[2], r[0]))[0]
 
 
-class _Schedules(Controller):
-    """Duty schedules with a k per episode (the search's batch; not a registered controller)."""
-
-    name = "duty"
-    family = "human"
-    drives_mixed = False  # a schedule of the paper's actions, for its homogeneous platoon
-    needs_leader = True
-    batch_invariant = True
-
-    def __init__(self, ks: np.ndarray) -> None:
-        super().__init__()
-        self.ks = ks
-
-    def reset(self, ctx: EpisodeContext) -> None:
-        self.params = ctx.params
-        self.t = 0
-
-    def act(self, state: PlatoonState, observation: np.ndarray | None) -> np.ndarray:
-        actions = duty_actions(self.t, self.ks, state.gap_m.shape)
-        self.t += 1
-        return action_to_command_mps2(
-            actions, state.gap_m, state.speed_mps, state.pred_speed_mps, self.params)
-
-
 class DutyController(Controller):
     """OVM action 3 every k-th step, action 2 otherwise, for every follower."""
 
@@ -148,16 +124,15 @@ class DutyController(Controller):
     family = "human"
     drives_mixed = False  # a schedule of the paper's actions, for its homogeneous platoon
     needs_leader = True
-    deterministic = True
     batch_invariant = True
-
     config_cls = DutyConfig
+    config: DutyConfig
 
     def __init__(self, **options: object) -> None:
-        super().__init__()
-        self.config: DutyConfig = build_config(self.config_cls, options, "duty")
-        self.options = dict(options)
+        super().__init__(**options)
         self.chosen_k: int | None = self.config.k
+        #: the search's batch (:func:`duty_scores`): a k per episode, instead of ``chosen_k``
+        self.ks: np.ndarray | None = None
 
     def reset(self, ctx: EpisodeContext) -> None:
         self.params = ctx.params
@@ -167,8 +142,9 @@ class DutyController(Controller):
         self.t = 0
 
     def act(self, state: PlatoonState, observation: np.ndarray | None) -> np.ndarray:
-        assert self.chosen_k is not None
-        actions = duty_actions(self.t, self.chosen_k, state.gap_m.shape)
+        k = self.chosen_k if self.ks is None else self.ks
+        assert k is not None
+        actions = duty_actions(self.t, k, state.gap_m.shape)
         self.t += 1
         return action_to_command_mps2(
             actions, state.gap_m, state.speed_mps, state.pred_speed_mps, self.params

@@ -21,7 +21,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from controllers.base import Controller, EpisodeContext
-from controllers.registry import build_config
 from envs.humans import (
     Arrangement,
     HumanDrivers,
@@ -93,15 +92,11 @@ class IDMController(Controller):
     family = "human"
     deterministic = True  # the noise is a pure function of (episode seed, step, seat)
     batch_invariant = True
-    drives_mixed = True
-    needs_leader = False
-
     config_cls = IDMConfig
+    config: IDMConfig
 
     def __init__(self, **options: object) -> None:
-        super().__init__()
-        self.config: IDMConfig = build_config(self.config_cls, options, "idm")
-        self.options = dict(options)
+        super().__init__(**options)
         self._drivers: HumanDrivers | None = None
 
     def reset(self, ctx: EpisodeContext) -> None:

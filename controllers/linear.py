@@ -40,7 +40,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from controllers.base import Controller, EpisodeContext, Message, SpacingPolicy
-from controllers.registry import build_config
 from envs.channel import V2VChannel
 from envs.params import PlatoonParams
 from envs.platoon import PlatoonState
@@ -167,8 +166,9 @@ class ACCConfig(PloegConfig):
             raise ConfigError("acc has no V2V feedforward; use the cacc controller for it")
 
 
-class PloegController(Controller):
-    """Ploeg's constant time-gap law for every follower, batched over episodes.
+class CACCController(Controller):
+    """``cacc``: Ploeg's constant time-gap law for every follower, batched over episodes, the
+    predecessor's commanded acceleration as feedforward over V2V (``acc``: without it).
 
     Parameters
     ----------
@@ -179,15 +179,12 @@ class PloegController(Controller):
 
     name = "cacc"
     family = "linear"
-    deterministic = True
     batch_invariant = True
-    needs_observation = False
     config_cls: type[PloegConfig] = PloegConfig
+    config: PloegConfig
 
     def __init__(self, **options: object) -> None:
-        super().__init__()
-        self.config: PloegConfig = build_config(self.config_cls, options, self.name)
-        self.options = dict(options)
+        super().__init__(**options)
         self._channel: V2VChannel | None = None
         self._alpha: float | np.ndarray = 0.0
         self._standstill_m: float | np.ndarray = 0.0
@@ -272,14 +269,7 @@ class PloegController(Controller):
         return c.copy()
 
 
-class CACCController(PloegController):
-    """``cacc``: Ploeg's CACC, the predecessor's commanded acceleration as feedforward over V2V."""
-
-    name = "cacc"
-    config_cls = PloegConfig
-
-
-class ACCController(PloegController):
+class ACCController(CACCController):
     """``acc``: the same constant time-gap law with the feedforward off and no V2V."""
 
     name = "acc"

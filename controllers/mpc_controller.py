@@ -30,7 +30,6 @@ follower solves the one of its class; the homogeneous platoon builds the one pro
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from abc import abstractmethod
 from typing import Any
@@ -49,7 +48,6 @@ from controllers.mpc_model import (
     shift_and_hold,
 )
 from controllers.mpc_optimiser import MPCConfig, SolveResult
-from controllers.registry import build_config
 from envs.channel import V2VChannel
 from envs.params import PlatoonParams
 from envs.platoon import PlatoonState
@@ -76,17 +74,11 @@ def acc_fallback_mps2(gap_m: np.ndarray | float, speed_mps: np.ndarray | float,
 
 
 class MPCController(Controller):
-    """What every MPC controller shares: its options, built from ``config_cls``."""
+    """What every MPC controller shares: its family and the options of :class:`MPCConfig`
+    (a variant's ``config_cls`` extends them)."""
 
     family = "mpc"
-    deterministic = True
-    needs_observation = False
     config_cls: type = MPCConfig
-
-    def __init__(self, **options: Any) -> None:
-        super().__init__()
-        self.config = build_config(self.config_cls, options, self.name)
-        self.options = dict(options)
 
 
 class DistributedMPCBase(MPCController):
@@ -98,11 +90,9 @@ class DistributedMPCBase(MPCController):
     seat, running episode and step (human seats are not solved; module docstring).
     """
 
-    solver: Any  # set by _build
-
     def __init__(self, **options: Any) -> None:
         super().__init__(**options)
-        self._built_for: tuple[Any, ...] | None = None
+        self.solver: Any = None  # set by _build
         self.solve_count = 0
         #: built problems by physics: (model, layout, solver) (vehicle classes: one per class)
         self._problems: dict[PlatoonParams, tuple[VehicleModel, ParamLayout, Any]] = {}
@@ -125,45 +115,30 @@ class DistributedMPCBase(MPCController):
 
     # -- Controller API
     def prepare(self, params: PlatoonParams = PlatoonParams()) -> None:
-        """Build the problem for these physics (done by :meth:`reset`; kept across resets)."""
-        self.params = params
-        self.model = VehicleModel.from_params(params)
-        self.layout = ParamLayout(self.model.nx, self.config.horizon)
-        key = (self.model, params)
-        if self._built_for != key:
+        """Make the problem of these physics the current one: built once, then kept across
+        resets (:meth:`reset` prepares the run's, and each vehicle class's)."""
+        if params not in self._problems:
+            self.params = params
+            self.model = VehicleModel.from_params(params)
+            self.layout = ParamLayout(self.model.nx, self.config.horizon)
             self._build()
-            self._built_for = key
+            self._problems[params] = (self.model, self.layout, self.solver)
+        self.params = params
+        self.model, self.layout, self.solver = self._problems[params]
 
     def messages(self, ctx: EpisodeContext) -> tuple[Message, ...]:
         """The assumed speed plan to the follower behind: its stamp and H+1 speeds (none held
         before the first one: NaN)."""
         return (Message("mpc_plan", self.config.horizon + 2, "predecessor", initial=math.nan),)
 
-    def _use(self, params: PlatoonParams) -> None:
-        """Make the problem of ``params`` the current one (built once, then kept)."""
-        if params not in self._problems:
-            self.prepare(params)
-            self._problems[params] = (self.model, self.layout, self.solver)
-        self.params = params
-        self.model, self.layout, self.solver = self._problems[params]
-        self._built_for = (self.model, params)
-
     def reset(self, ctx: EpisodeContext) -> None:
         self.prepare(ctx.params)
-        self._groups = None
         self._run_params = ctx.params
-        vehicles = ctx.scenario.vehicle_arrays(ctx.n_vehicles, ctx.params)
-        if vehicles is not None:  # one problem per class: its lag and bounds
-            seats: dict[PlatoonParams, list[int]] = {}
-            for i in range(ctx.n_vehicles):
-                p_i = dataclasses.replace(ctx.params, lag_s=float(vehicles.lag_s[i]),
-                                          accel_min_mps2=float(vehicles.accel_min_mps2[i]),
-                                          accel_max_mps2=float(vehicles.accel_max_mps2[i]))
-                seats.setdefault(p_i, []).append(i)
-            self._groups = [(p_i, np.array(s, dtype=np.int64)) for p_i, s in seats.items()]
+        self._groups = ctx.class_groups()
+        if self._groups is not None:  # one problem per class: its lag and bounds
             for p_i, _ in self._groups:
-                self._use(p_i)
-            self._use(self._groups[0][0])
+                self.prepare(p_i)
+            self.prepare(self._groups[0][0])
         h = self.config.horizon
         self.target_gap_m = ctx.target_gap_m
         self.target_speed_mps = ctx.target_speed_mps
@@ -213,7 +188,7 @@ class DistributedMPCBase(MPCController):
             u = np.clip(u, params.accel_min_mps2, params.accel_max_mps2)
         else:  # each class's seats with its own problem and bounds
             for p_i, seats in self._groups:
-                self._use(p_i)
+                self.prepare(p_i)
                 self._solve_seats(state, seats, vp, vhat, vp_meas, u_shift, u, plan_v, plan_u)
                 u[:, seats] = np.clip(u[:, seats], p_i.accel_min_mps2, p_i.accel_max_mps2)
         self._last_u = u.copy()
@@ -228,7 +203,7 @@ class DistributedMPCBase(MPCController):
                      vhat: np.ndarray, vp_meas: np.ndarray, u_shift: np.ndarray | None,
                      u: np.ndarray, plan_v: np.ndarray, plan_u: np.ndarray) -> None:
         """Solve the problems of the automated ``seats`` with the current problem
-        (:meth:`_use`), writing their commands and plans into ``u``, ``plan_v``, ``plan_u``."""
+        (:meth:`prepare`), writing their commands and plans into ``u``, ``plan_v``, ``plan_u``."""
         params = self.params
         automated = state.automated_mask
         b = state.gap_m.shape[0]

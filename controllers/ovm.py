@@ -7,7 +7,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from controllers.base import Controller, EpisodeContext
-from controllers.registry import build_config
 from envs.dynamics import ovm_command_mps2
 from envs.platoon import PlatoonState
 from infra.errors import ConfigError
@@ -30,15 +29,9 @@ class OVMController(Controller):
 
     name = "ovm"
     family = "human"
-    deterministic = True
     batch_invariant = True
-
     config_cls = OVMConfig
-
-    def __init__(self, **options: object) -> None:
-        super().__init__()
-        self.config: OVMConfig = build_config(self.config_cls, options, "ovm")
-        self.options = dict(options)
+    config: OVMConfig
 
     def reset(self, ctx: EpisodeContext) -> None:
         self.params = ctx.params

@@ -90,7 +90,6 @@ class ControllerSpec:
 CONTROLLERS: dict[str, ControllerSpec] = {}
 
 
-
 def register_controller(spec: ControllerSpec) -> None:
     """Add a controller preset (registering one adds it to the parametrised tests)."""
     CONTROLLERS[spec.name] = spec
@@ -416,8 +415,6 @@ def controller_options(name: str) -> dict[str, Any]:
         return {f.name: (f.default if f.default is not dataclasses.MISSING
                          else f.default_factory())  # type: ignore[misc,operator]
                 for f in dataclasses.fields(config_cls) if f.init}
-    import inspect
-
     params = inspect.signature(factory).parameters.values()
     return {p.name: p.default for p in params
             if p.kind is p.POSITIONAL_OR_KEYWORD and p.name not in spec.fixed

@@ -14,7 +14,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from controllers.base import Controller, EpisodeContext
-from controllers.registry import build_config
 from envs.params import PlatoonParams
 from envs.platoon import PlatoonState
 from envs.scenarios import Scenario, check_vehicles
@@ -33,13 +32,7 @@ class RealACCRecord(Controller):
     family = "data"
     drives_mixed = False  # recorded cars: the real platoon, as it drove
     needs_leader = True
-    deterministic = True
-
-    config_cls = RealACCConfig
-
-    def __init__(self, **options: object) -> None:
-        super().__init__()
-        build_config(self.config_cls, options, self.name)
+    config_cls = RealACCConfig  # no options: any given one is refused
 
     def preflight(self, scenario: Scenario, n_vehicles: int, params: object = None) -> None:
         """Check that the scenario is an OpenACC replay that holds ``n_vehicles`` followers."""

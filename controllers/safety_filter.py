@@ -407,17 +407,11 @@ class SafetyFilter(Controller):
         #: options with the predecessor's assumed braking of the run (no class brakes harder
         #: than the run's bound) and its seats; None: the homogeneous platoon
         self._groups: list[tuple[PlatoonParams, SafetyFilterConfig, np.ndarray]] | None = None
-        vehicles = ctx.scenario.vehicle_arrays(ctx.n_vehicles, ctx.params)
-        if vehicles is not None:
+        groups = ctx.class_groups()
+        if groups is not None:
             cfg = dataclasses.replace(self.config, pred_brake_mps2=self.config.brake_mps2(
                 ctx.params))
-            seats: dict[PlatoonParams, list[int]] = {}
-            for i in range(ctx.n_vehicles):
-                p_i = dataclasses.replace(ctx.params, lag_s=float(vehicles.lag_s[i]),
-                                          accel_min_mps2=float(vehicles.accel_min_mps2[i]),
-                                          accel_max_mps2=float(vehicles.accel_max_mps2[i]))
-                seats.setdefault(p_i, []).append(i)
-            self._groups = [(p_i, cfg, np.array(v, dtype=np.int64)) for p_i, v in seats.items()]
+            self._groups = [(p_i, cfg, seats) for p_i, seats in groups]
         self.interventions = np.zeros(ctx.batch_size, dtype=np.int64)
         self.correction_sum_mps2 = np.zeros(ctx.batch_size)
 

@@ -37,7 +37,6 @@ from typing import Any
 import numpy as np
 
 from controllers.base import Controller, EpisodeContext, Message, SpacingPolicy
-from controllers.registry import build_config
 from envs.platoon import PlatoonState
 from envs.sumo.env import ROAD_SPEED_LIMIT_MPS
 from envs.sumo.models import SumoModel
@@ -140,24 +139,19 @@ class SumoModelController(Controller):
     """
 
     family = "linear"
-    deterministic = True
-    batch_invariant = False
-    needs_observation = False
     runs_in = "sumo"
     config_cls = SumoModelConfig
+    config: SumoModelConfig
 
     def __init__(self, model: str, **options: object) -> None:
-        super().__init__()
         if model not in MODELS:
             raise ConfigError(f"unknown SUMO model {model!r}; the models: {', '.join(MODELS)}")
         foreign = [k for k in options if k not in MODEL_OPTIONS[model]]
         if foreign:
             raise ConfigError(f"{model} has no option {foreign[0]!r}; its options are: "
                               f"{', '.join(MODEL_OPTIONS[model])}")
-        self.name = model
-        self.model = model
-        self.config: SumoModelConfig = build_config(SumoModelConfig, options, model)
-        self.options = dict(options)
+        self.name = self.model = model
+        super().__init__(**options)
         self.needs_leader = model == "plexe:path"
         self.sumo_model: SumoModel | None = None
         self._channels: tuple[Any, ...] = ()

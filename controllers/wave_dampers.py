@@ -72,7 +72,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from controllers.base import Controller, EpisodeContext
-from controllers.registry import build_config
 from envs.platoon import PlatoonState
 from infra.errors import ConfigError
 
@@ -152,18 +151,12 @@ class FollowerStopperController(Controller):
 
     name = "followerstopper"
     family = "linear"  # a hand-designed feedback law (piecewise linear in the gap)
-    deterministic = True
     batch_invariant = True
-    drives_mixed = True
-    needs_leader = False
-
     config_cls = FollowerStopperConfig
+    config: FollowerStopperConfig
 
     def __init__(self, **options: object) -> None:
-        super().__init__()
-        self.config: FollowerStopperConfig = build_config(self.config_cls, options,
-                                                          "followerstopper")
-        self.options = dict(options)
+        super().__init__(**options)
         self.set_speed_mps = 0.0
         self.dt_s = 0.1
 
@@ -243,18 +236,12 @@ class PISaturationController(Controller):
 
     name = "pi-saturation"
     family = "linear"  # a hand-designed feedback law (a saturated PI on the speed)
-    deterministic = True
     batch_invariant = True
-    drives_mixed = True
-    needs_leader = False
-
     config_cls = PISaturationConfig
+    config: PISaturationConfig
 
     def __init__(self, **options: object) -> None:
-        super().__init__()
-        self.config: PISaturationConfig = build_config(self.config_cls, options,
-                                                       "pi-saturation")
-        self.options = dict(options)
+        super().__init__(**options)
         self.dt_s = 0.1
         self.window = pi_window_steps(self.dt_s, self.config.window_s)
         self._speeds = np.zeros((0, 0, 0))
