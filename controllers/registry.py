@@ -35,7 +35,13 @@ from infra.naming import (
     is_reference,
     parse_named_list,
 )
-from infra.plugins import canonical_reference, entry_points, first_line, import_reference
+from infra.plugins import (
+    canonical_reference,
+    entry_points,
+    first_line,
+    import_reference,
+    load_plugin,
+)
 from marl.learners import LEARNERS
 
 if TYPE_CHECKING:
@@ -140,17 +146,18 @@ def _plugin_spec(name: str, target: str) -> ControllerSpec:
     ConfigError
         One line for each way it fails (:func:`infra.plugins.import_reference`, and the above).
     """
-    spec = _PLUGINS.get(name)
-    if spec is not None:
-        return spec
-    from controllers.base import FAMILIES, Controller
-
-    who = f"controller {name}" + (f" ({target})" if target != name else "")
     module = target.split(":", 1)[0]
     if target == name and module in CONTROLLERS:
         raise ConfigError(f"controller {name}: an option is written key=value ({module}:key=value); "
                           f"{module} is a built-in controller, not a module")
-    cls = import_reference(target, who)
+    return load_plugin(_PLUGINS, "controller", name, target,
+                       lambda cls, who: _controller_spec(cls, who, name, target))
+
+
+def _controller_spec(cls: Any, who: str, name: str, target: str) -> ControllerSpec:
+    """The spec of the object ``cls`` a reference found, checked as :func:`_plugin_spec` says."""
+    from controllers.base import FAMILIES, Controller
+
     if not (isinstance(cls, type) and issubclass(cls, Controller)):
         raise ConfigError(f"{who}: {target.split(':', 1)[1]} is not a controller class: a "
                           "controller subclasses controllers.base.Controller (docs/contributing.md, "
@@ -168,10 +175,9 @@ def _plugin_spec(name: str, target: str) -> ControllerSpec:
                           "argument of its constructor a default (its options are keyword "
                           "arguments with defaults, set as name:key=value)")
     doc = (cls.__doc__ or "").strip().splitlines()
-    spec = ControllerSpec(name, cls.family, str(getattr(cls, "v2v", "what its messages() declare")),
-                          doc[0] if doc else f"{cls.__name__} from {module}", target)
-    _PLUGINS[name] = spec
-    return spec
+    return ControllerSpec(name, cls.family, str(getattr(cls, "v2v", "what its messages() declare")),
+                          doc[0] if doc else f"{cls.__name__} from {target.split(':', 1)[0]}",
+                          target)
 
 
 def _required_arguments(cls: type) -> list[str]:
