@@ -405,7 +405,7 @@ def as_on_scenario(name: str, options: Mapping[str, Any], scenario: Scenario | s
         return opts
     from benchmark.rollout import rollout_batch
     from controllers.duty import DutyConfig, best_k
-    from controllers.registry import build_config
+    from infra.naming import build_config
 
     cfg = build_config(DutyConfig, opts, "duty")
     opts["k"] = best_k(sc, n_vehicles, cfg.k_max, params, rollout_batch)

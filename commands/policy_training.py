@@ -25,9 +25,9 @@ BUDGET_OVERSHOOT = 0.05
 
 def tuned_config(algo: str, config_scenario: str, extra: dict[str, Any], label: str) -> Any:
     """The config of ``algo`` with its tuned options on ``config_scenario`` and ``extra`` on
-    top, built and checked once (:func:`commands.train.learner_config`)."""
-    from commands.train import learner_config
+    top, built and checked once (:func:`marl.training.learner_config`)."""
     from marl.config import tuned_options
+    from marl.training import learner_config
 
     return learner_config(algo, {**tuned_options(algo, config_scenario), **extra},
                           f"{label} (tuned)")

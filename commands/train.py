@@ -377,7 +377,7 @@ def _names(text: str, flag: str) -> list[str]:
 
 def set_options(items: Sequence[str]) -> dict[str, str]:
     """``--set KEY=VALUE`` items (repeatable; a later one wins) as options, untyped: the one
-    parser of ``train`` and ``tune`` (:func:`learner_config` types and checks them)."""
+    parser of ``train`` and ``tune`` (:func:`marl.training.learner_config` types and checks them)."""
     options: dict[str, str] = {}
     for item in items:
         key, sep, value = item.partition("=")
@@ -387,20 +387,6 @@ def set_options(items: Sequence[str]) -> dict[str, str]:
             raise ConfigError("--set algo: name the learner with --algo")
         options[key.strip()] = value.strip()
     return options
-
-
-def learner_config(algo: str, options: dict[str, Any], owner: str = "") -> Any:
-    """The config of ``algo`` (:func:`marl.training.config_class`) with ``options`` (strings
-    typed, values checked by :func:`controllers.registry.build_config`, the one option rule)."""
-    import dataclasses
-
-    from controllers.registry import build_config
-    from marl.training import config_class
-
-    cls = config_class(algo)
-    if "algo" in {f.name for f in dataclasses.fields(cls)}:  # one config for several learners
-        options = {**options, "algo": algo}
-    return build_config(cls, options, owner or f"{algo} (--set)")
 
 
 def main(argv: list[str]) -> int:
@@ -420,7 +406,7 @@ def main(argv: list[str]) -> int:
     from marl.arithmetic import process_env
     from marl.config import training_device, tuned_options
     from marl.learners import LEARNERS, PAPER_ALGORITHMS
-    from marl.training import TrainingKey, finished
+    from marl.training import TrainingKey, finished, learner_config
 
     args = _parser().parse_args(argv)
     check_ray_address(args.ray_address)  # an address that does not answer: refused before work

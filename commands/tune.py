@@ -187,7 +187,7 @@ class StudyJob:
         The tuning folder (the study file under ``studies/``, the trials under ``trials/``).
     fixed : dict
         ``--set`` fields of a shared learner fixed in every trial (untyped strings, typed by
-        :func:`commands.train.learner_config`).
+        :func:`marl.training.learner_config`).
     """
 
     algo: str
@@ -240,11 +240,11 @@ def _run_study(job: StudyJob, name: str, out: Path, storage: str) -> list[dict]:
     import optuna
 
     from benchmark.policy_eval import validation_evaluator
-    from controllers.registry import build_config
     from infra.interrupt import held, raise_if_interrupted
     from marl.checkpoint import load_checkpoint
     from marl.config import algorithm
     from marl.selection import run_training
+    from marl.training import learner_config
 
     algo_name, scenario, n = job.algo, job.scenario, job.vehicles
     study = optuna.create_study(study_name=name, storage=storage, direction="maximize",
@@ -284,7 +284,7 @@ def _run_study(job: StudyJob, name: str, out: Path, storage: str) -> list[dict]:
                 options = {**job.fixed, **options}
             else:
                 assert algo is not None
-                config = build_config(algo.config_cls, options, f"{algo_name} (tune)")
+                config = learner_config(algo_name, options, f"{algo_name} (tune)")
                 result = run_training(algo, config, scenario, n, job.steps, job.seed, run_dir,
                                       evaluate=validation_evaluator(algo_name, scenario, n))
                 assert result.checkpoint is not None
@@ -315,9 +315,9 @@ def _run_study(job: StudyJob, name: str, out: Path, storage: str) -> list[dict]:
 def _shared_trial(job: StudyJob, options: dict[str, Any], run_dir: Path) -> dict[str, float]:
     """Train one ``ippo``/``mappo`` trial (fixed ``--set`` fields, then the trial's) and return
     its kept snapshot's validation numbers under the paper learners' summary keys."""
-    from commands.train import learner_config, train_job
+    from commands.train import train_job
     from marl.checkpoint import load_checkpoint
-    from marl.training import TrainingKey, finished
+    from marl.training import TrainingKey, finished, learner_config
 
     key = TrainingKey(job.algo, job.scenario, job.vehicles, (job.seed,), job.steps,
                       learner_config(job.algo, {**job.fixed, **options}), run_dir)
@@ -356,7 +356,8 @@ def main(argv: list[str]) -> int:
         if not all(a in SHARED_TUNED for a in algos):
             raise ConfigError(f"--set fixes a field of {'/'.join(SHARED_TUNED)} only; tune "
                               "the paper's algorithms without it")
-        from commands.train import learner_config, set_options
+        from commands.train import set_options
+        from marl.training import learner_config
 
         fixed = set_options(args.overrides)
         for key in fixed:
@@ -377,7 +378,7 @@ def main(argv: list[str]) -> int:
     check_range(args.steps, "--steps", 1, MAX_TRAIN_STEPS)
     check_seeds([args.seed], "--seed", MAX_TRAIN_SEED)  # the trials' training seed
     if any(a in SHARED_TUNED for a in algos):  # every trial's rollout fits its budget
-        from commands.train import learner_config
+        from marl.training import learner_config
 
         rollout = max(SHARED_N_ENVS) * max(
             learner_config(a, fixed).rollout_steps for a in algos if a in SHARED_TUNED)

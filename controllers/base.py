@@ -19,13 +19,13 @@ from typing import Any
 
 import numpy as np
 
-from controllers.registry import build_config
 from envs.channel import ChannelConfig, V2VChannel
 from envs.humans import Arrangement
 from envs.params import PlatoonParams
 from envs.platoon import PlatoonState
 from envs.scenarios import Scenario
 from infra.errors import ControllerContractError
+from infra.naming import build_config
 
 FAMILIES = ("human", "linear", "mpc", "marl", "data")
 

@@ -174,7 +174,7 @@ class CACCController(Controller):
     ----------
     **options
         Fields of the config dataclass (strings are coerced, see
-        :func:`controllers.registry.build_config`).
+        :func:`infra.naming.build_config`).
     """
 
     name = "cacc"

@@ -523,27 +523,6 @@ def make_controller(name: str, /, **options: Any) -> Any:
     return ctrl
 
 
-def build_config(config_cls: type, options: dict[str, Any], owner: str) -> Any:
-    """Instantiate a frozen config dataclass from keyword options, coercing strings by type.
-
-    Unknown options give a :class:`ConfigError` listing the valid ones; the dataclass's own
-    ``__post_init__`` checks values.
-    """
-    fields = {f.name: f for f in dataclasses.fields(config_cls) if f.init}
-    hints = typing.get_type_hints(config_cls)
-    kwargs = {}
-    for key, value in options.items():
-        if key not in fields:
-            raise ConfigError(
-                f"{owner} has no option {key!r}; its options are: {', '.join(sorted(fields))}"
-            )
-        kwargs[key] = coerce_option(value, hints.get(key, str), key, owner)
-    try:
-        return config_cls(**kwargs)
-    except TypeError as exc:
-        raise ConfigError(f"bad options for {owner}: {exc}") from None
-
-
 def check_fits(controller: Controller, scenario: Scenario, n_vehicles: int,
                params: PlatoonParams | None = None) -> None:
     """Refuse, before any work, a setting ``controller`` cannot run (:class:`ConfigError` naming

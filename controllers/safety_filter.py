@@ -337,7 +337,8 @@ class SafetyFilter(Controller):
 
     def __init__(self, inner: str, **options: Any) -> None:
         super().__init__()
-        from controllers.registry import build_config, make_controller, resolve
+        from controllers.registry import make_controller, resolve
+        from infra.naming import build_config
 
         spec = resolve(f"safe:{inner}")  # refuses nesting, unknown names and records
         own, inner_options = _split_options(spec.name, options)

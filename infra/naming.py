@@ -13,6 +13,7 @@ name with an option, ``mpc:horizon=30``, never is: ``=`` follows).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import re
 import typing
@@ -233,3 +234,24 @@ def coerce_option(value: Any, annotation: Any, key: str, owner: str) -> Any:
             f"{getattr(annotation, '__name__', annotation)}, got {value!r}"
         ) from None
     return value
+
+
+def build_config(config_cls: type, options: dict[str, Any], owner: str) -> Any:
+    """Instantiate a frozen config dataclass from keyword options, coercing strings by type.
+
+    Unknown options give a :class:`ConfigError` listing the valid ones; the dataclass's own
+    ``__post_init__`` checks values.
+    """
+    fields = {f.name: f for f in dataclasses.fields(config_cls) if f.init}
+    hints = typing.get_type_hints(config_cls)
+    kwargs = {}
+    for key, value in options.items():
+        if key not in fields:
+            raise ConfigError(
+                f"{owner} has no option {key!r}; its options are: {', '.join(sorted(fields))}"
+            )
+        kwargs[key] = coerce_option(value, hints.get(key, str), key, owner)
+    try:
+        return config_cls(**kwargs)
+    except TypeError as exc:
+        raise ConfigError(f"bad options for {owner}: {exc}") from None

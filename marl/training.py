@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Any
 
 from envs.scenarios import Scenario
 from infra.errors import ConfigError
-from infra.naming import checkpoint_stem
+from infra.naming import build_config, checkpoint_stem
 from marl.learners import LEARNERS, load
 
 if TYPE_CHECKING:
@@ -200,6 +200,22 @@ def finished(key: TrainingKey) -> bool:
 def config_class(algo: str) -> type:
     """The config class of a learner of :data:`marl.learners.LEARNERS` (its entry names it)."""
     return load(LEARNERS[algo].config)  # type: ignore[no-any-return]
+
+
+def learner_config(algo: str, options: dict[str, Any], owner: str = "") -> Any:
+    """The config of ``algo`` (:func:`config_class`) with ``options`` (strings typed, values
+    checked by :func:`infra.naming.build_config`, the one option rule); a config that serves
+    several learners (its ``algo`` field) is told which.
+
+    Raises
+    ------
+    ConfigError
+        For an unknown option or a bad value, naming ``owner`` (default ``<algo> (--set)``).
+    """
+    cls = config_class(algo)
+    if "algo" in {f.name for f in dataclasses.fields(cls)}:  # one config for several learners
+        options = {**options, "algo": algo}
+    return build_config(cls, options, owner or f"{algo} (--set)")
 
 
 def run_shared(key: TrainingKey, log: Callable[[str], None],

@@ -10,11 +10,10 @@ import torch
 
 import controllers.policy as policy
 from commands.policy_training import copy_shipped, is_done, shipped_checkpoint
-from commands.train import learner_config
 from envs.scenarios import make_scenario
 from infra.errors import ConfigError
 from marl.checkpoint import energy_model_id, save_checkpoint
-from marl.training import PolicyJob
+from marl.training import PolicyJob, learner_config
 
 
 def _zero_weights(config: dict) -> dict[str, torch.Tensor]:

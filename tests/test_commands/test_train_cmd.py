@@ -109,7 +109,7 @@ def test_tuned_options(tmp_path: Path, capsys) -> None:
     shipped = json.loads(TUNED_CONFIGS.read_text())
     assert shipped["budget"] == {"trials": 8, "steps_per_trial": 200_000, "seed": 0, "vehicles": 8}
     assert {"bdc/catchup-v1", "bdc/slowdown-v1"} <= set(shipped["configs"])
-    from commands.train import learner_config
+    from marl.training import learner_config
 
     for key in shipped["configs"]:
         a, sc = key.split("/")
@@ -200,9 +200,9 @@ def test_populations_group_by_everything_but_the_seed() -> None:
     shared-policy learner's runs each alone; a key pickles for the executors."""
     import pickle
 
-    from commands.train import learner_config, populations
+    from commands.train import populations
     from envs.scenarios import make_scenario
-    from marl.training import TrainingKey
+    from marl.training import TrainingKey, learner_config
 
     sc = make_scenario("catchup-v1")
 

@@ -14,12 +14,11 @@ from run_marks import FULL
 
 from benchmark.executors import map_jobs
 from commands.cli import main
-from commands.train import learner_config
 from envs.scenarios import make_scenario
 from infra.errors import ConfigError
 from marl import arithmetic
 from marl.arithmetic_fingerprint import PINNED_ALGOS
-from marl.training import PolicyJob, TrainingKey
+from marl.training import PolicyJob, TrainingKey, learner_config
 
 
 def test_portable_training_is_pinned_on_every_processor() -> None:
