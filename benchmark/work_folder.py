@@ -2,7 +2,7 @@
 
 Such a command holds the folder's lock (:func:`benchmark.folder_lock.folder_lock`) and runs
 with the folder as its working directory, so every path it records (checkpoint folders in run
-keys and labels, ``job["out"]``, the report's links) is relative to the folder: the same folder
+keys and labels, a training job's ``out``, the report's links) is relative to the folder: the same folder
 spelled differently (absolute, relative, through a link) or moved keeps every run's identity,
 and a resumed command reruns nothing. Workers (process pool, a local Ray instance) start inside
 the command and inherit the working directory.
