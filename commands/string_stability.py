@@ -22,6 +22,8 @@ from infra.errors import ConfigError
 
 
 def _parser() -> argparse.ArgumentParser:
+    from studies.string_stability import SWEEP_SIZES
+
     p = command_parser("string-stability", __doc__)
     add_scenarios_option(p, "catchup-v1,slowdown-v1")
     p.add_argument("--episodes", type=int, default=None,
@@ -30,7 +32,7 @@ def _parser() -> argparse.ArgumentParser:
                    help="first K validation seeds of the design grid (default: all 32)")
     p.add_argument("--design", default="full", choices=("full", "small"),
                    help="the design grid of fixed cacc gains (default: %(default)s)")
-    p.add_argument("--sizes", default="4,8,12",
+    p.add_argument("--sizes", default=",".join(map(str, SWEEP_SIZES)),
                    help="platoon sizes of the frequency sweeps (default: %(default)s)")
     p.add_argument("--controllers", default=None,
                    help="only these entries of the report, by their controller name (comma "

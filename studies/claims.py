@@ -272,20 +272,19 @@ def compare_steps(ours: Sequence[float], other: Sequence[float]) -> Comparison:
     """
     a, na = converged(ours)
     b, nb = converged(other)
+
+    def without_interval(winner: Winner, basis: str) -> Comparison:
+        return Comparison(math.nan, math.nan, math.nan, "lower", na, nb, winner, basis)
+
     if not a or not b:
-        nan = math.nan
         if not a and not b:
-            return Comparison(nan, nan, nan, "lower", na, nb, "neither",
-                              "no converged seed on either side")
+            return without_interval("neither", "no converged seed on either side")
         if (na == 0) != (nb == 0):
-            return Comparison(nan, nan, nan, "lower", na, nb, "ours" if na == 0 else "other",
-                              "no non-converged seeds first")
-        return Comparison(nan, nan, nan, "lower", na, nb, "ours" if a else "other",
-                          "converged seeds against none")
+            return without_interval("ours" if na == 0 else "other", "no non-converged seeds first")
+        return without_interval("ours" if a else "other", "converged seeds against none")
     if (na == 0) == (nb == 0) and min(len(a), len(b)) < MIN_CONVERGED_SEEDS:
-        nan = math.nan
-        return Comparison(nan, nan, nan, "lower", na, nb, "neither",
-                          f"fewer than {MIN_CONVERGED_SEEDS} converged seeds on a side")
+        return without_interval("neither",
+                                f"fewer than {MIN_CONVERGED_SEEDS} converged seeds on a side")
     return compare(np.array(a)[:, None], np.array(b)[:, None], better="lower", ours_flaws=na,
                    other_flaws=nb, flaw="non-converged seed")
 

@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from benchmark.statistics import hierarchical_bootstrap_ci
+from studies.report import table_lines
 
 if TYPE_CHECKING:
     from envs.scenarios import Scenario
@@ -208,13 +209,13 @@ def cell_frame(runs: Any, rows: list[Row], columns: Sequence[Column] = COLUMNS) 
     ok = runs[runs["status"] == "ok"]
     out = []
     for row in rows:
-        labels = {controller_label(c, o): int(o.get("seed", 0)) for c, o in row.specs()}
+        labels = [controller_label(c, o) for c, o in row.specs()]
         for col in columns:
             rec: dict[str, Any] = {"row": row.label, "column": col.name, "applicable": row.applies(col)}
             if not rec["applicable"]:
                 out.append(rec)
                 continue
-            sel = ok[ok["controller"].isin(list(labels)) & (ok["scenario"] == col.built.label)
+            sel = ok[ok["controller"].isin(labels) & (ok["scenario"] == col.built.label)
                      & (ok["n_vehicles"] == col.n_vehicles)
                      & np.isclose(ok["comm_delay_s"], col.comm_delay_s)
                      & np.isclose(ok["packet_loss"], col.packet_loss)]
@@ -222,18 +223,17 @@ def cell_frame(runs: Any, rows: list[Row], columns: Sequence[Column] = COLUMNS) 
             mean, lo, hi = hierarchical_bootstrap_ci(groups, seed=20240601)
             rec.update(episodes=int(len(sel)), collisions=int(sel["collision"].astype(bool).sum()),
                        reward=mean, reward_ci_low=lo, reward_ci_high=hi,
-                       gap_rmse_m=float(sel["gap_rmse_m"].mean()) if len(sel) else math.nan,
-                       energy_kwh_per_100km=float(sel["energy_kwh_per_100km"].mean())
-                       if len(sel) else math.nan,
+                       gap_rmse_m=float(sel["gap_rmse_m"].mean()),  # NaN without episodes
+                       energy_kwh_per_100km=float(sel["energy_kwh_per_100km"].mean()),
                        safety_interventions=float(sel["safety_interventions"].mean())
-                       if "safety_interventions" in sel and len(sel) else math.nan)
+                       if "safety_interventions" in sel else math.nan)
             out.append(rec)
     return pd.DataFrame(out)
 
 
 def plot_heatmap(cells: Any, out: Path, columns: Sequence[Column] = COLUMNS) -> list[Path]:
     """Collision share per cell (colour; grey: not applicable), mean reward as the cell's text."""
-    from analysis.plots import _plt, savefig_atomic
+    from analysis.plots import _plt, save_figure
 
     plt = _plt()
     rows = list(dict.fromkeys(cells["row"]))
@@ -256,9 +256,7 @@ def plot_heatmap(cells: Any, out: Path, columns: Sequence[Column] = COLUMNS) -> 
             ax.text(j, i, text[i][j], ha="center", va="center", fontsize=5)
     fig.colorbar(im, ax=ax, label="colliding share of episodes")
     ax.set_title("reward (text) and collisions (colour) on the test seeds", fontsize=8)
-    out.mkdir(parents=True, exist_ok=True)
-    paths = [savefig_atomic(fig, out / f"generalisation.{ext}", dpi=100, bbox_inches="tight")
-             for ext in ("png", "pdf")]
+    paths = save_figure(fig, out, "generalisation", dpi=100, bbox_inches="tight")
     plt.close(fig)
     return paths
 
@@ -289,23 +287,21 @@ def write_report(cells: Any, out: Path, command: str, episodes: int,
         "",
         "![matrix](figures/generalisation.png)",
         "",
-        "| controller | " + " | ".join(cols) + " |",
-        "|---|" + "---|" * len(cols),
     ]
+
+    def cell(r: Any) -> str:
+        if not r["applicable"]:
+            return "n/a"
+        if not r.get("episodes", 0):
+            return "not run"
+        return (f"{int(r['collisions'])}/{int(r['episodes'])}, {r['reward']:.1f} "
+                f"[{r['reward_ci_low']:.1f}, {r['reward_ci_high']:.1f}], {r['gap_rmse_m']:.2f}")
+
+    matrix = []
     for row, grp in cells.groupby("row", sort=False):
         by = {r["column"]: r for _, r in grp.iterrows()}
-        parts = []
-        for c in cols:
-            r = by[c]
-            if not r["applicable"]:
-                parts.append("n/a")
-            elif not r.get("episodes", 0):
-                parts.append("not run")
-            else:
-                parts.append(f"{int(r['collisions'])}/{int(r['episodes'])}, {r['reward']:.1f} "
-                             f"[{r['reward_ci_low']:.1f}, {r['reward_ci_high']:.1f}], "
-                             f"{r['gap_rmse_m']:.2f}")
-        lines.append(f"| `{row}` | " + " | ".join(parts) + " |")
+        matrix.append([f"`{row}`", *(cell(by[c]) for c in cols)])
+    lines += table_lines(["controller", *cols], matrix)
     cost = filter_cost(cells)
     if len(cost):
         lines += ["", "## What the safety filter costs", "",
@@ -313,21 +309,18 @@ def write_report(cells: Any, out: Path, command: str, episodes: int,
                   "matrix, and, in the cells where the row collided in no episode without it, the "
                   "mean change of reward and of energy (kWh/100 km) the filter makes. Table: "
                   "`filter_cost.csv`.", "",
-                  "| controller | collisions without | with | clean cells | reward change | "
-                  "energy change kWh/100 km |", "|---|---|---|---|---|---|"]
-        for _, r in cost.iterrows():
-            lines.append(f"| `{r['row']}` | {r['collisions_without']} | {r['collisions_with']} | "
-                         f"{r['clean_cells']} | {r['reward_change']:+.1f} | "
-                         f"{r['energy_change_kwh_per_100km']:+.3f} |")
+                  *table_lines(["controller", "collisions without", "with", "clean cells",
+                                "reward change", "energy change kWh/100 km"],
+                               ([f"`{r['row']}`", r["collisions_without"], r["collisions_with"],
+                                 r["clean_cells"], f"{r['reward_change']:+.1f}",
+                                 f"{r['energy_change_kwh_per_100km']:+.3f}"]
+                                for _, r in cost.iterrows()))]
     if unrun:
         lines += ["", "## Shipped checkpoints not in the matrix", "",
                   "Every file of `controllers/checkpoints` that no row above loads, with why "
                   "(`studies.generalisation.NOT_IN_MATRIX`):", ""]
-        for why, files in unrun.items():
-            lines.append(f"- {why}: " + ", ".join(f"`{f}`" for f in files))
-    path = out / "report.md"
-    write_text(path, "\n".join(lines) + "\n")
-    return path
+        lines += [f"- {why}: " + ", ".join(f"`{f}`" for f in files) for why, files in unrun.items()]
+    return write_text(out / "report.md", "\n".join(lines) + "\n")
 
 
 def filter_cost(cells: Any) -> Any:

@@ -16,12 +16,15 @@ writes ``README.md``.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+from studies.penetration import BASELINE, families_of
+from studies.report import num, save_png, table_lines
 
 if TYPE_CHECKING:
     from envs.scenarios import Scenario
@@ -40,8 +43,6 @@ HUMANS = "2+7"
 #: (ippo trained on mixed traffic; it senses no class).
 DEFAULT_FAMILIES: tuple[str, ...] = ("acc", "cacc", "cacc:time_gap_rule=xiao", "mpc-qp",
                                      "ippo:scenario=mixed-v2,variant=mixed-traffic")
-#: The human-driver model of the all-human baseline.
-BASELINE = "idm"
 #: The scenarios of the study.
 SCENARIOS: tuple[str, ...] = ("catchup-v1", "slowdown-v1", "brake-v1")
 #: The families with an analytic head-to-tail model (:data:`analysis.head_to_tail.ANALYTIC_CONTROLLERS`),
@@ -121,12 +122,10 @@ def cells(runs: Any, settings: Sequence[Setting]) -> Any:
     """
     import pandas as pd
 
-    label_of = {s.build().label: s for s in settings}
-    ok = runs[runs["scenario"].isin(label_of)]
     rows = []
     for s in settings:
-        g_all = ok[ok["scenario"] == s.build().label]
-        for controller, g in g_all.groupby("controller", sort=False):
+        of_setting = runs[runs["scenario"] == s.build().label]
+        for controller, g in of_setting.groupby("controller", sort=False):
             row: dict[str, Any] = {
                 "scenario": s.scenario, "order": s.order, "humans": s.humans,
                 "classes": ORDERS[s.order], "controller": controller, "runs": len(g),
@@ -174,122 +173,105 @@ def head_to_tail_peaks(orders: Sequence[str] = tuple(ORDERS), n_vehicles: int = 
     return pd.DataFrame(rows)
 
 
+def _bars(ax: Any, t: Any, families: Sequence[str], orders: Sequence[str], column: str,
+          label: str, mark: Callable[[Any, np.ndarray, Any, Any], Any], **style: Any) -> None:
+    """``column`` of each family of ``t`` as bars over ``orders`` (the x axis), the families
+    side by side; ``mark(ax, x, rows, bars)`` adds a family's markers."""
+    width = 0.8 / max(len(families), 1)
+    for k, fam in enumerate(families):
+        f = t[t["controller"] == fam].set_index("order").reindex(orders)
+        x = np.arange(len(orders)) + (k - (len(families) - 1) / 2) * width
+        mark(ax, x, f, ax.bar(x, f[column], width, label=label.format(fam), **style))
+    ax.set_xticks(np.arange(len(orders)))
+    ax.set_xticklabels(orders, fontsize=8)
+    ax.grid(alpha=0.3, axis="y")
+
+
 def plot_peaks(peaks: Any, path: Path) -> Path:
     """The head-to-tail peak gain against the arrangement, analytic (bars) and measured
     (crosses), one panel per human setting, one colour per family (log scale; the line at 1:
     the string damps from head to tail below it)."""
-    from analysis.plots import _plt, savefig_atomic
+    from analysis.plots import _plt
 
-    plt = _plt()
+    def measured(ax: Any, x: np.ndarray, f: Any, bars: Any) -> None:
+        ax.plot(x, f["peak_measured"], "x", color=bars.patches[0].get_facecolor(), ms=8, mew=2,
+                alpha=1.0)
+
     panels = [("none", "every seat automated"), ("mixed", f"humans at seats {HUMANS}")]
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), sharey=True)
-    families = [f for f in dict.fromkeys(peaks["controller"]) if f != BASELINE]
+    fig, axes = _plt().subplots(1, 2, figsize=(10, 3.8), sharey=True)
     for ax, (humans, title) in zip(axes, panels, strict=True):
         t = peaks[peaks["humans"] == humans]
-        orders = list(dict.fromkeys(t["order"]))
-        width = 0.8 / max(len(families), 1)
-        for k, fam in enumerate(families):
-            f = t[t["controller"] == fam].set_index("order").reindex(orders)
-            x = np.arange(len(orders)) + (k - (len(families) - 1) / 2) * width
-            bars = ax.bar(x, f["peak_analytic"], width, alpha=0.6, label=f"{fam} (analytic)")
-            ax.plot(x, f["peak_measured"], "x", color=bars.patches[0].get_facecolor(), ms=8,
-                    mew=2, alpha=1.0)
-        ax.set_xticks(np.arange(len(orders)))
-        ax.set_xticklabels(orders, fontsize=8)
+        _bars(ax, t, families_of(peaks), list(dict.fromkeys(t["order"])), "peak_analytic",
+              "{} (analytic)", measured, alpha=0.6)
         ax.axhline(1.0, color="grey", lw=0.8, ls="--")
         ax.set_yscale("log")
         ax.set_title(title, fontsize=9)
-        ax.grid(alpha=0.3, axis="y")
     axes[0].set_ylabel("head-to-tail peak gain (0.1-1 rad/s)")
     axes[1].plot([], [], "kx", label="measured (sine-v1 sweep)")
     axes[1].legend(fontsize=7, loc="best")
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    savefig_atomic(fig, path, dpi=90)
-    plt.close(fig)
-    return path
+    return save_png(fig, path)
 
 
 def plot_energy(table: Any, path: Path) -> Path:
     """The string's energy (kWh/100 km) per order and family, one panel per scenario, runs of
     every seat automated (a cross: a cell with a collision, whose runs ended early)."""
-    from analysis.plots import _plt, savefig_atomic
+    from analysis.plots import _plt
 
-    plt = _plt()
+    def collided(ax: Any, x: np.ndarray, f: Any, _: Any) -> None:
+        hit = f["collisions"].fillna(0).to_numpy() > 0
+        ax.plot(x[hit], f["energy_kwh_per_100km"].to_numpy()[hit], "kx", ms=7)
+
     scenarios = list(dict.fromkeys(table["scenario"]))
-    fig, axes = plt.subplots(1, len(scenarios), figsize=(4.2 * len(scenarios), 3.6),
-                             squeeze=False)
+    fig, axes = _plt().subplots(1, len(scenarios), figsize=(4.2 * len(scenarios), 3.6),
+                                squeeze=False)
     t_all = table[table["humans"] == "none"]
-    families = list(dict.fromkeys(t_all["controller"]))
-    orders = list(ORDERS)
-    width = 0.8 / max(len(families), 1)
     for ax, sc in zip(axes[0], scenarios, strict=True):
-        t = t_all[t_all["scenario"] == sc]
-        for k, fam in enumerate(families):
-            f = t[t["controller"] == fam].set_index("order").reindex(orders)
-            x = np.arange(len(orders)) + (k - (len(families) - 1) / 2) * width
-            bars = ax.bar(x, f["energy_kwh_per_100km"], width, label=fam)
-            hit = f["collisions"].fillna(0).to_numpy() > 0
-            ax.plot(x[hit], f["energy_kwh_per_100km"].to_numpy()[hit], "kx", ms=7)
-            del bars
-        ax.set_xticks(np.arange(len(orders)))
-        ax.set_xticklabels(orders, fontsize=8)
+        _bars(ax, t_all[t_all["scenario"] == sc], list(dict.fromkeys(t_all["controller"])),
+              list(ORDERS), "energy_kwh_per_100km", "{}", collided)
         ax.set_title(sc, fontsize=9)
-        ax.grid(alpha=0.3, axis="y")
     axes[0][0].set_ylabel("string energy kWh/100 km")
     axes[0][-1].legend(fontsize=6, loc="best")
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    savefig_atomic(fig, path, dpi=90)
-    plt.close(fig)
-    return path
-
-
-def _num(x: float, fmt: str = ".3g") -> str:
-    return "n/a" if not math.isfinite(x) else format(x, fmt)
+    return save_png(fig, path)
 
 
 def findings(table: Any, peaks: Any) -> list[str]:
     """The report's reading, computed from the cells and the peaks: collisions per family and
     human setting over the orders and scenarios; the order with the largest analytic peak per
     family; the largest relative difference between analysis and measurement."""
-    lines = ["## Reading", ""]
-    lines += ["Colliding runs of each family over the three orders and the three scenarios "
-              "(runs with a collision / runs):", "",
-              "| family | every seat automated | humans at seats " + HUMANS + " |",
-              "|---|---|---|"]
-    for fam in dict.fromkeys(table["controller"]):
-        if fam == BASELINE:
-            continue
-        parts = []
-        for humans in ("none", "mixed"):
-            t = table[(table["controller"] == fam) & (table["humans"] == humans)]
-            parts.append(f"{int(t['collisions'].sum())}/{int(t['runs'].sum())}")
-        lines.append(f"| `{fam}` | " + " | ".join(parts) + " |")
-    base = table[table["controller"] == BASELINE]
-    lines += [f"| `{BASELINE}` (every seat human) | {int(base['collisions'].sum())}/"
-              f"{int(base['runs'].sum())} | |", ""]
-    lines += ["Head-to-tail peak gain (analytic, 0.1-1 rad/s) of each linear family, every seat "
-              "automated, by order (the homogeneous string for reference):", "",
-              "| family | homogeneous | " + " | ".join(ORDERS) + " |",
-              "|---|---|" + "---|" * len(ORDERS)]
-    for fam in dict.fromkeys(peaks["controller"]):
-        if fam == BASELINE:
-            continue
-        t = peaks[(peaks["controller"] == fam) & (peaks["humans"] == "none")].set_index("order")
-        vals = [t.loc[o, "peak_analytic"] if o in t.index else math.nan
-                for o in ("homogeneous", *ORDERS)]
-        lines.append(f"| `{fam}` | " + " | ".join(_num(v) for v in vals) + " |")
+    def collided(t: Any) -> str:
+        return f"{int(t['collisions'].sum())}/{int(t['runs'].sum())}"
+
+    analytic = peaks[peaks["humans"] == "none"]
+    by_order = []
+    for fam in families_of(peaks):
+        t = analytic[analytic["controller"] == fam].set_index("order")
+        by_order.append([f"`{fam}`", *(num(t.loc[o, "peak_analytic"] if o in t.index else math.nan,
+                                           ".3g") for o in ("homogeneous", *ORDERS))])
     worst = float(peaks["max_relative_difference"].max())
-    lines += ["", f"Analysis and measurement of the head-to-tail gain differ by at most "
-              f"{100 * worst:.2g} % over every case and frequency of the figure.", ""]
-    return lines
+    return [
+        "## Reading", "",
+        "Colliding runs of each family over the three orders and the three scenarios "
+        "(runs with a collision / runs):", "",
+        *table_lines(["family", "every seat automated", "humans at seats " + HUMANS],
+                     ([f"`{fam}`", *(collided(table[(table["controller"] == fam)
+                                                    & (table["humans"] == humans)])
+                                     for humans in ("none", "mixed"))]
+                      for fam in families_of(table))),
+        f"| `{BASELINE}` (every seat human) | {collided(table[table['controller'] == BASELINE])}"
+        " | |", "",
+        "Head-to-tail peak gain (analytic, 0.1-1 rad/s) of each linear family, every seat "
+        "automated, by order (the homogeneous string for reference):", "",
+        *table_lines(["family", "homogeneous", *ORDERS], by_order),
+        "", f"Analysis and measurement of the head-to-tail gain differ by at most "
+        f"{100 * worst:.2g} % over every case and frequency of the figure.", ""]
 
 
 def write_report(table: Any, peaks: Any, out: Path, command: str, episodes: int,
                  figures: Sequence[Path]) -> Path:
     """``README.md``: the command, the design, the reading, the figures and one table per
     scenario (paths relative to ``out``)."""
+    from infra.atomic import write_text
+
     lines = [
         "# Heterogeneous platoons: a bus, a van and six cars in three orders",
         "",
@@ -306,30 +288,24 @@ def write_report(table: Any, peaks: Any, out: Path, command: str, episodes: int,
         "collision, often while braking hard: read its energy (negative where regeneration "
         "ended it) and gains with the collision count.",
         "",
+        *findings(table, peaks),
     ]
-    lines += findings(table, peaks)
     for fig in figures:
         lines += [f"![{fig.stem}]({fig.relative_to(out).as_posix()})", ""]
     lines += ["## Head-to-tail peaks", "",
-              "| order | humans | family | analytic | measured | at rad/s | max rel. diff. |",
-              "|---|---|---|---|---|---|---|"]
-    for _, r in peaks.iterrows():
-        lines.append(f"| {r['order']} | {r['humans']} | `{r['controller']}` | "
-                     f"{_num(r['peak_analytic'], '.4g')} | {_num(r['peak_measured'], '.4g')} | "
-                     f"{r['omega_at_peak_rad_s']:g} | {_num(r['max_relative_difference'], '.2g')} |")
-    lines.append("")
+              *table_lines(["order", "humans", "family", "analytic", "measured", "at rad/s",
+                            "max rel. diff."],
+                           ([r["order"], r["humans"], f"`{r['controller']}`",
+                             num(r["peak_analytic"], ".4g"), num(r["peak_measured"], ".4g"),
+                             f"{r['omega_at_peak_rad_s']:g}",
+                             num(r["max_relative_difference"], ".2g")]
+                            for _, r in peaks.iterrows())), ""]
     for scenario, t in table.groupby("scenario", sort=False):
         lines += [f"## {scenario}", "",
-                  "| order | humans | controller | runs | collisions | min gap m | "
-                  + " | ".join(name for _, name in METRICS) + " |",
-                  "|" + "---|" * (6 + len(METRICS))]
-        for _, r in t.iterrows():
-            lines.append(f"| {r['order']} | {r['humans']} | `{r['controller']}` | {r['runs']} | "
-                         f"{r['collisions']} | {_num(r['min_gap_m'])} | "
-                         + " | ".join(_num(r[c]) for c, _ in METRICS) + " |")
-        lines.append("")
-    path = out / "README.md"
-    from infra.atomic import write_text
-
-    write_text(path, "\n".join(lines) + "\n")
-    return path
+                  *table_lines(["order", "humans", "controller", "runs", "collisions",
+                                "min gap m", *(name for _, name in METRICS)],
+                               ([r["order"], r["humans"], f"`{r['controller']}`", r["runs"],
+                                 r["collisions"], num(r["min_gap_m"], ".3g"),
+                                 *(num(r[c], ".3g") for c, _ in METRICS)]
+                                for _, r in t.iterrows())), ""]
+    return write_text(out / "README.md", "\n".join(lines) + "\n")

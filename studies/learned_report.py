@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from benchmark.statistics import paired_ci
+from studies.report import num, table_lines
 
 #: Report name -> (registered controller, options other than the training seed).
 POLICIES: dict[str, tuple[str, dict[str, str]]] = {
@@ -126,17 +127,22 @@ def episodes_frame(runs: Any) -> Any:
     return df.sort_values(cols[:7], kind="mergesort").reset_index(drop=True)
 
 
-def _side(ep: Any, policy: str, scenario: str, setting: tuple[float, float]) -> Any:
-    """Rewards ``(training seeds, episodes)`` and the colliding episodes of one side."""
-    sel = ep[(ep["policy"] == policy) & (ep["scenario"] == scenario)
-             & np.isclose(ep["comm_delay_s"], setting[0]) & np.isclose(ep["packet_loss"], setting[1])]
+def side(sel: Any) -> Any:
+    """One side of a comparison: the rewards of the episode rows ``sel`` as a table (training
+    seeds x episodes) and their colliding episodes; None when ``sel`` is empty."""
     if sel.empty:
         return None
     return sel.pivot(index="train_seed", columns="seed", values="reward"), int(sel["collision"].sum())
 
 
+def _side(ep: Any, policy: str, scenario: str, setting: tuple[float, float]) -> Any:
+    return side(ep[(ep["policy"] == policy) & (ep["scenario"] == scenario)
+                   & np.isclose(ep["comm_delay_s"], setting[0])
+                   & np.isclose(ep["packet_loss"], setting[1])])
+
+
 def compare(ours: Any, other: Any, same_policy: bool = False) -> dict[str, Any]:
-    """The paired comparison of two sides of :func:`_side` (same episodes), collisions first.
+    """The paired comparison of two sides of :func:`side` (same episodes), collisions first.
 
     Two policies: the training seeds of each side are drawn apart, the episodes together. The
     same policy in two settings (``same_policy``): the differences per training seed and
@@ -239,24 +245,20 @@ def policy_table(ep: Any) -> Any:
                 energy_kwh_per_100km=("energy_kwh_per_100km", "mean"),
                 gap_rmse_m=("gap_rmse_m", "mean"), compute_ms_p50=("compute_ms_p50", "mean"))
     order = {p: i for i, p in enumerate(POLICIES)}
-    out = out.reset_index()
-    out["_o"] = out["policy"].map(order)
-    return out.sort_values(["scenario", "comm_delay_s", "_o"]).drop(columns="_o").reset_index(drop=True)
-
-
-def _num(x: float, digits: int = 2) -> str:
-    return "n/a" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:,.{digits}f}"
+    return out.reset_index().sort_values(
+        ["scenario", "comm_delay_s", "policy"],
+        key=lambda c: c.map(order) if c.name == "policy" else c).reset_index(drop=True)
 
 
 def _sentence(row: Any) -> str:
     """One comparison as a sentence with its numbers."""
-    diff = (f"{_num(row['difference'])} [{_num(row['ci_low'])}, {_num(row['ci_high'])}]")
+    diff = (f"{num(row['difference'])} [{num(row['ci_low'])}, {num(row['ci_high'])}]")
     if row["basis"] == "collisions":
         return (f"`{row['ours']}` {row['collisions_ours']} colliding episodes against "
                 f"`{row['other']}` {row['collisions_other']}: **{row['verdict']}** on collisions "
                 f"(reward difference {diff}).")
-    return (f"`{row['ours']}` {_num(row['reward_ours'])} against `{row['other']}` "
-            f"{_num(row['reward_other'])}: difference {diff}, **{row['verdict']}**.")
+    return (f"`{row['ours']}` {num(row['reward_ours'])} against `{row['other']}` "
+            f"{num(row['reward_other'])}: difference {diff}, **{row['verdict']}**.")
 
 
 #: The terms of the gap ``ippo (OVM-gain) - mpc``: (name, ours, other).
@@ -276,36 +278,24 @@ def _decomposition(comp: Any) -> list[str]:
     terms = [(name, t) for name, t in found if t is not None]
     if total is None or len(terms) < len(found):
         return []
-    parts = " + ".join(f"{_num(t['difference'])} ({name}, [{_num(t['ci_low'])}, "
-                       f"{_num(t['ci_high'])}])" for name, t in terms)
-    return [f"The gap, {_num(total['difference'])}, is {parts}.", ""]
-
-
-def _sweep_cells(sweeps: Any, r: Any) -> str:
-    """The sweep peak and string-stability mark of a policy table row (``n/a``: none)."""
-    if sweeps is None:
-        return ""
-    hit = sweeps[(sweeps["scenario"] == r["scenario"]) & (sweeps["policy"] == r["policy"])
-                 & (sweeps["comm_delay_s"] == r["comm_delay_s"])
-                 & (sweeps["packet_loss"] == r["packet_loss"])]
-    peak = float(hit["sweep_peak_gain"].iloc[0]) if len(hit) else math.nan
-    if math.isnan(peak):
-        return " n/a | n/a |"
-    mark = "yes" if peak <= 1.0 + _tol() else "**no**"
-    return f" {'collides' if math.isinf(peak) else f'{peak:.3f}'} | {mark} |"
-
-
-def _tol() -> float:
-    from benchmark.sweep import SWEEP_TOL
-
-    return SWEEP_TOL
+    parts = " + ".join(f"{num(t['difference'])} ({name}, [{num(t['ci_low'])}, "
+                       f"{num(t['ci_high'])}])" for name, t in terms)
+    return [f"The gap, {num(total['difference'])}, is {parts}.", ""]
 
 
 def write_report(ep: Any, comp: Any, out: Path, command: str, sweeps: Any = None) -> Path:
     """Write ``report.md`` (policy table, the three questions with every comparison) in ``out``;
     with ``sweeps`` (:func:`policy_sweeps`) the policy table shows each row's sweep peak and
     string-stability mark."""
-    table = policy_table(ep)
+    from analysis.tables import string_stable_mark, sweep_peak_text
+    from benchmark.sweep import SWEEP_TOL
+    from infra.atomic import write_text
+
+    table, swept = policy_table(ep), sweeps is not None
+    if swept:
+        keys = ["scenario", "policy", "comm_delay_s", "packet_loss"]
+        table = table.merge(sweeps[[*keys, "sweep_peak_gain", "sweep_string_stable"]],
+                            how="left", on=keys)
     n = sorted(ep["n_vehicles"].unique())
     lines = [
         "# MARL or MPC: what the gap is made of",
@@ -317,27 +307,26 @@ def write_report(ep: Any, comp: Any, out: Path, command: str, sweeps: Any = None
         "paired two-stage bootstrap interval over training seeds and episodes; collisions "
         "decide first, then the reward when its interval excludes zero, otherwise "
         "\"inconclusive\". Tables: `policies.csv`, `comparisons.csv`, `episodes.csv`"
-        + (", `sweeps.csv`" if sweeps is not None else "") + ".",
+        + (", `sweeps.csv`" if swept else "") + ".",
         "",
         *([("Sweep peak: the largest over the training seeds of the peak |Gamma| of the "
             "standard frequency sweep (`benchmark.sweep`: a sinusoidal leader at 0.05 to 0.4 Hz, "
             "the row's N and V2V); string stable (yes) when it is at most 1 + "
-            f"{_tol():g}; the reward is measured on the scenario, the sweep on the sweep's "
-            "leader."), ""] if sweeps is not None else []),
+            f"{SWEEP_TOL:g}; the reward is measured on the scenario, the sweep on the sweep's "
+            "leader."), ""] if swept else []),
         "## The policies",
         "",
-        "| scenario | V2V | policy | seeds | episodes | collisions | reward | energy kWh/100 km "
-        "| gap RMSE m | compute ms/step (median) |"
-        + (" sweep peak | string stable |" if sweeps is not None else ""),
-        "|---|---|---|---|---|---|---|---|---|---|" + ("---|---|" if sweeps is not None else ""),
+        *table_lines(["scenario", "V2V", "policy", "seeds", "episodes", "collisions", "reward",
+                      "energy kWh/100 km", "gap RMSE m", "compute ms/step (median)",
+                      *(["sweep peak", "string stable"] if swept else [])],
+                     ([r["scenario"], "ideal" if r["comm_delay_s"] == 0 and r["packet_loss"] == 0
+                       else f"{r['comm_delay_s']:g} s, {100 * r['packet_loss']:g} % loss",
+                       f"`{r['policy']}`", r["train_seeds"], r["episodes"], r["collisions"],
+                       num(r["reward"]), num(r["energy_kwh_per_100km"]), num(r["gap_rmse_m"]),
+                       num(r["compute_ms_p50"], ",.3f"),
+                       *([sweep_peak_text(r), string_stable_mark(r)] if swept else [])]
+                      for _, r in table.iterrows())),
     ]
-    for _, r in table.iterrows():
-        v2v = "ideal" if r["comm_delay_s"] == 0 and r["packet_loss"] == 0 else (
-            f"{r['comm_delay_s']:g} s, {100 * r['packet_loss']:g} % loss")
-        lines.append(f"| {r['scenario']} | {v2v} | `{r['policy']}` | {r['train_seeds']} | "
-                     f"{r['episodes']} | {r['collisions']} | {_num(r['reward'])} | "
-                     f"{_num(r['energy_kwh_per_100km'])} | {_num(r['gap_rmse_m'])} | "
-                     f"{_num(r['compute_ms_p50'], 3)} |" + _sweep_cells(sweeps, r))
     titles = {
         "the gap": "The gap between learned control on the published action set and mpc",
         "action set and information": ("1. How much of the gap is the action set and "
@@ -352,15 +341,8 @@ def write_report(ep: Any, comp: Any, out: Path, command: str, sweeps: Any = None
             lines.append("Not measured in this run (a side did not run).")
             continue
         for scenario, grp in sub.groupby("scenario", sort=True):
-            lines.append(f"**{scenario}**")
-            lines.append("")
-            for _, r in grp.iterrows():
-                lines.append(f"- {_sentence(r)} ({r['meaning']})")
-            lines.append("")
+            lines += [f"**{scenario}**", "", *(f"- {_sentence(r)} ({r['meaning']})"
+                                               for _, r in grp.iterrows()), ""]
             if question == "the gap":
                 lines += _decomposition(comp[comp["scenario"] == scenario])
-    path = out / "report.md"
-    from infra.atomic import write_text
-
-    write_text(path, "\n".join(lines).rstrip() + "\n")
-    return path
+    return write_text(out / "report.md", "\n".join(lines).rstrip() + "\n")

@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from benchmark.statistics import bootstrap_ci
+from studies.report import row, save_png, table_lines
 
 if TYPE_CHECKING:
     from envs.scenarios import Scenario
@@ -187,13 +188,11 @@ def plot_shares(table: Any, out_dir: Path) -> list[Path]:
     share of automated vehicles, one line per family (the all-human baseline at share 0 a marker
     every line starts from; a cross marks a cell with collisions);
     ``figures/penetration-<scenario>.png``."""
-    from analysis.plots import _plt, savefig_atomic
+    from analysis.plots import _plt
 
-    plt = _plt()
     paths = []
-    out_dir.mkdir(parents=True, exist_ok=True)
     for scenario, t in table.groupby("scenario", sort=False):
-        fig, axes = plt.subplots(1, 2, figsize=(9.5, 3.6))
+        fig, axes = _plt().subplots(1, 2, figsize=(9.5, 3.6))
         base = t[t["controller"] == BASELINE]
         for ax, col, ylabel in ((axes[0], "head_to_tail_gain", "head-to-tail gain"),
                                 (axes[1], "energy_kwh_per_100km", "energy kWh/100 km (all)")):
@@ -217,11 +216,7 @@ def plot_shares(table: Any, out_dir: Path) -> list[Path]:
         axes[1].plot([], [], "kx", label="with collisions")
         axes[1].legend(fontsize=7, loc="best")
         fig.suptitle(str(scenario))
-        fig.tight_layout()
-        path = out_dir / f"penetration-{scenario}.png"
-        savefig_atomic(fig, path, dpi=90)
-        plt.close(fig)
-        paths.append(path)
+        paths.append(save_png(fig, out_dir / f"penetration-{scenario}.png"))
     return paths
 
 
@@ -253,30 +248,25 @@ def findings(table: Any) -> list[str]:
     against the all-human string, beside the published numbers; per scenario and share, the
     family with the smallest humans' speed spread among those without a collision."""
     lines = ["## Reading", ""]
-    ring_base = _cell(table, "ring-v1", BASELINE, "0")
-    if ring_base is not None:
+    base = _cell(table, "ring-v1", BASELINE, "0")
+    if base is not None:
+        changed = ("speed_std_humans_mps", "braking_events_per_veh_h", "energy_kwh_per_100km",
+                   "speed_mean_mps")
+        ones = ((f, _cell(table, "ring-v1", f, "one vehicle")) for f in families_of(table))
         lines += ["On `ring-v1`, one automated vehicle among 21 IDM humans against the all-human "
                   "ring (changes of the means; humans' speed std, braking events per vehicle "
                   "and hour, energy per vehicle and 100 km of the whole string, mean speed):", "",
-                  "| family | collisions | humans' speed std | braking events | energy | "
-                  "mean speed |", "|---|---|---|---|---|---|"]
-        for family in families_of(table):
-            c = _cell(table, "ring-v1", family, "one vehicle")
-            if c is None:
-                continue
-            lines.append(
-                f"| `{family}` | {c['collisions']}/{c['runs']} | "
-                f"{_change(c['speed_std_humans_mps'], ring_base['speed_std_humans_mps'])} | "
-                f"{_change(c['braking_events_per_veh_h'], ring_base['braking_events_per_veh_h'])}"
-                f" | {_change(c['energy_kwh_per_100km'], ring_base['energy_kwh_per_100km'])} | "
-                f"{_change(c['speed_mean_mps'], ring_base['speed_mean_mps'])} |")
-        lines += ["", "Published, for comparison: " + STERN_2018 + "; " + FLOW_2018 + "; "
+                  *table_lines(["family", "collisions", "humans' speed std", "braking events",
+                                "energy", "mean speed"],
+                               ([f"`{f}`", f"{c['collisions']}/{c['runs']}",
+                                 *(_change(c[k], base[k]) for k in changed)]
+                                for f, c in ones if c is not None)),
+                  "", "Published, for comparison: " + STERN_2018 + "; " + FLOW_2018 + "; "
                   + CIRCLES_2024 + ". A colliding run ends early: read its other columns with "
                   "the collision count.", ""]
     lines += ["Per scenario and share, the family with the smallest humans' speed std (the "
               "last vehicle's at share 1) among the families without a collision:", "",
-              "| scenario | " + " | ".join(s.name for s in SHARES[1:]) + " |",
-              "|---|" + "---|" * (len(SHARES) - 1)]
+              *table_lines(["scenario", *(s.name for s in SHARES[1:])], [])]
     for scenario, t in table.groupby("scenario", sort=False):
         best = []
         for share in SHARES[1:]:
@@ -289,7 +279,7 @@ def findings(table: Any) -> list[str]:
                 continue
             r = ok.loc[ok[col].idxmin()]
             best.append(f"`{r['controller']}` ({r[col]:.2f} m/s)")
-        lines.append(f"| {scenario} | " + " | ".join(best) + " |")
+        lines.append(row([scenario, *best]))
     lines += ["", "The head-to-tail gain is the ratio of the last vehicle's speed std to the "
               "first's (the leader, or follower 1 on the ring): n/a where the first vehicle's "
               "speed does not vary (`catchup-v1`'s leader), and a ratio of two small numbers "
@@ -298,9 +288,11 @@ def findings(table: Any) -> list[str]:
 
 
 def write_report(table: Any, out: Path, command: str, episodes: int, placements: int,
-                 figures: Sequence[Path], intro: str = "") -> Path:
+                 figures: Sequence[Path]) -> Path:
     """``report.md``: the command, the design, a table per scenario and the figures (paths
     relative to ``out``)."""
+    from infra.atomic import write_text
+
     lines = [
         "# Penetration study: which family damps waves at what share of automated vehicles",
         "",
@@ -311,25 +303,17 @@ def write_report(table: Any, out: Path, command: str, episodes: int, placements:
         "the row at share 0. Metrics are defined in `docs/concepts/metrics.md` (mixed traffic); "
         "on `ring-v1` they leave out the first 60 s.",
         "",
+        *findings(table),
     ]
-    if intro:
-        lines += [intro, ""]
-    lines += findings(table)
     for scenario, t in table.groupby("scenario", sort=False):
-        lines += [f"## {scenario}", ""]
-        head = "| controller | share | runs | collisions | " + " | ".join(
-            name for _, name in METRICS) + " |"
-        lines += [head, "|" + "---|" * (4 + len(METRICS))]
-        for _, r in t.iterrows():
-            cells_ = [_fmt(r[c], r[f"{c}_lo"], r[f"{c}_hi"]) for c, _ in METRICS]
-            lines.append(f"| `{r['controller']}` | {r['share']} ({r['cav_share']:.2f}) | "
-                         f"{r['runs']} | {r['collisions']} | " + " | ".join(cells_) + " |")
-        lines.append("")
+        lines += [f"## {scenario}", "",
+                  *table_lines(["controller", "share", "runs", "collisions",
+                                *(name for _, name in METRICS)],
+                               ([f"`{r['controller']}`", f"{r['share']} ({r['cav_share']:.2f})",
+                                 r["runs"], r["collisions"],
+                                 *(_fmt(r[c], r[f"{c}_lo"], r[f"{c}_hi"]) for c, _ in METRICS)]
+                                for _, r in t.iterrows())), ""]
         for fig in figures:
             if fig.name == f"penetration-{scenario}.png":
                 lines += [f"![{scenario}]({fig.relative_to(out).as_posix()})", ""]
-    path = out / "report.md"
-    from infra.atomic import write_text
-
-    write_text(path, "\n".join(lines) + "\n")
-    return path
+    return write_text(out / "report.md", "\n".join(lines) + "\n")

@@ -34,6 +34,19 @@ TABLE_II_METRICS: tuple[tuple[str, str, str], ...] = (
 CurveKey = tuple[str, str, int]  # algo, scenario, training seed
 
 
+def _named(runs: Any, labels: Mapping[str, str], scenario: str | None = None) -> Any:
+    """The runs of the controllers ``labels`` names (on ``scenario``), each with its ``name``."""
+    keep = runs["controller"].isin(list(labels))
+    if scenario is not None:
+        keep &= runs["scenario"] == scenario
+    return runs[keep].assign(name=lambda d: d["controller"].map(labels))
+
+
+def _std(x: Any) -> float:
+    """The sample standard deviation (``ddof=1``); NaN below two values."""
+    return float(np.std(x, ddof=1)) if len(x) > 1 else math.nan
+
+
 def final_train_reward(curve: Any, fraction: float = FINAL_FRACTION) -> float:
     """Mean training reward (the learner's own) over the last ``fraction`` of the episodes."""
     r = curve["train_reward"].to_numpy(dtype=float)
@@ -90,9 +103,9 @@ def table_one(curves: Mapping[CurveKey, Any], algos: Sequence[str]) -> Any:
             rows.append({
                 "algo": algo, "scenario": scenario, "n_seeds": len(per_seed),
                 "train_reward_mean": float(np.mean(train)),
-                "train_reward_std": float(np.std(train, ddof=1)) if len(train) > 1 else math.nan,
+                "train_reward_std": _std(train),
                 "validation_reward_mean": float(np.mean(val)),
-                "validation_reward_std": float(np.std(val, ddof=1)) if len(val) > 1 else math.nan,
+                "validation_reward_std": _std(val),
                 "paper_reward": TABLE_I_REWARD.get(algo, math.nan),
             })
     return pd.DataFrame(rows)
@@ -155,8 +168,7 @@ def table_two(runs: Any, labels: Mapping[str, str]) -> Any:
     """
     import pandas as pd
 
-    sub = runs[runs["controller"].isin(list(labels))].copy()
-    sub["name"] = sub["controller"].map(labels)
+    sub = _named(runs, labels)
     within = {"gap_mean_m": "gap_std_m", "speed_mean_mps": "speed_std_mps",
               "accel_mean_mps2": "accel_std_mps2", "power_mean_kw": None}
     rows = []
@@ -173,15 +185,14 @@ def table_two(runs: Any, labels: Mapping[str, str]) -> Any:
             for key, col, _ in TABLE_II_METRICS:
                 x = g[col].to_numpy(dtype=float)
                 row[f"{key}_avg"] = float(np.mean(x))
-                row[f"{key}_std"] = float(np.std(x, ddof=1)) if len(x) > 1 else math.nan
+                row[f"{key}_std"] = _std(x)
                 w = within[col]
                 row[f"{key}_within_std"] = float(g[w].mean()) if w else math.nan
                 row[f"paper_{key}_avg"], row[f"paper_{key}_std"] = paper.get(key, (math.nan, math.nan))
             c = controllable_power_kw(g)
             known = bool(np.isfinite(c).all())
             row["controllable_power_kw_avg"] = float(np.mean(c)) if known else math.nan
-            row["controllable_power_kw_std"] = (float(np.std(c, ddof=1))
-                                                if known and len(c) > 1 else math.nan)
+            row["controllable_power_kw_std"] = _std(c) if known else math.nan
             rows.append(row)
     return pd.DataFrame(rows)
 
@@ -373,8 +384,7 @@ MARL_RIVALS: tuple[str, ...] = ("ia2c", "fprint", "commnet", "dial")
 def _seeds_by_episodes(runs: Any, labels: Mapping[str, str], scenario: str, column: str) -> Any:
     """``column`` of the runs of ``scenario`` as a table indexed by (name, controller), one row
     per controller label (a training seed), one column per episode seed."""
-    sub = runs[(runs["scenario"] == scenario) & runs["controller"].isin(list(labels))].copy()
-    sub["name"] = sub["controller"].map(labels)
+    sub = _named(runs, labels, scenario)
     sub[column] = sub[column].astype(float)
     return sub.pivot_table(index=["name", "controller"], columns="seed", values=column,
                            aggfunc="mean")
@@ -434,8 +444,7 @@ def controllable_saving_text(runs: Any, labels: Mapping[str, str], scenario: str
     present = [o for o in others if o in names]
     if ours not in names or not present:
         return f"{head}: not measured in these runs"
-    episodes = runs.loc[(runs["scenario"] == scenario) & runs["controller"].isin(list(labels)),
-                        "seed"].nunique()
+    episodes = _named(runs, labels, scenario)["seed"].nunique()
     if table.shape[1] < episodes:  # an episode none of whose runs has the value
         return f"{head}: not measured on every episode"
     means = {n: float(np.nanmean(table.loc[n].to_numpy())) for n in [ours, *present]}
@@ -677,8 +686,7 @@ def size_table(runs: Any, labels: Mapping[str, str], scenario: str) -> Any:
     """
     import pandas as pd
 
-    sub = runs[(runs["scenario"] == scenario) & runs["controller"].isin(list(labels))].copy()
-    sub["name"] = sub["controller"].map(labels)
+    sub = _named(runs, labels, scenario)
     rows = []
     for (name, n), g in sub.groupby(["name", "n_vehicles"], sort=True):
         ppv = g["power_mean_kw"].to_numpy(dtype=float) / n
@@ -686,7 +694,7 @@ def size_table(runs: Any, labels: Mapping[str, str], scenario: str) -> Any:
                      "collisions": int(g["collision"].sum()),
                      "reward_mean": float(g["reward"].mean()),
                      "power_per_vehicle_kw_avg": float(ppv.mean()),
-                     "power_per_vehicle_kw_std": float(ppv.std(ddof=1)) if len(ppv) > 1 else math.nan,
+                     "power_per_vehicle_kw_std": _std(ppv),
                      "ivs_m_avg": float(g["gap_mean_m"].mean()),
                      "ivs_within_std_m": float(g["gap_std_m"].mean()),
                      "speed_mps_avg": float(g["speed_mean_mps"].mean()),
@@ -699,8 +707,8 @@ def _size_tables(runs: Any, labels: Mapping[str, str], scenario: str, algo: str,
     """Per platoon size of ``algo``: (training seeds x episodes) tables of the power spread
     (absolute deviation of the per-vehicle platoon power from that size's mean) and of the
     within-run IVS std."""
-    sub = runs[(runs["scenario"] == scenario) & runs["controller"].isin(list(labels))].copy()
-    sub = sub[sub["controller"].map(labels) == algo]
+    sub = _named(runs, labels, scenario)
+    sub = sub[sub["name"] == algo]
     out = {}
     for n in sizes:
         g = sub[sub["n_vehicles"] == n].copy()
@@ -769,8 +777,7 @@ def size_power_claim(runs: Any, labels: Mapping[str, str], algos: Sequence[str],
     claim = ("Larger platoons use less power per vehicle: the largest size against the smallest, "
              "per algorithm (Fig. 8)")
     quote = cl.PAPER_QUOTES["size_power"]
-    sub = runs[(runs["scenario"] == scenario) & runs["controller"].isin(list(labels))].copy()
-    sub["name"] = sub["controller"].map(labels)
+    sub = _named(runs, labels, scenario)
     sub["power_per_vehicle_kw"] = sub["power_mean_kw"].astype(float) / sub["n_vehicles"]
     safety = cl.safety_of(runs[runs["scenario"] == scenario], labels)
     comps, parts = {}, []
@@ -812,9 +819,8 @@ def table_three(runs: Any, labels: Mapping[str, str]) -> Any:
 
     from studies.paper import TABLE_III
 
-    sub = runs[runs["scenario"].isin(list(OPENACC_GROUP_NAMES))
-               & runs["controller"].isin(list(labels))].copy()
-    sub["name"] = sub["controller"].map(labels)
+    sub = _named(runs, labels)
+    sub = sub[sub["scenario"].isin(list(OPENACC_GROUP_NAMES))]
     cols = {"speed_mps": ("speed_mean_mps", "speed_std_mps"), "ivs_m": ("gap_mean_m", "gap_std_m"),
             "accel_mps2": ("accel_mean_mps2", "accel_std_mps2")}
     rows = []
@@ -877,20 +883,3 @@ def openacc_claim(runs: Any, labels: Mapping[str, str], t3: Any) -> Verdict:
 def not_testable(claim: str, reason: str, quote: str = "") -> Verdict:
     """A claim this reproduction cannot test yet, with the reason."""
     return Verdict(claim, "-", cl.NOT_TESTABLE, reason, quote)
-
-
-def format_table(df: Any, columns: Sequence[tuple[str, str]], digits: int = 2) -> str:
-    """A Markdown table of ``df``'s ``columns`` (key, header); NaN shows as a dash."""
-    head = "| " + " | ".join(h for _, h in columns) + " |"
-    sep = "| " + " | ".join("---" for _ in columns) + " |"
-    lines = [head, sep]
-    for _, r in df.iterrows():
-        cells = []
-        for key, _ in columns:
-            v = r[key]
-            if isinstance(v, float | np.floating):
-                cells.append("-" if not math.isfinite(v) else f"{v:.{digits}f}")
-            else:
-                cells.append(str(v))
-        lines.append("| " + " | ".join(cells) + " |")
-    return "\n".join(lines)

@@ -7,7 +7,7 @@ import dataclasses
 import json
 import os
 import platform
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -24,6 +24,7 @@ from studies.paper import (
     SIZES,
     Budget,
 )
+from studies.report import format_table
 
 
 def check_job_files(jobs: list[PolicyJob]) -> None:
@@ -63,11 +64,6 @@ def _curves(jobs: list[PolicyJob], study: str = "main",
             read_curve(j.file(".curve.csv")) for j in jobs if j.study == study}
 
 
-def _machine() -> str:
-    return (f"{platform.system()} {platform.machine()}, {os.cpu_count()} CPU cores, "
-            f"Python {platform.python_version()}")
-
-
 def write_report(jobs: list[PolicyJob], names: dict[str, str], built: Sequence[Scenario],
                  budget: Budget, out: Path, manifest: dict[str, Any]) -> Path:
     """``OUT/report.md``, its figures (``OUT/figures``) and CSVs, on the scenarios ``built``
@@ -78,6 +74,7 @@ def write_report(jobs: list[PolicyJob], names: dict[str, str], built: Sequence[S
     from benchmark.export import leaderboard_frame, pool_training_seeds, runs_frame
     from benchmark.provenance import git_sha
     from benchmark.store import ResultStore
+    from infra.atomic import write_text
     from studies import reproduction as rp
     from studies.paper import PAPER_ALGOS, SHARING_ALGOS, TABLE_II_SCENARIO
 
@@ -104,7 +101,8 @@ def write_report(jobs: list[PolicyJob], names: dict[str, str], built: Sequence[S
             f"relative to it). Budget **{budget.name}**: {budget.description}. "
             + _arithmetic_sentence(manifest["settings"].get("arithmetic", "native"))
             + " " + _provenance_sentence(jobs),
-            f"Code: git {git_sha()}; machine: {_machine()}. This invocation took "
+            f"Code: git {git_sha()}; machine: {platform.system()} {platform.machine()}, "
+            f"{os.cpu_count()} CPU cores, Python {platform.python_version()}. This invocation took "
             f"{manifest['wall_s']:.0f} s; the training runs took {manifest['train_wall_s']:.0f} s "
             f"of compute in all (recorded per run), the evaluation runs "
             f"{manifest['eval_wall_s']:.0f} s.",
@@ -125,15 +123,13 @@ def write_report(jobs: list[PolicyJob], names: dict[str, str], built: Sequence[S
             "rows. Mean (std) over the training seeds. The paper prints one number per algorithm and does not say which.",
             "",
         ]
-        t1v = t1.assign(train=[f"{m:.1f} ({s:.1f})" for m, s in
-                               zip(t1["train_reward_mean"], t1["train_reward_std"], strict=True)],
-                        val=[f"{m:.1f} ({s:.1f})" for m, s in
-                             zip(t1["validation_reward_mean"], t1["validation_reward_std"],
-                                 strict=True)])
-        lines.append(rp.format_table(t1v, [("algo", "algorithm"), ("scenario", "scenario"),
-                                           ("n_seeds", "seeds"), ("train", "training reward"),
-                                           ("val", "validation reward"),
-                                           ("paper_reward", "paper")]))
+        t1v = t1.assign(**{k: [f"{m:.1f} ({s:.1f})" for m, s in
+                               zip(t1[f"{k}_reward_mean"], t1[f"{k}_reward_std"], strict=True)]
+                           for k in ("train", "validation")})
+        lines.append(format_table(t1v, [("algo", "algorithm"), ("scenario", "scenario"),
+                                        ("n_seeds", "seeds"), ("train", "training reward"),
+                                        ("validation", "validation reward"),
+                                        ("paper_reward", "paper")]))
         lines += ["", "## Table II: test performance on the evaluation episodes", "",
                   f"The paper's Table II names no scenario. Its targets (20 m, 15 m/s) are those of "
                   f"both published scenarios; its IVS and speed averages (20.8-22.4 m, 15.0-15.3 "
@@ -144,16 +140,13 @@ def write_report(jobs: list[PolicyJob], names: dict[str, str], built: Sequence[S
                   "seed). Platoon power uses our fitted power model, so its scale differs from the "
                   "paper's.", ""]
         lines += [_scenario_reading(t2), ""]
-        cols = [("name", "controller"), ("collisions", "collisions"),
-                ("reward_mean", "reward")]
-        for key, _, label in rp.TABLE_II_METRICS:
-            cols += [(f"{key}_avg", f"{label} avg"), (f"paper_{key}_avg", "paper"),
-                     (f"{key}_std", "std"), (f"paper_{key}_std", "paper")]
-        cols += [("controllable_power_kw_avg", "controllable kW")]
+        cols = [("name", "controller"), ("collisions", "collisions"), ("reward_mean", "reward"),
+                *_beside_paper((key, label) for key, _, label in rp.TABLE_II_METRICS),
+                ("controllable_power_kw_avg", "controllable kW")]
         for sc in scenarios:
             lines += [f"### {sc}" + (" (the paper's Table II, in our reading)"
                                      if sc == TABLE_II_SCENARIO else ""), ""]
-            lines.append(rp.format_table(t2[t2["scenario"] == sc], cols))
+            lines.append(format_table(t2[t2["scenario"] == sc], cols))
             lines.append("")
         lines += _power_basis_section(t2, by_label, out)
         # figures
@@ -174,31 +167,29 @@ def write_report(jobs: list[PolicyJob], names: dict[str, str], built: Sequence[S
         lines.append("")
         pooled = pool_training_seeds(runs)
         lb = leaderboard_frame(runs, pool_seeds=True)
-        label_to_name = {}
-        for lab, name in names.items():
-            for pooled_lab in pooled.loc[runs["controller"] == lab, "controller"].unique():
-                label_to_name[pooled_lab] = name
+        label_to_name = {p: names[lab] for lab, p in zip(runs["controller"], pooled["controller"],
+                                                         strict=True) if lab in names}
         lb["controller"] = lb["controller"].map(lambda c: label_to_name.get(c, c))
         lines += ["## Radar (Fig. 6) and time series (Figs. 3 and 5)", ""]
+        radar = lb[lb["controller"].isin([*SHARING_ALGOS, "ovm", "mpc"])]
         for sc in scenarios:
-            sub = lb[lb["controller"].isin([*SHARING_ALGOS, "ovm", "mpc"])]
             stem = f"radar__{sc}"
-            if plot_radar(sub, sc, N_VEHICLES, fig_dir, stem):  # none for one controller
+            if plot_radar(radar, sc, N_VEHICLES, fig_dir, stem):  # none for one controller
                 lines.append(f"![radar {sc}](figures/{stem}.png)")
         with_traj = store.trajectory_ids()
         shown = [n for n in ("ia2c", "commnet", "bdc", "wac", "dcea") if n in policy_names]
         for sc in scenarios:
             sc_obj = by_label[sc]
             for name in shown:
-                ids = [r["id"] for r in records if names.get(r["controller"]) == name
-                       and r["scenario"] == sc and r["id"] in with_traj
-                       and json.loads(r["options"]).get("seed", "0") == "0"]
-                if not ids:
+                rec = min((r for r in records if names.get(r["controller"]) == name
+                           and r["scenario"] == sc and r["id"] in with_traj
+                           and json.loads(r["options"]).get("seed", "0") == "0"),
+                          key=lambda r: r["id"], default=None)
+                if rec is None:
                     continue
-                arrays = store.trajectory(sorted(ids)[0])
+                arrays = store.trajectory(rec["id"])
                 assert arrays is not None
                 stem = f"timeseries__{name}__{sc}"
-                rec = next(r for r in records if r["id"] == sorted(ids)[0])
                 plot_time_series(arrays, f"{name} (training seed 0) on {sc}, episode seed "
                                  f"{rec['seed']}", fig_dir, stem, sc_obj.target_gap_m,
                                  sc_obj.target_speed_mps)
@@ -226,15 +217,10 @@ def write_report(jobs: list[PolicyJob], names: dict[str, str], built: Sequence[S
               "interval over training seeds and episodes, inconclusive when it covers 0; a "
               "curve that ends at or below its start has not converged; a claim with two halves "
               "is judged on both.", ""]
-    lines.append(rp.format_table(claims, [("claim", "claim"), ("quote", "the paper says"),
-                                          ("measured", "measured"), ("verdict", "verdict"),
-                                          ("reason", "why")]))
-    lines.append("")
-    path = out / "report.md"
-    from infra.atomic import write_text
-
-    write_text(path, "\n".join(lines))
-    return path
+    lines.append(format_table(claims, [("claim", "claim"), ("quote", "the paper says"),
+                                       ("measured", "measured"), ("verdict", "verdict"),
+                                       ("reason", "why")]))
+    return write_text(out / "report.md", "\n".join(lines) + "\n")
 
 
 def _power_basis_section(t2: Any, scenarios: dict[str, Scenario], out: Path) -> list[str]:
@@ -271,7 +257,7 @@ def _power_basis_section(t2: Any, scenarios: dict[str, Scenario], out: Path) -> 
         "floor to subtract). The floor is most of every platoon's power, so a saving in % of "
         "the total is a small share of what a controller can change.", "",
     ]
-    lines.append(rp.format_table(basis, [
+    lines.append(format_table(basis, [
         ("name", "controller"), ("collisions", "collisions"),
         ("paper_per_vehicle_kw", "paper kW/veh"),
         ("paper_vs_cruise_pct", f"paper vs {rp.PAPER_CRUISE_PROXY} %"),
@@ -348,7 +334,7 @@ def _size_section(jobs: list[PolicyJob], runs: Any, names: dict[str, str], fig_d
     sizes = sizes[sizes["n_vehicles"].isin([*SIZES, N_VEHICLES])
                   & sizes["name"].isin([*SIZE_ALGOS, "ovm"])]
     write_csv(sizes, out / "sizes.csv")
-    lines += ["", rp.format_table(sizes, [
+    lines += ["", format_table(sizes, [
         ("name", "controller"), ("n_vehicles", "N"), ("collisions", "collisions"),
         ("reward_mean", "reward"), ("power_per_vehicle_kw_avg", "power/veh kW"),
         ("power_per_vehicle_kw_std", "std"), ("ivs_m_avg", "IVS m"),
@@ -373,12 +359,10 @@ def _openacc_section(jobs: list[PolicyJob], runs: Any, names: dict[str, str], ou
         return []
     t3 = rp.table_three(runs, names)
     write_csv(t3, out / "table3.csv")
-    cols = [("group", "group"), ("name", "controller"), ("collisions", "collisions")]
-    for key, label in (("speed_mps", "velocity m/s"), ("ivs_m", "IVS m"),
-                       ("accel_mps2", "acceleration m/s^2")):
-        cols += [(f"{key}_avg", f"{label} avg"), (f"paper_{key}_avg", "paper"),
-                 (f"{key}_std", "std"), (f"paper_{key}_std", "paper")]
-    cols += [("energy_kwh", "total energy kWh"), ("paper_energy_kwh", "paper")]
+    cols = [("group", "group"), ("name", "controller"), ("collisions", "collisions"),
+            *_beside_paper((("speed_mps", "velocity m/s"), ("ivs_m", "IVS m"),
+                            ("accel_mps2", "acceleration m/s^2"))),
+            ("energy_kwh", "total energy kWh"), ("paper_energy_kwh", "paper")]
     verdicts.append(rp.openacc_claim(runs, names, t3))
     return ["## OpenACC (Table III)", "",
             f"BDC trained at N = {OPENACC_VEHICLES} on the randomised families "
@@ -387,7 +371,15 @@ def _openacc_section(jobs: list[PolicyJob], runs: Any, names: dict[str, str], ou
             "(`openacc-real`), `cacc` and `mpc`. Std here is within the run (vehicles and steps), "
             "as for one recorded run. Group M uses ZalaZONE dynamic_part8 1250-1310 s in place of "
             "the paper's unavailable dynamic_part9 (its leader runs at about 8 m/s, not 11).", "",
-            rp.format_table(t3, cols, 3), ""]
+            format_table(t3, cols, 3), ""]
+
+
+def _beside_paper(metrics: Iterable[tuple[str, str]]) -> list[tuple[str, str]]:
+    """Table columns of each metric (key, label): our average, the paper's, our std, the
+    paper's."""
+    return [col for key, label in metrics
+            for col in ((f"{key}_avg", f"{label} avg"), (f"paper_{key}_avg", "paper"),
+                        (f"{key}_std", "std"), (f"paper_{key}_std", "paper"))]
 
 
 def _provenance_sentence(jobs: list[PolicyJob]) -> str:

@@ -169,7 +169,8 @@ def write_report(df: Any, out: Path, command: str, steps: int, seeds: list[int],
     """``OUT/report.md`` with a table per scenario, the knob effects and the figures."""
     from benchmark.export import write_csv
     from benchmark.provenance import git_sha
-    from studies.reproduction import format_table
+    from infra.atomic import write_text
+    from studies.report import format_table
 
     fig_dir = out / "figures"
     lines = ["# BDC-MARL sensitivity", "",
@@ -185,16 +186,19 @@ def write_report(df: Any, out: Path, command: str, steps: int, seeds: list[int],
             ("energy_kwh_per_100km_mean", "kWh/100 km"), ("gap_rmse_m_mean", "gap RMSE m"),
             ("training_bits_sent_per_agent", "training bits sent"),
             ("qsgd_payload_bits_per_agent", "QSGD payload bits")]
-    shown = df.assign(knob_value=[f"{v:.3g}" if isinstance(v, float) else str(v)
-                                  for v in df["knob_value"]])
+
+    def values(column: Any) -> list[str]:  # a knob's values as the tables print them
+        return [f"{v:.3g}" if isinstance(v, float) else str(v) for v in column]
+
+    shown = df.assign(knob_value=values(df["knob_value"]))
     for sc in dict.fromkeys(df["scenario"]):
         plot_sensitivity(df, sc, fig_dir, f"sensitivity__{sc}")
         lines += [f"## {sc}", "", format_table(shown[shown["scenario"] == sc], cols, 3), "",
                   f"![sensitivity on {sc}](figures/sensitivity__{sc}.png)", ""]
     effects = knob_effects(df)
     write_csv(effects, out / "knob_effects.csv")
-    effects = effects.assign(**{c: [f"{v:.3g}" if isinstance(v, float) else str(v)
-                                    for v in effects[c]] for c in ("best_value", "worst_value")})
+    effects = effects.assign(best_value=values(effects["best_value"]),
+                             worst_value=values(effects["worst_value"]))
     plot_bits_against_reward(df, fig_dir, "bits_against_reward")
     lines += ["## Which knob matters", "",
               "Spread: the largest minus the smallest mean reward over the knob's values; "
@@ -204,9 +208,5 @@ def write_report(df: Any, out: Path, command: str, steps: int, seeds: list[int],
                                      ("worst_value", "worst"), ("collisions", "collisions"),
                                      ("differs_from_base", "differs")], 1), "",
               "## Communication against performance", "",
-              "![training bits against reward](figures/bits_against_reward.png)", ""]
-    path = out / "report.md"
-    from infra.atomic import write_text
-
-    write_text(path, "\n".join(lines))
-    return path
+              "![training bits against reward](figures/bits_against_reward.png)"]
+    return write_text(out / "report.md", "\n".join(lines) + "\n")

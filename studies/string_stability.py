@@ -33,7 +33,8 @@ from typing import Any
 
 import numpy as np
 
-from studies.learned_report import HIGHER, compare
+from studies.learned_report import HIGHER, compare, side
+from studies.report import num, table_lines
 
 #: V2V settings of the study, by name: (delay s, loss).
 CHANNELS: dict[str, tuple[float, float]] = {
@@ -93,12 +94,6 @@ class Entry:
         return [{**base, "seed": str(s)} for s in TRAIN_SEEDS] if self.learned else [base]
 
 
-def _segment_ends() -> tuple[tuple[float, float, float], tuple[float, float, float]]:
-    from marl.ippo_gains import GainScheduleConfig
-
-    return GainScheduleConfig().segment
-
-
 def _fixed(name: str, point: tuple[float, float, float]) -> Entry:
     kp, kd, h = point
     return Entry(name, "cacc", (("kp", f"{kp:g}"), ("kd", f"{kd:g}"), ("time_gap_s", f"{h:g}")),
@@ -109,7 +104,9 @@ def default_entries() -> tuple[Entry, ...]:
     """Every controller of the report: the model-based ones (``cacc``, ``acc``, ``mpc`` and
     ``cacc`` fixed at each end of ``ippo-gains``' default segment), the learned ones shipped
     before issue 54, and those trained to keep string stability."""
-    soft, stiff = _segment_ends()
+    from marl.ippo_gains import GainScheduleConfig
+
+    soft, stiff = GainScheduleConfig().segment
     return (
         Entry("cacc", "cacc", (), False, "model-based"),
         Entry("acc", "acc", (), False, "model-based"),
@@ -133,19 +130,16 @@ def available(entries: Sequence[Entry], scenarios: Sequence[str]) -> tuple[list[
     from controllers.policy import VARIANT_DIR, checkpoint_path
 
     kept, notes = [], []
+    n = REWARD_N  # every learner of the report is shipped at N = 8
     for e in entries:
-        if not e.learned:
-            kept.append(e)
-            continue
-        n = REWARD_N  # every learner of the report is shipped at N = 8
         folder = VARIANT_DIR / dict(e.options)["variant"] if "variant" in dict(e.options) else None
-        missing = [(sc, s) for sc in scenarios for s in TRAIN_SEEDS
-                   if not checkpoint_path(e.controller, sc, n, s, folder).exists()]
+        missing = [(sc, s) for sc in scenarios for s in TRAIN_SEEDS if e.learned
+                   and not checkpoint_path(e.controller, sc, n, s, folder).exists()]
         if missing:
             notes.append(f"{e.name} left out: no shipped checkpoint for {missing[0][0]}, "
                          f"N = {n}, seed {missing[0][1]}")
-            continue
-        kept.append(e)
+        else:
+            kept.append(e)
     return kept, notes
 
 
@@ -339,10 +333,7 @@ def episodes_frame(runs: Any, entries: Sequence[Entry]) -> Any:
 
 
 def _side(ep: Any, entry: str, scenario: str, channel: str) -> Any:
-    sel = ep[(ep["entry"] == entry) & (ep["scenario"] == scenario) & (ep["channel"] == channel)]
-    if sel.empty:
-        return None
-    return sel.pivot(index="train_seed", columns="seed", values="reward"), int(sel["collision"].sum())
+    return side(ep[(ep["entry"] == entry) & (ep["scenario"] == scenario) & (ep["channel"] == channel)])
 
 
 def reward_table(ep: Any, entries: Sequence[Entry]) -> Any:
@@ -411,6 +402,12 @@ def pooled_peaks(sweeps: Any) -> Any:
             .reset_index())
 
 
+def _peak_of(peaks: Any) -> dict[tuple[str, str, str, int], float]:
+    """A :func:`pooled_peaks` table as a mapping (entry, scenario, channel, N) -> peak."""
+    cols = ["entry", "scenario", "channel", "n_vehicles", "peak_gain"]
+    return {(e, sc, ch, int(n)): float(p) for e, sc, ch, n, p in peaks[cols].itertuples(index=False)}
+
+
 # ------------------------------------------------------------------------------------- goal
 def goal_frame(ep: Any, sweeps: Any, entries: Sequence[Entry], reference: str = "cacc") -> Any:
     """Issue 54's goal, per learned entry and scenario, against ``reference``: its pooled sweep
@@ -423,6 +420,7 @@ def goal_frame(ep: Any, sweeps: Any, entries: Sequence[Entry], reference: str = 
     from benchmark.sweep import SWEEP_TOL
 
     peaks = pooled_peaks(sweeps)
+    peak, sizes = _peak_of(peaks), sorted(peaks["n_vehicles"].unique())
     rows = []
     for e in entries:
         if not e.learned:
@@ -436,18 +434,14 @@ def goal_frame(ep: Any, sweeps: Any, entries: Sequence[Entry], reference: str = 
             worst = 0.0
             above_ref = []
             for ch in ("ideal", "degraded"):
-                for n in sorted(peaks["n_vehicles"].unique()):
-                    sel = peaks[(peaks["scenario"] == sc) & (peaks["n_vehicles"] == n)
-                                & (peaks["channel"] == ch)]
-                    mine = sel[sel["entry"] == e.name]["peak_gain"]
-                    theirs = sel[sel["entry"] == reference]["peak_gain"]
-                    if mine.empty or theirs.empty:
+                for n in sizes:
+                    mine, theirs = peak.get((e.name, sc, ch, n)), peak.get((reference, sc, ch, n))
+                    if mine is None or theirs is None:
                         continue
-                    row[f"peak_{ch}_n{n}"] = float(mine.iloc[0])
-                    row[f"{reference}_peak_{ch}_n{n}"] = float(theirs.iloc[0])
-                    above_ref.append(float(mine.iloc[0]) - float(theirs.iloc[0]))
+                    row[f"peak_{ch}_n{n}"], row[f"{reference}_peak_{ch}_n{n}"] = mine, theirs
+                    above_ref.append(mine - theirs)
                     if ch == "ideal":
-                        worst = max(worst, float(mine.iloc[0]))
+                        worst = max(worst, mine)
             row["peak_at_most_reference"] = bool(above_ref) and max(above_ref) <= 0.0
             row["largest_excess_over_reference"] = max(above_ref) if above_ref else math.nan
             row["peak_ideal_worst"] = worst
@@ -459,14 +453,12 @@ def goal_frame(ep: Any, sweeps: Any, entries: Sequence[Entry], reference: str = 
             row["above_reference"] = cmp["verdict"] == HIGHER and cmp["basis"] == "reward"
             if ours_d is not None and ref_d is not None:
                 row["collisions"] += ours_d[1]
-                mine_loss = compare(ours, ours_d, same_policy=True)
-                ref_loss = compare(ref, ref_d, same_policy=True)
-                row.update(loss_degraded=mine_loss["difference"],
-                           loss_ci_low=mine_loss["ci_low"], loss_ci_high=mine_loss["ci_high"],
-                           reference_loss_degraded=ref_loss["difference"],
-                           reference_loss_ci_low=ref_loss["ci_low"],
-                           reference_loss_ci_high=ref_loss["ci_high"])
-                row["loses_less"] = mine_loss["difference"] < ref_loss["difference"]
+                losses = {"": compare(ours, ours_d, same_policy=True),
+                          "reference_": compare(ref, ref_d, same_policy=True)}
+                for who, c in losses.items():
+                    row.update({f"{who}loss_degraded": c["difference"],
+                                f"{who}loss_ci_low": c["ci_low"], f"{who}loss_ci_high": c["ci_high"]})
+                row["loses_less"] = row["loss_degraded"] < row["reference_loss_degraded"]
             row["collision_free"] = row["collisions"] == 0
             row["goal_met"] = bool(row["peak_at_most_reference"] and row["string_stable_ideal"]
                                    and row["collision_free"] and row["above_reference"]
@@ -494,11 +486,7 @@ def v2v_worth(table: Any) -> Any:
 
 # ----------------------------------------------------------------------------------- report
 def _num(x: Any, digits: int = 2) -> str:
-    if x is None or (isinstance(x, float) and math.isnan(x)):
-        return "n/a"
-    if isinstance(x, float) and math.isinf(x):
-        return "inf (collided)"
-    return f"{float(x):,.{digits}f}"
+    return "inf (collided)" if isinstance(x, float) and math.isinf(x) else num(x, f",.{digits}f")
 
 
 def _mark(ok: Any) -> str:
@@ -511,8 +499,14 @@ def render_report(tables: dict[str, Any], command: str) -> str:
     the committed report can be checked against its CSVs."""
     from benchmark.sweep import SWEEP_TOL
 
-    rewards, sweeps, goal = tables["rewards"], tables["sweeps"], tables["goal"]
-    peaks = pooled_peaks(sweeps)
+    rewards, goal, v2v = tables["rewards"], tables["goal"], tables["v2v"]
+    peaks = pooled_peaks(tables["sweeps"])
+    peak, sizes = _peak_of(peaks), sorted(peaks["n_vehicles"].unique())
+
+    def peak_text(r: Any, channel: str, n: int) -> str:
+        key = (r["entry"], r["scenario"], channel, n)
+        return _num(peak[key], 3) if key in peak else "n/a"
+
     lines = [
         "# String stability against reward, for every controller",
         "",
@@ -529,61 +523,43 @@ def render_report(tables: dict[str, Any], command: str) -> str:
         "",
         "## Reward against sweep peak",
         "",
-        "Ideal V2V; the peak at N = " + ", ".join(str(n) for n in sorted(peaks["n_vehicles"]
-                                                                          .unique())) + ".",
+        "Ideal V2V; the peak at N = " + ", ".join(str(n) for n in sizes) + ".",
         "",
+        *table_lines(["scenario", "stage", "controller", "collisions", "reward [95 % CI]",
+                      *(f"peak N = {n}" for n in sizes)],
+                     ([r["scenario"], r["stage"], f"`{r['entry']}`",
+                       f"{r['collisions']}/{r['episodes'] * r['train_seeds']}",
+                       f"{_num(r['reward'])} [{_num(r['ci_low'])}, {_num(r['ci_high'])}]",
+                       *(peak_text(r, "ideal", n) for n in sizes)]
+                      for _, r in rewards[rewards["channel"] == "ideal"].iterrows())),
+        "", "## The goal (issue 54, point 4), against `cacc`", "",
     ]
-    sizes = sorted(peaks["n_vehicles"].unique())
-    lines.append("| scenario | stage | controller | collisions | reward [95 % CI] | "
-                 + " | ".join(f"peak N = {n}" for n in sizes) + " |")
-    lines.append("|---|---|---|---|---|" + "---|" * len(sizes))
-    ideal = rewards[rewards["channel"] == "ideal"]
-    for _, r in ideal.iterrows():
-        sel = peaks[(peaks["entry"] == r["entry"]) & (peaks["scenario"] == r["scenario"])
-                    & (peaks["channel"] == "ideal")]
-        cells = []
-        for n in sizes:
-            p = sel[sel["n_vehicles"] == n]["peak_gain"]
-            cells.append(_num(float(p.iloc[0]), 3) if len(p) else "n/a")
-        lines.append(f"| {r['scenario']} | {r['stage']} | `{r['entry']}` | "
-                     f"{r['collisions']}/{r['episodes'] * r['train_seeds']} | "
-                     f"{_num(r['reward'])} [{_num(r['ci_low'])}, {_num(r['ci_high'])}] | "
-                     + " | ".join(cells) + " |")
-    lines += ["", "## The goal (issue 54, point 4), against `cacc`", ""]
     if goal.empty:
         lines.append("No learned controller ran.")
     else:
-        lines.append("| controller | scenario | peak <= cacc's (N, V2V ideal and degraded) | "
-                     "largest excess | peak, ideal, worst N | stable (ideal) | collision-free | "
-                     "reward - cacc's [95 % CI] | loss under degraded V2V (cacc's) | "
-                     "goal met |")
-        lines.append("|---|---|---|---|---|---|---|---|---|---|")
-        for _, g in goal.iterrows():
-            loss = (f"{_num(g.get('loss_degraded'))} ({_num(g.get('reference_loss_degraded'))})"
-                    if "loss_degraded" in g and not _isnan(g.get("loss_degraded")) else "n/a")
-            lines.append(
-                f"| `{g['entry']}` | {g['scenario']} | {_mark(g['peak_at_most_reference'])} | "
-                f"{_num(g['largest_excess_over_reference'], 3)} | "
-                f"{_num(g['peak_ideal_worst'], 3)} | {_mark(g['string_stable_ideal'])} | "
-                f"{_mark(g['collision_free'])} | {_num(g['difference'])} "
-                f"[{_num(g['ci_low'])}, {_num(g['ci_high'])}] | {loss} | "
-                f"{_mark(g['goal_met'])} |")
-    v2v = tables["v2v"]
+        def loss(g: Any) -> str:
+            ours = _num(g.get("loss_degraded"))
+            return "n/a" if ours == "n/a" else f"{ours} ({_num(g.get('reference_loss_degraded'))})"
+
+        lines += table_lines(
+            ["controller", "scenario", "peak <= cacc's (N, V2V ideal and degraded)",
+             "largest excess", "peak, ideal, worst N", "stable (ideal)", "collision-free",
+             "reward - cacc's [95 % CI]", "loss under degraded V2V (cacc's)", "goal met"],
+            ([f"`{g['entry']}`", g["scenario"], _mark(g["peak_at_most_reference"]),
+              _num(g["largest_excess_over_reference"], 3), _num(g["peak_ideal_worst"], 3),
+              _mark(g["string_stable_ideal"]), _mark(g["collision_free"]),
+              f"{_num(g['difference'])} [{_num(g['ci_low'])}, {_num(g['ci_high'])}]", loss(g),
+              _mark(g["goal_met"])] for _, g in goal.iterrows()))
     lines += ["", "## What V2V is worth", "",
               "Mean test reward under each V2V setting; worth = ideal - none, cost = ideal - "
               "degraded; and the sweep peak at N = 8 under each.", "",
-              "| scenario | controller | ideal | none | degraded | worth | cost | peak ideal | "
-              "peak none | peak degraded |", "|---|---|---|---|---|---|---|---|---|---|"]
-    for _, r in v2v.iterrows():
-        cells = []
-        for ch in ("ideal", "none", "degraded"):
-            p = peaks[(peaks["entry"] == r["entry"]) & (peaks["scenario"] == r["scenario"])
-                      & (peaks["channel"] == ch) & (peaks["n_vehicles"] == REWARD_N)]["peak_gain"]
-            cells.append(_num(float(p.iloc[0]), 3) if len(p) else "n/a")
-        lines.append(f"| {r['scenario']} | `{r['entry']}` | {_num(r['ideal'])} | "
-                     f"{_num(r['none'])} | {_num(r['degraded'])} | "
-                     f"{_num(r['worth_ideal_over_none'])} | {_num(r['cost_of_degraded'])} | "
-                     + " | ".join(cells) + " |")
+              *table_lines(["scenario", "controller", "ideal", "none", "degraded", "worth",
+                            "cost", "peak ideal", "peak none", "peak degraded"],
+                           ([r["scenario"], f"`{r['entry']}`",
+                             *(_num(r[c]) for c in ("ideal", "none", "degraded",
+                                                    "worth_ideal_over_none", "cost_of_degraded")),
+                             *(peak_text(r, ch, REWARD_N) for ch in ("ideal", "none", "degraded"))]
+                            for _, r in v2v.iterrows()))]
     cert, segs = tables["certificate"], tables["segments"]
     lines += ["", "## The certificate of `ippo-gains`", "",
               f"Ploeg's `||Gamma||_inf` at {cert['s'].nunique()} points of the default segment, "
@@ -594,19 +570,19 @@ def render_report(tables: dict[str, Any], command: str) -> str:
               f"{_num(float(cert['peak_discrete'].max()), 6)}; internally stable everywhere: "
               f"{_mark(cert['internally_stable'].all())}.", ""]
     if len(segs):
-        lines += ["| scenario | seed | segment start (kp kd h) | end | worst peak | certified |",
-                  "|---|---|---|---|---|---|"]
-        for _, r in segs.iterrows():
-            lines.append(f"| {r['scenario']} | {r['train_seed']} | {r['start']} | {r['end']} | "
-                         f"{_num(r['worst_peak'], 6)} | {_mark(r['certified'])} |")
+        lines += table_lines(["scenario", "seed", "segment start (kp kd h)", "end", "worst peak",
+                              "certified"],
+                             ([r["scenario"], r["train_seed"], r["start"], r["end"],
+                               _num(r["worst_peak"], 6), _mark(r["certified"])]
+                              for _, r in segs.iterrows()))
     trade, design = tables["tradeoff"], tables["design"]
     lines += ["", "## The trade-off: reward against the certified peak", "",
               f"`cacc` with fixed gains on the design grid ({len(design)} points of kp, kd and "
               "h), on the validation seeds: for each bound, the best validation reward among "
               f"the collision-free points whose peak (continuous and discrete, {DESIGN_DELAY_S:g} "
               f"s delay, {DESIGN_LAG_S:g} s lag) is at most the bound.", "",
-              "| scenario | peak bound | points | best validation reward | kp | kd | h | peak |",
-              "|---|---|---|---|---|---|---|---|"]
+              *table_lines(["scenario", "peak bound", "points", "best validation reward", "kp",
+                            "kd", "h", "peak"], [])]
     for _, r in trade.iterrows():
         bound = "none" if math.isinf(r["peak_bound"]) else f"{r['peak_bound']:g}"
         if not r["points"]:
@@ -616,10 +592,6 @@ def render_report(tables: dict[str, Any], command: str) -> str:
                      f"{_num(r['best_reward'])} | {r['kp']:g} | {r['kd']:g} | "
                      f"{r['time_gap_s']:g} | {_num(r['peak_certified'], 4)} |")
     return "\n".join(lines).rstrip() + "\n"
-
-
-def _isnan(x: Any) -> bool:
-    return x is None or (isinstance(x, float) and math.isnan(x))
 
 
 #: The tables of the study, by name: the CSV file each is written to.

@@ -38,6 +38,7 @@ from controllers.linear import CACCController
 from controllers.registry import make_controller
 from envs.params import PlatoonParams
 from envs.scenarios import Scenario, make_scenario
+from studies.report import format_table
 
 #: Controllers whose trajectories are compared, and the scenarios (issue 57, point 2).
 AGREEMENT_CONTROLLERS: tuple[str, ...] = ("acc", "cacc", "mpc-qp", "bdc")
@@ -90,13 +91,16 @@ class EulerFilterPloeg(CACCController):
         self._alpha = 1.0 - ctx.params.dt_s / self.config.time_gap_s
 
 
-def _largest_difference(a: Trajectory, b: Trajectory) -> tuple[float, float]:
-    """The largest |gap| and |speed| differences over the common steps (inf if the episodes
-    end at different steps)."""
-    if a.steps != b.steps:
-        return math.inf, math.inf
-    return (float(np.max(np.abs(a.gap_m - b.gap_m))),
-            float(np.max(np.abs(a.speed_mps - b.speed_mps))))
+def _largest_differences(ours: Sequence[Trajectory], theirs: Sequence[Trajectory]
+                         ) -> dict[str, float]:
+    """The largest |gap| and |speed| differences over every step of the paired episodes
+    (``max_gap_diff_m``, ``max_speed_diff_mps``; inf where a pair ends at different steps)."""
+    diffs = [(math.inf, math.inf) if a.steps != b.steps else
+             (float(np.max(np.abs(a.gap_m - b.gap_m))),
+              float(np.max(np.abs(a.speed_mps - b.speed_mps))))
+             for a, b in zip(ours, theirs, strict=True)]
+    return {"max_gap_diff_m": max(d[0] for d in diffs),
+            "max_speed_diff_mps": max(d[1] for d in diffs)}
 
 
 def _run(controller: Any, scenario: Scenario, seeds: Sequence[int], simulator: str,
@@ -120,13 +124,11 @@ def trajectory_agreement(seeds: Sequence[int],
             ref = _run(make_controller(name), sc, seeds, "builtin")
             for simulator in ("sumo", "sumo-euler"):
                 got = _run(make_controller(name), sc, seeds, simulator)
-                diffs = [_largest_difference(a, b) for a, b in zip(ref, got, strict=True)]
                 rows.append({"controller": name, "scenario": sc_id, "simulator": simulator,
                              "episodes": len(seeds),
                              "collisions_builtin": sum(t.collided for t in ref),
                              "collisions_sumo": sum(t.collided for t in got),
-                             "max_gap_diff_m": max(d[0] for d in diffs),
-                             "max_speed_diff_mps": max(d[1] for d in diffs)})
+                             **_largest_differences(ref, got)})
     return pd.DataFrame(rows)
 
 
@@ -149,11 +151,8 @@ def ploeg_comparison(seeds: Sequence[int], scenarios: Sequence[str] = AGREEMENT_
                                 ("cacc with Plexe's Euler filter",
                                  EulerFilterPloeg(standstill_m=2.0))):
                 ours = _run(ctrl, sc, seeds, "sumo", params)
-                diffs = [_largest_difference(a, b) for a, b in zip(ours, plexe, strict=True)]
                 rows.append({"scenario": sc_id, "speed_bound_mps": bound, "ours": label,
-                             "episodes": len(seeds),
-                             "max_gap_diff_m": max(d[0] for d in diffs),
-                             "max_speed_diff_mps": max(d[1] for d in diffs),
+                             "episodes": len(seeds), **_largest_differences(ours, plexe),
                              "final_gap_ours_m": float(np.mean([t.gap_m[-1].mean() for t in ours])),
                              "final_gap_plexe_m": float(np.mean([t.gap_m[-1].mean()
                                                                  for t in plexe]))})
@@ -238,10 +237,8 @@ def human_comparison(seeds: Sequence[int]) -> Any:
         sc = make_scenario(sc_id)
         ref = _run(make_controller(name), sc, seeds, "builtin")
         got = _run(make_controller(name), sc, seeds, "sumo")
-        diffs = [_largest_difference(a, b) for a, b in zip(ref, got, strict=True)]
         row: dict[str, Any] = {"scenario": sc_id, "controller": name, "episodes": len(seeds),
-                               "max_gap_diff_m": max(d[0] for d in diffs),
-                               "max_speed_diff_mps": max(d[1] for d in diffs)}
+                               **_largest_differences(ref, got)}
         if sc.ring:
             for label, trajs in (("builtin", ref), ("sumo", got)):
                 w = [wave_measures(t, float(sc.options["length_m"])) for t in trajs]
@@ -302,22 +299,6 @@ def family_table(seeds: Sequence[int], scenarios: Sequence[str] = AGREEMENT_SCEN
     return pd.DataFrame(rows)
 
 
-def _table(df: Any, digits: int = 4) -> str:
-    """A DataFrame as a Markdown table (numbers to ``digits`` significant digits)."""
-    cols = list(df.columns)
-    out = ["| " + " | ".join(cols) + " |", "| " + " | ".join("---" for _ in cols) + " |"]
-    for _, r in df.iterrows():
-        cells = []
-        for c in cols:
-            x = r[c]
-            if isinstance(x, float | np.floating):
-                cells.append("" if math.isnan(x) else f"{x:.{digits}g}")
-            else:
-                cells.append(str(x))
-        out.append("| " + " | ".join(cells) + " |")
-    return "\n".join(out)
-
-
 #: The tables of the report, each written as ``<name>.csv`` beside ``report.md``.
 TABLES: tuple[str, ...] = ("agreement", "families", "ploeg", "energy", "humans", "speed")
 #: Every file :func:`write_report` writes into its folder.
@@ -343,6 +324,10 @@ def write_report(out: Path, seeds: Sequence[int], *, speed_repeats: int = 2) -> 
         "speed": speed_comparison(repeats=speed_repeats),
     }
     assert tuple(tables) == TABLES
+
+    def table(name: str) -> str:
+        return format_table(tables[name], digits=4, significant=True, missing="")
+
     seeds_text = ", ".join(str(s) for s in seeds)
     ring = make_scenario(RING)
     text = f"""# SUMO cross-check: report
@@ -361,7 +346,7 @@ last-bit position differences into other iterates). `sumo-euler`: SUMO's default
 (`x += dt v'` instead of `dt (v + v') / 2`): each step moves every vehicle by `dt^2 a / 2`
 more or less than the built-in simulator; the gaps drift by that, and the controllers answer.
 
-{_table(tables["agreement"])}
+{table("agreement")}
 
 ## 2. Every family on both simulators, and the models others wrote
 
@@ -370,7 +355,7 @@ gap metrics measure against the scenario's target gap (20 m); `plexe:ploeg` keep
 spacing of 2 m + 0.5 s x v (9.5 m at 15 m/s), SUMO's `ACC`/`CACC` keep `minGap + tau v` with
 `tau` set so that it is 20 m at 15 m/s.
 
-{_table(tables["families"])}
+{table("families")}
 
 ## 3. Our `cacc` against Plexe's Ploeg controller
 
@@ -383,7 +368,7 @@ Euler (`u <- u + dt/h (w - u)`, weight 0.8). Our law with Plexe's Euler step
 {PLOEG_REPLICA_TOL:g} (Plexe hands its controller acceleration out with 6 significant
 digits): the difference in the first row is that discretisation, not tuned away.
 
-{_table(tables["ploeg"])}
+{table("ploeg")}
 
 ## 4. Battery energy: ours against SUMO's MMPEVEM
 
@@ -403,7 +388,7 @@ weakest, on the slowdowns); and our map model against SUMO's implementation of t
 vehicle data (`map_vs_mmpevem_pct`: under 1 % at steady speeds, 6 % on brake-v1's hard
 braking and recovery, from the recuperation rules and the loss map's interpolation).
 
-{_table(tables["energy"])}
+{table("energy")}
 
 ## 5. Human drivers: our IDM against SUMO's IDM
 
@@ -417,14 +402,14 @@ gap at 0 (`max(0, v T + v dv / (2 sqrt(a b)))`, a predecessor pulling away faste
 2.45 m/s; ours does not clamp), and 0.013 m on the ring's seed 2020 from one step at 279.8 s
 whose cause we have not found yet (SUMO's acceleration there is 0.604 m/s^2, ours 0.641).
 
-{_table(tables["humans"])}
+{table("humans")}
 
 ## 6. Speed
 
 Vehicle-steps per second (followers x steps / wall time, the best of {speed_repeats}), one
 process on this machine; SUMO's includes starting its simulation for every batch.
 
-{_table(tables["speed"])}
+{table("speed")}
 """
     path = out / "report.md"
     with StagedFiles() as staged:

@@ -17,6 +17,7 @@ from run_marks import FULL
 from commands.cli import main as cli
 from studies import reproduction as rp
 from studies.paper import TABLE_I_REWARD, TABLE_II, TABLE_III
+from studies.report import format_table
 
 VERDICTS = {"holds", "does not hold", "inconclusive", "not testable here"}
 
@@ -126,7 +127,7 @@ def test_table_two_puts_the_paper_values_beside_ours() -> None:
 
 def test_format_table_shows_nan_as_dash() -> None:
     df = pd.DataFrame({"a": ["x"], "b": [math.nan], "c": [1.234]})
-    text = rp.format_table(df, [("a", "A"), ("b", "B"), ("c", "C")])
+    text = format_table(df, [("a", "A"), ("b", "B"), ("c", "C")])
     assert text.splitlines()[2] == "| x | - | 1.23 |"
 
 
