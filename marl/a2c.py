@@ -43,7 +43,7 @@ from envs.scenarios import Scenario, make_scenario
 from infra.errors import ConfigError, TrainingDivergedError
 from infra.limits import training_episode_seeds
 from marl.config import A2CConfig, Algorithm, training_device
-from marl.layers import per_agent_clip_, rmsprop_, sqrt
+from marl.layers import module_tensors, per_agent_clip_, rmsprop_, sqrt
 from marl.networks import AgentNet, State, exchange, neighbour_action_onehot
 
 # ---------------------------------------------------------------------------- config
@@ -63,9 +63,9 @@ def stack_nets(algo: Algorithm, config: A2CConfig, nets: Sequence[AgentNet]) -> 
         return nets[0]
     n = nets[0].n_agents
     big = algo.build_net(config, n * len(nets), True, torch.Generator().manual_seed(0))
-    parts = [dict(net.named_parameters()) | dict(net.named_buffers()) for net in nets]
+    parts = [module_tensors(net) for net in nets]
     with torch.no_grad():
-        for name, t in list(big.named_parameters()) + list(big.named_buffers()):
+        for name, t in module_tensors(big).items():
             t.copy_(torch.cat([part[name] for part in parts]))
     big.platoon_size = n
     return big
@@ -159,16 +159,11 @@ class Run:
 
     def absorbing_value(self, remaining_steps: int) -> float:
         """Per-agent value (unscaled, unshared) of a collided state with ``remaining_steps``
-        scheduled steps left: the collision penalty at each of them, discounted (0 under
-        ``collision_value="published"``)."""
+        scheduled steps left (:func:`absorbing_value`; 0 under ``collision_value="published"``)."""
         cfg = self.config
-        if cfg.collision_value == "published" or remaining_steps <= 0:
+        if cfg.collision_value == "published":
             return 0.0
-        penalty = self.env.weights.collision
-        g = cfg.gamma
-        if g == 1.0:
-            return penalty * remaining_steps
-        return penalty * (1.0 - g**remaining_steps) / (1.0 - g)
+        return absorbing_value(self.env.weights.collision, cfg.gamma, remaining_steps)
 
 
 @dataclass
@@ -227,15 +222,21 @@ class Batch:
 
 
 # ---------------------------------------------------------------------------- returns and loss
+def absorbing_value(penalty: float, gamma: float, remaining: int) -> float:
+    """What a collided state is worth with ``remaining`` scheduled steps left: the collision
+    ``penalty`` at each of them, discounted by ``gamma``."""
+    if remaining <= 0:
+        return 0.0
+    return penalty * remaining if gamma == 1 else penalty * (1 - gamma**remaining) / (1 - gamma)
+
+
 def sharing_matrix(n_agents: int, alpha: float, dtype: torch.dtype = torch.float32,
                    device: torch.device | str = "cpu") -> torch.Tensor:
     """``(N, N)`` weights ``alpha^|i-j|`` (alpha = 0: own reward only, alpha = 1: global sum)."""
     if not 0.0 <= alpha <= 1.0:
         raise ValueError(f"reward-sharing alpha must lie in [0, 1], got {alpha}")
     idx = torch.arange(n_agents, device=device)
-    dist = (idx[:, None] - idx[None, :]).abs().to(dtype)
-    if alpha == 0.0:
-        return torch.eye(n_agents, dtype=dtype, device=device)
+    dist = (idx[:, None] - idx[None, :]).abs().to(dtype)  # alpha = 0: 0^0 = 1, the identity
     return torch.pow(torch.tensor(alpha, dtype=dtype, device=device), dist)
 
 
@@ -688,7 +689,7 @@ class Trainer:
 
         if msgs is not None:
             msgs = (pick(msgs[0]), pick(msgs[1]))
-        tensors = {name: pick(t) for name, t in [*net.named_parameters(), *net.named_buffers()]}
+        tensors = {name: pick(t) for name, t in module_tensors(net).items()}
         logits, values, after = torch.func.functional_call(net, tensors, (
             {k: pick(v) for k, v in seg_state.items()}, pick(obs), pick(actions), msgs))
         n = self.n_vehicles
@@ -805,7 +806,6 @@ class Trainer:
             raise TrainingDivergedError("; ".join(failed))
         return [out[r.index] for r in taking]
 
-
     def run_state(self, run: Run) -> dict[str, Any]:
         """Everything ``run`` continues from bit for bit once one of its batches ended (where
         :meth:`train` calls ``on_batch``; its next batch starts from new episodes): its rows of
@@ -818,7 +818,8 @@ class Trainer:
         name = {id(p): n for n, p in self.net.named_parameters()}
         return {
             "seed": run.seed,
-            "tensors": {n: t[run.rows].detach().cpu().clone() for n, t in self._tensors()},
+            "tensors": {n: t[run.rows].detach().cpu().clone()
+                        for n, t in module_tensors(self.net).items()},
             "square_avg": {name[id(p)]: sq[run.rows].cpu().clone()
                            for (p, _), sq in zip(self.params, self._square_avg, strict=True)},
             "generator": run.generator.get_state(),
@@ -834,7 +835,7 @@ class Trainer:
         from marl.checkpoint import restore_state
 
         name = {id(p): n for n, p in self.net.named_parameters()}
-        mine = dict(self._tensors())
+        mine = module_tensors(self.net)
         saved, squares = state["tensors"], state["square_avg"]
         if state["seed"] != run.seed or saved.keys() != mine.keys() or any(
                 saved[n].shape != mine[n][run.rows].shape for n in mine):
@@ -851,10 +852,6 @@ class Trainer:
         run.bits = dict(state["bits"])
         run.hook_state = restore_state(run.hook_state, state["hook_state"], (run.generator,),
                                        self.device)
-
-    def _tensors(self) -> list[tuple[str, torch.Tensor]]:
-        """Every parameter and buffer of the stack by name (each ``(K N, ...)``)."""
-        return [*self.net.named_parameters(), *self.net.named_buffers()]
 
 
 def _merge_rows(base: dict[str, Any], new: dict[str, Any], runs: Sequence[Run]) -> dict[str, Any]:

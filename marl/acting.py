@@ -41,6 +41,21 @@ def pad_rows(x: np.ndarray, lanes: int) -> np.ndarray:
     return x if len(x) >= lanes else np.concatenate([x, np.repeat(x[:1], lanes - len(x), 0)])
 
 
+def load_weights(data: dict[str, Any], build: Callable[[dict[str, Any]], Any]) -> Any:
+    """The network ``build(config)`` makes from a loaded checkpoint dict's config, holding its
+    weights (as float32), in evaluation mode; a config or weights that do not make it give a
+    :class:`ConfigError`."""
+    try:
+        net = build(data["config"])
+        net.load_state_dict({k: v.float() for k, v in data["weights"].items()}, strict=True)
+    except (TypeError, ValueError, RuntimeError, KeyError) as exc:
+        reason = " ".join(str(exc).split())[:200]
+        raise ConfigError(f"a {data.get('algo')} checkpoint whose config or weights do not fit "
+                          f"this learner ({reason}); train it again") from None
+    net.eval()
+    return net
+
+
 class Acting:
     """A loaded policy acting in the closed loop, one subclass per kind of network.
 
@@ -149,11 +164,8 @@ class PaperActing(Acting):
     @classmethod
     def load(cls, algo: str, data: dict[str, Any]) -> Acting:
         spec = algorithm(algo)
-        net = spec.build_net(config_from_dict(spec, data["config"]), int(data["n_vehicles"]),
-                             with_critic=False)
-        net.load_state_dict(data["weights"], strict=True)
-        net.eval()
-        return cls(algo, net)
+        return cls(algo, load_weights(data, lambda saved: spec.build_net(
+            config_from_dict(spec, saved), int(data["n_vehicles"]), with_critic=False)))
 
     @staticmethod
     @torch.no_grad()
@@ -260,21 +272,6 @@ def sample_with_uniforms(actor: SharedActor, out: torch.Tensor, uniforms: np.nda
     return (cdf < u.unsqueeze(-1)).sum(-1).clamp_(max=out.shape[-1] - 1)
 
 
-def load_weights(data: dict[str, Any], build: Callable[[dict[str, Any]], Any]) -> Any:
-    """The network ``build(config)`` makes from a loaded checkpoint dict's config, holding its
-    weights (as float32), in evaluation mode; a config or weights that do not make it give a
-    :class:`ConfigError`."""
-    try:
-        net = build(data["config"])
-        net.load_state_dict({k: v.float() for k, v in data["weights"].items()}, strict=True)
-    except (TypeError, ValueError, RuntimeError, KeyError) as exc:
-        reason = " ".join(str(exc).split())[:200]
-        raise ConfigError(f"a {data.get('algo')} checkpoint whose config or weights do not fit "
-                          f"this learner ({reason}); train it again") from None
-    net.eval()
-    return net
-
-
 def load_actor(data: dict[str, Any], params: PlatoonParams = PlatoonParams()) -> SharedActor:
     """The actor of a loaded checkpoint dict (:func:`load_weights`)."""
     acting = ("algo", "action_mode", "hidden", "obs_clip", "prior",  # what its shape and acting
@@ -365,12 +362,16 @@ class SharedActing(Acting):
         with torch.no_grad():
             out = self.net(torch.from_numpy(np.ascontiguousarray(pad_rows(x, self.lanes))))
             action = sample_with_uniforms(self.net, out, uniforms)[:b]
-            command = to_command(self.net, action, state, self.params, obs, self.targets)
+            command = self.commands(action, state, obs)
         if self.net.continuous:
             self.pred_held, self.leader_held = (x.copy() for x in accel_mode.transmit_accel_messages(
                 self.pred_channel, self.leader_channel, command, state.leader_accel_now_mps2,
                 state.leader_speed_now_mps, self.targets[1], self.params))
         return command
+
+    def commands(self, action: torch.Tensor, state: PlatoonState, obs: np.ndarray) -> np.ndarray:
+        """The ``(B, N)`` commands of the actor's ``action`` (:func:`to_command`)."""
+        return to_command(self.net, action, state, self.params, obs, self.targets)
 
 
 def acting(algo: str) -> type[Acting]:

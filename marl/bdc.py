@@ -40,7 +40,7 @@ from infra.errors import ConfigError
 from marl.config import A2CConfig, Algorithm
 from marl.consensus import bdc, consensus_round
 from marl.networks import AgentNet, SeparateActorCriticNet
-from marl.quantize import ErrorFeedbackQSGD, qsgd_bits, ternary_bits
+from marl.quantize import ErrorFeedbackQSGD, compress_gradients_, ternary_bits
 
 if TYPE_CHECKING:
     from marl.config import RunState
@@ -76,12 +76,6 @@ class ConsensusConfig(A2CConfig):
         eps = getattr(self, "consensus_eps", None)
         if eps is not None and not 0 < eps <= 0.5:
             raise ConfigError(f"consensus_eps must lie in (0, 0.5], got {eps}")
-
-
-def build_net(config: ConsensusConfig, n_agents: int, with_critic: bool = True,
-              generator: torch.Generator | None = None) -> SeparateActorCriticNet:
-    """Separate actor and critic per agent."""
-    return SeparateActorCriticNet(n_agents, config.hidden, with_critic, generator)
 
 
 def share_critics(run: RunState, net: AgentNet, rule: Callable[[torch.Tensor], torch.Tensor],
@@ -144,10 +138,8 @@ def compress_critic_gradients(run: RunState, net: AgentNet) -> None:
     assert isinstance(cfg, BDCConfig)
     if cfg.qsgd_levels == 0:
         return
-    grads = [p.grad[run.rows] for p in net.critic_parameters() if p.grad is not None]
-    for g, q in zip(grads, run.hook_state["qsgd"].compress(grads), strict=True):
-        g.copy_(q)
-        run.bits["qsgd_local"] += qsgd_bits(g[0].numel(), cfg.qsgd_levels, bucket=cfg.qsgd_bucket)
+    compress_gradients_([p.grad[run.rows] for p in net.critic_parameters() if p.grad is not None],
+                        run.hook_state["qsgd"], run.bits)
 
 
 def binary_consensus(run: RunState, net: AgentNet) -> None:
@@ -159,5 +151,5 @@ def binary_consensus(run: RunState, net: AgentNet) -> None:
                   lambda n: ternary_bits(n, cfg.packed_bits))
 
 
-ALGORITHM = Algorithm("bdc", BDCConfig, build_net, setup=setup_qsgd,
+ALGORITHM = Algorithm("bdc", BDCConfig, SeparateActorCriticNet, setup=setup_qsgd,
                       before_step=compress_critic_gradients, after_step=binary_consensus)

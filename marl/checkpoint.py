@@ -22,12 +22,13 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import functools
 import hashlib
 import io
 import json
 import math
 import re
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -61,27 +62,10 @@ def same_energy_model(record: dict[str, Any]) -> bool:
     return record.get("energy_model") == energy_model_id()
 
 
-def save_checkpoint(
-    path: str | Path,
-    *,
-    algo: str,
-    config: dict[str, Any],
-    scenario: str,
-    n_vehicles: int,
-    seed: int,
-    steps: int,
-    curve_summary: dict[str, float],
-    weights: dict[str, torch.Tensor],
-    energy_model: str | None = None,
-) -> Path:
-    """Write a checkpoint atomically; returns its path.
-
-    ``energy_model``: the fingerprint to record (default: the shipped model's,
-    :func:`energy_model_id`)."""
-    path = Path(path)
-    payload = checkpoint_payload(
-        algo=algo, config=config, scenario=scenario, n_vehicles=n_vehicles, seed=seed,
-        steps=steps, curve_summary=curve_summary, weights=weights, energy_model=energy_model)
+def save_checkpoint(path: str | Path, **fields: Any) -> Path:
+    """Write the checkpoint of :func:`checkpoint_payload`'s keyword ``fields`` atomically;
+    returns its path."""
+    path, payload = Path(path), checkpoint_payload(**fields)
     path.parent.mkdir(parents=True, exist_ok=True)
     write_payload(path, payload)
     return path
@@ -161,12 +145,9 @@ def write_run(out: Path, stem: str, curve: Sequence[dict[str, float]],
     with StagedFiles() as staged:
         staged.write_with(out / f"{stem}.curve.csv", write_curve)
         for suffix, payload in checkpoints.items():
-            staged.write_with(out / f"{stem}{suffix}", _writer(payload))
+            staged.write_with(out / f"{stem}{suffix}",
+                              functools.partial(write_payload, payload=payload, atomic=False))
         staged.commit()
-
-
-def _writer(payload: dict[str, Any]) -> Callable[[Path], None]:
-    return lambda tmp: write_payload(tmp, payload, atomic=False)
 
 
 # ---------------------------------------------------------------------------- resumable snapshots

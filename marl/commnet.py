@@ -49,10 +49,4 @@ class CommNetNet(MessageNet):
         return self.lstm.input_gates(self.comm(mean), bias=False)
 
 
-def build_net(config: CommNetConfig, n_agents: int, with_critic: bool = True,
-              generator: torch.Generator | None = None) -> CommNetNet:
-    """Mean-of-neighbours communication; the learner is plain A2C over the joint graph."""
-    return CommNetNet(n_agents, config.hidden, with_critic, generator)
-
-
-ALGORITHM = Algorithm("commnet", CommNetConfig, build_net)
+ALGORITHM = Algorithm("commnet", CommNetConfig, CommNetNet)

@@ -268,8 +268,8 @@ class RunState(Protocol):
 
 @dataclass
 class Algorithm:
-    """An algorithm's distinctive parts as plain functions: its network and what it does around
-    the update (each algorithm file builds one as its ``ALGORITHM``).
+    """An algorithm's distinctive parts: its config, its network and what it does around the
+    update as plain functions (each algorithm file builds one as its ``ALGORITHM``).
 
     Attributes
     ----------
@@ -277,8 +277,8 @@ class Algorithm:
         Registered name.
     config_cls : type
         Its config, a frozen subclass of :class:`A2CConfig`.
-    build_net : callable(config, n_agents, with_critic=True, generator=None) -> AgentNet
-        The batched network of N agents.
+    net_cls : type
+        Its network, a subclass of :class:`marl.networks.AgentNet` (:meth:`build_net`).
     setup : callable(run)
         Once per run after the network exists; the run's own state of the algorithm goes into
         ``run.hook_state``.
@@ -291,10 +291,16 @@ class Algorithm:
 
     name: str
     config_cls: type[A2CConfig]
-    build_net: Callable[..., AgentNet]
+    net_cls: Callable[..., AgentNet]
     setup: Callable[[RunState], None] = _nothing
     before_step: Callable[[RunState, AgentNet], None] = _nothing
     after_step: Callable[[RunState, AgentNet], None] = _nothing
+
+    def build_net(self, config: A2CConfig, n_agents: int, with_critic: bool = True,
+                  generator: torch.Generator | None = None) -> AgentNet:
+        """The batched network of ``n_agents`` agents, ``config.hidden`` wide (``with_critic``
+        False: the acting part only), its initial weights drawn from ``generator``."""
+        return self.net_cls(n_agents, config.hidden, with_critic, generator=generator)
 
 
 def algorithm(name: str) -> Algorithm:

@@ -18,10 +18,10 @@ import functools
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-from marl.bdc import ConsensusConfig, build_net, share_critics
+from marl.bdc import ConsensusConfig, share_critics
 from marl.config import Algorithm
 from marl.consensus import dcea
-from marl.networks import FLOAT_BITS, AgentNet
+from marl.networks import FLOAT_BITS, AgentNet, SeparateActorCriticNet
 
 if TYPE_CHECKING:
     from marl.config import RunState
@@ -49,4 +49,4 @@ def differential_consensus(run: RunState, net: AgentNet) -> None:
                   lambda n: n * FLOAT_BITS)
 
 
-ALGORITHM = Algorithm("dcea", DCEAConfig, build_net, after_step=differential_consensus)
+ALGORITHM = Algorithm("dcea", DCEAConfig, SeparateActorCriticNet, after_step=differential_consensus)

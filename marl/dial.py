@@ -75,10 +75,4 @@ class DIALNet(MessageNet):
         return self.lstm.input_gates(m, bias=False)
 
 
-def build_net(config: DIALConfig, n_agents: int, with_critic: bool = True,
-              generator: torch.Generator | None = None) -> DIALNet:
-    """Learned differentiable messages; the learner is plain A2C over the joint graph."""
-    return DIALNet(n_agents, config.hidden, with_critic, generator)
-
-
-ALGORITHM = Algorithm("dial", DIALConfig, build_net)
+ALGORITHM = Algorithm("dial", DIALConfig, DIALNet)

@@ -16,10 +16,10 @@ The fit is the mean of the policy's Gaussian in command space, ``c + h tanh(mean
 expert's command (squared error), and its standard deviation in ``z`` is the residuals' RMS in
 command space over the squash's slope at zero, ``h`` (so "actions as trained" are the fitted
 Gaussian; the maximum-likelihood value in ``z`` is dominated by the few labels at the bounds,
-where ``atanh`` diverges). It is the
-reference of what this network can represent, and of how fast a learned controller is beside
-the solver it copies. The expert comes from the layer above (:func:`commands.train.model_expert`
-builds ``mpc``): here it is any ``make_expert(env) -> act(state) -> (B, N) commands``.
+where ``atanh`` diverges). It is the reference of what this network can represent, and of how
+fast a learned controller is beside the solver it copies. The expert comes from the layer above
+(:func:`commands.train.model_expert` builds ``mpc``): here it is any ``make_expert(env) ->
+act(state) -> (B, N) commands``.
 """
 
 from __future__ import annotations
@@ -41,11 +41,13 @@ from envs.scenarios import Scenario, as_scenario, check_vehicles
 from infra.errors import ConfigError
 from infra.limits import training_episode_seeds
 from marl.acting import agent_inputs
-from marl.ppo import Evaluator, PPOResult, module_tensors, validation
+from marl.layers import module_tensors
+from marl.ppo import Evaluator, PPOResult, beats, validation
 from marl.ppo_nets import (
     PPOConfig,
     SharedActor,
     as_shipped,
+    check_counts,
     check_finite_weights,
     check_learning_rate,
 )
@@ -93,10 +95,8 @@ class DistillConfig:
         from infra.limits import MAX_EPISODES_PARALLEL
 
         self.actor_config()  # built, and its hidden size checked, once: here
-        for name, high in (("rounds", 10**6), ("episodes_per_round", MAX_EPISODES_PARALLEL),
-                           ("grad_steps", 10**6), ("minibatch_rows", 10**6)):
-            if not 1 <= getattr(self, name) <= high:
-                raise ConfigError(f"{name} must lie in 1..{high:,}, got {getattr(self, name)}")
+        check_counts(self, rounds=10**6, episodes_per_round=MAX_EPISODES_PARALLEL,
+                     grad_steps=10**6, minibatch_rows=10**6)
         if not 0 <= self.beta <= 1:
             raise ConfigError(f"beta must lie in [0, 1], got {self.beta}")
         check_learning_rate(self.lr)
@@ -208,8 +208,7 @@ def distill(
                 log(f"distill {cfg.expert} {sc.id} seed {seed}: round {rnd} ({len(data_u)} "
                     f"labels), validation reward {score['reward']:.1f}, collisions "
                     f"{score['collisions']:.0f}")
-            if not best or ((score["collisions"], -score["reward"])
-                            <= (best["collisions"], -best["reward"])):
+            if beats(score, best):
                 best = {"steps": float(steps), "round": float(rnd), **score}
                 best_state = shipped.state_dict()
         last = rnd + 1 == cfg.rounds or (max_steps is not None and steps >= max_steps)

@@ -53,15 +53,7 @@ class FPrintNet(SharedTrunkNet):
         return self.lstm.input_gates(fp, slice(self.hidden, 2 * self.hidden), bias=False)
 
     def after_policy(self, state, logits):
-        new = dict(state)
-        new["pi"] = torch.softmax(logits, -1).detach()
-        return new
+        return {**state, "pi": torch.softmax(logits, -1).detach()}
 
 
-def build_net(config: FPrintConfig, n_agents: int, with_critic: bool = True,
-              generator: torch.Generator | None = None) -> FPrintNet:
-    """IA2C with fingerprints: plain A2C on this network."""
-    return FPrintNet(n_agents, config.hidden, with_critic, generator)
-
-
-ALGORITHM = Algorithm("fprint", FPrintConfig, build_net)
+ALGORITHM = Algorithm("fprint", FPrintConfig, FPrintNet)

@@ -17,8 +17,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import torch
-
 from marl.config import A2CConfig, Algorithm
 from marl.networks import SharedTrunkNet
 
@@ -38,10 +36,4 @@ class IA2CNet(SharedTrunkNet):
     """FC 64 -> LSTM 64 -> actor head and critic head, N agents batched."""
 
 
-def build_net(config: IA2CConfig, n_agents: int, with_critic: bool = True,
-              generator: torch.Generator | None = None) -> IA2CNet:
-    """Independent learners: the plain A2C of :mod:`marl.a2c`, nothing else."""
-    return IA2CNet(n_agents, config.hidden, with_critic, generator=generator)
-
-
-ALGORITHM = Algorithm("ia2c", IA2CConfig, build_net)
+ALGORITHM = Algorithm("ia2c", IA2CConfig, IA2CNet)

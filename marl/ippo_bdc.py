@@ -16,7 +16,7 @@ import torch
 
 from marl.consensus import bdc, consensus_round
 from marl.ppo import PPOTrainer, Rollout
-from marl.quantize import ErrorFeedbackQSGD, qsgd_bits, ternary_bits
+from marl.quantize import ErrorFeedbackQSGD, compress_gradients_, ternary_bits
 
 
 class IPPOBDCTrainer(PPOTrainer):
@@ -41,14 +41,9 @@ class IPPOBDCTrainer(PPOTrainer):
 
     def before_step(self) -> None:
         """Every critic gradient replaced by its QSGD compression with error feedback."""
-        cfg = self.cfg
-        if cfg.qsgd_levels == 0:
-            return
-        grads = [p.grad for p in self.critic.parameters() if p.grad is not None]
-        for g, q in zip(grads, self.qsgd.compress(grads), strict=True):
-            g.copy_(q)
-            self.bits["qsgd_local"] += qsgd_bits(g[0].numel(), cfg.qsgd_levels,
-                                                 bucket=cfg.qsgd_bucket)
+        if self.cfg.qsgd_levels:
+            compress_gradients_([p.grad for p in self.critic.parameters() if p.grad is not None],
+                                self.qsgd, self.bits)
 
     def after_step(self) -> None:
         """One synchronous BDC round on the critics' weights."""

@@ -47,7 +47,7 @@ from envs.params import PlatoonParams
 from envs.platoon import PlatoonEnv, PlatoonState, StepResult
 from envs.scenarios import Scenario
 from infra.errors import ConfigError
-from marl.acting import SharedActing, load_weights, pad_rows, sample_with_uniforms
+from marl.acting import SharedActing, load_weights
 from marl.ppo import PPOTrainer, World
 from marl.ppo_nets import PPOConfig, SharedActor
 
@@ -155,21 +155,13 @@ class GainScheduleTrainer(PPOTrainer):
     """``ippo``'s trainer with the :class:`GainActor` and :class:`ScheduledEnv`."""
 
     cfg: GainScheduleConfig
-
-    def setup(self) -> None:
-        """Turn the actor just built into a :class:`GainActor` with the same weights."""
-        actor = GainActor(self.cfg, self.params, self.actor.n_agents)
-        actor.load_state_dict(self.actor.state_dict())
-        self.actor = actor
+    actor_cls, env_cls = GainActor, ScheduledEnv
 
     def make_world(self, sc: Scenario, n: int, delay_s: float, loss: float) -> World:
-        """``ippo``'s world on a :class:`ScheduledEnv` of the same settings."""
+        """``ippo``'s world, its :class:`ScheduledEnv` along the config's segment."""
         world = super().make_world(sc, n, delay_s, loss)
-        old = world.env
-        env = ScheduledEnv(sc, n, old.params, training=True, action_mode="accel",
-                           channel=old.channel_config)
-        env.segment = self.cfg.segment
-        return dataclasses.replace(world, env=env)
+        cast(ScheduledEnv, world.env).segment = self.cfg.segment
+        return world
 
 
 def load_gain_actor(data: dict[str, Any]) -> GainActor:
@@ -190,19 +182,11 @@ class GainActing(SharedActing):
     def load(cls, algo: str, data: dict[str, Any]) -> GainActing:
         return cls(algo, load_gain_actor(data))
 
-    def act(self, state: PlatoonState, observation: np.ndarray | None,
-            uniforms: np.ndarray | None) -> np.ndarray:
-        obs = self._observation(state)
-        b = len(obs)
-        with torch.no_grad():
-            out = self.net(torch.from_numpy(np.ascontiguousarray(pad_rows(obs, self.lanes))))
-            z = sample_with_uniforms(self.net, out, uniforms)[:b]
-            s = self.net.command(z).numpy().astype(np.float64)
-        command = scheduled_command(s, obs, state, self.targets, self.params, self.net.segment)
-        self.pred_held, self.leader_held = (x.copy() for x in accel_mode.transmit_accel_messages(
-            self.pred_channel, self.leader_channel, command, state.leader_accel_now_mps2,
-            state.leader_speed_now_mps, self.targets[1], self.params))
-        return command
+    def commands(self, action: torch.Tensor, state: PlatoonState, obs: np.ndarray) -> np.ndarray:
+        """Ploeg's CACC at the coordinates ``s`` of the pre-squash samples ``action``
+        (:func:`scheduled_command`)."""
+        s = self.net.command(action).numpy().astype(np.float64)
+        return scheduled_command(s, obs, state, self.targets, self.params, self.net.segment)
 
 
 #: The trainer of ``ippo-gains`` (its registry entry names this module).

@@ -20,6 +20,12 @@ from torch import nn
 from marl import arithmetic
 
 
+def module_tensors(module: nn.Module) -> dict[str, torch.Tensor]:
+    """Every parameter and buffer of ``module`` by name (a state dict leaves out the
+    non-persistent buffers, which training needs)."""
+    return dict([*module.named_parameters(), *module.named_buffers()])
+
+
 def _orthogonal_stack(
     n: int, rows: int, cols: int, gain: float, generator: torch.Generator | None = None
 ) -> torch.Tensor:

@@ -20,7 +20,6 @@ from envs.params import OVM_ACTIONS
 from marl.layers import BatchedLinear, BatchedLSTMCell
 
 N_ACTIONS = len(OVM_ACTIONS)
-BLOCK_FLOATS = BLOCK_DIM
 FLOAT_BITS = 32
 
 State = dict[str, torch.Tensor]
@@ -257,25 +256,20 @@ class SharedTrunkNet(AgentNet):
         if extra is not None:
             gates = gates + extra
         h, c = self.lstm.step_from_gates(gates, (state["h"], state["c"]))
-        new = dict(state)
-        new["h"], new["c"] = h, c
-        return {"h": h, "v": h}, new
+        return {"h": h, "v": h}, {**state, "h": h, "c": c}
 
     def recur_segment(self, enc, state, messages):
         if self.differentiable_messages or messages is None:
             # IA2C, DIAL, CommNet: step by step (IA2C: measured faster than as a segment)
             return super().recur_segment(enc, state, messages)
-        gates = enc["gx"]
-        if messages is not None:  # received inputs (FPrint): their gates for all steps at once
-            a, t_len, b, _ = gates.shape
-            extra = self.message_gates(state, messages[0].reshape(a, t_len * b, -1),
-                                       messages[1].reshape(a, t_len * b, -1))
-            if extra is not None:
-                gates = gates + extra.reshape(a, t_len, b, -1)
+        gates = enc["gx"]  # received inputs (FPrint): their gates for all steps at once
+        a, t_len, b, _ = gates.shape
+        extra = self.message_gates(state, messages[0].reshape(a, t_len * b, -1),
+                                   messages[1].reshape(a, t_len * b, -1))
+        if extra is not None:
+            gates = gates + extra.reshape(a, t_len, b, -1)
         hs, (h, c) = self.lstm.segment(gates, (state["h"], state["c"]))
-        new = dict(state)
-        new["h"], new["c"] = h, c
-        return {"h": hs, "v": hs}, new
+        return {"h": hs, "v": hs}, {**state, "h": h, "c": c}
 
 
 class SeparateActorCriticNet(AgentNet):
@@ -341,8 +335,7 @@ class SeparateActorCriticNet(AgentNet):
             return super().act_step(obs, state, front, rear)
         h, c = self.lstm.step_from_gates(
             self.lstm.input_gates(torch.relu(self.fc(obs))), (state["h"], state["c"]))
-        new = dict(state)
-        new["h"], new["c"] = h, c
+        new = {**state, "h": h, "c": c}
         out = {"h": h}
         logits = self.logits(out)
         return logits, out, self.after_policy(new, logits)
@@ -361,7 +354,7 @@ class SeparateActorCriticNet(AgentNet):
 
 def execution_bits_per_agent_step(net: AgentNet) -> int:
     """V2V bits one agent sends per step at execution: its vehicle block plus its message."""
-    return (BLOCK_FLOATS + net.msg_width) * FLOAT_BITS
+    return (BLOCK_DIM + net.msg_width) * FLOAT_BITS
 
 
 #: Bits of one action index (4 actions) sent to the neighbours for their critics in training.

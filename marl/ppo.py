@@ -26,11 +26,10 @@ it is written here rather than taken from a library, is in ``docs/notes/marl-lib
   running statistics kept in the actor (frozen in the checkpoint). A collision ends the episode
   with the collision penalty at every remaining scheduled step, discounted (the absorbing value
   of ``marl.a2c``), so ending early never pays; the time limit is a truncation (bootstrapped).
-- **Domain randomisation** (:attr:`marl.ppo_nets.PPOConfig.randomised`): each batch of episodes
-  may draw its N, its V2V delay and loss, its scenario (``scenarios``, a comma list) and its share of
-  automated followers with a random placement (``cav_share_min``..``cav_share_max``: the
-  other seats are human drivers, :mod:`envs.humans`). Human seats take no command, so their
-  agent-steps enter neither the loss nor the statistics.
+- **Domain randomisation** (:attr:`marl.ppo_nets.PPOConfig.randomised`,
+  :meth:`PPOTrainer.draw_world`): each batch of episodes may draw its N, V2V delay and loss,
+  scenario, vehicle classes and share of automated followers, placed at random (the other seats
+  human drivers, :mod:`envs.humans`, whose agent-steps enter neither the loss nor the statistics).
 - **Determinism**: every random number comes from the run's ``torch.Generator`` (the action
   noise, minibatch order, initial weights, the batches' draws) and the training episodes'
   seeds from the run's seed, so a seed gives the same weights, on one thread count.
@@ -56,7 +55,9 @@ from envs.scenarios import Scenario, as_scenario, check_vehicles
 from envs.vehicle_classes import canonical_classes, class_features
 from infra.errors import ConfigError
 from infra.limits import MAX_ROLLOUT_AGENT_STEPS, MAX_SEED, training_episode_seeds
+from marl.a2c import absorbing_value, sharing_matrix
 from marl.acting import agent_inputs, to_command
+from marl.layers import module_tensors
 from marl.ppo_nets import Critic, PPOConfig, SharedActor, as_shipped, check_finite_weights
 
 if TYPE_CHECKING:
@@ -71,6 +72,13 @@ def validation(evaluate: Evaluator, actor: SharedActor) -> dict[str, float]:
     """The validation reward and collisions of ``actor``, actions sampled as trained."""
     score = evaluate(actor, "sampled")
     return {"reward": float(score["reward"]), "collisions": float(score["collisions"])}
+
+
+def beats(score: dict[str, float], kept: dict[str, float]) -> bool:
+    """Whether a validation ``score`` replaces the ``kept`` one (none yet: ``{}``): fewer
+    collisions, then a higher reward; a tie goes to the newer."""
+    return not kept or ((score["collisions"], -score["reward"])
+                        <= (kept["collisions"], -kept["reward"]))
 
 
 @dataclass
@@ -171,6 +179,10 @@ class PPOTrainer:
     params : PlatoonParams
     """
 
+    #: The actor's and the training env's classes (``ippo-gains``: its own).
+    actor_cls: type[SharedActor] = SharedActor
+    env_cls: type[PlatoonEnv] = PlatoonEnv
+
     def __init__(self, scenario: Scenario, n_vehicles: int, seed: int, total_steps: int,
                  config: PPOConfig, params: PlatoonParams = PlatoonParams()) -> None:
         cfg = self.cfg = config
@@ -196,7 +208,7 @@ class PPOTrainer:
         self.gen = torch.Generator().manual_seed(self.seed)
         torch.manual_seed(self.seed)  # nn.init draws from the global generator
         n_agents = self.n if cfg.per_agent else 0
-        self.actor, self.critic = SharedActor(cfg, params, n_agents), Critic(cfg, n_agents)
+        self.actor, self.critic = self.actor_cls(cfg, params, n_agents), Critic(cfg, n_agents)
         before = set(vars(self))
         self.setup()
         #: the attributes :meth:`setup` made: the learner's own state, which snapshots keep
@@ -204,8 +216,7 @@ class PPOTrainer:
         self.opt = torch.optim.Adam([*self.actor.parameters(), *self.critic.parameters()],
                                     lr=cfg.lr, eps=1e-5)
         self.world = self.make_world(scenario, self.n, cfg.comm_delay_s, cfg.packet_loss)
-        self.scale = RewardScale(cfg.gamma)
-        self.scale.reset(cfg.n_envs, self.n)
+        self.scale = RewardScale(cfg.gamma)  # reset by new_episodes
         self.episode = self.steps = self.updates = 0
         #: the batch of episodes in progress, to rebuild its env in a snapshot: the generator's
         #: state before its world was drawn (randomised), and the commands it has stepped
@@ -224,10 +235,9 @@ class PPOTrainer:
     # ---- the world each batch of episodes runs on
     def make_world(self, sc: Scenario, n: int, delay_s: float, loss: float) -> World:
         """The env and what the rewards read for ``sc`` with ``n`` followers."""
-        env = PlatoonEnv(sc, n, self.params, training=True, action_mode=self.cfg.action_mode,
-                         channel=ChannelConfig(delay_s, loss, self.params.dt_s))
-        idx = torch.arange(n, dtype=torch.float32)
-        sharing = self.cfg.reward_alpha ** (idx[:, None] - idx[None, :]).abs()
+        env = self.env_cls(sc, n, self.params, training=True, action_mode=self.cfg.action_mode,
+                           channel=ChannelConfig(delay_s, loss, self.params.dt_s))
+        sharing = sharing_matrix(n, self.cfg.reward_alpha)
         p0 = float(env.power(np.array([sc.target_speed_mps]), np.array([0.0]))[0])
         automated = torch.from_numpy(np.asarray(sc.arrangement(n).automated, dtype=bool))
         features = (class_features(sc.vehicle_arrays(n, self.params), n, self.params)
@@ -328,25 +338,19 @@ class PPOTrainer:
             ended = torch.from_numpy(res.done) & live
             collided = torch.from_numpy(res.collided) & live
             ro.cont[t] = (~ended).float()
-            absorbing = _absorbing(env.weights.collision, cfg.gamma, env.n_steps - s.step) / std
-            if res.done.all():
-                next_obs = self.new_episodes()
-                with torch.no_grad():  # truncated at the time limit: bootstrap from the last
-                    # state; a time-aware critic knows the time is up (a finite horizon: 0)
-                    last = torch.zeros(b, n_r) if cfg.critic_time else critic(actor.normalise(
-                        self.inputs(res.observation, w)))
-            else:
-                next_obs = self.inputs(res.observation, w)
-                last = None
-            if ended.any():
-                if last is None:
-                    with torch.no_grad():
-                        last = critic(actor.normalise(next_obs), s.step / env.n_steps)
-                end_value = torch.where(collided[:, None], torch.tensor(absorbing), last)
-                ro.end_value[t] = end_value * ended[:, None]
-            obs = next_obs
+            absorbing = absorbing_value(env.weights.collision, cfg.gamma,
+                                        env.n_steps - s.step) / std
+            all_done, next_obs = bool(res.done.all()), self.inputs(res.observation, w)
+            if ended.any():  # a collision's absorbing value, else a bootstrap from the next
+                with torch.no_grad():  # state (all done: the time limit, which a time-aware
+                    # critic knows: a finite horizon, 0)
+                    last = torch.zeros(b, n_r) if all_done and cfg.critic_time else critic(
+                        actor.normalise(next_obs), 0.0 if all_done else s.step / env.n_steps)
+                ro.end_value[t] = torch.where(collided[:, None], torch.tensor(absorbing),
+                                              last) * ended[:, None]
+            obs = self.new_episodes() if all_done else next_obs
             self.steps += int(live.sum())
-            if cfg.randomised and res.done.all() and t + 1 < t_len:
+            if cfg.randomised and all_done and t + 1 < t_len:
                 self.obs = obs  # the next batch may be another world: this rollout ends here
                 return ro.cut(t + 1)
         self.obs = obs
@@ -445,8 +449,7 @@ class PPOTrainer:
         shipped = as_shipped(self.actor)
         score = validation(evaluate, shipped)
         self.curve.append({"steps": float(self.steps), **score})
-        if not self.best or ((score["collisions"], -score["reward"])
-                             <= (self.best["collisions"], -self.best["reward"])):
+        if beats(score, self.best):
             self.best, self.best_state = {"steps": float(self.steps), **score}, shipped.state_dict()
         if log:
             log(f"{self.cfg.algo} {self.sc.id} seed {self.seed}: {self.steps} steps, validation "
@@ -460,20 +463,17 @@ class PPOTrainer:
 
         With ``snapshots``, the run continues from its snapshot file where there is one, and
         keeps one there every so often (after an update; :meth:`snapshot_state`)."""
-        if snapshots is not None:  # a learner keeping what a snapshot cannot hold: at once
+        if snapshots is not None:
             from marl.checkpoint import plain_state
 
+            # a learner keeping what a snapshot cannot hold fails here, at once
             plain_state({k: getattr(self, k) for k in self.own_state}, (self.gen,))
-        state = snapshots.read() if snapshots is not None else None
-        if state is None:
-            self.curve, self.best = [], {}
-            self.best_state = as_shipped(self.actor).state_dict()
-            self.next_eval = 0
-        else:
-            assert snapshots is not None
-            self.restore(state)
-            if log:
-                log(f"resumed from {snapshots.path}: {self.steps} steps, {self.updates} updates")
+            state = snapshots.read()
+            if state is not None:
+                self.restore(state)
+                if log:
+                    log(f"resumed from {snapshots.path}: {self.steps} steps, {self.updates} "
+                        "updates")
         t0 = time.perf_counter()
         while self.steps < self.total_steps:
             if evaluate is not None and self.steps >= self.next_eval:
@@ -570,19 +570,6 @@ class PPOTrainer:
 
     def _modules(self) -> dict[str, nn.Module]:
         return {"actor": self.actor, "critic": self.critic}
-
-
-def module_tensors(module: nn.Module) -> dict[str, torch.Tensor]:
-    """Every parameter and buffer of ``module`` by name (a state dict leaves out the
-    observation count, which training needs)."""
-    return dict([*module.named_parameters(), *module.named_buffers()])
-
-
-def _absorbing(penalty: float, gamma: float, remaining: int) -> float:
-    """The collision penalty at each of ``remaining`` steps, discounted."""
-    if remaining <= 0:
-        return 0.0
-    return penalty * remaining if gamma == 1 else penalty * (1 - gamma**remaining) / (1 - gamma)
 
 
 def train(

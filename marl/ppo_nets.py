@@ -18,12 +18,20 @@ from envs.channel import ChannelConfig
 from envs.params import OVM_ACTIONS, PlatoonParams
 from envs.scenarios import Scenario
 from infra.errors import ConfigError, TrainingDivergedError
+from marl.layers import BatchedLinear
 from marl.learners import PPO_LEARNERS
 
 #: Model-based priors a residual policy can add to (``PPOConfig.prior``).
 PRIORS: tuple[str, ...] = ("", "cacc", "cacc-exact")
 
 # ---------------------------------------------------------------------------- config
+def check_counts(config: object, **highs: int) -> None:
+    """The one rule for a config's counts (episodes, steps, rows, rounds): each in 1..its bound."""
+    for name, high in highs.items():
+        if not 1 <= getattr(config, name) <= high:
+            raise ConfigError(f"{name} must lie in 1..{high:,}, got {getattr(config, name)}")
+
+
 def check_learning_rate(lr: float) -> None:
     """The one rule for a shared learner's or the distiller's Adam learning rate: in (0, 1]
     (a larger step overflows Adam's float32 update or turns the weights non-finite)."""
@@ -171,11 +179,8 @@ class PPOConfig:
         )
 
         check_hidden(self.hidden)
-        for name, high in (("n_envs", MAX_EPISODES_PARALLEL), ("rollout_steps", 10**4),
-                           ("epochs", 1000), ("minibatch_rows", 10**7),
-                           ("eval_every_steps", MAX_TRAIN_STEPS)):
-            if not 1 <= getattr(self, name) <= high:
-                raise ConfigError(f"{name} must lie in 1..{high:,}, got {getattr(self, name)}")
+        check_counts(self, n_envs=MAX_EPISODES_PARALLEL, rollout_steps=10**4, epochs=1000,
+                     minibatch_rows=10**7, eval_every_steps=MAX_TRAIN_STEPS)
         check_learning_rate(self.lr)
         big = float(torch.finfo(torch.float32).max)  # they bound float32 tensors
         for name in ("reward_clip", "obs_clip", "max_grad_norm"):
@@ -199,8 +204,8 @@ class PPOConfig:
         if self.randomised and self.per_agent:
             raise ConfigError("ippo-bdc has a network per follower: it trains at one N, one V2V "
                               "setting and one road (vehicles_min, vehicles_max, "
-                              "comm_delay_max_s, packet_loss_max: 0; scenarios: ''; "
-                              "cav_share_min, cav_share_max: 1)")
+                              "comm_delay_max_s, packet_loss_max: 0; scenarios, class_mixes: "
+                              "''; cav_share_min, cav_share_max: 1)")
         if not (0 < self.cav_share_min <= self.cav_share_max <= 1):
             raise ConfigError(f"cav_share_min and cav_share_max are shares of automated "
                               f"followers: 0 < cav_share_min <= cav_share_max <= 1, got "
@@ -222,9 +227,6 @@ class PPOConfig:
         if self.class_mixes:
             from envs.vehicle_classes import CLASS_OPTIONS
 
-            if self.per_agent:
-                raise ConfigError("ippo-bdc has a network per follower: it trains on one string "
-                                  "(class_mixes: '')")
             if any(len(m) < 2 for m in self.mixes):  # parsed (and refused) here, once
                 raise ConfigError(f"class_mixes={self.class_mixes!r}: each arrangement names "
                                   "the run's N >= 2 followers (bus+van+car*6;truck+car*7)")
@@ -326,41 +328,33 @@ class PPOConfig:
 
 
 # ---------------------------------------------------------------------------- networks
-class StackedLinear(nn.Module):
-    """One linear layer per agent: ``(..., N, n_in) -> (..., N, n_out)``, weights ``(N, n_in,
-    n_out)`` (one batched product; the agent axis stays where the consensus rules want it)."""
-
-    def __init__(self, n_agents: int, n_in: int, n_out: int) -> None:
-        super().__init__()
-        self.weight = nn.Parameter(torch.empty(n_agents, n_in, n_out))
-        self.bias = nn.Parameter(torch.zeros(n_agents, n_out))
+class StackedLinear(BatchedLinear):
+    """One linear layer per agent with the agent axis second to last: ``(..., N, n_in) ->
+    (..., N, n_out)`` (one batched product; the agent axis stays where the consensus rules
+    want it)."""
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         n, d = x.shape[-2:]
         rows = x.reshape(-1, n, d).transpose(0, 1)  # (N, M, n_in)
-        out = torch.baddbmm(self.bias[:, None, :], rows, self.weight)
-        return out.transpose(0, 1).reshape(*x.shape[:-1], -1)
+        return super().forward(rows).transpose(0, 1).reshape(*x.shape[:-1], -1)
 
 
 def _mlp(n_in: int, hidden: int, n_out: int, gain: float, n_agents: int = 0) -> nn.Sequential:
     """Two ReLU layers, orthogonal init (CleanRL's ``layer_init``), shared (``n_agents`` 0) or
     one per agent. ReLU, not CleanRL's tanh: this torch build's CPU tanh took 2.1 ms on a
     (8192, 64) batch against ReLU's 0.07 ms (one thread), most of a training step."""
-    def linear(a: int, b: int) -> nn.Module:
-        return StackedLinear(n_agents, a, b) if n_agents else nn.Linear(a, b)
-
-    layers = [linear(n_in, hidden), nn.ReLU(), linear(hidden, hidden), nn.ReLU(),
-              linear(hidden, n_out)]
-    for layer, g in zip(layers[::2], (math.sqrt(2), math.sqrt(2), gain)):
-        if isinstance(layer, StackedLinear):
-            with torch.no_grad():  # each agent's (n_in, n_out) as nn.Linear's (out, in)
-                for i in range(layer.weight.shape[0]):
-                    nn.init.orthogonal_(layer.weight[i].T, g)
-            continue
-        assert isinstance(layer, nn.Linear)
-        nn.init.orthogonal_(layer.weight, g)
-        nn.init.zeros_(layer.bias)
-    return nn.Sequential(*layers)
+    sizes = ((n_in, hidden), (hidden, hidden), (hidden, n_out))
+    gains = (math.sqrt(2), math.sqrt(2), gain)
+    if n_agents:  # each agent's weights drawn as an nn.Linear's, in order
+        linears: list[nn.Module] = [StackedLinear(n_agents, a, b, g)
+                                    for (a, b), g in zip(sizes, gains)]
+    else:  # all built (their default init drawn), then re-initialised
+        shared = [nn.Linear(a, b) for a, b in sizes]
+        for layer, g in zip(shared, gains):
+            nn.init.orthogonal_(layer.weight, g)
+            nn.init.zeros_(layer.bias)
+        linears = list(shared)
+    return nn.Sequential(linears[0], nn.ReLU(), linears[1], nn.ReLU(), linears[2])
 
 
 class SharedActor(nn.Module):

@@ -127,6 +127,16 @@ class ErrorFeedbackQSGD:
         return out
 
 
+def compress_gradients_(grads: list[torch.Tensor], compressor: ErrorFeedbackQSGD,
+                        bits: dict[str, float]) -> None:
+    """Replace every stacked gradient ``(N, ...)`` of ``grads`` in place by its compression
+    (applied locally: sent nowhere), adding each one's payload per agent to
+    ``bits["qsgd_local"]``."""
+    for g, q in zip(grads, compressor.compress(grads), strict=True):
+        g.copy_(q)
+        bits["qsgd_local"] += qsgd_bits(g[0].numel(), compressor.s, bucket=compressor.bucket)
+
+
 def ternary_bits(n_values: int, packed: bool = False) -> float:
     """Bits to send ``n_values`` ternary symbols: ``log2 3`` each, or 2 each if bit-packed."""
     return n_values * (2.0 if packed else math.log2(3.0))

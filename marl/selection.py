@@ -167,11 +167,12 @@ def run_population(
     # seconds a resumed run spent before, in all and training (not validating)
     before = [(0.0, 0.0) for _ in runs]
     for r, snap in zip(runs, snaps, strict=True):
-        if snap is not None:  # an algorithm keeping what a snapshot cannot hold: at once
-            from marl.checkpoint import plain_state
+        if snap is None:
+            continue
+        from marl.checkpoint import plain_state
 
-            plain_state(r.hook_state, (r.generator,))
-        state = snap.read() if snap is not None else None
+        plain_state(r.hook_state, (r.generator,))  # what a snapshot cannot hold fails at once
+        state = snap.read()
         if state is None:
             continue
         trainer.restore_run(r, state["run"])
@@ -180,7 +181,7 @@ def run_population(
         results[r.index].kept = state["kept"]
         before[r.index] = (float(state["seconds"][0]), float(state["seconds"][1]))
         log = log_of[r.index]
-        if log is not None and snap is not None:
+        if log is not None:
             log(f"resumed from {snap.path}: {r.steps} steps, {r.episodes} episodes")
     t0 = time.perf_counter()
     evaluating = 0.0  # seconds spent in validation, not training

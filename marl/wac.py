@@ -18,10 +18,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-from marl.bdc import ConsensusConfig, build_net, share_critics
+from marl.bdc import ConsensusConfig, share_critics
 from marl.config import Algorithm
 from marl.consensus import wac
-from marl.networks import FLOAT_BITS, AgentNet
+from marl.networks import FLOAT_BITS, AgentNet, SeparateActorCriticNet
 
 if TYPE_CHECKING:
     from marl.config import RunState
@@ -39,4 +39,4 @@ def average_critics(run: RunState, net: AgentNet) -> None:
     share_critics(run, net, wac, lambda n: n * FLOAT_BITS)
 
 
-ALGORITHM = Algorithm("wac", WACConfig, build_net, after_step=average_critics)
+ALGORITHM = Algorithm("wac", WACConfig, SeparateActorCriticNet, after_step=average_critics)
