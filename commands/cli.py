@@ -225,9 +225,11 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     SIGINT and SIGTERM are handled from the first line (:mod:`infra.interrupt`): the command ends
     with 128 + the signal's number and one line on stderr, after its worker processes and Ray
-    were stopped; repeated signals never interrupt that shutdown.
+    were stopped; repeated signals never interrupt that shutdown. A signal that came while the
+    command held signals (:func:`infra.interrupt.held`: finishing a write) ends it the same way
+    once it returns, never with the command's own status.
     """
-    from infra.interrupt import install, set_exit_line
+    from infra.interrupt import Interrupted, install, received, set_exit_line
 
     on_main_thread = threading.current_thread() is threading.main_thread()
     previous = install() if on_main_thread else {}
@@ -237,18 +239,18 @@ def main(argv: Sequence[str] | None = None) -> int:
         set_exit_line(lambda signum: interrupted_line(signum, command))
     try:
         try:
-            return _main(argv)
+            status = _main(argv)
         finally:  # a reader that went away shows here (argparse's --help too), not at exit
             sys.stdout.flush()
+        signum = received()  # held while the command finished (or swallowed by a library)
+        return status if signum is None else _interrupted(Interrupted(signum), command)
     except BrokenPipeError:  # stdout's reader went away (`cacc-bench --help | head -1`)
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # nothing left to flush
         return 128 + int(signal.SIGPIPE)
     except KeyboardInterrupt as exc:
         return _interrupted(exc, command)
     except ImportError:  # a signal during a C extension's start-up (numpy's) ends that import
-        from infra.interrupt import Interrupted, received  # with an ImportError: the signal's
-
-        signum = received()
+        signum = received()  # with an ImportError: the signal's
         if signum is None:
             raise
         return _interrupted(Interrupted(signum), command)

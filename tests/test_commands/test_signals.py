@@ -515,3 +515,34 @@ def test_exit_at_once_ends_a_process_but_only_holds_inside_python() -> None:
             raise_if_interrupted()
     finally:
         restore(previous)
+
+
+def test_a_signal_held_while_a_command_finishes_still_ends_it_as_interrupted(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A SIGINT that arrives inside the last held block of a command (its final write) is
+    recorded, not raised; the command then returns 0 by itself, and the command line must still
+    end it as interrupted (130, the one line), not with 0."""
+    import textwrap
+
+    from commands import cli
+
+    (tmp_path / "held_end_cmd.py").write_text(textwrap.dedent("""
+        import os, signal, time
+        from infra.interrupt import held
+
+        def main(argv):
+            with held():  # the command's last write
+                os.kill(os.getpid(), signal.SIGINT)
+                time.sleep(0.05)
+            return 0
+    """))
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setitem(cli.SUBCOMMANDS, "held-end", ("held_end_cmd", "test command"))
+    assert cli.main(["held-end"]) == 130
+    err = capsys.readouterr().err
+    assert err.startswith("cacc-bench: interrupted (SIGINT)") and err.count("\n") == 1
+    # without a signal the command's own status stands
+    (tmp_path / "quiet_cmd.py").write_text("def main(argv):\n    return 0\n")
+    monkeypatch.setitem(cli.SUBCOMMANDS, "quiet", ("quiet_cmd", "test command"))
+    assert cli.main(["quiet"]) == 0
