@@ -236,7 +236,7 @@ class Controller(ABC):
         Whether an episode gives the same run, to the last bit, alone or stepped with others
         (every metric but the wall times; tested for each such controller). The harness steps
         the seeds of one setting together only for these. True for the cheap laws and the
-        learned policies (whose network always sees at least four rows, see
+        learned policies (whose network always sees at least eight rows, see
         ``controllers.policy.MIN_LANES``, where this machine's kernels pass the probe
         ``controllers.policy.rows_are_batch_invariant``); False for the MPC family (its
         solver-failure count is the batch's).
