@@ -288,9 +288,8 @@ def parse_positions(text: str, n_vehicles: int | None = None) -> tuple[int, ...]
         For an item that is not a positive integer, a repeated one, or (with ``n_vehicles``) a
         position beyond N.
     """
-    items = [s.strip() for s in text.split("+")]
     out: list[int] = []
-    for s in items:
+    for s in (item.strip() for item in text.split("+")):
         if not s.isdigit() or int(s) < 1:
             raise ConfigError(f"humans={text!r}: positions are follower numbers 1..N joined with "
                               f"'+' (humans=2+5), got {s!r}")

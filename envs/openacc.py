@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import functools
 import importlib.resources
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -63,15 +63,8 @@ TIME_MATCH_TOL_S: float = 0.01
 #: Number of metadata lines before the column-name line.
 N_METADATA_LINES: int = 5
 
-_HEADER_KEYS: tuple[str, ...] = (
-    "Date",
-    "Vehicle_order",
-    "Number_of_vehicles",
-    "ACC",
-    "Distance_setting",
-)
-_DATA_PACKAGE = "envs"
-_DATA_SUBDIR = ("data", "openacc")
+_HEADER_KEYS: tuple[str, ...] = ("Date", "Vehicle_order", "Number_of_vehicles", "ACC",
+                                  "Distance_setting")
 
 
 class OpenACCDataError(CaccBenchError, ValueError):
@@ -295,8 +288,8 @@ class RealFollowersRecord:
     speed_mps: np.ndarray
     gap_m: np.ndarray
     accel_mps2: np.ndarray
-    power_kw: np.ndarray | None = field(default=None)
-    energy_kwh: np.ndarray | None = field(default=None)
+    power_kw: np.ndarray | None = None
+    energy_kwh: np.ndarray | None = None
 
     @property
     def n_followers(self) -> int:
@@ -305,19 +298,7 @@ class RealFollowersRecord:
 
     def as_dict(self) -> dict[str, Any]:
         """Return the record as a plain dict (energy entries only when available)."""
-        out: dict[str, Any] = {
-            "window": self.window,
-            "time_s": self.time_s,
-            "leader_speed_mps": self.leader_speed_mps,
-            "speed_mps": self.speed_mps,
-            "gap_m": self.gap_m,
-            "accel_mps2": self.accel_mps2,
-        }
-        if self.power_kw is not None:
-            out["power_kw"] = self.power_kw
-        if self.energy_kwh is not None:
-            out["energy_kwh"] = self.energy_kwh
-        return out
+        return {k: v for k, v in vars(self).items() if v is not None}
 
 
 # -------------------------------------------------------------------------- reading and validation
@@ -383,8 +364,6 @@ def read_openacc_header(path: str | Path) -> OpenACCHeader:
 
 def _nan_runs(mask: np.ndarray) -> list[tuple[int, int]]:
     """Return ``(start, stop)`` index pairs of the True runs of a 1-D boolean mask."""
-    if not mask.any():
-        return []
     padded = np.concatenate(([False], mask, [False])).astype(np.int8)
     edges = np.flatnonzero(np.diff(padded))
     return [(int(a), int(b)) for a, b in zip(edges[::2], edges[1::2])]
@@ -416,11 +395,8 @@ def _read_validated(
     where = f"OpenACC file {str(path)!r}"
     if columns is None:
         n = header.n_vehicles
-        columns = (
-            ("Time",)
-            + tuple(f"Speed{i}" for i in range(1, n + 1))
-            + tuple(f"IVS{i}" for i in range(1, n))
-        )
+        columns = ("Time", *(f"Speed{i}" for i in range(1, n + 1)),
+                   *(f"IVS{i}" for i in range(1, n)))
     elif "Time" not in columns:
         columns = ("Time", *columns)
     try:
@@ -582,8 +558,7 @@ def data_path(name: str) -> Path:
     pathlib.Path
         Path inside the installed package (``envs/data/openacc/``).
     """
-    spec = _spec(name)
-    resource = importlib.resources.files(_DATA_PACKAGE).joinpath(*_DATA_SUBDIR, spec.file_name)
+    resource = importlib.resources.files("envs").joinpath("data", "openacc", _spec(name).file_name)
     return Path(str(resource))
 
 
@@ -663,8 +638,7 @@ def load_window(name: str, n_followers: int | None = None) -> OpenACCWindow:
     spec = _spec(name)
     arrays = _window_arrays(spec.name)
     available = arrays.header.n_vehicles - 1
-    if n_followers is None:
-        n_followers = available
+    n_followers = available if n_followers is None else n_followers
     if isinstance(n_followers, bool) or not isinstance(n_followers, int | np.integer):
         raise ConfigError(f"n_followers must be an integer, got {n_followers!r}")
     n_followers = int(n_followers)
@@ -673,8 +647,7 @@ def load_window(name: str, n_followers: int | None = None) -> OpenACCWindow:
             f"OpenACC window {spec.name} ({spec.file_name}) has {available} followers; "
             f"asked for {n_followers}"
         )
-    k = n_followers
-    n = arrays.header.n_vehicles
+    k, n = n_followers, arrays.header.n_vehicles
     used = np.r_[0 : k + 1, n : n + k]  # Speed1..Speed(k+1), IVS1..IVSk in the filled mask
     return OpenACCWindow(
         name=spec.name,
@@ -736,8 +709,7 @@ def real_followers_record(
         )
     speed = win.follower_speed_mps[:, :k]
     accel = win.follower_accel_mps2[:, :k]
-    power_kw: np.ndarray | None = None
-    energy: np.ndarray | None = None
+    power_kw = energy = None
     if with_energy:
         from envs.energy import battery_power_kw, energy_kwh
 

@@ -366,16 +366,8 @@ class PlatoonEnv:
                 s.realised_accel_mps2, self._pred_held, self._leader_held, self.target_gap_m,
                 self.target_speed_mps, self.params, self.dtype)
         assert self._obs is not None and self._blocks is not None
-        vehicle_blocks(
-            s.gap_m,
-            s.speed_mps,
-            s.pred_speed_mps,
-            s.applied_accel_mps2,
-            self.target_gap_m,
-            self.target_speed_mps,
-            self.params,
-            out=self._blocks,
-        )
+        vehicle_blocks(s.gap_m, s.speed_mps, s.pred_speed_mps, s.applied_accel_mps2,
+                       self.target_gap_m, self.target_speed_mps, self.params, out=self._blocks)
         return agent_observations(self._blocks, out=self._obs)
 
     def step_actions(self, actions: np.ndarray) -> StepResult:
@@ -419,32 +411,15 @@ class PlatoonEnv:
                 *self._channels, np.asarray(command_mps2, dtype=np.float64),
                 s.leader_accel_now_mps2, s.leader_speed_now_mps, self.target_speed_mps,
                 self.params)
-        lead_now = s.leader_speed_mps[:, t]
-        lead_next = s.leader_speed_mps[:, t + 1]
         gap, v, a, applied = self._physics(
-            s.gap_m,
-            s.speed_mps,
-            s.realised_accel_mps2,
-            np.asarray(command_mps2, dtype=np.float64),
-            lead_now,
-            lead_next,
-            self.params,
-            s.ring,
-            self.vehicles,
-        )
+            s.gap_m, s.speed_mps, s.realised_accel_mps2, np.asarray(command_mps2, dtype=np.float64),
+            s.leader_speed_mps[:, t], s.leader_speed_mps[:, t + 1], self.params, s.ring,
+            self.vehicles)
         power = self.battery_power_kw(v, applied)
         if self._drag_saving is not None:  # a follower's power in its predecessor's wake
             power = power + self._drag_saving.delta_kw(gap, v, applied)
-        terms = reward_terms(
-            gap,
-            v,
-            applied,
-            power,
-            self.target_gap_m,
-            self.target_speed_mps,
-            self.params,
-            self.weights,
-        )
+        terms = reward_terms(gap, v, applied, power, self.target_gap_m, self.target_speed_mps,
+                             self.params, self.weights)
         reward = combine_reward(terms, training=self.training, include_power=self.include_power)
         tracking = combine_reward(terms, training=False, include_power=False)
         new_collision = (gap < self.params.gap_min_m).any(axis=1)

@@ -806,6 +806,10 @@ def _is_number(value: Any) -> bool:
             and math.isfinite(value))
 
 
+def _is_whole(value: Any, lo: int, hi: int) -> bool:
+    return not isinstance(value, bool) and isinstance(value, int | np.integer) and lo <= int(value) <= hi
+
+
 def _check_plugin_spec(spec: Any, who: str, name: str, target: str) -> ScenarioSpec:
     """``spec``, the object at ``target`` for the scenario ``name`` (:func:`_plugin_spec`),
     checked once, when it is loaded, so that a mistake in it is one line before any work rather
@@ -855,17 +859,14 @@ def _check_plugin_spec(spec: Any, who: str, name: str, target: str) -> ScenarioS
             and 0 < spec.target_speed_mps <= params.speed_max_mps):
         raise bad(f"its target_speed_mps must be a finite number in (0, "
                   f"{params.speed_max_mps:g}] m/s, got {spec.target_speed_mps!r}")
-    if (isinstance(spec.n_steps, bool) or not isinstance(spec.n_steps, int | np.integer)
-            or not 1 <= spec.n_steps <= MAX_EPISODE_STEPS):
+    if not _is_whole(spec.n_steps, 1, MAX_EPISODE_STEPS):
         raise bad(f"its n_steps must be a whole number of {params.dt_s:g} s steps in "
                   f"1..{MAX_EPISODE_STEPS}, got {spec.n_steps!r}")
     length_s = spec.n_steps * params.dt_s
     if not (_is_number(spec.settle_s) and 0 <= spec.settle_s < length_s):
         raise bad(f"its settle_s must be a finite number in [0, {length_s:g}) s (the episode's "
                   f"length), got {spec.settle_s!r}")
-    if (isinstance(spec.default_vehicles, bool)
-            or not isinstance(spec.default_vehicles, int | np.integer)
-            or not MIN_VEHICLES <= spec.default_vehicles <= MAX_VEHICLES):
+    if not _is_whole(spec.default_vehicles, MIN_VEHICLES, MAX_VEHICLES):
         raise bad(f"its default_vehicles must be a whole number from {MIN_VEHICLES} to "
                   f"{MAX_VEHICLES}, got {spec.default_vehicles!r}")
     if not callable(spec.builder):
@@ -903,14 +904,11 @@ def _run_check(spec: ScenarioSpec, opts: dict[str, Any], name: str) -> None:
     """``spec.check(opts)``; a scenario of one's own whose check raises anything but a
     :class:`ConfigError` (its way of refusing a value) is one line naming it."""
     assert spec.check is not None
-    if SCENARIOS.get(spec.id) is spec:  # a built-in's check: its own errors are ours
-        spec.check(opts)
-        return
     try:
         spec.check(opts)
-    except CaccBenchError:
-        raise
     except (Exception, SystemExit) as exc:  # noqa: BLE001 - the user's code: one line
+        if isinstance(exc, CaccBenchError) or SCENARIOS.get(spec.id) is spec:
+            raise  # ours, or a built-in's check: its own errors are ours
         raise ConfigError(f"scenario {name}: its check of the options failed ({first_line(exc)}); "
                           "a check refuses a value by raising infra.errors.ConfigError") from None
 

@@ -77,11 +77,9 @@ class PowerPolynomial:
             self._floor = floor
         k = np.arange(coef.shape[0], dtype=np.float64)[:, None]
         j = np.arange(coef.shape[1], dtype=np.float64)[None, :]
-        dv = (coef * k)[1:]
-        du = (coef * j)[:, 1:]
         self._p = Horner2D(coef)
-        self._p_dv = Horner2D(dv)
-        self._p_du = Horner2D(du)
+        self._p_dv = Horner2D((coef * k)[1:])
+        self._p_du = Horner2D((coef * j)[:, 1:])
         self.metadata: dict[str, Any] = dict(metadata or {})
 
     @property

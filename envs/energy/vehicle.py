@@ -120,20 +120,11 @@ class VehicleParams:
 
 #: ``.dat`` key -> :class:`VehicleParams` field.
 _DAT_KEYS: dict[str, str] = {
-    "m": "mass_kg",
-    "r_wheel": "wheel_radius_m",
-    "Theta": "theta_kgm2",
-    "c_rr": "rolling_coeff",
-    "c_d": "drag_coeff",
-    "A_front": "frontal_area_m2",
-    "i_gear": "gear_ratio",
-    "eta_gear": "gear_efficiency",
-    "M_max": "motor_torque_max_nm",
-    "P_max": "motor_power_max_w",
-    "M_recup_max": "regen_torque_max_nm",
-    "P_recup_max": "regen_power_max_w",
-    "R_battery": "battery_resistance_ohm",
-    "U_battery_0": "battery_voltage_v",
+    "m": "mass_kg", "r_wheel": "wheel_radius_m", "Theta": "theta_kgm2", "c_rr": "rolling_coeff",
+    "c_d": "drag_coeff", "A_front": "frontal_area_m2", "i_gear": "gear_ratio",
+    "eta_gear": "gear_efficiency", "M_max": "motor_torque_max_nm", "P_max": "motor_power_max_w",
+    "M_recup_max": "regen_torque_max_nm", "P_recup_max": "regen_power_max_w",
+    "R_battery": "battery_resistance_ohm", "U_battery_0": "battery_voltage_v",
     "P_const": "aux_power_w",
 }
 _LOSS_MAP_KEY = "powerLossMapString"
@@ -247,13 +238,8 @@ class LossMap(NamedTuple):
         return _bilinear(self.speed_rpm, self.torque_nm, self.filled(), speed_rpm, torque_nm)
 
 
-def _bilinear(
-    x_axis: NDArray[np.float64],
-    y_axis: NDArray[np.float64],
-    table: NDArray[np.float64],
-    x: ArrayLike,
-    y: ArrayLike,
-) -> FloatArray:
+def _bilinear(x_axis: NDArray[np.float64], y_axis: NDArray[np.float64],
+              table: NDArray[np.float64], x: ArrayLike, y: ArrayLike) -> FloatArray:
     """Bilinear interpolation of ``table[y_index, x_index]``; arguments clipped to the axes."""
     xa = np.clip(np.asarray(x, dtype=np.float64), x_axis[0], x_axis[-1])
     ya = np.clip(np.asarray(y, dtype=np.float64), y_axis[0], y_axis[-1])
@@ -334,6 +320,5 @@ def load_loss_map(path: str | Path | None = None) -> LossMap:
 
 @functools.lru_cache(maxsize=1)
 def _default_vehicle() -> tuple[VehicleParams, LossMap, NDArray[np.float64]]:
-    params = load_vehicle_params()
     loss_map = load_loss_map()
-    return params, loss_map, loss_map.filled()
+    return load_vehicle_params(), loss_map, loss_map.filled()
