@@ -242,9 +242,7 @@ def leaderboard_frame(runs: Any, pool_seeds: bool = False, sweeps: Mapping[Any, 
                 mean, lo, hi = hierarchical_bootstrap_ci(groups, seed=BOOTSTRAP_SEED)
             else:
                 mean, lo, hi = bootstrap_ci(vals, seed=BOOTSTRAP_SEED)
-            row[f"{metric}_mean"] = mean
-            row[f"{metric}_ci_low"] = lo
-            row[f"{metric}_ci_high"] = hi
+            row.update({f"{metric}_mean": mean, f"{metric}_ci_low": lo, f"{metric}_ci_high": hi})
         out.append(row)
     lb = pd.DataFrame(out)
     clean = (lb["collisions"] == 0) & (lb["failed"] == 0)
@@ -380,15 +378,9 @@ def _check_file_target(path: Path) -> None:
 def trajectory_arrays(traj: Trajectory) -> dict[str, np.ndarray]:
     """The arrays of a trajectory that the store keeps for figures and CSVs (``ring`` only for
     a ring road's run, so every other stored trajectory is as before it existed)."""
-    arrays = {
-        "gap_m": traj.gap_m,
-        "speed_mps": traj.speed_mps,
-        "accel_mps2": traj.accel_mps2,
-        "power_kw": traj.power_kw,
-        "leader_speed_mps": traj.leader_speed_mps,
-        "leader_accel_mps2": traj.leader_accel_mps2,
-        "dt_s": np.array(traj.dt_s),
-    }
+    arrays = {k: getattr(traj, k) for k in ("gap_m", "speed_mps", "accel_mps2", "power_kw",
+                                            "leader_speed_mps", "leader_accel_mps2")}
+    arrays["dt_s"] = np.array(traj.dt_s)
     if traj.ring:
         arrays["ring"] = np.array(True)
     return arrays
@@ -496,20 +488,15 @@ def write_trajectory_csv(path: Path, arrays: dict[str, np.ndarray]) -> None:
     lead_a = arrays["leader_accel_mps2"][:t1]
     lead_p = np.asarray(battery_power_kw(lead_v, lead_a))
     lead_p = np.where(np.arange(t1) == 0, 0.0, lead_p)
-    x = positions_m(arrays)
+    # (T+1, N+1) tables, column 0 the leader's
+    cols = {"gap_m": np.column_stack([np.full(t1, np.nan), gap]),
+            "speed_mps": np.column_stack([lead_v, arrays["speed_mps"]]),
+            "accel_mps2": np.column_stack([lead_a, arrays["accel_mps2"]]),
+            "power_kw": np.column_stack([lead_p, arrays["power_kw"]]),
+            "position_m": positions_m(arrays)}
     steps = np.arange(t1)
-    frames = [
-        pd.DataFrame({
-            "step": steps, "time_s": steps * dt, "vehicle": 0, "gap_m": np.nan,
-            "speed_mps": lead_v, "accel_mps2": lead_a, "power_kw": lead_p, "position_m": x[:, 0],
-        })
-    ]
-    for i in range(n):
-        frames.append(pd.DataFrame({
-            "step": steps, "time_s": steps * dt, "vehicle": i + 1, "gap_m": gap[:, i],
-            "speed_mps": arrays["speed_mps"][:, i], "accel_mps2": arrays["accel_mps2"][:, i],
-            "power_kw": arrays["power_kw"][:, i], "position_m": x[:, i + 1],
-        }))
-    df = pd.concat(frames).sort_values(["step", "vehicle"], kind="mergesort")
+    df = pd.concat(pd.DataFrame({"step": steps, "time_s": steps * dt, "vehicle": i,
+                                 **{k: v[:, i] for k, v in cols.items()}})
+                   for i in range(n + 1)).sort_values(["step", "vehicle"], kind="mergesort")
     path.parent.mkdir(parents=True, exist_ok=True)
     write_csv(df, path, float_format="%.6f")

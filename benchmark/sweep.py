@@ -177,13 +177,8 @@ def _sine_episodes(sc: Scenario, seeds: np.ndarray, u: np.ndarray, n: int, *,
             base, options={**base.options, "amplitude_mps": amp, "frequency_hz": f_hz},
             n_steps=sc.n_steps)
         parts.append(one.episodes([seed], n, uk))
-    return EpisodeBatch(
-        seeds=seeds,
-        perturbation=u,
-        gap_m=np.concatenate([p.gap_m for p in parts]),
-        speed_mps=np.concatenate([p.speed_mps for p in parts]),
-        leader_speed_mps=np.concatenate([p.leader_speed_mps for p in parts]),
-    )
+    return EpisodeBatch(seeds, u, *(np.concatenate([getattr(p, name) for p in parts])
+                                    for name in ("gap_m", "speed_mps", "leader_speed_mps")))
 
 
 def measure_gains(
@@ -297,7 +292,7 @@ def measure_gains(
         pair_gain = amp[:, 1:] / amp[:, :-1]
     pair_gain[collided] = np.nan
     counted = np.where(amp[:, 1:-1] >= min_fraction * amp[:, :1], pair_gain[:, 1:], -np.inf)
-    gain = np.max(counted, axis=1) if n > 1 else np.full(w, -np.inf)
+    gain = np.max(counted, axis=1)  # N >= 2 (check_vehicles): at least one pair
     return Measured(
         omegas_rad_s=omegas, amplitudes_mps=amps, pair_gain=pair_gain,
         gain=np.where(np.isneginf(gain), np.nan, gain), collided=collided, saturated=saturated,
@@ -518,8 +513,7 @@ def sweep_peak(
     omegas = np.asarray(SWEEP_OMEGAS_RAD_S)
     deterministic = bool(getattr(ctrl, "deterministic", True))
     m = measure_gains(ctrl, omegas, SWEEP_LEADER_ACCEL_MPS2 / omegas, n_vehicles=n,
-                      params=params, channel=channel, transient_s=SWEEP_TRANSIENT_S,
-                      periods=1.0, min_window_s=SWEEP_WINDOW_S, seed=SWEEP_SEED,
+                      params=params, channel=channel,  # the standard transient, window, seed
                       replicas=1 if deterministic else SWEEP_REPLICAS,
                       min_fraction=SWEEP_MIN_FRACTION)
     if m.collided.any():
@@ -727,6 +721,7 @@ def row_sweeps(
     """
     from benchmark.executors import map_jobs
     from controllers.registry import resolve, runs_inside_simulator
+    from envs.scenarios import as_scenario
 
     settings: dict[RowKey, tuple[str, dict[str, Any], set[str]]] = {}
     for rec in records:
@@ -736,8 +731,6 @@ def row_sweeps(
             settings[key] = (name, json.loads(str(rec.get("options") or "{}")), set())
         if rec.get("status") == "ok" and "policy_sha256" in rec:
             settings[key][2].add(str(rec["policy_sha256"] or ""))
-    from envs.scenarios import as_scenario
-
     out: dict[RowKey, SweepResult | None] = {}
     results: dict[tuple[Any, ...], SweepResult | str] = {}  # one per configuration
     ident_of: dict[RowKey, tuple[Any, ...]] = {}
@@ -748,16 +741,14 @@ def row_sweeps(
         out[key] = None
         if resolve(name).family == "data":  # a recorded platoon: nothing to drive
             continue
-        if runs_inside_simulator(resolve(name)):  # sumo:acc, plexe:ploeg: none to measure here
-            ident_of[key] = (key,)
-            results[(key,)] = (f"{name} is a model that runs inside SUMO only, and the standard "
-                               "frequency sweep runs in the built-in simulator, so it has none "
-                               "(its runs' string_gain is measured in SUMO)")
-            continue
         policy = next(iter(policies)) if len(policies) == 1 else None
         try:
+            if runs_inside_simulator(resolve(name)):  # sumo:acc, plexe:ploeg: none to measure
+                raise ConfigError(f"{name} is a model that runs inside SUMO only, and the "
+                                  "standard frequency sweep runs in the built-in simulator, so "
+                                  "it has none (its runs' string_gain is measured in SUMO)")
             pinned = as_scenario(scenario).id if adapts_to_scenario(name, options) else ""
-        except CaccBenchError as exc:  # a scenario or controller this version does not know
+        except CaccBenchError as exc:  # also a scenario or controller this version does not know
             ident_of[key] = (key,)
             results[(key,)] = str(exc)
             continue

@@ -206,68 +206,46 @@ def canonical_name(name: str) -> str:
     return name[:len(name) - len(inner)] + canonical
 
 
-for _spec in (
-    ControllerSpec(
-        "ovm", "human", "none",
-        "optimal velocity model, (alpha, beta) = (0.5, 0.5): the human driver (MARL action 3)",
-        "controllers.ovm:OVMController",
-    ),
-    ControllerSpec(
-        "duty", "human", "none",
-        "OVM action 3 every k-th step, action 2 otherwise (k=K; default: best k on the "
-        "validation seeds): what a trivial schedule of the MARL actions achieves",
-        "controllers.duty:DutyController",
-    ),
-    ControllerSpec(
-        "acc", "linear", "none",
-        "constant time-gap ACC, u = kp e + kd de/dt (Ploeg's law without feedforward)",
-        "controllers.linear:ACCController",
-    ),
-    ControllerSpec(
-        "cacc", "linear", "predecessor's commanded acceleration (1 float)",
-        "Ploeg's CACC: constant time gap with the predecessor's command as feedforward",
-        "controllers.linear:CACCController",
-    ),
-    ControllerSpec(
-        "mpc", "mpc", "predecessor's assumed speed plan with its time stamp (H+2 floats)",
-        "energy-aware distributed MPC with the fitted power model (CasADi)",
-        "controllers.mpc:DMPCController",
-    ),
-    ControllerSpec(
-        "mpc-qp", "mpc", "predecessor's assumed speed plan with its time stamp (H+2 floats)",
-        "quadratic distributed MPC without energy term (OSQP)",
-        "controllers.mpc_qp:QPDMPCController",
-    ),
-    ControllerSpec(
-        "cmpc", "mpc", "full state of the platoon (centralised)",
-        "centralised MPC of the whole platoon with full information (cvxpy)",
-        "controllers.cmpc:CentralisedMPCController",
-    ),
-    ControllerSpec(
-        "openacc-real", "data", "none (real ACC cars)",
-        "the recorded ACC followers of an OpenACC window (openacc-* scenarios only; paper Table III)",
-        "controllers.replay:RealACCRecord",
-    ),
-    ControllerSpec(
-        "idm", "human", "none",
-        "Intelligent Driver Model with the human seats' noise and delay: on ring-v1 it is the "
-        "all-human ring",
-        "controllers.idm:IDMController",
-    ),
-    ControllerSpec(
-        "followerstopper", "linear", "none",
-        "Stern et al. 2018 FollowerStopper: a commanded speed from gap and closing speed, "
-        "capped at the set speed U (default: the scenario's target speed)",
-        "controllers.wave_dampers:FollowerStopperController",
-    ),
-    ControllerSpec(
-        "pi-saturation", "linear", "none",
-        "Stern et al. 2018 PI controller with saturation: tracks its own 38 s mean speed, "
-        "blended with the predecessor's speed at short gaps",
-        "controllers.wave_dampers:PISaturationController",
-    ),
+for _spec_args in (  # name, family, V2V, description, target
+    ("ovm", "human", "none",
+     "optimal velocity model, (alpha, beta) = (0.5, 0.5): the human driver (MARL action 3)",
+     "controllers.ovm:OVMController"),
+    ("duty", "human", "none",
+     "OVM action 3 every k-th step, action 2 otherwise (k=K; default: best k on the "
+     "validation seeds): what a trivial schedule of the MARL actions achieves",
+     "controllers.duty:DutyController"),
+    ("acc", "linear", "none",
+     "constant time-gap ACC, u = kp e + kd de/dt (Ploeg's law without feedforward)",
+     "controllers.linear:ACCController"),
+    ("cacc", "linear", "predecessor's commanded acceleration (1 float)",
+     "Ploeg's CACC: constant time gap with the predecessor's command as feedforward",
+     "controllers.linear:CACCController"),
+    ("mpc", "mpc", "predecessor's assumed speed plan with its time stamp (H+2 floats)",
+     "energy-aware distributed MPC with the fitted power model (CasADi)",
+     "controllers.mpc:DMPCController"),
+    ("mpc-qp", "mpc", "predecessor's assumed speed plan with its time stamp (H+2 floats)",
+     "quadratic distributed MPC without energy term (OSQP)",
+     "controllers.mpc_qp:QPDMPCController"),
+    ("cmpc", "mpc", "full state of the platoon (centralised)",
+     "centralised MPC of the whole platoon with full information (cvxpy)",
+     "controllers.cmpc:CentralisedMPCController"),
+    ("openacc-real", "data", "none (real ACC cars)",
+     "the recorded ACC followers of an OpenACC window (openacc-* scenarios only; paper Table III)",
+     "controllers.replay:RealACCRecord"),
+    ("idm", "human", "none",
+     "Intelligent Driver Model with the human seats' noise and delay: on ring-v1 it is the "
+     "all-human ring",
+     "controllers.idm:IDMController"),
+    ("followerstopper", "linear", "none",
+     "Stern et al. 2018 FollowerStopper: a commanded speed from gap and closing speed, "
+     "capped at the set speed U (default: the scenario's target speed)",
+     "controllers.wave_dampers:FollowerStopperController"),
+    ("pi-saturation", "linear", "none",
+     "Stern et al. 2018 PI controller with saturation: tracks its own 38 s mean speed, "
+     "blended with the predecessor's speed at short gaps",
+     "controllers.wave_dampers:PISaturationController"),
 ):
-    register_controller(_spec)
+    register_controller(ControllerSpec(*_spec_args))
 
 for _learner in LEARNERS.values():  # every learner's policy, from the one learner registry
     register_controller(ControllerSpec(_learner.name, "marl", _learner.v2v, _learner.description,

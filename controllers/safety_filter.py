@@ -345,14 +345,12 @@ class SafetyFilter(Controller):
         self.config: SafetyFilterConfig = build_config(SafetyFilterConfig, own, spec.name)
         self.inner: Controller = make_controller(inner, **inner_options)
         self.name = spec.name
-        self.family = self.inner.family
-        self.deterministic = self.inner.deterministic
-        self.needs_observation = self.inner.needs_observation
-        self.batch_invariant = self.inner.batch_invariant
+        for trait in ("family", "deterministic", "needs_observation", "batch_invariant",
+                      "needs_leader"):
+            setattr(self, trait, getattr(self.inner, trait))
         # its intervention counts are over every seat: not yet split between human and
         # automated ones, so it stays on strings of automated vehicles
         self.drives_mixed = False
-        self.needs_leader = self.inner.needs_leader
         defaults = SafetyFilterConfig()
         self.options = {**self.inner.options, **{
             f"{OPTION_PREFIX}{k}": getattr(self.config, k)
