@@ -42,6 +42,7 @@ from envs.platoon import PlatoonEnv, StepResult
 from envs.scenarios import Scenario, make_scenario
 from infra.errors import ConfigError, TrainingDivergedError
 from infra.limits import training_episode_seeds
+from marl.checkpoint import plain_state, restore_state
 from marl.config import A2CConfig, Algorithm, training_device
 from marl.layers import module_tensors, per_agent_clip_, rmsprop_, sqrt
 from marl.networks import AgentNet, State, exchange, neighbour_action_onehot
@@ -445,8 +446,7 @@ class Trainer:
             with torch.device("cpu"):  # the same initial weights on every device
                 nets.append(algo.build_net(cfg, n, True, generator))
         with torch.device("cpu"):
-            net = stack_nets(algo, self.shape, nets)
-        self.net = net.to(self.device)
+            self.net = stack_nets(algo, self.shape, nets).to(self.device)
         #: (parameter, is_critic): actor parameters, then the critic's
         self.params = [(p, False) for p in self.net.actor_parameters()] + [
             (p, True) for p in self.net.critic_parameters()]
@@ -813,8 +813,6 @@ class Trainer:
         statistics, bit tallies and the algorithm's state (:mod:`marl.checkpoint`'s
         snapshots). Nothing else carries over: a run draws only from its own generator, its
         episodes' streams from their seeds."""
-        from marl.checkpoint import plain_state
-
         name = {id(p): n for n, p in self.net.named_parameters()}
         return {
             "seed": run.seed,
@@ -832,8 +830,6 @@ class Trainer:
     @torch.no_grad()
     def restore_run(self, run: Run, state: dict[str, Any]) -> None:
         """Continue ``run`` from :meth:`run_state`'s ``state`` (before :meth:`train`)."""
-        from marl.checkpoint import restore_state
-
         name = {id(p): n for n, p in self.net.named_parameters()}
         mine = module_tensors(self.net)
         saved, squares = state["tensors"], state["square_avg"]

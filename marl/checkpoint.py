@@ -27,14 +27,18 @@ import hashlib
 import io
 import json
 import math
+import random
 import re
+import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 from envs.params import EVAL_MODES
+from infra.atomic import StagedFiles, write_with
 from infra.errors import ConfigError
 
 FORMAT_VERSION = 2
@@ -104,8 +108,6 @@ def checkpoint_payload(
 def write_payload(path: str | Path, payload: dict[str, Any], atomic: bool = True) -> None:
     """Write a checkpoint dict (its hash recomputed: fields may have changed); atomically
     unless ``atomic`` is False (``path`` is then itself a temporary file)."""
-    from infra.atomic import write_with
-
     payload = {**payload, "sha256": content_hash(payload)}
     if atomic:
         write_with(path, lambda tmp: save_to_file(payload, tmp))
@@ -130,8 +132,6 @@ def write_run(out: Path, stem: str, curve: Sequence[dict[str, float]],
     each checkpoint (``suffix -> payload``: ``.final.pt``, ``.pt``), each to a temporary file,
     then all renamed (:class:`infra.atomic.StagedFiles`): an interrupted or failed run leaves the
     files of an earlier run byte for byte as they were."""
-    from infra.atomic import StagedFiles
-
     def write_curve(path: Path) -> None:
         with open(path, "w", newline="") as fh:
             w = csv.writer(fh)
@@ -183,8 +183,6 @@ class Snapshots:
 
     def __init__(self, path: str | Path, identity: dict[str, Any],
                  every_s: float | None = None) -> None:
-        import time
-
         self.path = Path(path)
         self.identity = dict(identity)
         self.every_s = SNAPSHOT_EVERY_S if every_s is None else float(every_s)
@@ -197,8 +195,6 @@ class Snapshots:
 
     def write(self, steps: int, state: dict[str, Any]) -> None:
         """Replace the file with ``state`` (the trainer's, after ``steps`` environment steps)."""
-        from infra.atomic import write_with
-
         buffer = io.BytesIO()
         torch.save(state, buffer)
         blob = buffer.getvalue()
@@ -293,8 +289,6 @@ def plain_state(value: Any, shared: Sequence[torch.Generator] = ()) -> Any:
     TypeError
         For anything else (a learner keeping such state cannot be snapshotted: say how).
     """
-    import numpy as np
-
     if value is None or isinstance(value, bool | int | float | str):
         return value
     if isinstance(value, torch.Tensor):
@@ -347,10 +341,6 @@ def restore_state(current: Any, state: Any, shared: Sequence[torch.Generator] = 
 
 def process_rng_state() -> dict[str, Any]:
     """The process-wide random streams (torch's, numpy's, Python's) as plain data."""
-    import random
-
-    import numpy as np
-
     # numpy's global stream: training draws none, kept so that nothing can differ
     kind, keys, pos, has_gauss, cached = np.random.get_state()  # noqa: NPY002
     version, internal, gauss = random.getstate()
@@ -362,10 +352,6 @@ def process_rng_state() -> dict[str, Any]:
 
 def set_process_rng_state(state: dict[str, Any]) -> None:
     """Put back :func:`process_rng_state`'s streams."""
-    import random
-
-    import numpy as np
-
     torch.set_rng_state(state["torch"])
     kind, keys, pos, has_gauss, cached = state["numpy"]
     keys = keys.numpy().astype(np.uint32)

@@ -147,15 +147,11 @@ class A2CConfig:
             raise ConfigError(f"reward_alpha must lie in [0, 1], got {self.reward_alpha}")
         if self.entropy_coef_final is not None and self.entropy_coef_final < 0:
             raise ConfigError(f"entropy_coef_final must be >= 0, got {self.entropy_coef_final}")
-        if self.collision_value not in COLLISION_VALUES:
-            raise ConfigError(
-                f"collision_value must be one of {', '.join(COLLISION_VALUES)}, "
-                f"got {self.collision_value!r}"
-            )
-        if self.selection_mode not in EVAL_MODES:
-            raise ConfigError(
-                f"selection_mode must be one of {', '.join(EVAL_MODES)}, got {self.selection_mode!r}"
-            )
+        for name, allowed in (("collision_value", COLLISION_VALUES),
+                              ("selection_mode", EVAL_MODES)):
+            if getattr(self, name) not in allowed:
+                raise ConfigError(f"{name} must be one of {', '.join(allowed)}, got "
+                                  f"{getattr(self, name)!r}")
         for name in ("reward_w_gap", "reward_w_speed", "reward_w_accel", "reward_w_safety",
                      "reward_w_power"):
             if getattr(self, name) > 0:
@@ -208,13 +204,9 @@ class A2CConfig:
 
     def reward_weights(self) -> RewardWeights:
         """The training reward's weights (the benchmark scores with ``RewardWeights()``)."""
-        return RewardWeights(
-            gap=self.reward_w_gap,
-            speed=self.reward_w_speed,
-            accel=self.reward_w_accel,
-            safety=self.reward_w_safety,
-            power=self.reward_w_power,
-        )
+        return RewardWeights(gap=self.reward_w_gap, speed=self.reward_w_speed,
+                             accel=self.reward_w_accel, safety=self.reward_w_safety,
+                             power=self.reward_w_power)
 
     def entropy_at(self, fraction: float) -> float:
         """Entropy coefficient after ``fraction`` (0..1) of the run."""
@@ -329,7 +321,6 @@ def tuned_options(algo: str, scenario: str, path: Path = TUNED_CONFIGS) -> dict[
     import json
 
     shown = "the package's marl/tuned_configs.json" if path == TUNED_CONFIGS else str(path)
-
     if not path.exists():
         raise ConfigError(f"--tuned: {shown} is missing; make it with `cacc-bench tune` and copy "
                           "its tuned_configs.json there")

@@ -298,8 +298,7 @@ class SeparateActorCriticNet(AgentNet):
     def initial_state(self, batch: int) -> State:
         state = super().initial_state(batch)
         if self.with_critic:
-            state["ch"] = torch.zeros_like(state["h"])
-            state["cc"] = torch.zeros_like(state["h"])
+            state |= {k: torch.zeros_like(state["h"]) for k in ("ch", "cc")}
         return state
 
     def encode(self, obs):

@@ -42,7 +42,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import torch
@@ -57,11 +57,15 @@ from infra.errors import ConfigError
 from infra.limits import MAX_ROLLOUT_AGENT_STEPS, MAX_SEED, training_episode_seeds
 from marl.a2c import absorbing_value, sharing_matrix
 from marl.acting import agent_inputs, to_command
+from marl.checkpoint import (
+    Snapshots,
+    plain_state,
+    process_rng_state,
+    restore_state,
+    set_process_rng_state,
+)
 from marl.layers import module_tensors
 from marl.ppo_nets import Critic, PPOConfig, SharedActor, as_shipped, check_finite_weights
-
-if TYPE_CHECKING:
-    from marl.checkpoint import Snapshots
 
 #: Scores a policy on the validation seeds: ``(actor, mode) -> {"reward", "collisions", ...}``
 #: (:func:`benchmark.policy_eval.validation_evaluator`, given by the layer above).
@@ -272,8 +276,7 @@ class PPOTrainer:
             share = cfg.cav_share_min + (cfg.cav_share_max - cfg.cav_share_min) * float(
                 torch.rand(1, generator=gen, dtype=torch.float64))
             placement_seed = int(torch.randint(MAX_SEED + 1, (1,), generator=gen))
-            sc = sc.derive(cav_fraction=share, placement="random",
-                               placement_seed=placement_seed)
+            sc = sc.derive(cav_fraction=share, placement="random", placement_seed=placement_seed)
         if cfg.class_mixes:  # one arrangement of the list, in the order of a drawn class_seed
             mix = cfg.mixes[int(torch.randint(len(cfg.mixes), (1,), generator=gen))]
             class_seed = int(torch.randint(MAX_SEED + 1, (1,), generator=gen))
@@ -464,8 +467,6 @@ class PPOTrainer:
         With ``snapshots``, the run continues from its snapshot file where there is one, and
         keeps one there every so often (after an update; :meth:`snapshot_state`)."""
         if snapshots is not None:
-            from marl.checkpoint import plain_state
-
             # a learner keeping what a snapshot cannot hold fails here, at once
             plain_state({k: getattr(self, k) for k in self.own_state}, (self.gen,))
             state = snapshots.read()
@@ -501,8 +502,6 @@ class PPOTrainer:
         episodes in progress as its draw and the commands it stepped (its env is rebuilt by
         stepping them again, :meth:`restore`). ``elapsed_s``: seconds trained in this
         process."""
-        from marl.checkpoint import plain_state, process_rng_state
-
         scale = self.scale
         return {
             "modules": {name: {k: v.detach().clone() for k, v in module_tensors(m).items()}
@@ -527,8 +526,6 @@ class PPOTrainer:
         """Continue from :meth:`snapshot_state`'s ``state`` (this trainer freshly made with
         the same arguments): the batch in progress is rebuilt by resetting its episodes and
         stepping its commands again, and must give the recorded observations."""
-        from marl.checkpoint import restore_state, set_process_rng_state
-
         with torch.no_grad():
             for name, module in self._modules().items():
                 mine = module_tensors(module)

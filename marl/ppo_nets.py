@@ -234,14 +234,12 @@ class PPOConfig:
                 if any(f"{k}=" in label for k in CLASS_OPTIONS):
                     raise ConfigError(f"scenarios: {label} sets its vehicle classes, which "
                                       "class_mixes draws for every batch; leave them out")
-        if self.comm_delay_max_s:
-            check_delay(self.comm_delay_max_s, "comm_delay_max_s")
-            if self.comm_delay_max_s < self.comm_delay_s:
-                raise ConfigError("comm_delay_max_s must be 0 or >= comm_delay_s")
-        if self.packet_loss_max:
-            check_packet_loss(self.packet_loss_max, "packet_loss_max")
-            if self.packet_loss_max < self.packet_loss:
-                raise ConfigError("packet_loss_max must be 0 or >= packet_loss")
+        for high, low, check in (("comm_delay_max_s", "comm_delay_s", check_delay),
+                                 ("packet_loss_max", "packet_loss", check_packet_loss)):
+            if getattr(self, high):
+                check(getattr(self, high), high)
+                if getattr(self, high) < getattr(self, low):
+                    raise ConfigError(f"{high} must be 0 or >= {low}")
         if not 0 < self.consensus_eps <= 0.5:
             raise ConfigError(f"consensus_eps must lie in (0, 0.5], got {self.consensus_eps}")
         if not (0 <= self.qsgd_levels <= 64 and 1 <= self.qsgd_bucket <= 10**6):

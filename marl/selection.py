@@ -18,7 +18,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import torch
 
@@ -28,12 +28,16 @@ from infra.errors import ConfigError, TrainingDivergedError
 from infra.naming import checkpoint_stem
 from marl import arithmetic
 from marl.a2c import Run, Trainer
-from marl.checkpoint import CURVE_EVAL_KEYS
+from marl.checkpoint import (
+    CURVE_EVAL_KEYS,
+    WEIGHT_DTYPE,
+    Snapshots,
+    checkpoint_payload,
+    plain_state,
+    write_run,
+)
 from marl.config import A2CConfig, Algorithm
 from marl.networks import AgentNet, execution_bits_per_agent_step, training_step_bits_per_agent
-
-if TYPE_CHECKING:
-    from marl.checkpoint import Snapshots
 
 ProgressFn = Callable[[int, int, dict[str, float]], None]
 
@@ -169,8 +173,6 @@ def run_population(
     for r, snap in zip(runs, snaps, strict=True):
         if snap is None:
             continue
-        from marl.checkpoint import plain_state
-
         plain_state(r.hook_state, (r.generator,))  # what a snapshot cannot hold fails at once
         state = snap.read()
         if state is None:
@@ -275,8 +277,6 @@ def acting_net(trainer: Trainer, run: Run, views: dict[int, AgentNet] | None = N
     rounded to the checkpoint's precision (validation scores what is saved, and a saved
     snapshot scores in the harness exactly what validation measured). ``views`` keeps one
     network per run to refill at the next call."""
-    from marl.checkpoint import WEIGHT_DTYPE
-
     views = {} if views is None else views
     view = views.get(run.index)
     if view is None:
@@ -311,8 +311,6 @@ def _finish(
     Nothing is written before the run finishes, and the three files are written together
     (:func:`marl.checkpoint.write_run`).
     """
-    from marl.checkpoint import checkpoint_payload, write_run
-
     exec_bits = execution_bits_per_agent_step(net)
     result.steps, result.episodes = run.steps, run.episodes
     result.wall_s = wall_s
@@ -366,11 +364,8 @@ def _finish(
     final_data = payload()
     kept = result.kept if result.kept is not None else final_data
     # the kept weights with the run's totals (its own selected_* numbers stay)
-    totals = dict(kept["curve_summary"])
-    selected = {k: v for k, v in totals.items() if k.startswith("selected_")}
-    totals.update(final_data["curve_summary"])
-    totals.update(selected)
-    totals["total_steps"] = float(run.steps)
-    kept = {**kept, "curve_summary": totals}
+    selected = {k: v for k, v in kept["curve_summary"].items() if k.startswith("selected_")}
+    kept = {**kept, "curve_summary": {**kept["curve_summary"], **final_data["curve_summary"],
+                                      **selected, "total_steps": float(run.steps)}}
     result.final_checkpoint = out / f"{stem}.final.pt"
     write_run(out, stem, curve, {".final.pt": final_data, ".pt": kept})
