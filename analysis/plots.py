@@ -46,6 +46,15 @@ def save_figure(fig: Any, out_dir: str | Path, stem: str, **kwargs: Any) -> list
     return paths
 
 
+def save_png(fig: Any, path: Path) -> Path:
+    """Lay ``fig`` out tight, write it to ``path`` (PNG, 90 dpi) and close it."""
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    savefig_atomic(fig, path, dpi=90)
+    _plt().close(fig)
+    return path
+
+
 def _save(fig: Any, out_dir: Path, stem: str) -> list[Path]:
     paths = save_figure(fig, out_dir, stem, dpi=130, bbox_inches="tight")
     _plt().close(fig)

@@ -1,8 +1,10 @@
-"""Markdown tables of a leaderboard (for READMEs and notes, from runs one has made)."""
+"""Markdown tables: of a leaderboard (for READMEs and notes, from runs one has made), and the
+table lines, numbers and DataFrame tables every report is made of."""
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+import math
+from collections.abc import Callable, Iterable, Sequence
 from typing import Any
 
 Column = tuple[str, Callable[[Any], str]]
@@ -68,10 +70,40 @@ def markdown_leaderboard(lb: Any, columns: Sequence[Column] = DEFAULT_COLUMNS) -
     columns are left out for a leaderboard without them)."""
     if "sweep_peak_gain" not in lb:
         columns = [c for c in columns if c[0] not in SWEEP_HEADERS]
-    head = "| " + " | ".join(name for name, _ in columns) + " |"
-    rule = "|" + "---|" * len(columns)
-    rows = ["| " + " | ".join(fmt(r) for _, fmt in columns) + " |" for _, r in lb.iterrows()]
-    return "\n".join([head, rule, *rows])
+    return "\n".join(table_lines([name for name, _ in columns],
+                                  ([fmt(r) for _, fmt in columns] for _, r in lb.iterrows())))
+
+
+def num(x: Any, spec: str = ",.2f") -> str:
+    """``x`` formatted by ``spec``; ``n/a`` for None or NaN."""
+    return "n/a" if x is None or (isinstance(x, float) and math.isnan(x)) else format(x, spec)
+
+def row(cells: Iterable[Any]) -> str:
+    """One line of a Markdown table: ``| a | b |``."""
+    return "| " + " | ".join(str(c) for c in cells) + " |"
+
+def table_lines(header: Sequence[str], rows: Iterable[Iterable[Any]]) -> list[str]:
+    """The lines of a Markdown table: ``header``, the rule (``|---|---|``) and one line per row."""
+    return [row(header), "|" + "---|" * len(header), *(row(r) for r in rows)]
+
+def format_table(df: Any, columns: Sequence[tuple[str, str]] | None = None, digits: int = 2, *,
+                 significant: bool = False, missing: str = "-") -> str:
+    """A Markdown table of ``df``'s ``columns`` (key, header; default: every column under its
+    own name) with a ``| --- |`` rule: a float to ``digits`` decimals (``significant``:
+    significant digits), NaN as ``missing``."""
+    import numpy as np
+
+    columns = [(c, c) for c in df.columns] if columns is None else columns
+    spec = f".{digits}{'g' if significant else 'f'}"
+
+    def cell(v: Any) -> str:
+        if isinstance(v, float | np.floating):
+            return missing if math.isnan(v) else format(v, spec)
+        return str(v)
+
+    lines = [row(h for _, h in columns), row("---" for _ in columns)]
+    lines += [row(cell(r[key]) for key, _ in columns) for _, r in df.iterrows()]
+    return "\n".join(lines)
 
 
 #: Width of the printed leaderboard (``run``, ``leaderboard``): a row fits it unless its label

@@ -20,8 +20,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from analysis.tables import table_lines
 from benchmark.statistics import hierarchical_bootstrap_ci
-from studies.report import table_lines
 
 if TYPE_CHECKING:
     from envs.scenarios import Scenario

@@ -23,8 +23,9 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from analysis.plots import save_png
+from analysis.tables import num, table_lines
 from studies.penetration import BASELINE, families_of
-from studies.report import num, save_png, table_lines
 
 if TYPE_CHECKING:
     from envs.scenarios import Scenario

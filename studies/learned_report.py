@@ -20,8 +20,8 @@ from typing import Any
 
 import numpy as np
 
+from analysis.tables import num, table_lines
 from benchmark.statistics import paired_ci
-from studies.report import num, table_lines
 
 #: Report name -> (registered controller, options other than the training seed).
 POLICIES: dict[str, tuple[str, dict[str, str]]] = {

@@ -20,8 +20,9 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from analysis.plots import save_png
+from analysis.tables import row, table_lines
 from benchmark.statistics import bootstrap_ci
-from studies.report import row, save_png, table_lines
 
 if TYPE_CHECKING:
     from envs.scenarios import Scenario

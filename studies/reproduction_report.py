@@ -11,6 +11,7 @@ from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
+from analysis.tables import format_table
 from benchmark.export import write_csv
 from envs.scenarios import Scenario
 from marl.training import PolicyJob
@@ -24,7 +25,6 @@ from studies.paper import (
     SIZES,
     Budget,
 )
-from studies.report import format_table
 
 
 def check_job_files(jobs: list[PolicyJob]) -> None:

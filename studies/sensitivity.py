@@ -167,10 +167,10 @@ def plot_bits_against_reward(df: Any, out_dir: Path, stem: str) -> list[Path]:
 def write_report(df: Any, out: Path, command: str, steps: int, seeds: list[int],
                  episodes: int) -> Path:
     """``OUT/report.md`` with a table per scenario, the knob effects and the figures."""
+    from analysis.tables import format_table
     from benchmark.export import write_csv
     from benchmark.provenance import git_sha
     from infra.atomic import write_text
-    from studies.report import format_table
 
     fig_dir = out / "figures"
     lines = ["# BDC-MARL sensitivity", "",

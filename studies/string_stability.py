@@ -33,8 +33,8 @@ from typing import Any
 
 import numpy as np
 
+from analysis.tables import num, table_lines
 from studies.learned_report import HIGHER, compare, side
-from studies.report import num, table_lines
 
 #: V2V settings of the study, by name: (delay s, loss).
 CHANNELS: dict[str, tuple[float, float]] = {

@@ -32,13 +32,13 @@ from typing import Any
 
 import numpy as np
 
+from analysis.tables import format_table
 from benchmark.metrics import run_metrics
 from benchmark.rollout import Trajectory, rollout_batch
 from controllers.linear import CACCController
 from controllers.registry import make_controller
 from envs.params import PlatoonParams
 from envs.scenarios import Scenario, make_scenario
-from studies.report import format_table
 
 #: Controllers whose trajectories are compared, and the scenarios (issue 57, point 2).
 AGREEMENT_CONTROLLERS: tuple[str, ...] = ("acc", "cacc", "mpc-qp", "bdc")

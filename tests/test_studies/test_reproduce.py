@@ -14,10 +14,10 @@ import pandas as pd
 import pytest
 from run_marks import FULL
 
+from analysis.tables import format_table
 from commands.cli import main as cli
 from studies import reproduction as rp
 from studies.paper import TABLE_I_REWARD, TABLE_II, TABLE_III
-from studies.report import format_table
 
 VERDICTS = {"holds", "does not hold", "inconclusive", "not testable here"}
 
