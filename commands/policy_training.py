@@ -76,7 +76,7 @@ def shipped_checkpoint(job: PolicyJob) -> Path | None:
         curve = path.with_suffix("").with_suffix(".curve.csv")
         if not path.exists() or not curve.exists():
             continue
-        data = load_checkpoint(path, algo=job.algo, n_vehicles=job.vehicles,
+        data = load_checkpoint(path, algo=job.algo, n_vehicles=job.n_vehicles,
                                scenario=job.scenario.id)
         total = data.get("curve_summary", {}).get("total_steps", data.get("steps", 0))
         if data.get("config") == config and same_energy_model(data) and (
@@ -117,7 +117,7 @@ def copy_shipped(job: PolicyJob, path: Path) -> None:
     from marl.checkpoint import load_checkpoint
 
     job.out.mkdir(parents=True, exist_ok=True)
-    data = load_checkpoint(path, algo=job.algo, n_vehicles=job.vehicles, scenario=job.scenario.id)
+    data = load_checkpoint(path, algo=job.algo, n_vehicles=job.n_vehicles, scenario=job.scenario.id)
     with StagedFiles() as staged:
         for suffix in (".pt", ".curve.csv", ".log"):
             src = path.parent / job.file(suffix).name
@@ -139,7 +139,7 @@ def record_trained(job: PolicyJob) -> None:
     from marl.arithmetic import of_summary
     from marl.checkpoint import load_checkpoint
 
-    data = load_checkpoint(job.file(".final.pt"), algo=job.algo, n_vehicles=job.vehicles,
+    data = load_checkpoint(job.file(".final.pt"), algo=job.algo, n_vehicles=job.n_vehicles,
                            scenario=job.scenario.id)
     write_text(job.file(".source.json"), json.dumps({
         "source": "trained", "commit": git_sha(), "config": data["config"],

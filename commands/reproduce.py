@@ -114,8 +114,8 @@ def _train_plan(algos: list[str], scenarios: Sequence[Scenario | str], budget: B
         config = tuned_config("bdc", SIZE_SCENARIO, {}, "bdc")
         runs += [("bdc", "bdc", make_scenario(train_id), OPENACC_VEHICLES, ckpt, config, "openacc")
                  for train_id in OPENACC_GROUPS.values()]
-    return [PolicyJob(name, algo, sc, n, seed, folder, config, budget.steps, study,
-                      budget.validation_episodes)
+    return [PolicyJob(algo, sc, n, (seed,), budget.steps, config, folder,
+                      validation_episodes=budget.validation_episodes, name=name, study=study)
             for name, algo, sc, n, folder, config, study in runs for seed in budget.seeds]
 
 

@@ -122,9 +122,10 @@ def plan(built: Sequence[Scenario], knobs: list[str], seeds: list[int], steps: i
         for v in variants(knobs, tuned):
             folder = out / "checkpoints" / v["name"]
             config = tuned_config("bdc", sc.label, v["overrides"], f"bdc {v['name']}")
-            vjobs = [PolicyJob("bdc" if v["is_base"] else f"bdc-{v['name']}", "bdc", sc,
-                               N_VEHICLES, seed, folder, config, steps, "sensitivity",
-                               validation_episodes) for seed in seeds]
+            vjobs = [PolicyJob("bdc", sc, N_VEHICLES, (seed,), steps, config, folder,
+                               validation_episodes=validation_episodes,
+                               name="bdc" if v["is_base"] else f"bdc-{v['name']}",
+                               study="sensitivity") for seed in seeds]
             jobs += vjobs
             ctrls = [("bdc", {"checkpoint_dir": str(folder), "seed": str(seed)})
                      for seed in seeds]
@@ -176,7 +177,7 @@ def _summaries(settings: list[dict[str, Any]]) -> list[dict[str, Any]]:
             path = str(job.file(".pt"))
             if path not in cache:
                 cache[path] = load_checkpoint(path, algo=job.algo,
-                                              n_vehicles=job.vehicles)["curve_summary"]
+                                              n_vehicles=job.n_vehicles)["curve_summary"]
             summaries.append(cache[path])
         out.append({**s, "training": summaries})
     return out

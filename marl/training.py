@@ -113,50 +113,36 @@ class TrainingKey:
 
 
 @dataclass(frozen=True)
-class PolicyJob:
-    """One policy-training run of a study (``cacc-bench reproduce``, ``sensitivity``), trained
-    as :meth:`key` into ``out``.
+class PolicyJob(TrainingKey):
+    """One policy-training run of a study (``cacc-bench reproduce``, ``sensitivity``): a
+    :class:`TrainingKey` of one seed with the name it has in the study and the study itself.
 
     Attributes
     ----------
-    name, algo : str
-        The algorithm or an ablation or variant of it (its shipped folder); the learner
-        (:data:`marl.learners.LEARNERS`).
-    scenario : Scenario
-        Built once where the job is made.
-    vehicles, seed, steps, validation_episodes : int
-        Followers N; the training seed; environment steps; the validation seeds that choose
-        the kept snapshot.
-    out : Path
-        The folder of its files (:meth:`file`).
-    config : object
-        The learner's config (:func:`config_class`), built and checked once.
-    study, arithmetic : str
-        The study it serves (``main``, ``sizes``, ``openacc``, ``sensitivity``);
-        :mod:`marl.arithmetic`'s mode.
+    name : str
+        The algorithm, or an ablation or variant of it (its shipped folder).
+    study : str
+        The study it serves (``main``, ``sizes``, ``openacc``, ``sensitivity``).
     """
 
-    name: str
-    algo: str
-    scenario: Scenario
-    vehicles: int
-    seed: int
-    out: Path
-    config: Any
-    steps: int
-    study: str
-    validation_episodes: int = 32
-    arithmetic: str = "native"
+    name: str = field(default="", compare=False)
+    study: str = field(default="", compare=False)
+
+    @property
+    def seed(self) -> int:
+        """Its training seed (a study's job is one run)."""
+        (seed,) = self.seeds
+        return seed
 
     def key(self, device: str = "cpu") -> TrainingKey:
-        """The job as a training key (a population of one) on ``device``."""
-        return TrainingKey(self.algo, self.scenario, self.vehicles, (self.seed,), self.steps,
-                           self.config, self.out, self.arithmetic, device,
-                           self.validation_episodes)
+        """The plain training key of the job on ``device``."""
+        return TrainingKey(**{f.name: getattr(self, f.name)
+                              for f in dataclasses.fields(TrainingKey)}
+                           | {"device": device})
 
     def file(self, suffix: str) -> Path:
         """Its file ``<stem><suffix>`` (:meth:`TrainingKey.stem`; ``.pt``, ``.source.json``)."""
-        return self.out / f"{self.key().stem(self.seed)}{suffix}"
+        return self.out / f"{self.stem(self.seed)}{suffix}"
 
 
 def finished(key: TrainingKey) -> bool:

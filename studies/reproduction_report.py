@@ -50,7 +50,7 @@ def check_job_files(jobs: list[PolicyJob]) -> None:
         if job.file(".curve.csv").exists():
             read_curve(job.file(".curve.csv"))
         if job.file(".pt").exists():
-            load_checkpoint(job.file(".pt"), algo=job.algo, n_vehicles=job.vehicles,
+            load_checkpoint(job.file(".pt"), algo=job.algo, n_vehicles=job.n_vehicles,
                             scenario=job.scenario.id)
 
 
@@ -60,7 +60,7 @@ def _curves(jobs: list[PolicyJob], study: str = "main",
     ``<name> N=<n>``."""
     from studies.reproduction import read_curve
 
-    return {(f"{j.name} N={j.vehicles}" if by_size else j.name, j.scenario.label, j.seed):
+    return {(f"{j.name} N={j.n_vehicles}" if by_size else j.name, j.scenario.label, j.seed):
             read_curve(j.file(".curve.csv")) for j in jobs if j.study == study}
 
 

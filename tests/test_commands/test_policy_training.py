@@ -40,8 +40,10 @@ def job(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> PolicyJob:
     monkeypatch.setattr(policy, "CHECKPOINT_DIR", tmp_path / "shipped")
     monkeypatch.setattr(policy, "VARIANT_DIR", tmp_path / "shipped" / "variants")
     (tmp_path / "shipped").mkdir()
-    return PolicyJob("bdc", "bdc", make_scenario("catchup-v1"), 8, 0, tmp_path / "out",
-                     learner_config("bdc", {"gamma": 0.995}), 600_000, "main")
+    return PolicyJob("bdc", make_scenario("catchup-v1"), 8, (0,), 600_000,
+                     learner_config("bdc", {"gamma": 0.995}), tmp_path / "out",
+                     validation_episodes=32, name="bdc",
+                     study="main")
 
 
 def test_a_shipped_run_stands_in_only_with_the_same_config_and_budget(

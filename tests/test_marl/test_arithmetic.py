@@ -167,9 +167,9 @@ def test_the_training_stage_records_portable_runs(tmp_path: Path) -> None:
     from commands.policy_training import train_stage
     from studies.reproduction_report import _arithmetic_sentence
 
-    job = PolicyJob("ia2c", "ia2c", make_scenario("catchup-v1"), 3, 0, tmp_path,
-                    learner_config("ia2c", {"episodes_parallel": 2}), 300, "main",
-                    validation_episodes=2)
+    job = PolicyJob("ia2c", make_scenario("catchup-v1"), 3, (0,), 300,
+                    learner_config("ia2c", {"episodes_parallel": 2}), tmp_path,
+                    validation_episodes=2, name="ia2c", study="main")
     args = SimpleNamespace(executor="serial", workers=1, ray_address=None, population=None,
                            arithmetic="portable")
     train_stage([job], args, reuse_shipped=False)
